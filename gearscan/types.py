@@ -1,0 +1,139 @@
+"""Dataclasses that travel between pipeline stages.
+
+Every stage package may import this module; it depends on numpy only, so importing it
+never pulls in torch, open3d, rerun or hardware libraries.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True, slots=True, repr=False)
+class Frame:
+    """One camera image with the metadata the burst assembler and recorder need.
+
+    ``image`` is ``(H, W)`` in the camera's raw dtype (uint8 or uint16); ``bit_depth`` says
+    how many of its bits carry signal (8, 10, 12, 16). Times are nanoseconds; the device
+    timestamp is in the camera's clock, the host timestamp in ``time.monotonic_ns``.
+    """
+
+    image: np.ndarray
+    frame_id: int
+    timestamp_ns: int
+    pattern_index: int = 0
+    exposure_us: float = 0.0
+    bit_depth: int = 8
+    host_timestamp_ns: int = 0
+    encoder_angle: float | None = None  # rad, turntable angle at exposure midpoint, if known
+
+    @property
+    def full_scale(self) -> int:
+        """Largest value a pixel can take, ``2**bit_depth - 1`` (S in DESIGN.md)."""
+        return (1 << self.bit_depth) - 1
+
+    @property
+    def midpoint_ns(self) -> int:
+        """Device time of the middle of the exposure (timestamps mark exposure start)."""
+        return self.timestamp_ns + int(round(self.exposure_us * 500.0))
+
+    def __repr__(self) -> str:
+        h, w = self.image.shape[:2]
+        return (
+            f"Frame(id={self.frame_id}, t={self.timestamp_ns} ns, pattern={self.pattern_index}, "
+            f"{w}x{h} {self.image.dtype}/{self.bit_depth}bit, exposure={self.exposure_us:g} us)"
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class EncoderSample:
+    """One turntable encoder reading, already mapped to the host clock."""
+
+    seq: int
+    device_time_us: int
+    count: int
+    index: bool
+    angle: float  # rad, after counts-per-rev scaling and index zeroing
+    host_time_ns: int = 0
+
+
+@dataclass(frozen=True, slots=True, repr=False)
+class Burst:
+    """Three frames with phase shifts 0, 2pi/3, 4pi/3 at increasing turntable angles.
+
+    ``angles`` are the encoder angles (rad) at each frame's exposure midpoint; the
+    burst's ground truth (and the network's target) is the phase at ``angles[0]``.
+    """
+
+    frames: tuple[Frame, Frame, Frame]
+    angles: tuple[float, float, float]
+    index: int = 0
+
+    @property
+    def images(self) -> np.ndarray:
+        """The three images stacked as ``(3, H, W)`` in raw dtype."""
+        return np.stack([f.image for f in self.frames])
+
+    @property
+    def full_scale(self) -> int:
+        return self.frames[0].full_scale
+
+    @property
+    def timestamp_ns(self) -> int:
+        return self.frames[0].timestamp_ns
+
+    def __repr__(self) -> str:
+        deg = ", ".join(f"{np.degrees(a):.3f}" for a in self.angles)
+        ids = [f.frame_id for f in self.frames]
+        return f"Burst(index={self.index}, frames={ids}, angles_deg=[{deg}])"
+
+
+@dataclass(slots=True)
+class PhaseResult:
+    """Wrapped phase of one burst with its per-pixel uncertainty (all ``(H, W)`` float32).
+
+    ``M`` and ``D`` are normalised by ``N*S/4`` (DESIGN.md), so ``hypot(M, D) = 2B/S``.
+    Uncertainties are standard deviations in radians; ``sigma_model`` is zero for a
+    deterministic or classical decode.
+    """
+
+    phase: np.ndarray
+    M: np.ndarray
+    D: np.ndarray
+    sigma_model: np.ndarray
+    sigma_data: np.ndarray
+    sigma_total: np.ndarray
+    mode: str = "deterministic"
+    var_M: np.ndarray | None = None
+    var_D: np.ndarray | None = None
+    burst_index: int = 0
+    angle: float = 0.0  # rad, turntable angle the phase refers to (first frame)
+
+    @property
+    def modulation(self) -> np.ndarray:
+        """Normalised modulation ``2B/S`` per pixel."""
+        return np.hypot(self.M, self.D)
+
+
+@dataclass(slots=True)
+class Cloud:
+    """Measured 3D points with per-point uncertainty.
+
+    ``points`` is ``(N, 3)`` float64 in the frame named by ``frame`` ("camera" or
+    "world" = turntable); ``sigma`` is the 1-sigma depth uncertainty in mm;
+    ``pixels`` holds the ``(row, col)`` each point came from.
+    """
+
+    points: np.ndarray
+    sigma: np.ndarray
+    pixels: np.ndarray
+    frame: str = "camera"
+    burst_index: int = 0
+    angle: float = 0.0
+    deviation: np.ndarray | None = None  # mm, signed distance to CAD if computed
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])

@@ -1,0 +1,109 @@
+"""Fringe pattern sets: N-step phase shifting at one or several fringe periods.
+
+Phase varies along projector columns, ``phi = 2 pi u_p / period_px``; pattern n of an
+N-step group is ``I_n = A + B cos(phi + delta_n)`` with ``delta_n = 2 pi n / N``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class PatternError(ValueError):
+    """A pattern set parameter is out of range."""
+
+
+@dataclass(frozen=True, slots=True)
+class Pattern:
+    """One sinusoidal fringe image: its period (projector px) and phase shift (rad)."""
+
+    period_px: float
+    shift: float
+
+
+@dataclass(frozen=True)
+class PatternSet:
+    """An ordered list of fringe patterns, shown one per camera frame."""
+
+    patterns: tuple[Pattern, ...]
+    name: str = "custom"
+
+    def __post_init__(self) -> None:
+        if not self.patterns:
+            raise PatternError("pattern set is empty")
+        for p in self.patterns:
+            if not (p.period_px >= 2):
+                raise PatternError(f"period_px must be >= 2 projector pixels, got {p.period_px}")
+
+    def __len__(self) -> int:
+        return len(self.patterns)
+
+    @property
+    def shifts(self) -> np.ndarray:
+        return np.array([p.shift for p in self.patterns])
+
+    @property
+    def periods(self) -> tuple[float, ...]:
+        """Distinct periods in order of first appearance."""
+        seen: list[float] = []
+        for p in self.patterns:
+            if p.period_px not in seen:
+                seen.append(p.period_px)
+        return tuple(seen)
+
+    def group(self, period_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """Indices and shifts of the patterns with this period."""
+        idx = np.array([i for i, p in enumerate(self.patterns) if p.period_px == period_px])
+        if idx.size == 0:
+            raise PatternError(f"no pattern with period {period_px} in set {self.name!r} (periods {self.periods})")
+        return idx, self.shifts[idx]
+
+    @classmethod
+    def n_step(cls, steps: int, period_px: float) -> PatternSet:
+        """``steps`` equally shifted patterns at one period."""
+        if steps < 3:
+            raise PatternError(f"steps must be >= 3 for phase shifting, got {steps}")
+        return cls(
+            tuple(Pattern(float(period_px), 2 * math.pi * n / steps) for n in range(steps)),
+            name=f"{steps}-step@{period_px:g}px",
+        )
+
+    @classmethod
+    def three_step(cls, period_px: float) -> PatternSet:
+        """The dynamic burst set: shifts 0, 2pi/3, 4pi/3."""
+        return cls.n_step(3, period_px)
+
+    @classmethod
+    def multi_frequency(cls, periods_px: list[float], steps: int = 18) -> PatternSet:
+        """Static reference: an N-step group per period, finest period first."""
+        if len(periods_px) < 1:
+            raise PatternError("multi_frequency needs at least one period")
+        pats: list[Pattern] = []
+        for period in periods_px:
+            pats.extend(cls.n_step(steps, period).patterns)
+        return cls(tuple(pats), name=f"{steps}-step@{','.join(f'{p:g}' for p in periods_px)}px")
+
+    def image(self, index: int, width: int, height: int, *, gamma: float = 1.0, bit_depth: int = 8) -> np.ndarray:
+        """Projector image of pattern ``index``, pre-compensated for a display ``gamma``."""
+        p = self.patterns[index]
+        u = np.arange(width, dtype=np.float64)
+        row = 0.5 + 0.5 * np.cos(2 * math.pi * u / p.period_px + p.shift)
+        if gamma != 1.0:
+            row = row ** (1.0 / gamma)
+        scale = (1 << bit_depth) - 1
+        dtype = np.uint8 if bit_depth <= 8 else np.uint16
+        return np.broadcast_to(np.round(row * scale).astype(dtype), (height, width)).copy()
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "patterns": [{"period_px": p.period_px, "shift": p.shift} for p in self.patterns]}
+
+    @classmethod
+    def from_json(cls, data: dict) -> PatternSet:
+        try:
+            pats = tuple(Pattern(float(p["period_px"]), float(p["shift"])) for p in data["patterns"])
+        except (KeyError, TypeError) as exc:
+            raise PatternError(f"pattern set: expected {{'patterns': [{{'period_px', 'shift'}}...]}}, got {data!r:.200}") from exc
+        return cls(pats, name=str(data.get("name", "custom")))

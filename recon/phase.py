@@ -1,0 +1,81 @@
+"""Classical phase-shifting decoders and wrap-aware error metrics.
+
+Decoding follows paper eq. 2: ``M = -sum I_n sin(delta_n)``, ``D = sum I_n cos(delta_n)``,
+``phi = atan2(M, D)``. M and D are returned normalised by ``N S / 4`` so that
+``hypot(M, D) = 2B/S`` (DESIGN.md), the same scale as the network's targets.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+THREE_STEP_SHIFTS = np.array([0.0, 2 * math.pi / 3, 4 * math.pi / 3])
+
+
+def _check_stack(images: np.ndarray, shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    images = np.asarray(images)
+    shifts = np.asarray(shifts, dtype=np.float64).ravel()
+    if images.ndim != 3:
+        raise ValueError(f"images: expected (N, H, W), got shape {images.shape}")
+    if images.shape[0] != shifts.size:
+        raise ValueError(f"images has {images.shape[0]} frames but {shifts.size} shifts were given")
+    if shifts.size < 3:
+        raise ValueError(f"phase shifting needs >= 3 frames, got {shifts.size}")
+    return images, shifts
+
+
+def decode_md(images: np.ndarray, shifts: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares numerator and denominator (eq. 2), normalised by ``N S / 4``.
+
+    Parameters
+    ----------
+    images : (N, H, W) array, any real dtype
+    shifts : (N,) phase shifts delta_n in rad
+    full_scale : S, the largest pixel value (255 for 8-bit)
+    """
+    images, shifts = _check_stack(images, shifts)
+    n = shifts.size
+    norm = n * float(full_scale) / 4.0
+    s = (-np.sin(shifts) / norm).astype(np.float32)
+    c = (np.cos(shifts) / norm).astype(np.float32)
+    flat = images.reshape(n, -1).astype(np.float32, copy=False)
+    m = (s @ flat).reshape(images.shape[1:])
+    d = (c @ flat).reshape(images.shape[1:])
+    return m, d
+
+
+def decode_phase(images: np.ndarray, shifts: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Wrapped phase in (-pi, pi], normalised M and D of an N-step stack."""
+    m, d = decode_md(images, shifts, full_scale)
+    return np.arctan2(m, d), m, d
+
+
+def three_step(images: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Three-step phase shifting (shifts 0, 2pi/3, 4pi/3): phase, M, D."""
+    return decode_phase(images, THREE_STEP_SHIFTS, full_scale)
+
+
+def wrap(phase: np.ndarray) -> np.ndarray:
+    """Wrap to (-pi, pi]."""
+    return np.angle(np.exp(1j * np.asarray(phase)))
+
+
+def phase_error(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Wrap-aware difference ``angle(exp(1j (a - b)))``."""
+    diff = np.asarray(estimate, dtype=np.float64) - np.asarray(truth, dtype=np.float64)
+    return (diff + np.pi) % (2 * np.pi) - np.pi
+
+
+def wrapped_rmse(estimate: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Root-mean-square wrap-aware phase error over ``mask`` (all pixels if None)."""
+    err = phase_error(estimate, truth)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != err.shape:
+            raise ValueError(f"mask: expected shape {err.shape}, got {mask.shape}")
+        err = err[mask]
+    if err.size == 0:
+        raise ValueError("wrapped_rmse: mask selects no pixels")
+    return float(np.sqrt(np.mean(err**2)))
