@@ -1,0 +1,162 @@
+"""Phase unwrapping: temporal multi-frequency and geometric constraint (recon/unwrap.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from gearscan.projector.patterns import PatternSet
+from gearscan.recon.phase import decode_phase, wrap
+from gearscan.recon.unwrap import (
+    TWO_PI,
+    DepthBounds,
+    coarse_absolute,
+    gear_depth_bounds,
+    geometric_unwrap,
+    min_unambiguous_period,
+    phase_bounds,
+    temporal_unwrap,
+)
+from gearscan.twin.gear import GearSpec
+from gearscan.twin.render import Optics, TwinRenderer
+
+from gearscan.rig import default_rig
+
+PROJ_W = 1280
+
+
+def _columns(shape=(64, 80), rng=0) -> np.ndarray:
+    """Projector columns spanning the whole projector, with a smooth 2D variation."""
+    r = np.random.default_rng(rng)
+    u = np.linspace(0, PROJ_W - 1, shape[1])[None, :] + 5 * np.sin(np.arange(shape[0]) / 7.0)[:, None]
+    return np.clip(u + r.normal(0, 0.5, shape), 0, PROJ_W - 1)
+
+
+def test_coarse_absolute_is_unambiguous_near_both_ends():
+    period = 1400.0
+    u = np.array([[0.0, 0.2, 640.0, 1279.0]])
+    phi = TWO_PI * u / period
+    noisy = wrap(phi - 0.05)  # noise pushes column 0 below zero: must not jump by 2 pi
+    got = coarse_absolute(noisy, period, PROJ_W)
+    np.testing.assert_allclose(got, phi - 0.05, atol=1e-12)
+
+
+def test_coarse_absolute_rejects_short_period():
+    with pytest.raises(ValueError, match="projector width"):
+        coarse_absolute(np.zeros((2, 2)), 800.0, PROJ_W)
+
+
+@pytest.mark.parametrize("periods", [[20.0, 160.0, 1400.0], [1400.0, 36.0, 240.0], [1280.0, 128.0]])
+def test_temporal_unwrap_recovers_absolute_phase(periods):
+    u = _columns()
+    wrapped = [wrap(TWO_PI * u / p) for p in periods]
+    res = temporal_unwrap(wrapped, periods, PROJ_W)
+    fine = min(periods)
+    assert res.period_px == fine
+    assert res.valid.all()
+    np.testing.assert_allclose(res.phase_abs, TWO_PI * u / fine, atol=1e-9)
+    np.testing.assert_array_equal(res.order, np.rint((TWO_PI * u / fine - wrapped[periods.index(fine)]) / TWO_PI))
+
+
+def test_temporal_unwrap_flags_inconsistent_frequencies():
+    periods = [20.0, 160.0, 1400.0]
+    u = _columns()
+    wrapped = [wrap(TWO_PI * u / p) for p in periods]
+    wrapped[1] = wrapped[1].copy()
+    wrapped[1][10, 10] = wrap(wrapped[1][10, 10] + math.pi)  # half a fringe off in the middle period
+    res = temporal_unwrap(wrapped, periods, PROJ_W)
+    assert not res.valid[10, 10] and np.isnan(res.phase_abs[10, 10])
+    assert res.valid.sum() == res.valid.size - 1
+
+
+def test_temporal_unwrap_checks_inputs():
+    with pytest.raises(ValueError, match="2 wrapped phases but 3 periods"):
+        temporal_unwrap([np.zeros((2, 2))] * 2, [1, 2, 3], PROJ_W)
+    with pytest.raises(ValueError, match=r"wrapped\[0\]: expected shape \(3, 2\), got \(2, 2\)"):
+        temporal_unwrap([np.zeros((2, 2)), np.zeros((3, 2))], [20.0, 1400.0], PROJ_W)
+
+
+def test_geometric_unwrap_hand_values():
+    # phi_min = 10.0 rad; wrapped phase 1.0 -> k = ceil((10 - 1)/2pi) = 2 -> 1 + 4 pi = 13.57
+    wrapped = np.array([[1.0, 1.0, -3.0]])
+    lo = np.array([[10.0, 10.0, 10.0]])
+    hi = np.array([[14.0, 20.0, 15.0]])  # second: interval admits 1 + 4pi and 1 + 6pi
+    res = geometric_unwrap(wrapped, lo, hi, 20.0)
+    assert res.order[0, 0] == 2 and res.valid[0, 0]
+    assert math.isclose(res.phase_abs[0, 0], 1.0 + 4 * math.pi)
+    assert not res.valid[0, 1]  # ambiguous: reported, not guessed
+    # -3 + 2pi*2 = 9.57 < 10 and -3 + 2pi*3 = 15.85 > 15: no order fits -> invalid
+    assert not res.valid[0, 2]
+    # a margin lets the noisy one in
+    res = geometric_unwrap(wrapped, lo, hi, 20.0, margin=0.5)
+    assert res.valid[0, 2] and res.order[0, 2] == 2
+
+
+def test_virtual_plane_bounds_match_hand_projection():
+    rig = default_rig(64, 64, distortion=False)
+    b = DepthBounds.planes(rig.camera, 158.0, 170.0)
+    lo, hi = phase_bounds(rig, b, period_px=100.0)
+    # centre pixel (31.5 is the centre; take 32,32 close to the axis) by hand
+    ray = np.linalg.inv(rig.camera.K) @ np.array([32.0, 32.0, 1.0])
+    u = []
+    for z in (158.0, 170.0):
+        p_cam = ray * z
+        p_w = rig.camera.T_world_from[:3, :3] @ p_cam + rig.camera.T_world_from[:3, 3]
+        u.append(rig.projector.project(p_w[None])[0, 0])
+    np.testing.assert_allclose(sorted([lo[32, 32], hi[32, 32]]), sorted(TWO_PI * np.array(u) / 100.0), rtol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def gear_setup():
+    rig = default_rig()
+    gear = GearSpec()
+    bounds = gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
+    return rig, gear, bounds, TwinRenderer(rig, gear, Optics())
+
+
+def test_gear_bounds_contain_the_true_surface(gear_setup):
+    rig, gear, bounds, renderer = gear_setup
+    for angle in np.radians([0.0, 7.0, 13.0]):
+        surf = renderer.surface(float(angle))
+        tr = renderer.truth(surf, 100.0)
+        d = surf.depth[tr.mask]
+        assert np.all(d >= bounds.t_min[tr.mask] - 1e-3)
+        assert np.all(d <= bounds.t_max[tr.mask] + 1e-3)
+
+
+def test_single_frequency_geometric_unwrap_over_working_range(gear_setup):
+    """Fringe order right on >= 99.5 % of valid pixels, over one pitch of rotation (noisy)."""
+    rig, gear, bounds, renderer = gear_setup
+    needed = min_unambiguous_period(rig, bounds)
+    assert 60 < needed < 120  # ~95 projector px for the default rig and gear
+    period = math.ceil(needed / 10) * 10 + 10.0  # some room for the noise margin
+    lo, hi = phase_bounds(rig, bounds, period)
+    patterns = PatternSet.three_step(period)
+    right = total = 0
+    for i, angle in enumerate(np.linspace(0.0, gear.pitch_angle, 7)[:-1]):
+        images, tr = renderer.render(float(angle), patterns, rng=i)
+        phase, _, _ = decode_phase(images, patterns.shifts, renderer.optics.full_scale)
+        res = geometric_unwrap(phase, lo, hi, period, margin=0.2)
+        k_true = np.rint((tr.phase_abs - phase) / TWO_PI)
+        ok = res.valid & (res.order == k_true)
+        right += int(ok[tr.mask].sum())
+        total += int(tr.mask.sum())
+    assert total > 50_000
+    assert right / total >= 0.995, f"fringe order right on {100 * right / total:.3f}% of valid pixels"
+
+
+def test_geometric_unwrap_reports_ambiguity_for_fine_fringes(gear_setup):
+    """With fringes finer than the depth range, pixels are flagged, and those kept are right."""
+    rig, gear, bounds, renderer = gear_setup
+    period = 30.0
+    lo, hi = phase_bounds(rig, bounds, period)
+    patterns = PatternSet.three_step(period)
+    images, tr = renderer.render(0.0, patterns, rng=0)
+    phase, _, _ = decode_phase(images, patterns.shifts, renderer.optics.full_scale)
+    res = geometric_unwrap(phase, lo, hi, period, margin=0.2)
+    k_true = np.rint((tr.phase_abs - phase) / TWO_PI)
+    kept = res.valid & tr.mask
+    assert kept.sum() < 0.05 * tr.mask.sum()
+    if kept.any():
+        assert np.all(res.order[kept] == k_true[kept])
