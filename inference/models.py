@@ -1,0 +1,247 @@
+"""CD-DCU-Net and its peer networks (paper §2.2 and §3.4), all with one interface.
+
+Every model maps ``(B, C_in, H, W)`` float32 frames in [0, 1] (the three phase-shifted
+frames, then any extra channels) to ``(B, 4, H, W)``: mean M, mean D, var M, var D, with the
+variances passed through ``softplus + 1e-3`` (paper §3.3). M and D are on the scale of the
+labels, normalised by ``N*S/4`` so that ``hypot(M, D) = 2B/S`` (DESIGN.md). Any H, W works:
+the input is padded to a multiple of 16 (reflect) and the output cropped back.
+
+Models (``build_model(name, ...)``):
+
+- ``cd-dcu-net``: Double Conv U-Net, Concrete Dropout (own 3x3 conv) after the stem, every
+  down stage and every up stage (9 layers), dual 3x3 head with no norm/activation.
+- ``unet``: the same encoder/decoder without dropout, 1x1 head.
+- ``ts-unet``: three parallel encoders, one per frame, fused per scale by a 1x1 conv, one
+  decoder, 3x3 head.
+- ``dr-unet``: residual blocks instead of Double Conv, 1x1 head.
+
+Two options let the network start from what three-step phase shifting already knows
+(computed inside the model from the first three input channels, so callers still feed only
+frames): ``classical_input`` appends the classical M, D as two extra input channels, and
+``residual`` makes the mean outputs a correction added to the classical M, D.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from gearscan.inference.blocks import (
+    Decoder,
+    DoubleConv,
+    Encoder,
+    ResidualBlock,
+    encoder_channels,
+    make_head,
+)
+from gearscan.inference.concrete_dropout import ConcreteDropout2d
+
+MULTIPLE = 16
+VAR_FLOOR = 1e-3
+MODEL_NAMES = ("cd-dcu-net", "unet", "ts-unet", "dr-unet")
+
+
+@dataclass
+class ModelConfig:
+    """Everything needed to rebuild a network; stored as JSON beside its weights."""
+
+    name: str = "cd-dcu-net"
+    width: int = 16
+    in_channels: int = 3
+    classical_input: bool = False
+    residual: bool = False
+    dropout: bool | None = None  # None: Concrete Dropout for cd-dcu-net only
+    channelwise: bool = True
+    temperature: float | None = None
+    weight_reg: float = 1e-5
+    dropout_reg: float = 1e-6
+    init_min: float = 0.1
+    init_max: float = 0.4
+    head_fp32: bool = True  # run the output head outside autocast (bf16 would quantise M, D)
+
+    def __post_init__(self) -> None:
+        if self.name not in MODEL_NAMES:
+            raise ValueError(f"model name: expected one of {MODEL_NAMES}, got {self.name!r}")
+        if self.width < 1:
+            raise ValueError(f"width: expected >= 1, got {self.width}")
+        if self.in_channels < 3:
+            raise ValueError(f"in_channels: expected >= 3 (three frames + extras), got {self.in_channels}")
+        if self.dropout is None:
+            self.dropout = self.name == "cd-dcu-net"
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict, source: str = "model config") -> ModelConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"{source}: unknown model config keys {unknown} (known: {sorted(known)})")
+        return cls(**data)
+
+
+def classical_md(frames: torch.Tensor) -> torch.Tensor:
+    """Three-step M, D ``(B, 2, H, W)`` of frames ``(B, 3, H, W)`` in [0, 1] (S = 1, N = 3)."""
+    shifts = torch.tensor([0.0, 2 * math.pi / 3, 4 * math.pi / 3], device=frames.device, dtype=frames.dtype)
+    norm = 3.0 / 4.0
+    m = -(frames * torch.sin(shifts)[None, :, None, None]).sum(1) / norm
+    d = (frames * torch.cos(shifts)[None, :, None, None]).sum(1) / norm
+    return torch.stack([m, d], dim=1)
+
+
+def pad_to_multiple(x: torch.Tensor, multiple: int = MULTIPLE) -> tuple[torch.Tensor, tuple[int, int, int, int]]:
+    """Pad ``(B, C, H, W)`` so H and W are multiples of ``multiple``; returns (padded, (l, r, t, b)).
+
+    Reflect padding where the image is large enough, replicate otherwise (reflect needs pad < size).
+    """
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    pads = (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)
+    if ph == 0 and pw == 0:
+        return x, pads
+    mode = "reflect" if max(pads[0], pads[1]) < w and max(pads[2], pads[3]) < h else "replicate"
+    return F.pad(x, pads, mode=mode), pads
+
+
+class PhaseNet(nn.Module):
+    """Common wrapper: input checks, classical M/D options, padding, output activation.
+
+    Subclasses implement :meth:`core`, mapping padded ``(B, C, H, W)`` to raw ``(B, 4, H, W)``.
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.config = config
+
+    @property
+    def core_in_channels(self) -> int:
+        return self.config.in_channels + (2 if self.config.classical_input else 0)
+
+    def drop_factory(self):
+        c = self.config
+        if not c.dropout:
+            return None
+
+        def make(ch: int) -> nn.Module:
+            return ConcreteDropout2d(
+                ch,
+                weight_reg=c.weight_reg,
+                dropout_reg=c.dropout_reg,
+                init_min=c.init_min,
+                init_max=c.init_max,
+                temperature=c.temperature,
+                channelwise=c.channelwise,
+            )
+
+        return make
+
+    def core(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def run_head(self, head: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        if self.config.head_fp32 and torch.is_autocast_enabled(x.device.type):
+            with torch.autocast(device_type=x.device.type, enabled=False):
+                return head(x.float())
+        return head(x)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, C_in, H, W)`` -> ``(B, 4, H, W)``: mean M, mean D, var M, var D (float32)."""
+        if x.ndim != 4 or x.shape[1] != self.config.in_channels:
+            raise ValueError(
+                f"{self.config.name}: expected input (B, {self.config.in_channels}, H, W), got {tuple(x.shape)}"
+            )
+        h, w = x.shape[-2:]
+        base = classical_md(x[:, :3].float()) if (self.config.classical_input or self.config.residual) else None
+        inp = torch.cat([x, base.to(x.dtype)], dim=1) if self.config.classical_input else x
+        padded, (left, _, top, _) = pad_to_multiple(inp)
+        raw = self.core(padded)[:, :, top : top + h, left : left + w].float()
+        mean = raw[:, :2] + base if self.config.residual else raw[:, :2]
+        var = F.softplus(raw[:, 2:]) + VAR_FLOOR
+        return torch.cat([mean, var], dim=1)
+
+
+class UNetFamily(PhaseNet):
+    """Single-stream encoder/decoder with a configurable block and head."""
+
+    def __init__(self, config: ModelConfig, block, head: str) -> None:
+        super().__init__(config)
+        drop = self.drop_factory()
+        self.encoder = Encoder(self.core_in_channels, config.width, block, drop)
+        self.decoder = Decoder(self.encoder.channels, block, drop)
+        self.head = make_head(head, config.width)
+
+    def core(self, x: torch.Tensor) -> torch.Tensor:
+        return self.run_head(self.head, self.decoder(self.encoder(x)))
+
+
+class CDDCUNet(UNetFamily):
+    """CD-DCU-Net (paper Fig. 4): Double Conv U-Net + Concrete Dropout + dual 3x3 head."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__(config, DoubleConv, "dual3x3")
+
+
+class UNet(UNetFamily):
+    """Classic U-Net peer (Ronneberger et al.): Double Conv blocks, 1x1 output conv."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__(config, DoubleConv, "1x1")
+
+
+class DRUNet(UNetFamily):
+    """Deep residual U-Net peer: residual blocks instead of Double Conv, 1x1 output conv."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__(config, ResidualBlock, "1x1")
+
+
+class TSUNet(PhaseNet):
+    """Temporal three-stream U-Net peer: one encoder per frame, fused per scale, 3x3 head.
+
+    Stream ``k`` sees frame ``k`` plus every extra channel (classical M/D or user extras).
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__(config)
+        drop = self.drop_factory()
+        extra = self.core_in_channels - 3
+        self.streams = nn.ModuleList(Encoder(1 + extra, config.width, DoubleConv, drop) for _ in range(3))
+        chans = encoder_channels(config.width)
+        self.fuse = nn.ModuleList(
+            nn.Sequential(nn.Conv2d(3 * c, c, 1, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True)) for c in chans
+        )
+        self.decoder = Decoder(chans, DoubleConv, drop)
+        self.head = make_head("3x3", config.width)
+
+    def core(self, x: torch.Tensor) -> torch.Tensor:
+        extras = x[:, 3:]
+        per_stream = [enc(torch.cat([x[:, k : k + 1], extras], dim=1)) for k, enc in enumerate(self.streams)]
+        fused = [f(torch.cat(level, dim=1)) for f, level in zip(self.fuse, zip(*per_stream, strict=True), strict=True)]
+        return self.run_head(self.head, self.decoder(fused))
+
+
+_REGISTRY: dict[str, type[PhaseNet]] = {
+    "cd-dcu-net": CDDCUNet,
+    "unet": UNet,
+    "ts-unet": TSUNet,
+    "dr-unet": DRUNet,
+}
+
+
+def build_model(name: str | ModelConfig = "cd-dcu-net", width: int = 16, in_channels: int = 3, **options) -> PhaseNet:
+    """Build a network by name (``cd-dcu-net``, ``unet``, ``ts-unet``, ``dr-unet``) or from a config.
+
+    ``options`` are the other :class:`ModelConfig` fields (``classical_input``, ``residual``,
+    ``dropout``, ``temperature``, ``channelwise``, ``weight_reg``, ``dropout_reg``, ...).
+    """
+    config = name if isinstance(name, ModelConfig) else ModelConfig(name=name, width=width, in_channels=in_channels, **options)
+    return _REGISTRY[config.name](config)
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

@@ -1,0 +1,119 @@
+"""Predictor: raw three-frame bursts in, wrapped phase with uncertainty out.
+
+>>> pred = Predictor.load()                       # inference/weights/default.safetensors
+>>> result = pred.predict(frames)                 # (3, H, W) uint8 -> PhaseResult
+>>> result = pred.predict(frames, mc=20)          # Monte Carlo, T = 20 passes
+
+Weights are read from safetensors with a JSON config beside them (never unpickled).
+Raw frames are converted to float32 in [0, 1] with their full scale S (255 for uint8,
+65535 for uint16 unless the camera's bit depth says otherwise).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gearscan.inference.model_io import ModelFileError, load_model
+from gearscan.inference.uncertainty import deterministic_moments, mc_moments, to_phase_result
+from gearscan.types import Burst, PhaseResult
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+DEFAULT_MODEL = WEIGHTS_DIR / "default.safetensors"
+PRECISIONS = ("fp32", "bf16")
+
+
+def frames_to_tensor(frames: np.ndarray, full_scale: float | None = None) -> torch.Tensor:
+    """``(3, H, W)`` (or ``(C, H, W)``) raw frames -> ``(1, C, H, W)`` float32 in [0, 1].
+
+    ``full_scale`` defaults to the dtype's maximum (255, 65535); floats need it explicitly.
+    """
+    frames = np.asarray(frames)
+    if frames.ndim != 3 or frames.shape[0] < 3:
+        raise ValueError(f"frames: expected (3, H, W), got shape {frames.shape}")
+    if full_scale is None:
+        if frames.dtype == np.uint8:
+            full_scale = 255.0
+        elif frames.dtype == np.uint16:
+            full_scale = 65535.0
+        else:
+            raise ValueError(f"frames: expected uint8 or uint16 raw frames (or pass full_scale), got dtype {frames.dtype}")
+    if not full_scale > 0:
+        raise ValueError(f"full_scale: expected > 0, got {full_scale}")
+    x = torch.from_numpy(np.ascontiguousarray(frames, dtype=np.float32)) / float(full_scale)
+    return x.unsqueeze(0)
+
+
+class Predictor:
+    """A loaded network with its calibration and the chosen execution settings.
+
+    Parameters
+    ----------
+    model : the network (any :class:`~gearscan.inference.models.PhaseNet`)
+    var_scale : variance calibration factor stored with the model (1 = none)
+    device : ``"cpu"`` or ``"cuda"``
+    precision : ``"fp32"`` or ``"bf16"`` (autocast; on CPU also channels_last memory format)
+    mc_chunk : passes per batched forward in MC mode
+    """
+
+    def __init__(self, model: torch.nn.Module, *, var_scale: float = 1.0, device: str = "cpu", precision: str = "fp32", mc_chunk: int = 2, meta: dict | None = None) -> None:
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
+        self.device = torch.device(device)
+        self.precision = precision
+        self.var_scale = float(var_scale)
+        self.mc_chunk = int(mc_chunk)
+        self.meta = meta or {}
+        self.model = model.to(self.device).eval()
+        if precision == "bf16":
+            self.model = self.model.to(memory_format=torch.channels_last)
+
+    @classmethod
+    def load(cls, path: str | Path | None = None, *, device: str = "cpu", precision: str = "fp32", mc_chunk: int = 2) -> Predictor:
+        """Load ``path`` (.safetensors + .json); default: the shipped model."""
+        path = Path(path) if path is not None else DEFAULT_MODEL
+        if path.suffix == ".json":
+            path = path.with_suffix(".safetensors")
+        if not path.is_file():
+            hint = " (the shipped default model has not been trained yet: run `gearscan train` and copy best.safetensors/.json there, or pass --model)" if path == DEFAULT_MODEL else ""
+            raise ModelFileError(f"model weights not found: {path}{hint}")
+        model, meta = load_model(path, map_location=device)
+        return cls(model, var_scale=float(meta.get("var_scale", 1.0)), device=device, precision=precision, mc_chunk=mc_chunk, meta=meta)
+
+    @property
+    def has_dropout(self) -> bool:
+        return bool(getattr(self.model, "config", None) and self.model.config.dropout)
+
+    def _autocast(self):
+        if self.precision == "bf16":
+            return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    @torch.inference_mode()
+    def predict_tensor(self, x: torch.Tensor, mc: int = 0) -> PhaseResult:
+        """``(1, C, H, W)`` float32 in [0, 1] -> :class:`PhaseResult` (deterministic if ``mc == 0``)."""
+        if mc < 0:
+            raise ValueError(f"mc: expected >= 0 passes, got {mc}")
+        if mc > 0 and not self.has_dropout:
+            raise ValueError(f"mc={mc}: this model ({self.model.config.name}) has no Concrete Dropout layers; use mc=0")
+        x = x.to(self.device)
+        if self.precision == "bf16":
+            x = x.contiguous(memory_format=torch.channels_last)
+        with self._autocast():
+            stats = mc_moments(self.model, x, mc, self.mc_chunk) if mc > 0 else deterministic_moments(self.model, x)
+        mode = f"mc{mc}" if mc > 0 else "deterministic"
+        return to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale)
+
+    def predict(self, frames: np.ndarray, mc: int = 0, *, full_scale: float | None = None) -> PhaseResult:
+        """Raw frames ``(3, H, W)`` uint8/uint16 -> :class:`PhaseResult` at the input size."""
+        return self.predict_tensor(frames_to_tensor(frames, full_scale), mc)
+
+    def predict_burst(self, burst: Burst, mc: int = 0) -> PhaseResult:
+        """Predict a :class:`Burst` (full scale from its bit depth; angle = first frame's)."""
+        result = self.predict(burst.images, mc, full_scale=burst.full_scale)
+        result.burst_index = burst.index
+        result.angle = float(burst.angles[0])
+        return result

@@ -1,0 +1,440 @@
+"""Training loop (paper §3.3): deterministic stage, then Concrete Dropout stage.
+
+- Stage 1 trains with every Concrete Dropout mask off and without the regulariser (the
+  dropout rates get no gradient); stage 2 turns the masks and the regulariser on, starting
+  from the best stage-1 weights. Models without dropout (the peers) run stage 1 only.
+- Adam, learning rate ``lr`` with a schedule restarted per stage: ``step`` (x ``gamma`` every
+  ``step_every`` epochs; paper: 1e-3, x0.9 every 20), ``cosine`` or ``constant``.
+- Early stopping per stage after ``patience`` epochs without validation improvement. The
+  validation score is ``alpha*NLL + mse_weight*MSE`` in deterministic mode (no regulariser), so
+  it compares across stages.
+- Split by ``group``: no start point in both train and validation.
+- Output folder: ``best.safetensors/.json`` (a Predictor-ready model, with the fitted variance
+  scale), ``last.*`` + ``last_optim.pt`` (resume), ``metrics.csv``, ``metrics.json``,
+  ``loss_curve.png``, ``reliability.png``.
+- ``init``: start from pre-trained weights (transfer learning: pre-train on twin, fine-tune).
+- DDP: launched with ``torchrun`` (env ``WORLD_SIZE`` > 1), gloo on CPU, nccl on CUDA; rank 0
+  writes files; validation sums are all-reduced so every rank takes the same decisions.
+
+Resuming restores weights, optimizer, stage, epoch, best score and history (not the data
+order's RNG state, so a resumed run is statistically, not bitwise, the same).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, Subset
+
+from gearscan.inference.concrete_dropout import concrete_layers, dropout_rates, set_stochastic
+from gearscan.inference.data import dataset_groups, split_by_group
+from gearscan.inference.losses import LossConfig, PhaseLoss
+from gearscan.inference.model_io import load_into, load_state, save_model, unwrap
+from gearscan.inference.models import ModelConfig, PhaseNet, build_model
+
+SCHEDULES = ("step", "cosine", "constant")
+
+
+@dataclass
+class TrainConfig:
+    out_dir: str = "runs/cd-dcu-net"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    epochs_deterministic: int = 50
+    epochs_dropout: int = 50
+    batch_size: int = 16
+    lr: float = 1e-3
+    schedule: str = "step"
+    step_every: int = 20
+    gamma: float = 0.9
+    patience: int = 10
+    val_fraction: float = 0.2
+    crop: int | None = None  # random square crop per batch (multiple of 16 recommended)
+    steps_per_epoch: int | None = None  # cap on batches per epoch
+    device: str = "auto"
+    bf16: bool = False
+    num_workers: int = 0
+    seed: int = 0
+    init: str | None = None
+    resume: bool = False
+    progress: bool = True
+    calibrate: bool = True
+
+    def __post_init__(self) -> None:
+        if isinstance(self.model, dict):
+            self.model = ModelConfig.from_json(self.model)
+        if isinstance(self.loss, dict):
+            self.loss = LossConfig(**self.loss)
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule: expected one of {SCHEDULES}, got {self.schedule!r}")
+        for name in ("batch_size", "step_every", "patience"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+        if self.epochs_deterministic < 0 or self.epochs_dropout < 0:
+            raise ValueError(f"epochs: expected >= 0, got {self.epochs_deterministic}, {self.epochs_dropout}")
+        if self.lr <= 0:
+            raise ValueError(f"lr: expected > 0, got {self.lr}")
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["model"] = self.model.to_json()
+        d["loss"] = self.loss.to_json()
+        return d
+
+
+def learning_rate(config: TrainConfig, epoch_in_stage: int, stage_epochs: int) -> float:
+    """Learning rate of an epoch (0-based within its stage)."""
+    if config.schedule == "step":
+        return config.lr * config.gamma ** (epoch_in_stage // config.step_every)
+    if config.schedule == "cosine":
+        return 0.5 * config.lr * (1 + math.cos(math.pi * epoch_in_stage / max(1, stage_epochs)))
+    return config.lr
+
+
+# --- distributed helpers ------------------------------------------------------------------------
+@dataclass
+class Dist:
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def init_distributed(device_kind: str) -> Dist:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return Dist()
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device_kind == "cuda" else "gloo")
+    return Dist(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")))
+
+
+def _all_reduce(values: list[float], d: Dist, device: torch.device) -> list[float]:
+    if d.world == 1:
+        return values
+    import torch.distributed as dist
+
+    t = torch.tensor(values, dtype=torch.float64, device=device)
+    dist.all_reduce(t)
+    return t.tolist()
+
+
+# --- the loop -------------------------------------------------------------------------------------
+@dataclass
+class TrainResult:
+    best_path: Path | None
+    history: list[dict]
+    best_val: float
+    var_scale: float
+    seconds: float
+
+
+def _resolve_device(name: str, d: Dist) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda":
+        return torch.device("cuda", d.local_rank)
+    return torch.device(name)
+
+
+def _crop(batch: dict, size: int | None, gen: torch.Generator) -> dict:
+    if size is None:
+        return batch
+    h, w = batch["input"].shape[-2:]
+    if size > h or size > w:
+        return batch
+    top = int(torch.randint(0, h - size + 1, (1,), generator=gen))
+    left = int(torch.randint(0, w - size + 1, (1,), generator=gen))
+    out = dict(batch)
+    for k in ("input", "target", "mask", "phase"):
+        out[k] = batch[k][..., top : top + size, left : left + size]
+    return out
+
+
+def _wrapped_sq_err(pred: torch.Tensor, phase: torch.Tensor, mask: torch.Tensor) -> tuple[float, float]:
+    est = torch.atan2(pred[:, 0], pred[:, 1])
+    err = torch.remainder(est - phase + math.pi, 2 * math.pi) - math.pi
+    m = mask.bool()
+    return float((err[m] ** 2).sum()), float(m.sum())
+
+
+class Trainer:
+    """Holds model, optimizer and state; ``fit()`` runs both stages. Use :func:`train`."""
+
+    def __init__(self, config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None) -> None:
+        self.config = config
+        self.device = _resolve_device(config.device, Dist())
+        self.dist = init_distributed(self.device.type)
+        self.device = _resolve_device(config.device, self.dist)
+        torch.manual_seed(config.seed + self.dist.rank)
+        if val_set is None:
+            tr, va = split_by_group(dataset_groups(train_set), config.val_fraction, config.seed)
+            train_set, val_set = Subset(train_set, tr), Subset(train_set, va)
+        self.train_set, self.val_set = train_set, val_set
+        self.out = Path(config.out_dir)
+        if self.dist.main:
+            self.out.mkdir(parents=True, exist_ok=True)
+        self.model: PhaseNet = build_model(config.model).to(self.device)
+        if config.init:
+            load_into(self.model, load_state(config.init), config.init)
+        self.criterion = PhaseLoss(config.loss)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+        self.has_dropout = bool(concrete_layers(self.model))
+        self.state = {"stage": 1, "epoch": 0, "best": math.inf, "bad": 0, "stage_best": math.inf}
+        self.history: list[dict] = []
+        if config.resume and (self.out / "last.safetensors").is_file():
+            self._load_last()
+
+    # checkpointing -----------------------------------------------------------------------------
+    def _load_last(self) -> None:
+        load_into(self.model, load_state(self.out / "last.safetensors"), self.out / "last.safetensors")
+        st = json.loads((self.out / "last_state.json").read_text())
+        self.state, self.history = st["state"], st["history"]
+        opt = self.out / "last_optim.pt"
+        if opt.is_file():
+            self.optimizer.load_state_dict(torch.load(opt, map_location=self.device, weights_only=True))
+
+    def _save_last(self) -> None:
+        save_model(self.model, self.out / "last.safetensors", extra={"training": self.config.to_json()})
+        torch.save(self.optimizer.state_dict(), self.out / "last_optim.pt")
+        tmp = self.out / "last_state.json.tmp"
+        tmp.write_text(json.dumps({"state": self.state, "history": self.history}, indent=1))
+        tmp.replace(self.out / "last_state.json")
+
+    def _write_metrics(self) -> None:
+        if not self.history:
+            return
+        keys = list(self.history[-1].keys())
+        with open(self.out / "metrics.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
+            w.writeheader()
+            for row in self.history:
+                w.writerow({k: row.get(k) for k in keys})
+        (self.out / "metrics.json").write_text(json.dumps(self.history, indent=1))
+        plot_history(self.history, self.out / "loss_curve.png")
+
+    # one epoch -------------------------------------------------------------------------------
+    def _autocast(self):
+        if self.config.bf16:
+            return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def _loader(self, dataset: Dataset, shuffle: bool, epoch: int) -> DataLoader:
+        sampler = None
+        if self.dist.world > 1:
+            from torch.utils.data.distributed import DistributedSampler
+
+            sampler = DistributedSampler(dataset, self.dist.world, self.dist.rank, shuffle=shuffle, seed=self.config.seed, drop_last=False)
+            sampler.set_epoch(epoch)
+        return DataLoader(
+            dataset,
+            batch_size=self.config.batch_size,
+            shuffle=shuffle and sampler is None,
+            sampler=sampler,
+            num_workers=self.config.num_workers,
+            drop_last=False,
+        )
+
+    def _train_epoch(self, net: torch.nn.Module, stage: int, epoch: int, lr: float) -> dict:
+        for g in self.optimizer.param_groups:
+            g["lr"] = lr
+        self.model.train()
+        set_stochastic(self.model, stage == 2)
+        gen = torch.Generator().manual_seed(self.config.seed * 100003 + epoch * 7 + self.dist.rank)
+        loader = self._loader(self.train_set, True, epoch)
+        total = min(len(loader), self.config.steps_per_epoch or len(loader))
+        bar = None
+        if self.config.progress and self.dist.main:
+            from tqdm import tqdm
+
+            bar = tqdm(total=total, desc=f"stage {stage} epoch {epoch + 1}", leave=False, dynamic_ncols=True)
+        sums = {"total": 0.0, "nll": 0.0, "mse": 0.0, "reg": 0.0}
+        n = 0
+        for i, batch in enumerate(loader):
+            if i >= total:
+                break
+            batch = _crop(batch, self.config.crop, gen)
+            x = batch["input"].to(self.device, non_blocking=True)
+            with self._autocast():
+                pred = net(x)
+            losses = self.criterion(pred, batch["target"].to(self.device), batch["mask"].to(self.device), self.model, include_regularization=stage == 2)
+            self.optimizer.zero_grad(set_to_none=True)
+            losses["total"].backward()
+            self.optimizer.step()
+            for k in sums:
+                sums[k] += float(losses[k].detach())
+            n += 1
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{float(losses['total']):.4g}")
+        if bar is not None:
+            bar.close()
+        set_stochastic(self.model, False)
+        vals = _all_reduce([sums[k] for k in sums] + [n], self.dist, self.device)
+        return {f"train_{k}": vals[j] / max(vals[-1], 1) for j, k in enumerate(sums)}
+
+    @torch.no_grad()
+    def _validate(self) -> dict:
+        self.model.eval()
+        set_stochastic(self.model, False)
+        c = self.config.loss
+        acc = [0.0, 0.0, 0.0, 0.0]  # score*batches, batches, sq err, pixels
+        for batch in self._loader(self.val_set, False, 0):
+            with self._autocast():
+                pred = self.model(batch["input"].to(self.device))
+            mask = batch["mask"].to(self.device)
+            losses = self.criterion(pred, batch["target"].to(self.device), mask, None, include_regularization=False)
+            acc[0] += float(c.alpha * losses["nll"] + c.mse_weight * losses["mse"])
+            acc[1] += 1
+            se, npx = _wrapped_sq_err(pred.float(), batch["phase"].to(self.device), mask)
+            acc[2] += se
+            acc[3] += npx
+        acc = _all_reduce(acc, self.dist, self.device)
+        return {"val_loss": acc[0] / max(acc[1], 1), "val_rmse": math.sqrt(acc[2] / max(acc[3], 1))}
+
+    # both stages -----------------------------------------------------------------------------
+    def fit(self) -> TrainResult:
+        t0 = time.perf_counter()
+        cfg = self.config
+        stages = [(1, cfg.epochs_deterministic)] + ([(2, cfg.epochs_dropout)] if self.has_dropout else [])
+        for stage, n_epochs in stages:
+            if stage < self.state["stage"]:
+                continue
+            for layer in concrete_layers(self.model):
+                layer.p_logit.requires_grad_(stage == 2)
+            net: torch.nn.Module = self.model
+            if self.dist.world > 1:
+                from torch.nn.parallel import DistributedDataParallel as DDP
+
+                net = DDP(self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
+            while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience:
+                epoch = self.state["epoch"]
+                lr = learning_rate(cfg, epoch, n_epochs)
+                te = time.perf_counter()
+                row = {"stage": stage, "epoch": epoch + 1, "lr": lr}
+                row.update(self._train_epoch(net, stage, epoch, lr))
+                row.update(self._validate())
+                row["seconds"] = time.perf_counter() - te
+                for j, p in enumerate(dropout_rates(self.model)):
+                    row[f"p{j}"] = p
+                improved = row["val_loss"] < self.state["stage_best"]
+                if improved:
+                    self.state["stage_best"] = row["val_loss"]
+                    self.state["bad"] = 0
+                else:
+                    self.state["bad"] += 1
+                self.state["epoch"] = epoch + 1
+                self.history.append(row)
+                if self.dist.main:
+                    if improved:
+                        save_model(self.model, self.out / f"stage{stage}_best.safetensors", extra={"metrics": row})
+                    self._save_last()
+                    self._write_metrics()
+            # stage done: continue from this stage's best weights
+            best_file = self.out / f"stage{stage}_best.safetensors"
+            self._barrier()
+            if best_file.is_file():
+                load_into(self.model, load_state(best_file), best_file)
+            self.state.update({"stage": stage + 1, "epoch": 0, "bad": 0, "best": self.state["stage_best"], "stage_best": math.inf})
+            if self.dist.main:
+                self._save_last()
+        var_scale, calib = 1.0, {}
+        if cfg.calibrate:
+            var_scale, calib = self._calibrate()
+        best_path = None
+        if self.dist.main:
+            final = self.history[-1] if self.history else {}
+            best_path = save_model(
+                self.model,
+                self.out / "best.safetensors",
+                var_scale=var_scale,
+                extra={"training": cfg.to_json(), "metrics": final, "calibration": calib, "train_seconds": time.perf_counter() - t0},
+            )
+        self._barrier()
+        return TrainResult(best_path, self.history, float(self.state["best"]), var_scale, time.perf_counter() - t0)
+
+    def _barrier(self) -> None:
+        if self.dist.world > 1:
+            import torch.distributed as dist
+
+            dist.barrier()
+
+    @torch.no_grad()
+    def _calibrate(self) -> tuple[float, dict]:
+        """Fit the deterministic-mode variance scale on validation data (kept only if ECE improves)."""
+        from gearscan.inference.uncertainty import fit_variance_scale, phase_sigma, plot_reliability, reliability
+
+        self.model.eval()
+        set_stochastic(self.model, False)
+        errs, sigs = [], []
+        for batch in self._loader(self.val_set, False, 0):
+            with self._autocast():
+                pred = self.model(batch["input"].to(self.device)).float().cpu().numpy()
+            mask = batch["mask"].numpy().astype(bool)
+            est = np.arctan2(pred[:, 0], pred[:, 1])
+            err = np.angle(np.exp(1j * (est - batch["phase"].numpy())))
+            sig = phase_sigma(pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3])
+            errs.append(err[mask])
+            sigs.append(sig[mask])
+        if not errs or sum(e.size for e in errs) == 0:
+            return 1.0, {}
+        err, sig = np.concatenate(errs), np.concatenate(sigs)
+        k, before, after = fit_variance_scale(err, sig)
+        if self.dist.main:
+            plot_reliability(reliability(err, sig * math.sqrt(k)), self.out / "reliability.png", f"validation, var scale {k:.3g}")
+        return k, {"mode": "deterministic", "var_scale": k, "ece_before": before, "ece_after": after, "pixels": int(err.size)}
+
+
+def train(config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None) -> TrainResult:
+    """Train per ``config`` on ``train_set`` (split by group if ``val_set`` is None)."""
+    return Trainer(config, train_set, val_set).fit()
+
+
+def plot_history(history: list[dict], path: str | Path) -> Path:
+    """Loss curves (train total, val loss) and val RMSE per epoch, stage boundaries dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    x = np.arange(1, len(history) + 1)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
+    a.plot(x, [h["train_total"] for h in history], label="train loss")
+    a.plot(x, [h["val_loss"] for h in history], label="val loss (no reg)")
+    a.set_yscale("symlog", linthresh=1e-6)
+    b.plot(x, [h["val_rmse"] for h in history], color="C2")
+    b.set_ylabel("val wrapped RMSE (rad)")
+    b.set_yscale("log")
+    for ax in (a, b):
+        ax.set_xlabel("epoch")
+        for i in range(1, len(history)):
+            if history[i]["stage"] != history[i - 1]["stage"]:
+                ax.axvline(i + 0.5, ls="--", color="grey")
+    a.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+if __name__ == "__main__":  # torchrun entry point: torchrun --nproc_per_node 2 -m gearscan.inference.train ...
+    import typer
+
+    from gearscan.inference.commands import train as train_command
+
+    typer.run(train_command)
