@@ -45,7 +45,9 @@ class ResidualBlock(nn.Module):
         self.skip: nn.Module = (
             nn.Identity()
             if in_channels == out_channels
-            else nn.Sequential(nn.Conv2d(in_channels, out_channels, 1, bias=False), nn.BatchNorm2d(out_channels))
+            else nn.Sequential(
+                nn.Conv2d(in_channels, out_channels, 1, bias=False), nn.BatchNorm2d(out_channels)
+            )
         )
         self.act = nn.ReLU(inplace=True)
 
@@ -70,7 +72,12 @@ class Encoder(nn.Module):
     """
 
     def __init__(
-        self, in_channels: int, width: int, block: BlockFactory, drop: DropFactory | None = None, depth: int = 4
+        self,
+        in_channels: int,
+        width: int,
+        block: BlockFactory,
+        drop: DropFactory | None = None,
+        depth: int = 4,
     ) -> None:
         super().__init__()
         drop = drop or _identity
@@ -106,7 +113,9 @@ class DecoderStage(nn.Module):
 class Decoder(nn.Module):
     """U-Net decoder: one :class:`DecoderStage` per scale, coarsest first; out ``(B, w, H, W)``."""
 
-    def __init__(self, channels: list[int], block: BlockFactory, drop: DropFactory | None = None) -> None:
+    def __init__(
+        self, channels: list[int], block: BlockFactory, drop: DropFactory | None = None
+    ) -> None:
         super().__init__()
         drop = drop or _identity
         self.stages = nn.ModuleList(DecoderStage(c, block, drop) for c in reversed(channels[1:]))
@@ -125,7 +134,9 @@ def make_head(kind: str, width: int, out_channels: int = 4) -> nn.Module:
     (CD-DCU-Net, paper §2.2); ``"3x3"``: one 3x3 conv (TS-U-Net); ``"1x1"``: one 1x1 conv (U-Net).
     """
     if kind == "dual3x3":
-        return nn.Sequential(nn.Conv2d(width, width, 3, padding=1), nn.Conv2d(width, out_channels, 3, padding=1))
+        return nn.Sequential(
+            nn.Conv2d(width, width, 3, padding=1), nn.Conv2d(width, out_channels, 3, padding=1)
+        )
     if kind == "3x3":
         return nn.Conv2d(width, out_channels, 3, padding=1)
     if kind == "1x1":

@@ -21,12 +21,16 @@ def _read_images(paths: list[Path]):
         if img is None:
             raise typer.BadParameter(f"cannot read image {p}")
         if img.ndim == 3:
-            raise typer.BadParameter(f"{p}: expected a single-channel (grey) image, got shape {img.shape}")
+            raise typer.BadParameter(
+                f"{p}: expected a single-channel (grey) image, got shape {img.shape}"
+            )
         imgs.append(img)
     shapes = {i.shape for i in imgs}
     dtypes = {i.dtype for i in imgs}
     if len(shapes) != 1 or len(dtypes) != 1:
-        raise typer.BadParameter(f"the three images differ in shape/dtype: {sorted(map(str, shapes))} {sorted(map(str, dtypes))}")
+        raise typer.BadParameter(
+            f"the three images differ in shape/dtype: {sorted(map(str, shapes))} {sorted(map(str, dtypes))}"
+        )
     return np.stack(imgs)
 
 
@@ -47,7 +51,9 @@ def load_frames(inputs: list[Path]):
     elif len(inputs) == 3:
         frames, full_scale = _read_images(inputs), None
     else:
-        raise typer.BadParameter(f"INPUT: expected one .npz with 'frames' or three image files, got {len(inputs)} path(s)")
+        raise typer.BadParameter(
+            f"INPUT: expected one .npz with 'frames' or three image files, got {len(inputs)} path(s)"
+        )
     if frames.ndim != 3 or frames.shape[0] != 3:
         raise typer.BadParameter(f"frames: expected (3, H, W), got shape {frames.shape}")
     if frames.dtype not in (np.uint8, np.uint16):
@@ -56,12 +62,29 @@ def load_frames(inputs: list[Path]):
 
 
 def predict(
-    inputs: Annotated[list[Path], typer.Argument(help="an .npz with 'frames' (3,H,W) uint8/uint16, or three image files", exists=True, dir_okay=False)],
+    inputs: Annotated[
+        list[Path],
+        typer.Argument(
+            help="an .npz with 'frames' (3,H,W) uint8/uint16, or three image files",
+            exists=True,
+            dir_okay=False,
+        ),
+    ],
     output: Annotated[Path, typer.Option("--output", "-o", help="output .npz")] = Path("phase.npz"),
-    mc: Annotated[int, typer.Option("--mc", min=0, help="Monte Carlo passes T (0 = single deterministic pass)")] = 0,
-    model: Annotated[Path | None, typer.Option("--model", help="model .safetensors (JSON config beside it); default: shipped model")] = None,
+    mc: Annotated[
+        int,
+        typer.Option("--mc", min=0, help="Monte Carlo passes T (0 = single deterministic pass)"),
+    ] = 0,
+    model: Annotated[
+        Path | None,
+        typer.Option(
+            "--model", help="model .safetensors (JSON config beside it); default: shipped model"
+        ),
+    ] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda")] = "cpu",
-    precision: Annotated[str, typer.Option(help="fp32 or bf16 (autocast + channels_last)")] = "fp32",
+    precision: Annotated[
+        str, typer.Option(help="fp32 or bf16 (autocast + channels_last)")
+    ] = "fp32",
 ) -> None:
     """Predict wrapped phase and its uncertainty from one three-step burst.
 
@@ -69,7 +92,6 @@ def predict(
     for phase and sigmas) and the mode used.
     """
     import numpy as np
-
     from gearscan.inference.predictor import Predictor
 
     frames, full_scale = load_frames(inputs)
@@ -86,7 +108,9 @@ def predict(
         sigma_total=result.sigma_total,
         mode=np.array(result.mode),
     )
-    typer.echo(f"{output}: {frames.shape[2]}x{frames.shape[1]} phase, mode {result.mode}, median sigma_total {float(np.median(result.sigma_total)):.4f} rad")
+    typer.echo(
+        f"{output}: {frames.shape[2]}x{frames.shape[1]} phase, mode {result.mode}, median sigma_total {float(np.median(result.sigma_total)):.4f} rad"
+    )
 
 
 def _load_dataset(spec: str):
@@ -100,35 +124,66 @@ def _load_dataset(spec: str):
     if ":" in spec:
         mod, fn = spec.split(":", 1)
         return getattr(importlib.import_module(mod), fn)()
-    raise typer.BadParameter(f"--data: expected a folder of .npz items or 'module:function', got {spec!r}")
+    raise typer.BadParameter(
+        f"--data: expected a folder of .npz items or 'module:function', got {spec!r}"
+    )
 
 
 def train(
-    data: Annotated[str, typer.Option(help="folder of .npz items (input/target/mask/phase/group) or 'module:function' returning a Dataset or (train, val)")],
-    out: Annotated[Path, typer.Option(help="output folder (checkpoints, metrics, plots, best.safetensors)")] = Path("runs/cd-dcu-net"),
-    val_data: Annotated[str | None, typer.Option(help="separate validation data (same forms as --data); default: split --data by group")] = None,
+    data: Annotated[
+        str,
+        typer.Option(
+            help="folder of .npz items (input/target/mask/phase/group) or 'module:function' returning a Dataset or (train, val)"
+        ),
+    ],
+    out: Annotated[
+        Path, typer.Option(help="output folder (checkpoints, metrics, plots, best.safetensors)")
+    ] = Path("runs/cd-dcu-net"),
+    val_data: Annotated[
+        str | None,
+        typer.Option(
+            help="separate validation data (same forms as --data); default: split --data by group"
+        ),
+    ] = None,
     model: Annotated[str, typer.Option(help="cd-dcu-net, unet, ts-unet or dr-unet")] = "cd-dcu-net",
     width: Annotated[int, typer.Option(min=1, help="base width w (paper 64)")] = 16,
-    classical_input: Annotated[bool, typer.Option(help="feed the classical three-step M, D as two extra input channels")] = False,
-    residual: Annotated[bool, typer.Option(help="predict a correction to the classical three-step M, D")] = False,
-    epochs_deterministic: Annotated[int, typer.Option(min=0, help="stage 1 epochs (no dropout)")] = 50,
-    epochs_dropout: Annotated[int, typer.Option(min=0, help="stage 2 epochs (Concrete Dropout)")] = 50,
+    classical_input: Annotated[
+        bool, typer.Option(help="feed the classical three-step M, D as two extra input channels")
+    ] = False,
+    residual: Annotated[
+        bool, typer.Option(help="predict a correction to the classical three-step M, D")
+    ] = False,
+    epochs_deterministic: Annotated[
+        int, typer.Option(min=0, help="stage 1 epochs (no dropout)")
+    ] = 50,
+    epochs_dropout: Annotated[
+        int, typer.Option(min=0, help="stage 2 epochs (Concrete Dropout)")
+    ] = 50,
     batch_size: Annotated[int, typer.Option(min=1)] = 16,
     lr: Annotated[float, typer.Option(min=0.0)] = 1e-3,
     schedule: Annotated[str, typer.Option(help="step, cosine or constant")] = "step",
-    step_every: Annotated[int, typer.Option(min=1, help="epochs between x gamma decays (step schedule)")] = 20,
+    step_every: Annotated[
+        int, typer.Option(min=1, help="epochs between x gamma decays (step schedule)")
+    ] = 20,
     gamma: Annotated[float, typer.Option(help="decay factor of the step schedule")] = 0.9,
-    patience: Annotated[int, typer.Option(min=1, help="early stop after this many epochs without val improvement")] = 10,
+    patience: Annotated[
+        int, typer.Option(min=1, help="early stop after this many epochs without val improvement")
+    ] = 10,
     crop: Annotated[int | None, typer.Option(help="random square crop size per batch")] = None,
     steps_per_epoch: Annotated[int | None, typer.Option(help="cap on batches per epoch")] = None,
     alpha: Annotated[float, typer.Option(help="temperature of the Gaussian NLL term")] = 1e-4,
     mse_weight: Annotated[float, typer.Option(help="weight of the MSE term")] = 1.0,
-    mse_weighting: Annotated[str, typer.Option(help="uniform or modulation (1/m^2, phase-like)")] = "uniform",
+    mse_weighting: Annotated[
+        str, typer.Option(help="uniform or modulation (1/m^2, phase-like)")
+    ] = "uniform",
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
     bf16: Annotated[bool, typer.Option(help="bf16 autocast")] = False,
     workers: Annotated[int, typer.Option(min=0, help="DataLoader workers")] = 0,
     seed: Annotated[int, typer.Option()] = 0,
-    init: Annotated[Path | None, typer.Option("--init", help="start from these weights (.safetensors): fine-tuning")] = None,
+    init: Annotated[
+        Path | None,
+        typer.Option("--init", help="start from these weights (.safetensors): fine-tuning"),
+    ] = None,
     resume: Annotated[bool, typer.Option(help="resume from OUT/last.* if present")] = False,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
 ) -> None:
@@ -140,7 +195,9 @@ def train(
 
     config = TrainConfig(
         out_dir=str(out),
-        model=ModelConfig(name=model, width=width, classical_input=classical_input, residual=residual),
+        model=ModelConfig(
+            name=model, width=width, classical_input=classical_input, residual=residual
+        ),
         loss=LossConfig(alpha=alpha, mse_weight=mse_weight, mse_weighting=mse_weighting),
         epochs_deterministic=epochs_deterministic,
         epochs_dropout=epochs_dropout,
@@ -166,4 +223,6 @@ def train(
         train_set, val_set = train_set
     result = run_training(config, train_set, val_set)
     if result.best_path is not None:
-        typer.echo(f"best model: {result.best_path} (val loss {result.best_val:.4g}, var scale {result.var_scale:.3g}, {result.seconds:.0f} s)")
+        typer.echo(
+            f"best model: {result.best_path} (val loss {result.best_val:.4g}, var scale {result.var_scale:.3g}, {result.seconds:.0f} s)"
+        )

@@ -83,7 +83,9 @@ class ConcreteDropout2d(nn.Module):
     ) -> None:
         super().__init__()
         if not 0.0 < init_min <= init_max < 1.0:
-            raise ValueError(f"init_min/init_max: expected 0 < min <= max < 1, got {init_min}, {init_max}")
+            raise ValueError(
+                f"init_min/init_max: expected 0 < min <= max < 1, got {init_min}, {init_max}"
+            )
         if temperature is not None and temperature <= 0:
             raise ValueError(f"temperature: expected > 0, got {temperature}")
         out_channels = in_channels if out_channels is None else out_channels
@@ -91,7 +93,9 @@ class ConcreteDropout2d(nn.Module):
         self.weight_reg = float(weight_reg)
         self.dropout_reg = float(dropout_reg)
         self.channelwise = bool(channelwise)
-        self.temperature = float(temperature if temperature is not None else (2 / 3 if channelwise else 0.1))
+        self.temperature = float(
+            temperature if temperature is not None else (2 / 3 if channelwise else 0.1)
+        )
         lo, hi = _logit(init_min), _logit(init_max)
         self.p_logit = nn.Parameter(torch.empty(1).uniform_(lo, hi))
         self.stochastic = False
@@ -113,7 +117,12 @@ class ConcreteDropout2d(nn.Module):
         shape = (x.shape[0], x.shape[1], 1, 1) if self.channelwise else x.shape
         u = torch.rand(shape, device=x.device, dtype=torch.float32)
         drop_prob = torch.sigmoid(
-            (torch.log(p + EPS) - torch.log1p(-p + EPS) + torch.log(u + EPS) - torch.log1p(-u + EPS))
+            (
+                torch.log(p + EPS)
+                - torch.log1p(-p + EPS)
+                + torch.log(u + EPS)
+                - torch.log1p(-u + EPS)
+            )
             / self.temperature
         )
         keep = (1.0 - drop_prob) / (1.0 - p)

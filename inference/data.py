@@ -33,7 +33,9 @@ def dataset_groups(dataset: Dataset) -> list[int]:
     return [int(dataset[i]["group"]) for i in range(len(dataset))]
 
 
-def split_by_group(groups: Sequence[int], val_fraction: float = 0.2, seed: int = 0) -> tuple[list[int], list[int]]:
+def split_by_group(
+    groups: Sequence[int], val_fraction: float = 0.2, seed: int = 0
+) -> tuple[list[int], list[int]]:
     """Item indices (train, val) with whole groups on one side; at least one group in each.
 
     ``val_fraction`` is the fraction of *groups* put in validation (rounded, >= 1 group).
@@ -138,9 +140,10 @@ def render_twin_bursts(
     frame's pose (M, D normalised; DESIGN.md). ``group`` is the start-point index.
     """
     from gearscan.projector.patterns import PatternSet
-    from gearscan.rig import default_rig
     from gearscan.twin.gear import GearSpec
     from gearscan.twin.render import TwinRenderer
+
+    from gearscan.rig import default_rig
 
     rng = np.random.default_rng(seed)
     gear = GearSpec(teeth=teeth)

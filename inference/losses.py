@@ -32,9 +32,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import torch
-from torch import nn
-
 from gearscan.inference.concrete_dropout import dropout_regularization
+from torch import nn
 
 
 @dataclass
@@ -48,9 +47,13 @@ class LossConfig:
 
     def __post_init__(self) -> None:
         if self.alpha < 0 or self.mse_weight < 0:
-            raise ValueError(f"alpha and mse_weight: expected >= 0, got {self.alpha}, {self.mse_weight}")
+            raise ValueError(
+                f"alpha and mse_weight: expected >= 0, got {self.alpha}, {self.mse_weight}"
+            )
         if self.mse_weighting not in ("uniform", "modulation"):
-            raise ValueError(f"mse_weighting: expected 'uniform' or 'modulation', got {self.mse_weighting!r}")
+            raise ValueError(
+                f"mse_weighting: expected 'uniform' or 'modulation', got {self.mse_weighting!r}"
+            )
         if self.modulation_floor <= 0:
             raise ValueError(f"modulation_floor: expected > 0, got {self.modulation_floor}")
 
@@ -62,15 +65,25 @@ def _check(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None) 
     if pred.ndim != 4 or pred.shape[1] != 4:
         raise ValueError(f"pred: expected (B, 4, H, W), got {tuple(pred.shape)}")
     if target.shape != (pred.shape[0], 2, *pred.shape[2:]):
-        raise ValueError(f"target: expected {(pred.shape[0], 2, *pred.shape[2:])}, got {tuple(target.shape)}")
+        raise ValueError(
+            f"target: expected {(pred.shape[0], 2, *pred.shape[2:])}, got {tuple(target.shape)}"
+        )
     if mask is None:
         return torch.ones((pred.shape[0], *pred.shape[2:]), dtype=torch.bool, device=pred.device)
     if mask.shape != (pred.shape[0], *pred.shape[2:]):
-        raise ValueError(f"mask: expected {(pred.shape[0], *pred.shape[2:])}, got {tuple(mask.shape)}")
+        raise ValueError(
+            f"mask: expected {(pred.shape[0], *pred.shape[2:])}, got {tuple(mask.shape)}"
+        )
     return mask.bool()
 
 
-def gaussian_nll(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None, *, detach_mean: bool = False) -> torch.Tensor:
+def gaussian_nll(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    *,
+    detach_mean: bool = False,
+) -> torch.Tensor:
     """Mean Gaussian NLL ``r^2/(2s) + log(s)/2`` over valid pixels and both channels (no constant)."""
     valid = _check(pred, target, mask).unsqueeze(1).float()
     mean, var = pred[:, :2], pred[:, 2:]
@@ -122,6 +135,10 @@ class PhaseLoss(nn.Module):
         nll = gaussian_nll(pred, target, mask, detach_mean=c.detach_mean)
         mse = weighted_mse(pred, target, mask, weighting=c.mse_weighting, floor=c.modulation_floor)
         use_reg = c.regularization if include_regularization is None else include_regularization
-        reg = dropout_regularization(model) if (use_reg and model is not None) else torch.zeros((), device=pred.device)
+        reg = (
+            dropout_regularization(model)
+            if (use_reg and model is not None)
+            else torch.zeros((), device=pred.device)
+        )
         total = c.alpha * nll + c.mse_weight * mse + reg
         return {"total": total, "nll": nll.detach(), "mse": mse.detach(), "reg": reg.detach()}

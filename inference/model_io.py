@@ -15,7 +15,6 @@ import json
 from pathlib import Path
 
 import torch
-
 from gearscan.inference.models import ModelConfig, PhaseNet, build_model
 
 MODEL_FORMAT = "gearscan-model"
@@ -30,7 +29,9 @@ def config_path(weights: str | Path) -> Path:
     return Path(weights).with_suffix(".json")
 
 
-def save_model(model: PhaseNet, path: str | Path, *, var_scale: float = 1.0, extra: dict | None = None) -> Path:
+def save_model(
+    model: PhaseNet, path: str | Path, *, var_scale: float = 1.0, extra: dict | None = None
+) -> Path:
     """Write ``path`` (.safetensors) and its JSON config atomically; returns the weights path."""
     from safetensors.torch import save_file
 
@@ -42,7 +43,12 @@ def save_model(model: PhaseNet, path: str | Path, *, var_scale: float = 1.0, ext
     tmp = path.with_name(path.name + ".tmp")
     save_file(state, str(tmp), metadata={"format": MODEL_FORMAT})
     tmp.replace(path)
-    meta = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "model": unwrap(model).config.to_json(), "var_scale": float(var_scale)}
+    meta = {
+        "format": MODEL_FORMAT,
+        "version": MODEL_VERSION,
+        "model": unwrap(model).config.to_json(),
+        "var_scale": float(var_scale),
+    }
     meta.update(extra or {})
     cfg = config_path(path)
     tmp_cfg = cfg.with_name(cfg.name + ".tmp")
@@ -64,15 +70,21 @@ def read_config(path: str | Path) -> dict:
     try:
         meta = json.loads(cfg.read_text())
     except FileNotFoundError as exc:
-        raise ModelFileError(f"model config not found: {cfg} (expected beside the weights {Path(path).name})") from exc
+        raise ModelFileError(
+            f"model config not found: {cfg} (expected beside the weights {Path(path).name})"
+        ) from exc
     except json.JSONDecodeError as exc:
         raise ModelFileError(f"{cfg}: invalid JSON at line {exc.lineno}: {exc.msg}") from exc
     if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT:
-        raise ModelFileError(f"{cfg}: not a gearscan model config (expected \"format\": \"{MODEL_FORMAT}\")")
+        raise ModelFileError(
+            f'{cfg}: not a gearscan model config (expected "format": "{MODEL_FORMAT}")'
+        )
     if meta.get("version") != MODEL_VERSION:
-        raise ModelFileError(f"{cfg}: model config version {meta.get('version')!r} unsupported (expected {MODEL_VERSION})")
+        raise ModelFileError(
+            f"{cfg}: model config version {meta.get('version')!r} unsupported (expected {MODEL_VERSION})"
+        )
     if "model" not in meta:
-        raise ModelFileError(f"{cfg}: missing section \"model\"")
+        raise ModelFileError(f'{cfg}: missing section "model"')
     return meta
 
 
@@ -95,7 +107,11 @@ def load_into(model: torch.nn.Module, state: dict[str, torch.Tensor], source: st
     own = unwrap(model).state_dict()
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
-    shapes = [f"{k}: file {tuple(state[k].shape)} vs model {tuple(own[k].shape)}" for k in own if k in state and state[k].shape != own[k].shape]
+    shapes = [
+        f"{k}: file {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
+        for k in own
+        if k in state and state[k].shape != own[k].shape
+    ]
     if missing or unexpected or shapes:
         parts = []
         if missing:
@@ -115,7 +131,7 @@ def load_model(path: str | Path, map_location: str | torch.device = "cpu") -> tu
     try:
         config = ModelConfig.from_json(meta["model"], source=str(config_path(path)))
     except (TypeError, ValueError) as exc:
-        raise ModelFileError(f"{config_path(path)}: bad \"model\" section: {exc}") from exc
+        raise ModelFileError(f'{config_path(path)}: bad "model" section: {exc}') from exc
     model = build_model(config)
     load_into(model, load_state(path), path)
     return model.to(map_location).eval(), meta

@@ -28,8 +28,6 @@ from dataclasses import asdict, dataclass, fields
 
 import torch
 import torch.nn.functional as F
-from torch import nn
-
 from gearscan.inference.blocks import (
     Decoder,
     DoubleConv,
@@ -39,6 +37,7 @@ from gearscan.inference.blocks import (
     make_head,
 )
 from gearscan.inference.concrete_dropout import ConcreteDropout2d
+from torch import nn
 
 MULTIPLE = 16
 VAR_FLOOR = 1e-3
@@ -69,7 +68,9 @@ class ModelConfig:
         if self.width < 1:
             raise ValueError(f"width: expected >= 1, got {self.width}")
         if self.in_channels < 3:
-            raise ValueError(f"in_channels: expected >= 3 (three frames + extras), got {self.in_channels}")
+            raise ValueError(
+                f"in_channels: expected >= 3 (three frames + extras), got {self.in_channels}"
+            )
         if self.dropout is None:
             self.dropout = self.name == "cd-dcu-net"
 
@@ -81,20 +82,26 @@ class ModelConfig:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
-            raise ValueError(f"{source}: unknown model config keys {unknown} (known: {sorted(known)})")
+            raise ValueError(
+                f"{source}: unknown model config keys {unknown} (known: {sorted(known)})"
+            )
         return cls(**data)
 
 
 def classical_md(frames: torch.Tensor) -> torch.Tensor:
     """Three-step M, D ``(B, 2, H, W)`` of frames ``(B, 3, H, W)`` in [0, 1] (S = 1, N = 3)."""
-    shifts = torch.tensor([0.0, 2 * math.pi / 3, 4 * math.pi / 3], device=frames.device, dtype=frames.dtype)
+    shifts = torch.tensor(
+        [0.0, 2 * math.pi / 3, 4 * math.pi / 3], device=frames.device, dtype=frames.dtype
+    )
     norm = 3.0 / 4.0
     m = -(frames * torch.sin(shifts)[None, :, None, None]).sum(1) / norm
     d = (frames * torch.cos(shifts)[None, :, None, None]).sum(1) / norm
     return torch.stack([m, d], dim=1)
 
 
-def pad_to_multiple(x: torch.Tensor, multiple: int = MULTIPLE) -> tuple[torch.Tensor, tuple[int, int, int, int]]:
+def pad_to_multiple(
+    x: torch.Tensor, multiple: int = MULTIPLE
+) -> tuple[torch.Tensor, tuple[int, int, int, int]]:
     """Pad ``(B, C, H, W)`` so H and W are multiples of ``multiple``; returns (padded, (l, r, t, b)).
 
     Reflect padding where the image is large enough, replicate otherwise (reflect needs pad < size).
@@ -156,7 +163,11 @@ class PhaseNet(nn.Module):
                 f"{self.config.name}: expected input (B, {self.config.in_channels}, H, W), got {tuple(x.shape)}"
             )
         h, w = x.shape[-2:]
-        base = classical_md(x[:, :3].float()) if (self.config.classical_input or self.config.residual) else None
+        base = (
+            classical_md(x[:, :3].float())
+            if (self.config.classical_input or self.config.residual)
+            else None
+        )
         inp = torch.cat([x, base.to(x.dtype)], dim=1) if self.config.classical_input else x
         padded, (left, _, top, _) = pad_to_multiple(inp)
         raw = self.core(padded)[:, :, top : top + h, left : left + w].float()
@@ -210,18 +221,28 @@ class TSUNet(PhaseNet):
         super().__init__(config)
         drop = self.drop_factory()
         extra = self.core_in_channels - 3
-        self.streams = nn.ModuleList(Encoder(1 + extra, config.width, DoubleConv, drop) for _ in range(3))
+        self.streams = nn.ModuleList(
+            Encoder(1 + extra, config.width, DoubleConv, drop) for _ in range(3)
+        )
         chans = encoder_channels(config.width)
         self.fuse = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(3 * c, c, 1, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True)) for c in chans
+            nn.Sequential(
+                nn.Conv2d(3 * c, c, 1, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True)
+            )
+            for c in chans
         )
         self.decoder = Decoder(chans, DoubleConv, drop)
         self.head = make_head("3x3", config.width)
 
     def core(self, x: torch.Tensor) -> torch.Tensor:
         extras = x[:, 3:]
-        per_stream = [enc(torch.cat([x[:, k : k + 1], extras], dim=1)) for k, enc in enumerate(self.streams)]
-        fused = [f(torch.cat(level, dim=1)) for f, level in zip(self.fuse, zip(*per_stream, strict=True), strict=True)]
+        per_stream = [
+            enc(torch.cat([x[:, k : k + 1], extras], dim=1)) for k, enc in enumerate(self.streams)
+        ]
+        fused = [
+            f(torch.cat(level, dim=1))
+            for f, level in zip(self.fuse, zip(*per_stream, strict=True), strict=True)
+        ]
         return self.run_head(self.head, self.decoder(fused))
 
 
@@ -233,13 +254,19 @@ _REGISTRY: dict[str, type[PhaseNet]] = {
 }
 
 
-def build_model(name: str | ModelConfig = "cd-dcu-net", width: int = 16, in_channels: int = 3, **options) -> PhaseNet:
+def build_model(
+    name: str | ModelConfig = "cd-dcu-net", width: int = 16, in_channels: int = 3, **options
+) -> PhaseNet:
     """Build a network by name (``cd-dcu-net``, ``unet``, ``ts-unet``, ``dr-unet``) or from a config.
 
     ``options`` are the other :class:`ModelConfig` fields (``classical_input``, ``residual``,
     ``dropout``, ``temperature``, ``channelwise``, ``weight_reg``, ``dropout_reg``, ...).
     """
-    config = name if isinstance(name, ModelConfig) else ModelConfig(name=name, width=width, in_channels=in_channels, **options)
+    config = (
+        name
+        if isinstance(name, ModelConfig)
+        else ModelConfig(name=name, width=width, in_channels=in_channels, **options)
+    )
     return _REGISTRY[config.name](config)
 
 

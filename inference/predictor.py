@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from gearscan.inference.model_io import ModelFileError, load_model
 from gearscan.inference.uncertainty import deterministic_moments, mc_moments, to_phase_result
+
 from gearscan.types import Burst, PhaseResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
@@ -40,7 +40,9 @@ def frames_to_tensor(frames: np.ndarray, full_scale: float | None = None) -> tor
         elif frames.dtype == np.uint16:
             full_scale = 65535.0
         else:
-            raise ValueError(f"frames: expected uint8 or uint16 raw frames (or pass full_scale), got dtype {frames.dtype}")
+            raise ValueError(
+                f"frames: expected uint8 or uint16 raw frames (or pass full_scale), got dtype {frames.dtype}"
+            )
     if not full_scale > 0:
         raise ValueError(f"full_scale: expected > 0, got {full_scale}")
     x = torch.from_numpy(np.ascontiguousarray(frames, dtype=np.float32)) / float(full_scale)
@@ -59,7 +61,16 @@ class Predictor:
     mc_chunk : passes per batched forward in MC mode
     """
 
-    def __init__(self, model: torch.nn.Module, *, var_scale: float = 1.0, device: str = "cpu", precision: str = "fp32", mc_chunk: int = 2, meta: dict | None = None) -> None:
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        *,
+        var_scale: float = 1.0,
+        device: str = "cpu",
+        precision: str = "fp32",
+        mc_chunk: int = 2,
+        meta: dict | None = None,
+    ) -> None:
         if precision not in PRECISIONS:
             raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
         self.device = torch.device(device)
@@ -72,16 +83,34 @@ class Predictor:
             self.model = self.model.to(memory_format=torch.channels_last)
 
     @classmethod
-    def load(cls, path: str | Path | None = None, *, device: str = "cpu", precision: str = "fp32", mc_chunk: int = 2) -> Predictor:
+    def load(
+        cls,
+        path: str | Path | None = None,
+        *,
+        device: str = "cpu",
+        precision: str = "fp32",
+        mc_chunk: int = 2,
+    ) -> Predictor:
         """Load ``path`` (.safetensors + .json); default: the shipped model."""
         path = Path(path) if path is not None else DEFAULT_MODEL
         if path.suffix == ".json":
             path = path.with_suffix(".safetensors")
         if not path.is_file():
-            hint = " (the shipped default model has not been trained yet: run `gearscan train` and copy best.safetensors/.json there, or pass --model)" if path == DEFAULT_MODEL else ""
+            hint = (
+                " (the shipped default model has not been trained yet: run `gearscan train` and copy best.safetensors/.json there, or pass --model)"
+                if path == DEFAULT_MODEL
+                else ""
+            )
             raise ModelFileError(f"model weights not found: {path}{hint}")
         model, meta = load_model(path, map_location=device)
-        return cls(model, var_scale=float(meta.get("var_scale", 1.0)), device=device, precision=precision, mc_chunk=mc_chunk, meta=meta)
+        return cls(
+            model,
+            var_scale=float(meta.get("var_scale", 1.0)),
+            device=device,
+            precision=precision,
+            mc_chunk=mc_chunk,
+            meta=meta,
+        )
 
     @property
     def has_dropout(self) -> bool:
@@ -98,16 +127,24 @@ class Predictor:
         if mc < 0:
             raise ValueError(f"mc: expected >= 0 passes, got {mc}")
         if mc > 0 and not self.has_dropout:
-            raise ValueError(f"mc={mc}: this model ({self.model.config.name}) has no Concrete Dropout layers; use mc=0")
+            raise ValueError(
+                f"mc={mc}: this model ({self.model.config.name}) has no Concrete Dropout layers; use mc=0"
+            )
         x = x.to(self.device)
         if self.precision == "bf16":
             x = x.contiguous(memory_format=torch.channels_last)
         with self._autocast():
-            stats = mc_moments(self.model, x, mc, self.mc_chunk) if mc > 0 else deterministic_moments(self.model, x)
+            stats = (
+                mc_moments(self.model, x, mc, self.mc_chunk)
+                if mc > 0
+                else deterministic_moments(self.model, x)
+            )
         mode = f"mc{mc}" if mc > 0 else "deterministic"
         return to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale)
 
-    def predict(self, frames: np.ndarray, mc: int = 0, *, full_scale: float | None = None) -> PhaseResult:
+    def predict(
+        self, frames: np.ndarray, mc: int = 0, *, full_scale: float | None = None
+    ) -> PhaseResult:
         """Raw frames ``(3, H, W)`` uint8/uint16 -> :class:`PhaseResult` at the input size."""
         return self.predict_tensor(frames_to_tensor(frames, full_scale), mc)
 

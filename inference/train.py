@@ -33,13 +33,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset, Subset
-
 from gearscan.inference.concrete_dropout import concrete_layers, dropout_rates, set_stochastic
 from gearscan.inference.data import dataset_groups, split_by_group
 from gearscan.inference.losses import LossConfig, PhaseLoss
-from gearscan.inference.model_io import load_into, load_state, save_model, unwrap
+from gearscan.inference.model_io import load_into, load_state, save_model
 from gearscan.inference.models import ModelConfig, PhaseNet, build_model
+from torch.utils.data import DataLoader, Dataset, Subset
 
 SCHEDULES = ("step", "cosine", "constant")
 
@@ -80,7 +79,9 @@ class TrainConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
         if self.epochs_deterministic < 0 or self.epochs_dropout < 0:
-            raise ValueError(f"epochs: expected >= 0, got {self.epochs_deterministic}, {self.epochs_dropout}")
+            raise ValueError(
+                f"epochs: expected >= 0, got {self.epochs_deterministic}, {self.epochs_dropout}"
+            )
         if self.lr <= 0:
             raise ValueError(f"lr: expected > 0, got {self.lr}")
 
@@ -165,7 +166,9 @@ def _crop(batch: dict, size: int | None, gen: torch.Generator) -> dict:
     return out
 
 
-def _wrapped_sq_err(pred: torch.Tensor, phase: torch.Tensor, mask: torch.Tensor) -> tuple[float, float]:
+def _wrapped_sq_err(
+    pred: torch.Tensor, phase: torch.Tensor, mask: torch.Tensor
+) -> tuple[float, float]:
     est = torch.atan2(pred[:, 0], pred[:, 1])
     err = torch.remainder(est - phase + math.pi, 2 * math.pi) - math.pi
     m = mask.bool()
@@ -175,7 +178,9 @@ def _wrapped_sq_err(pred: torch.Tensor, phase: torch.Tensor, mask: torch.Tensor)
 class Trainer:
     """Holds model, optimizer and state; ``fit()`` runs both stages. Use :func:`train`."""
 
-    def __init__(self, config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None) -> None:
+    def __init__(
+        self, config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None
+    ) -> None:
         self.config = config
         self.device = _resolve_device(config.device, Dist())
         self.dist = init_distributed(self.device.type)
@@ -201,15 +206,21 @@ class Trainer:
 
     # checkpointing -----------------------------------------------------------------------------
     def _load_last(self) -> None:
-        load_into(self.model, load_state(self.out / "last.safetensors"), self.out / "last.safetensors")
+        load_into(
+            self.model, load_state(self.out / "last.safetensors"), self.out / "last.safetensors"
+        )
         st = json.loads((self.out / "last_state.json").read_text())
         self.state, self.history = st["state"], st["history"]
         opt = self.out / "last_optim.pt"
         if opt.is_file():
-            self.optimizer.load_state_dict(torch.load(opt, map_location=self.device, weights_only=True))
+            self.optimizer.load_state_dict(
+                torch.load(opt, map_location=self.device, weights_only=True)
+            )
 
     def _save_last(self) -> None:
-        save_model(self.model, self.out / "last.safetensors", extra={"training": self.config.to_json()})
+        save_model(
+            self.model, self.out / "last.safetensors", extra={"training": self.config.to_json()}
+        )
         torch.save(self.optimizer.state_dict(), self.out / "last_optim.pt")
         tmp = self.out / "last_state.json.tmp"
         tmp.write_text(json.dumps({"state": self.state, "history": self.history}, indent=1))
@@ -238,7 +249,14 @@ class Trainer:
         if self.dist.world > 1:
             from torch.utils.data.distributed import DistributedSampler
 
-            sampler = DistributedSampler(dataset, self.dist.world, self.dist.rank, shuffle=shuffle, seed=self.config.seed, drop_last=False)
+            sampler = DistributedSampler(
+                dataset,
+                self.dist.world,
+                self.dist.rank,
+                shuffle=shuffle,
+                seed=self.config.seed,
+                drop_last=False,
+            )
             sampler.set_epoch(epoch)
         return DataLoader(
             dataset,
@@ -261,7 +279,12 @@ class Trainer:
         if self.config.progress and self.dist.main:
             from tqdm import tqdm
 
-            bar = tqdm(total=total, desc=f"stage {stage} epoch {epoch + 1}", leave=False, dynamic_ncols=True)
+            bar = tqdm(
+                total=total,
+                desc=f"stage {stage} epoch {epoch + 1}",
+                leave=False,
+                dynamic_ncols=True,
+            )
         sums = {"total": 0.0, "nll": 0.0, "mse": 0.0, "reg": 0.0}
         n = 0
         for i, batch in enumerate(loader):
@@ -271,7 +294,13 @@ class Trainer:
             x = batch["input"].to(self.device, non_blocking=True)
             with self._autocast():
                 pred = net(x)
-            losses = self.criterion(pred, batch["target"].to(self.device), batch["mask"].to(self.device), self.model, include_regularization=stage == 2)
+            losses = self.criterion(
+                pred,
+                batch["target"].to(self.device),
+                batch["mask"].to(self.device),
+                self.model,
+                include_regularization=stage == 2,
+            )
             self.optimizer.zero_grad(set_to_none=True)
             losses["total"].backward()
             self.optimizer.step()
@@ -297,7 +326,9 @@ class Trainer:
             with self._autocast():
                 pred = self.model(batch["input"].to(self.device))
             mask = batch["mask"].to(self.device)
-            losses = self.criterion(pred, batch["target"].to(self.device), mask, None, include_regularization=False)
+            losses = self.criterion(
+                pred, batch["target"].to(self.device), mask, None, include_regularization=False
+            )
             acc[0] += float(c.alpha * losses["nll"] + c.mse_weight * losses["mse"])
             acc[1] += 1
             se, npx = _wrapped_sq_err(pred.float(), batch["phase"].to(self.device), mask)
@@ -310,7 +341,9 @@ class Trainer:
     def fit(self) -> TrainResult:
         t0 = time.perf_counter()
         cfg = self.config
-        stages = [(1, cfg.epochs_deterministic)] + ([(2, cfg.epochs_dropout)] if self.has_dropout else [])
+        stages = [(1, cfg.epochs_deterministic)] + (
+            [(2, cfg.epochs_dropout)] if self.has_dropout else []
+        )
         for stage, n_epochs in stages:
             if stage < self.state["stage"]:
                 continue
@@ -320,7 +353,10 @@ class Trainer:
             if self.dist.world > 1:
                 from torch.nn.parallel import DistributedDataParallel as DDP
 
-                net = DDP(self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
+                net = DDP(
+                    self.model,
+                    device_ids=[self.device.index] if self.device.type == "cuda" else None,
+                )
             while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience:
                 epoch = self.state["epoch"]
                 lr = learning_rate(cfg, epoch, n_epochs)
@@ -341,7 +377,11 @@ class Trainer:
                 self.history.append(row)
                 if self.dist.main:
                     if improved:
-                        save_model(self.model, self.out / f"stage{stage}_best.safetensors", extra={"metrics": row})
+                        save_model(
+                            self.model,
+                            self.out / f"stage{stage}_best.safetensors",
+                            extra={"metrics": row},
+                        )
                     self._save_last()
                     self._write_metrics()
             # stage done: continue from this stage's best weights
@@ -349,7 +389,15 @@ class Trainer:
             self._barrier()
             if best_file.is_file():
                 load_into(self.model, load_state(best_file), best_file)
-            self.state.update({"stage": stage + 1, "epoch": 0, "bad": 0, "best": self.state["stage_best"], "stage_best": math.inf})
+            self.state.update(
+                {
+                    "stage": stage + 1,
+                    "epoch": 0,
+                    "bad": 0,
+                    "best": self.state["stage_best"],
+                    "stage_best": math.inf,
+                }
+            )
             if self.dist.main:
                 self._save_last()
         var_scale, calib = 1.0, {}
@@ -362,10 +410,17 @@ class Trainer:
                 self.model,
                 self.out / "best.safetensors",
                 var_scale=var_scale,
-                extra={"training": cfg.to_json(), "metrics": final, "calibration": calib, "train_seconds": time.perf_counter() - t0},
+                extra={
+                    "training": cfg.to_json(),
+                    "metrics": final,
+                    "calibration": calib,
+                    "train_seconds": time.perf_counter() - t0,
+                },
             )
         self._barrier()
-        return TrainResult(best_path, self.history, float(self.state["best"]), var_scale, time.perf_counter() - t0)
+        return TrainResult(
+            best_path, self.history, float(self.state["best"]), var_scale, time.perf_counter() - t0
+        )
 
     def _barrier(self) -> None:
         if self.dist.world > 1:
@@ -376,7 +431,12 @@ class Trainer:
     @torch.no_grad()
     def _calibrate(self) -> tuple[float, dict]:
         """Fit the deterministic-mode variance scale on validation data (kept only if ECE improves)."""
-        from gearscan.inference.uncertainty import fit_variance_scale, phase_sigma, plot_reliability, reliability
+        from gearscan.inference.uncertainty import (
+            fit_variance_scale,
+            phase_sigma,
+            plot_reliability,
+            reliability,
+        )
 
         self.model.eval()
         set_stochastic(self.model, False)
@@ -395,8 +455,18 @@ class Trainer:
         err, sig = np.concatenate(errs), np.concatenate(sigs)
         k, before, after = fit_variance_scale(err, sig)
         if self.dist.main:
-            plot_reliability(reliability(err, sig * math.sqrt(k)), self.out / "reliability.png", f"validation, var scale {k:.3g}")
-        return k, {"mode": "deterministic", "var_scale": k, "ece_before": before, "ece_after": after, "pixels": int(err.size)}
+            plot_reliability(
+                reliability(err, sig * math.sqrt(k)),
+                self.out / "reliability.png",
+                f"validation, var scale {k:.3g}",
+            )
+        return k, {
+            "mode": "deterministic",
+            "var_scale": k,
+            "ece_before": before,
+            "ece_after": after,
+            "pixels": int(err.size),
+        }
 
 
 def train(config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None) -> TrainResult:
@@ -432,9 +502,10 @@ def plot_history(history: list[dict], path: str | Path) -> Path:
     return path
 
 
-if __name__ == "__main__":  # torchrun entry point: torchrun --nproc_per_node 2 -m gearscan.inference.train ...
+if (
+    __name__ == "__main__"
+):  # torchrun entry point: torchrun --nproc_per_node 2 -m gearscan.inference.train ...
     import typer
-
     from gearscan.inference.commands import train as train_command
 
     typer.run(train_command)

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from gearscan.inference.concrete_dropout import set_stochastic
 from scipy.special import erf
 
-from gearscan.inference.concrete_dropout import set_stochastic
 from gearscan.types import PhaseResult
 
 
@@ -83,7 +83,12 @@ def mc_moments(model: torch.nn.Module, x: torch.Tensor, passes: int, chunk: int 
     data_var = sv / passes
     f = torch.float32
     return MomentStats(
-        mean[:, 0].to(f), mean[:, 1].to(f), model_var[:, 0].to(f), model_var[:, 1].to(f), data_var[:, 0].to(f), data_var[:, 1].to(f)
+        mean[:, 0].to(f),
+        mean[:, 1].to(f),
+        model_var[:, 0].to(f),
+        model_var[:, 1].to(f),
+        data_var[:, 0].to(f),
+        data_var[:, 1].to(f),
     )
 
 
@@ -101,7 +106,9 @@ def deterministic_moments(model: torch.nn.Module, x: torch.Tensor) -> MomentStat
     return MomentStats(out[:, 0], out[:, 1], zero, zero, out[:, 2], out[:, 3])
 
 
-def to_phase_result(stats: MomentStats, index: int = 0, *, mode: str = "deterministic", var_scale: float = 1.0) -> PhaseResult:
+def to_phase_result(
+    stats: MomentStats, index: int = 0, *, mode: str = "deterministic", var_scale: float = 1.0
+) -> PhaseResult:
     """Turn batch element ``index`` of ``stats`` into a :class:`PhaseResult`.
 
     ``var_scale`` multiplies every variance (model and data) before propagation, so the phase
@@ -144,7 +151,13 @@ class Reliability:
         def clean(a: np.ndarray) -> list:
             return [None if not np.isfinite(v) else float(v) for v in a]
 
-        return {"eps": self.eps, "ece": self.ece, "confidence": clean(self.confidence), "accuracy": clean(self.accuracy), "count": self.count.tolist()}
+        return {
+            "eps": self.eps,
+            "ece": self.ece,
+            "confidence": clean(self.confidence),
+            "accuracy": clean(self.accuracy),
+            "count": self.count.tolist(),
+        }
 
 
 def confidence(sigma: np.ndarray, eps: float = 0.03) -> np.ndarray:
@@ -153,7 +166,14 @@ def confidence(sigma: np.ndarray, eps: float = 0.03) -> np.ndarray:
     return erf(eps / (s * math.sqrt(2.0)))
 
 
-def reliability(error: np.ndarray, sigma: np.ndarray, mask: np.ndarray | None = None, *, eps: float = 0.03, bins: int = 30) -> Reliability:
+def reliability(
+    error: np.ndarray,
+    sigma: np.ndarray,
+    mask: np.ndarray | None = None,
+    *,
+    eps: float = 0.03,
+    bins: int = 30,
+) -> Reliability:
     """Reliability diagram and ECE of phase errors ``error`` (rad, wrapped) against ``sigma`` (rad)."""
     error = np.asarray(error)
     sigma = np.asarray(sigma)
@@ -179,7 +199,14 @@ def reliability(error: np.ndarray, sigma: np.ndarray, mask: np.ndarray | None = 
     return Reliability(mc, ma, count, ece, eps)
 
 
-def fit_variance_scale(error: np.ndarray, sigma: np.ndarray, mask: np.ndarray | None = None, *, eps: float = 0.03, bins: int = 30) -> tuple[float, float, float]:
+def fit_variance_scale(
+    error: np.ndarray,
+    sigma: np.ndarray,
+    mask: np.ndarray | None = None,
+    *,
+    eps: float = 0.03,
+    bins: int = 30,
+) -> tuple[float, float, float]:
     """Fit a variance scale ``k`` (sigma -> sqrt(k) sigma) on validation errors.
 
     Searches ``k`` on a log grid (1e-3 ... 1e3, plus the Gaussian maximum-likelihood value
