@@ -25,9 +25,13 @@ Choices (and why)
   0.5; pass ``temperature=0.5`` to follow it. A temperature near 2/3 keeps the relaxed mask
   away from hard 0/1 so the gradient with respect to ``p`` stays informative when only
   ``B*C`` mask values are drawn per step.
-- **Inverted scaling**: kept features are divided by ``1 - p`` during stochastic passes, so
-  the deterministic mode (no mask, plain convolution) is the expectation of the stochastic
-  one (exact for hard Bernoulli masks, and approximately so for the relaxation).
+- **Inverted scaling**: kept features are divided by ``1 - p`` during stochastic passes (as in
+  the reference code). The relaxed mask is not unbiased (at temperature 2/3 and p = 0.3,
+  ``E[1 - z] / (1 - p)`` is 0.946, not 1), so the deterministic mode multiplies the input by
+  that exact expectation, :meth:`ConcreteDropout2d.keep_scale` (64-point Gauss-Legendre
+  quadrature over the uniform noise, differentiable in p), before the plain convolution. As the
+  convolution is linear, the deterministic output is then exactly the expectation of the
+  stochastic one.
 
 Modes: ``stochastic=True`` draws masks in every forward pass, in training *and* eval mode
 (MC sampling runs the network in eval mode so batch norm uses its running statistics);
@@ -43,10 +47,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
 EPS = 1e-7
+_GL_NODES, _GL_WEIGHTS = (torch.from_numpy(a) for a in np.polynomial.legendre.leggauss(64))
 
 
 def _logit(p: float) -> float:
@@ -106,6 +112,16 @@ class ConcreteDropout2d(nn.Module):
         """Current dropout rate, a 1-element tensor in (0, 1)."""
         return torch.sigmoid(self.p_logit)
 
+    def keep_scale(self) -> torch.Tensor:
+        """``E[(1 - z) / (1 - p)]`` of the relaxed mask (1-element tensor), by quadrature over u."""
+        p = self.p.double()
+        u = (_GL_NODES.to(p.device) + 1) / 2
+        w = _GL_WEIGHTS.to(p.device) / 2
+        z = torch.sigmoid(
+            (torch.log(p) - torch.log1p(-p) + torch.log(u) - torch.log1p(-u)) / self.temperature
+        )
+        return ((w * (1 - z)).sum() / (1 - p)).float()
+
     def extra_repr(self) -> str:
         return (
             f"p={self.p.item():.3f}, temperature={self.temperature:g}, channelwise={self.channelwise}, "
@@ -132,8 +148,7 @@ class ConcreteDropout2d(nn.Module):
         if x.ndim != 4:
             raise ValueError(f"ConcreteDropout2d: expected (B, C, H, W), got {tuple(x.shape)}")
         self._input_dim = x.shape[1] if self.channelwise else x.shape[1] * x.shape[2] * x.shape[3]
-        if self.stochastic:
-            x = self._drop(x)
+        x = self._drop(x) if self.stochastic else x * self.keep_scale().to(x.dtype)
         return self.conv(x)
 
     def regularization(self) -> torch.Tensor:

@@ -201,6 +201,7 @@ class Trainer:
         self.has_dropout = bool(concrete_layers(self.model))
         self.state = {"stage": 1, "epoch": 0, "best": math.inf, "bad": 0, "stage_best": math.inf}
         self.history: list[dict] = []
+        self._last_plot = -math.inf
         if config.resume and (self.out / "last.safetensors").is_file():
             self._load_last()
 
@@ -226,7 +227,8 @@ class Trainer:
         tmp.write_text(json.dumps({"state": self.state, "history": self.history}, indent=1))
         tmp.replace(self.out / "last_state.json")
 
-    def _write_metrics(self) -> None:
+    def _write_metrics(self, plot: bool = False) -> None:
+        """CSV + JSON every epoch; the PNG at most every 30 s (or when ``plot``) to keep tiny epochs cheap."""
         if not self.history:
             return
         keys = list(self.history[-1].keys())
@@ -236,7 +238,9 @@ class Trainer:
             for row in self.history:
                 w.writerow({k: row.get(k) for k in keys})
         (self.out / "metrics.json").write_text(json.dumps(self.history, indent=1))
-        plot_history(self.history, self.out / "loss_curve.png")
+        if plot or time.monotonic() - self._last_plot > 30.0:
+            plot_history(self.history, self.out / "loss_curve.png")
+            self._last_plot = time.monotonic()
 
     # one epoch -------------------------------------------------------------------------------
     def _autocast(self):
@@ -400,6 +404,7 @@ class Trainer:
             )
             if self.dist.main:
                 self._save_last()
+                self._write_metrics(plot=True)
         var_scale, calib = 1.0, {}
         if cfg.calibrate:
             var_scale, calib = self._calibrate()

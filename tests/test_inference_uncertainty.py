@@ -1,0 +1,155 @@
+"""MC moments, propagation to phase (vs finite differences), reliability / ECE, variance scale."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from gearscan.inference.concrete_dropout import concrete_layers
+from gearscan.inference.models import build_model
+from gearscan.inference.uncertainty import (
+    MomentStats,
+    confidence,
+    deterministic_moments,
+    fit_variance_scale,
+    mc_moments,
+    phase_sigma,
+    plot_reliability,
+    reliability,
+    to_phase_result,
+)
+
+torch.set_num_threads(1)
+
+
+def test_propagation_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    M = rng.uniform(-0.8, 0.8, 200)
+    D = rng.uniform(-0.8, 0.8, 200)
+    keep = np.hypot(M, D) > 0.1
+    M, D = M[keep], D[keep]
+    h = 1e-6
+    dphi_dM = (np.arctan2(M + h, D) - np.arctan2(M - h, D)) / (2 * h)
+    dphi_dD = (np.arctan2(M, D + h) - np.arctan2(M, D - h)) / (2 * h)
+    np.testing.assert_allclose(dphi_dM, D / (M**2 + D**2), rtol=1e-5)
+    np.testing.assert_allclose(dphi_dD, -M / (M**2 + D**2), rtol=1e-5)
+    vm, vd = rng.uniform(1e-6, 1e-4, M.size), rng.uniform(1e-6, 1e-4, M.size)
+    expected = np.sqrt(dphi_dM**2 * vm + dphi_dD**2 * vd)
+    np.testing.assert_allclose(phase_sigma(M, D, vm, vd), expected, rtol=1e-4)
+
+
+def test_propagation_matches_sampling():
+    """For small noise the first-order sigma equals the std of sampled atan2."""
+    rng = np.random.default_rng(1)
+    M, D, sm, sd = 0.3, -0.4, 0.004, 0.006
+    phi = np.arctan2(M + sm * rng.standard_normal(200000), D + sd * rng.standard_normal(200000))
+    s = phase_sigma(np.array([M]), np.array([D]), np.array([sm**2]), np.array([sd**2]))[0]
+    assert np.std(phi) == pytest.approx(s, rel=0.02)
+
+
+class _Scripted(torch.nn.Module):
+    """Returns a pre-set sequence of outputs, one per sample in each batch (fake MC passes)."""
+
+    def __init__(self, outs: torch.Tensor) -> None:
+        super().__init__()
+        self.outs = outs  # (T, 4, H, W)
+        self.i = 0
+        self.p = torch.nn.Parameter(torch.zeros(1))
+
+    def forward(self, x):
+        k = x.shape[0]
+        out = self.outs[self.i : self.i + k]
+        self.i += k
+        return out
+
+
+def test_mc_moments_formulas_and_chunking():
+    rng = np.random.default_rng(2)
+    outs = torch.from_numpy(rng.uniform(0.01, 1, size=(5, 4, 3, 3)).astype(np.float32))
+    stats = mc_moments(_Scripted(outs), torch.zeros(1, 3, 3, 3), passes=5, chunk=2)
+    o = outs.double().numpy()
+    np.testing.assert_allclose(stats.M[0].numpy(), o[:, 0].mean(0), rtol=1e-6)
+    np.testing.assert_allclose(stats.model_var_M[0].numpy(), o[:, 0].var(0), rtol=1e-4, atol=1e-8)
+    np.testing.assert_allclose(stats.model_var_D[0].numpy(), o[:, 1].var(0), rtol=1e-4, atol=1e-8)
+    np.testing.assert_allclose(stats.data_var_M[0].numpy(), o[:, 2].mean(0), rtol=1e-6)
+    np.testing.assert_allclose(stats.data_var_D[0].numpy(), o[:, 3].mean(0), rtol=1e-6)
+
+
+def test_mc_with_dropout_disabled_equals_deterministic():
+    torch.manual_seed(0)
+    x = torch.rand(1, 3, 24, 40)
+    # a model without dropout layers: every MC pass is the deterministic pass
+    plain = build_model("cd-dcu-net", width=4, dropout=False).eval()
+    det = deterministic_moments(plain, x)
+    mc = mc_moments(plain, x, passes=4, chunk=3)
+    torch.testing.assert_close(mc.M, det.M, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(mc.data_var_D, det.data_var_D, atol=1e-6, rtol=1e-5)
+    assert mc.model_var_M.max().item() < 1e-10
+    # Concrete Dropout with rates driven to ~0: masks keep everything
+    cd = build_model("cd-dcu-net", width=4).eval()
+    with torch.no_grad():
+        for layer in concrete_layers(cd):
+            layer.p_logit.fill_(-40.0)
+    det, mc = deterministic_moments(cd, x), mc_moments(cd, x, passes=3, chunk=2)
+    torch.testing.assert_close(mc.M, det.M, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(mc.D, det.D, atol=1e-5, rtol=1e-4)
+    assert all(not layer.stochastic for layer in concrete_layers(cd)), (
+        "MC must switch masks back off"
+    )
+
+
+def test_mc_with_dropout_gives_model_uncertainty():
+    torch.manual_seed(0)
+    m = build_model("cd-dcu-net", width=4).eval()
+    mc = mc_moments(m, torch.rand(1, 3, 32, 32), passes=6, chunk=2)
+    assert mc.model_var_M.mean().item() > 0
+
+
+def test_to_phase_result_combines_by_eq19_and_scales():
+    M = torch.tensor([[[0.3, -0.2]]])
+    D = torch.tensor([[[0.4, 0.5]]])
+    mv = torch.tensor([[[1e-4, 4e-4]]])
+    dv = torch.tensor([[[9e-4, 1e-4]]])
+    stats = MomentStats(M, D, mv, mv, dv, dv)
+    r = to_phase_result(stats, mode="mc20")
+    np.testing.assert_allclose(r.phase, np.arctan2(M[0].numpy(), D[0].numpy()), rtol=1e-6)
+    np.testing.assert_allclose(r.sigma_total, np.hypot(r.sigma_model, r.sigma_data), rtol=1e-6)
+    # equal variances on M and D: sigma_phi = sqrt(var) / modulation
+    np.testing.assert_allclose(
+        r.sigma_model, np.sqrt(mv[0].numpy()) / np.hypot(M[0].numpy(), D[0].numpy()), rtol=1e-5
+    )
+    r4 = to_phase_result(stats, var_scale=4.0)
+    np.testing.assert_allclose(r4.sigma_total, 2 * r.sigma_total, rtol=1e-5)
+    assert r.mode == "mc20" and r.phase.dtype == np.float32
+
+
+def test_reliability_hand_example():
+    sigma = np.array([0.01, 0.01, 1.0, 1.0])
+    err = np.array([0.0, 0.05, 0.0, 0.5])
+    c_hi, c_lo = math.erf(0.03 / (0.01 * math.sqrt(2))), math.erf(0.03 / math.sqrt(2))
+    rel = reliability(err, sigma, eps=0.03, bins=30)
+    expected = (2 * abs(0.5 - c_hi) + 2 * abs(0.5 - c_lo)) / 4
+    assert rel.ece == pytest.approx(expected, rel=1e-9)
+    assert rel.count.sum() == 4 and rel.count[29] == 2 and rel.count[0] == 2
+
+
+def test_calibrated_gaussian_errors_have_small_ece_and_scale_fit_recovers_factor():
+    rng = np.random.default_rng(3)
+    sigma = rng.uniform(0.005, 0.1, 200000)
+    err = sigma * rng.standard_normal(sigma.size)
+    assert reliability(err, sigma).ece < 0.01
+    np.testing.assert_allclose(confidence(np.array([0.03]), 0.03), math.erf(1 / math.sqrt(2)))
+    k, before, after = fit_variance_scale(err, sigma / 3)  # overconfident by 3x
+    assert before > 0.1 and after < 0.01
+    assert k == pytest.approx(9.0, rel=0.15)
+    k1, b1, a1 = fit_variance_scale(err, sigma)
+    assert a1 <= b1 and 0.8 < k1 < 1.25
+
+
+def test_plot_reliability(tmp_path):
+    rng = np.random.default_rng(4)
+    sigma = rng.uniform(0.005, 0.1, 1000)
+    p = plot_reliability(reliability(sigma * rng.standard_normal(1000), sigma), tmp_path / "r.png")
+    assert p.stat().st_size > 1000
