@@ -11,6 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+DEFAULT_PERIOD_PX = 40.0
+"""Default fringe period (projector px): about 22 camera px and 5 periods per tooth pitch on
+the default rig with a module-2, 20-tooth gear."""
+
 
 class PatternError(ValueError):
     """A pattern set parameter is out of range."""

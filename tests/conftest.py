@@ -1,0 +1,43 @@
+"""Shared fixtures: a small default rig and renderers (built once per session)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+@pytest.fixture(scope="session")
+def gear():
+    from gearscan.twin.gear import GearSpec
+
+    return GearSpec()
+
+
+@pytest.fixture(scope="session")
+def gear_mesh(gear):
+    return gear.mesh()
+
+
+@pytest.fixture(scope="session")
+def rig256():
+    from gearscan.rig import default_rig
+
+    return default_rig(256, 256)
+
+
+@pytest.fixture(scope="session")
+def clean_renderer(rig256, gear, gear_mesh):
+    """Noise-free twin renderer of the default rig at 256x256."""
+    from gearscan.twin.render import Optics, TwinRenderer
+
+    return TwinRenderer(rig256, gear, Optics().noise_free(), mesh=gear_mesh)
+
+
+@pytest.fixture(scope="session")
+def noisy_renderer(rig256, gear, gear_mesh):
+    from gearscan.twin.render import Optics, TwinRenderer
+
+    return TwinRenderer(rig256, gear, Optics(), mesh=gear_mesh)

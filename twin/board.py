@@ -1,0 +1,222 @@
+"""Twin rendering of a planar calibration board under white light and fringes.
+
+The board is a plane (analytic ray intersection, no mesh); each camera pixel is supersampled
+``s x s`` times so checker edges are anti-aliased (sub-pixel corners need it). The projector
+is an inverse camera: a board point's projector pixel ``(u_p, v_p)`` gives the phase of
+fringes varying along projector columns (``2 pi u_p / period``, the gearscan convention) or,
+for the vertical set the calibration also needs, along rows (``2 pi v_p / period``).
+Photometry, blur and noise reuse :class:`gearscan.twin.render.Optics` and
+:meth:`TwinRenderer.expose`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+from gearscan.recon.calibration import BoardCapture, Checkerboard
+from gearscan.twin.render import Optics, TwinRenderer
+
+from gearscan.rig import Rig, look_at, rot_z
+
+BLACK_ALBEDO = 0.12  # printed black relative to the optics' albedo (white)
+
+
+def _square_wave_box(x: np.ndarray, s: float) -> np.ndarray:
+    """+1 on even squares ``[2k s, (2k+1) s)``, -1 on odd ones."""
+    return np.where(np.floor(x / s) % 2 == 0, 1.0, -1.0)
+
+
+class BoardRenderer:
+    """Renders a checkerboard at given poses as the rig's camera sees it.
+
+    Parameters
+    ----------
+    rig : camera + projector
+    board : the printed checkerboard
+    optics : photometry and noise (``Optics().noise_free()`` for exact images)
+    supersample : sub-samples per pixel along each axis (anti-aliasing)
+    """
+
+    def __init__(self, rig: Rig, board: Checkerboard, optics: Optics | None = None, *, supersample: int = 4) -> None:
+        if supersample < 1:
+            raise ValueError(f"supersample must be >= 1, got {supersample}")
+        self.rig = rig
+        self.board = board
+        self.optics = optics or Optics()
+        self.s = int(supersample)
+        cam = rig.camera
+        fine = cam.scaled(cam.width * self.s, cam.height * self.s)
+        rays = fine.pixel_rays().reshape(-1, 3)
+        self._rays_world = rays @ cam.T_world_from[:3, :3].T
+        self._cam_center = cam.center_world
+        self._proj_center = rig.projector.center_world
+        self._shape = (cam.height, cam.width)
+        self._d0 = float(np.linalg.norm(self._proj_center[:2]))  # as TwinRenderer: projector to axis
+        # exposure helper: TwinRenderer.expose only uses the optics
+        self._expose = TwinRenderer.expose.__get__(_OpticsHolder(self.optics))
+
+    def _bin(self, x: np.ndarray) -> np.ndarray:
+        """Average ``s x s`` sub-samples into camera pixels: ``(H*s*W*s,) -> (H, W)``."""
+        h, w = self._shape
+        return x.reshape(h, self.s, w, self.s).mean(axis=(1, 3))
+
+    def _geometry(self, t_world_from_board: np.ndarray) -> dict:
+        """Sub-sample hits on the board plane: albedo, irradiance factor, projector (u, v)."""
+        t = np.asarray(t_world_from_board, dtype=np.float64)
+        normal = t[:3, 2]
+        origin = t[:3, 3]
+        denom = self._rays_world @ normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dist = ((origin - self._cam_center) @ normal) / denom
+        hit = np.isfinite(dist) & (dist > 0)
+        pts = self._cam_center + dist[:, None] * self._rays_world
+        local = (pts - origin) @ t[:3, :3]  # board coordinates
+        b = self.board
+        sq = b.square_mm
+        x0, x1 = -(1 + b.margin_squares) * sq, (b.cols + b.margin_squares) * sq
+        y0, y1 = -(1 + b.margin_squares) * sq, (b.rows + b.margin_squares) * sq
+        on_plate = hit & (local[:, 0] >= x0) & (local[:, 0] <= x1) & (local[:, 1] >= y0) & (local[:, 1] <= y1)
+        in_pattern = (local[:, 0] >= -sq) & (local[:, 0] <= b.cols * sq) & (local[:, 1] >= -sq) & (local[:, 1] <= b.rows * sq)
+        # square (a, b) with lower corner (a s, b s), a, b >= -1, black when a + b is even
+        checker = _square_wave_box(local[:, 0], sq) * _square_wave_box(local[:, 1], sq)
+        black = in_pattern & (checker > 0)
+        albedo = np.where(on_plate, np.where(black, BLACK_ALBEDO, 1.0) * self.optics.albedo, 0.0)
+        uv = self.rig.projector.project(pts)
+        pw, ph = self.rig.projector.width, self.rig.projector.height
+        inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= pw - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= ph - 0.5)
+        to_pt = pts - self._proj_center
+        dp = np.linalg.norm(to_pt, axis=1)
+        cos_inc = np.abs(to_pt @ normal) / dp
+        facing = ((self._proj_center - origin) @ normal) * ((self._cam_center - origin) @ normal) > 0
+        lit = on_plate & inside & facing
+        irr = np.where(lit, albedo * self.optics.projector_power * cos_inc * (self._d0 / dp) ** 2, 0.0)
+        return {"albedo": albedo, "irr": irr, "uv": np.where(lit[:, None], uv, 0.0)}
+
+    def _blur(self, img: np.ndarray) -> np.ndarray:
+        s = self.optics.camera_defocus_px
+        if s <= 0:
+            return img
+        return cv2.GaussianBlur(img, (0, 0), s, borderType=cv2.BORDER_REPLICATE)
+
+    def _contrast(self, period_px: float) -> float:
+        s = self.optics.projector_defocus_px
+        return math.exp(-2 * (math.pi * s / period_px) ** 2)
+
+    def render(
+        self,
+        t_world_from_board: np.ndarray,
+        *,
+        periods_u: Sequence[float] = (20.0, 160.0, 1400.0),
+        periods_v: Sequence[float] = (20.0, 160.0, 900.0),
+        steps: int = 12,
+        rng: np.random.Generator | int | None = 0,
+        name: str = "view",
+        turntable_angle: float | None = None,
+    ) -> BoardCapture:
+        """White image plus ``steps``-step fringes at each period, both orientations."""
+        if steps < 3:
+            raise ValueError(f"steps must be >= 3, got {steps}")
+        rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        g = self._geometry(t_world_from_board)
+        o = self.optics
+        amb = self._blur(self._bin(g["albedo"] * o.ambient).astype(np.float32))
+        half = g["irr"] * 0.5
+        white = self._expose((amb + self._blur(self._bin(g["irr"]).astype(np.float32)))[None], rng)[0]
+        shifts = 2 * np.pi * np.arange(steps) / steps
+        out: dict[str, dict[float, np.ndarray]] = {"u": {}, "v": {}}
+        for axis, periods in (("u", periods_u), ("v", periods_v)):
+            coord = g["uv"][:, 0 if axis == "u" else 1]
+            for period in periods:
+                phi = 2 * np.pi * coord / period
+                b = half * self._contrast(period)
+                dc = amb + self._blur(self._bin(half).astype(np.float32))
+                bc = self._blur(self._bin(b * np.cos(phi)).astype(np.float32))
+                bs = self._blur(self._bin(b * np.sin(phi)).astype(np.float32))
+                lin = dc[None] + np.cos(shifts)[:, None, None].astype(np.float32) * bc - np.sin(shifts)[:, None, None].astype(np.float32) * bs
+                out[axis][float(period)] = self._expose(lin.astype(np.float32), rng)
+        return BoardCapture(
+            name=name,
+            white=white,
+            fringes_u=out["u"],
+            fringes_v=out["v"],
+            full_scale=o.full_scale,
+            turntable_angle=turntable_angle,
+        )
+
+
+class _OpticsHolder:
+    """Minimal stand-in so :meth:`TwinRenderer.expose` can be reused without a gear scene."""
+
+    def __init__(self, optics: Optics) -> None:
+        self.optics = optics
+
+
+def calibration_poses(
+    rig: Rig,
+    board: Checkerboard,
+    *,
+    free_tilts_deg: Sequence[tuple[float, float]] = ((0, 0), (18, 0), (-18, 0), (0, 18), (0, -18), (14, 14), (-14, 14), (14, -14)),
+    turntable_angles_deg: Sequence[float] = (-20.0, -10.0, 0.0, 10.0, 20.0),
+    free_distance_mm: float | None = None,
+) -> list[tuple[str, np.ndarray, float | None]]:
+    """Board poses for a calibration set: ``(name, T_world_from_board, turntable angle rad or None)``.
+
+    Free-hand views face the camera at the working distance, tilted about the board's x and
+    y axes. Turntable views stand the board in a plane through the rotation axis, facing the
+    camera at encoder angle 0 with its centre on the axis (so the fitted world origin is the
+    rig's), turned by each encoder angle.
+    """
+    cam = rig.camera
+    c = cam.center_world
+    # board centre for free views: where the camera's optical axis meets the plane x = axis + ~working radius
+    fwd = cam.T_world_from[:3, 2]
+    target_free = c + fwd * (free_distance_mm or float(np.linalg.norm(c[:2]) - 21.0))
+    poses: list[tuple[str, np.ndarray, float | None]] = []
+
+    def facing(centre: np.ndarray, tilt_x: float, tilt_y: float) -> np.ndarray:
+        # board frame: x along the image columns, y along the image rows, z away from the camera
+        t_cb = look_at(c, centre, np.array([0.0, 0.0, 1.0]))  # camera-like frame at the camera
+        r = t_cb[:3, :3].T  # world from that frame: columns x (right), y (down), z (forward)
+        rx = cv2.Rodrigues(np.array([math.radians(tilt_x), 0.0, 0.0]))[0]
+        ry = cv2.Rodrigues(np.array([0.0, math.radians(tilt_y), 0.0]))[0]
+        rot = r @ rx @ ry
+        t = np.eye(4)
+        t[:3, :3] = rot
+        t[:3, 3] = centre - rot @ board.centre
+        return t
+
+    for i, (tx, ty) in enumerate(free_tilts_deg):
+        poses.append((f"free_{i:02d}", facing(target_free, tx, ty), None))
+    base = facing(np.zeros(3), 0.0, 0.0)
+    for i, a in enumerate(turntable_angles_deg):
+        ang = math.radians(a)
+        poses.append((f"turntable_{i:02d}", rot_z(ang) @ base, ang))
+    return poses
+
+
+def render_calibration_set(
+    rig: Rig,
+    board: Checkerboard | None = None,
+    optics: Optics | None = None,
+    *,
+    steps: int = 12,
+    supersample: int = 4,
+    seed: int = 0,
+    poses: list[tuple[str, np.ndarray, float | None]] | None = None,
+) -> list[BoardCapture]:
+    """Render every pose of :func:`calibration_poses` (or ``poses``)."""
+    board = board or Checkerboard()
+    renderer = BoardRenderer(rig, board, optics, supersample=supersample)
+    rng = np.random.default_rng(seed)
+    poses = poses if poses is not None else calibration_poses(rig, board)
+    ph = rig.projector.height
+    pw = rig.projector.width
+    periods_u = (20.0, 160.0, float(math.ceil(pw * 1.1)))
+    periods_v = (20.0, 160.0, float(math.ceil(ph * 1.1)))
+    return [
+        renderer.render(t, periods_u=periods_u, periods_v=periods_v, steps=steps, rng=rng, name=name, turntable_angle=ang)
+        for name, t, ang in poses
+    ]

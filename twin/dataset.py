@@ -1,0 +1,255 @@
+"""The paper's dataset protocol (section 3.2), rendered by the twin and read lazily.
+
+Per gear: start points every ``start_step_deg`` within one pitch; from each, ``poses`` poses
+``pose_step_deg`` apart; at each pose the ``steps``-step pattern set. Only this
+``poses x steps`` image block is stored per start point; the three-step inputs (pattern 0,
+6, 12 from poses i < j < k: C(18, 3) = 816 per start point) are built on the fly.
+
+On-disk layout (``root/``), all plain numpy so it memory-maps::
+
+    index.json                        spec + one entry per start point (rig, optics, gear, period)
+    sp_00000/images.npy               (poses, steps, H, W) uint8/uint16 raw frames
+    sp_00000/label.npy                (poses, 2, H, W) float32  18-step PS M, D (normalised)
+    sp_00000/truth_md.npy             (poses, 2, H, W) float32  analytic M, D
+    sp_00000/phase.npy                (poses, H, W) float32     analytic wrapped phase
+    sp_00000/mask.npy                 (poses, H, W) bool        valid pixels
+
+Generation is resumable: a start point is listed as done in ``index.json`` only after all its
+files were renamed into place.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from gearscan.projector.patterns import DEFAULT_PERIOD_PX, PatternSet
+from gearscan.recon.phase import decode_md
+from gearscan.twin.gear import GearSpec
+from gearscan.twin.render import Optics, TwinRenderer
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from gearscan.rig import Rig, default_rig
+
+INDEX = "index.json"
+FORMAT = "gearscan-twin-dataset"
+
+
+class DatasetError(ValueError):
+    """A dataset folder or spec is invalid."""
+
+
+class DatasetSpec(BaseModel):
+    """What to render: gears, protocol constants, image size and randomisation."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    gears: list[GearSpec] = Field(default_factory=lambda: [GearSpec(teeth=12), GearSpec(teeth=20), GearSpec(teeth=30)])
+    start_step_deg: float = Field(2.0, gt=0, le=90)
+    poses: int = Field(18, ge=3, le=64)
+    pose_step_deg: float = Field(0.1, gt=0, le=10)
+    steps: int = Field(18, ge=13, le=64, description="phase steps per pose; three-step inputs use 0, N/3, 2N/3")
+    width: int = Field(512, ge=32, le=4096)
+    height: int = Field(512, ge=32, le=4096)
+    period_px: float = Field(DEFAULT_PERIOD_PX, ge=4)
+    randomize: bool = Field(False, description="randomise rig, optics and fringe period per gear")
+    seed: int = 0
+    max_start_points: int | None = Field(None, ge=1, description="per gear, for quick sets")
+
+    @field_validator("steps")
+    @classmethod
+    def _divisible(cls, v: int) -> int:
+        if v % 3:
+            raise ValueError(f"steps must be a multiple of 3 so patterns 0, N/3, 2N/3 form a three-step set, got {v}")
+        return v
+
+
+def start_points(gear: GearSpec, step_deg: float) -> list[float]:
+    """Start angles (deg) every ``step_deg`` within one pitch: 15, 9, 6 for 12, 20, 30 teeth."""
+    pitch = 360.0 / gear.teeth
+    n = int(math.floor(pitch / step_deg + 1e-9))
+    return [k * step_deg for k in range(n)]
+
+
+def combinations(poses: int) -> list[tuple[int, int, int]]:
+    """All ascending pose triples i < j < k (816 for 18 poses)."""
+    return list(itertools.combinations(range(poses), 3))
+
+
+def _scene_for(spec: DatasetSpec, gear_index: int) -> tuple[Rig, Optics, GearSpec, float]:
+    gear = spec.gears[gear_index]
+    if not spec.randomize:
+        return default_rig(spec.width, spec.height), Optics(), gear, spec.period_px
+    from gearscan.twin.randomize import random_scene
+
+    rng = np.random.default_rng([spec.seed, gear_index])
+    return random_scene(rng, gear, spec.width, spec.height)
+
+
+def generate_dataset(
+    root: str | Path,
+    spec: DatasetSpec,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+) -> Path:
+    """Render (or resume rendering) the dataset described by ``spec`` into ``root``."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    index_path = root / INDEX
+    if index_path.exists():
+        index = json.loads(index_path.read_text())
+        if index.get("spec") != json.loads(spec.model_dump_json()):
+            raise DatasetError(f"{index_path} was written for another spec; use a new folder or the same spec")
+    else:
+        index = {"format": FORMAT, "version": 1, "spec": json.loads(spec.model_dump_json()), "entries": []}
+    done = {e["id"] for e in index["entries"]}
+    jobs = []
+    for g in range(len(spec.gears)):
+        starts = start_points(spec.gears[g], spec.start_step_deg)[: spec.max_start_points]
+        for s, start in enumerate(starts):
+            jobs.append((f"sp_{g:02d}_{s:03d}", g, start))
+    renderers: dict[int, tuple[TwinRenderer, float, Rig, Optics, GearSpec]] = {}
+    for n, (sp_id, g, start) in enumerate(jobs):
+        if sp_id in done:
+            if progress:
+                progress(n + 1, len(jobs))
+            continue
+        if g not in renderers:
+            rig, optics, gear, period = _scene_for(spec, g)
+            renderers = {g: (TwinRenderer(rig, gear, optics), period, rig, optics, gear)}
+        renderer, period, rig, optics, gear = renderers[g]
+        ps = PatternSet.n_step(spec.steps, period)
+        rng = np.random.default_rng([spec.seed, g, int(round(start * 1000))])
+        h, w = spec.height, spec.width
+        images = np.empty((spec.poses, spec.steps, h, w), dtype=optics.dtype)
+        label = np.empty((spec.poses, 2, h, w), np.float32)
+        truth_md = np.empty((spec.poses, 2, h, w), np.float32)
+        phase = np.empty((spec.poses, h, w), np.float32)
+        mask = np.empty((spec.poses, h, w), bool)
+        for p in range(spec.poses):
+            angle = math.radians(start + p * spec.pose_step_deg)
+            imgs, tr = renderer.render(angle, ps, rng)
+            images[p] = imgs
+            label[p] = decode_md(imgs, ps.shifts, optics.full_scale)
+            truth_md[p, 0], truth_md[p, 1] = tr.M, tr.D
+            phase[p], mask[p] = tr.phase, tr.mask
+        tmp = root / f"{sp_id}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        for name, arr in (("images", images), ("label", label), ("truth_md", truth_md), ("phase", phase), ("mask", mask)):
+            np.save(tmp / f"{name}.npy", arr)
+        shutil.rmtree(root / sp_id, ignore_errors=True)
+        tmp.rename(root / sp_id)
+        index["entries"].append(
+            {
+                "id": sp_id,
+                "gear_index": g,
+                "start_deg": start,
+                "period_px": period,
+                "gear": gear.model_dump(),
+                "rig": rig.to_json(),
+                "optics": optics.model_dump(),
+            }
+        )
+        tmp_index = index_path.with_name(INDEX + ".tmp")
+        tmp_index.write_text(json.dumps(index, indent=1))
+        tmp_index.replace(index_path)
+        if progress:
+            progress(n + 1, len(jobs))
+    return root
+
+
+Motion = Literal["all", "uniform", "nonuniform"]
+
+
+class TwinBurstDataset:
+    """Three-step bursts from a rendered dataset, as a map-style torch-compatible dataset.
+
+    Items are dicts: ``input`` (3, H, W) float32 in [0, 1] (patterns 0, N/3, 2N/3 at poses
+    i < j < k), ``target`` (2, H, W) the 18-step M, D label at pose i, ``truth_md`` the analytic
+    M, D, ``mask`` (H, W) bool, ``phase`` (H, W) truth wrapped phase, ``group`` (start point id,
+    for splits) and ``span_deg`` (angle from frame 1 to frame 3).
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        *,
+        motion: Motion = "all",
+        max_span: int | None = None,
+        crop: int | None = None,
+        groups: list[int] | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.root = Path(root)
+        index_path = self.root / INDEX
+        if not index_path.exists():
+            raise DatasetError(f"{self.root} is not a twin dataset ({INDEX} missing; run `gearscan twin dataset`)")
+        index = json.loads(index_path.read_text())
+        self.spec = DatasetSpec(**index["spec"])
+        self.entries = index["entries"]
+        if not self.entries:
+            raise DatasetError(f"{index_path}: no rendered start points yet")
+        self.groups = list(range(len(self.entries))) if groups is None else list(groups)
+        bad = [g for g in self.groups if not 0 <= g < len(self.entries)]
+        if bad:
+            raise DatasetError(f"groups {bad} out of range 0..{len(self.entries) - 1}")
+        combos = combinations(self.spec.poses)
+        if motion == "uniform":
+            combos = [c for c in combos if c[1] - c[0] == c[2] - c[1]]
+        elif motion == "nonuniform":
+            combos = [c for c in combos if c[1] - c[0] != c[2] - c[1]]
+        elif motion != "all":
+            raise DatasetError(f"motion must be all, uniform or nonuniform, got {motion!r}")
+        if max_span is not None:
+            combos = [c for c in combos if c[2] - c[0] <= max_span]
+        self.combos = combos
+        if crop is not None and not (16 <= crop <= min(self.spec.width, self.spec.height)):
+            raise DatasetError(f"crop must be in 16..{min(self.spec.width, self.spec.height)}, got {crop}")
+        self.crop = crop
+        self._rng = np.random.default_rng(seed)
+        self._arrays: dict[int, dict[str, np.ndarray]] = {}
+        self._idx3 = [0, self.spec.steps // 3, 2 * self.spec.steps // 3]
+
+    def __len__(self) -> int:
+        return len(self.groups) * len(self.combos)
+
+    def _open(self, g: int) -> dict[str, np.ndarray]:
+        if g not in self._arrays:
+            d = self.root / self.entries[g]["id"]
+            self._arrays[g] = {n: np.load(d / f"{n}.npy", mmap_mode="r") for n in ("images", "label", "truth_md", "phase", "mask")}
+        return self._arrays[g]
+
+    def full_scale(self, g: int) -> float:
+        return float((1 << int(self.entries[g]["optics"]["bit_depth"])) - 1)
+
+    def __getitem__(self, item: int) -> dict[str, object]:
+        if not 0 <= item < len(self):
+            raise IndexError(item)
+        g = self.groups[item // len(self.combos)]
+        i, j, k = self.combos[item % len(self.combos)]
+        a = self._open(g)
+        h, w = self.spec.height, self.spec.width
+        if self.crop:
+            y = int(self._rng.integers(0, h - self.crop + 1))
+            x = int(self._rng.integers(0, w - self.crop + 1))
+            sl = (slice(y, y + self.crop), slice(x, x + self.crop))
+        else:
+            sl = (slice(None), slice(None))
+        frames = np.stack([a["images"][p, s][sl] for p, s in zip((i, j, k), self._idx3, strict=True)])
+        return {
+            "input": frames.astype(np.float32) / self.full_scale(g),
+            "target": np.ascontiguousarray(a["label"][i][(slice(None), *sl)]),
+            "truth_md": np.ascontiguousarray(a["truth_md"][i][(slice(None), *sl)]),
+            "mask": np.ascontiguousarray(a["mask"][i][sl]),
+            "phase": np.ascontiguousarray(a["phase"][i][sl]),
+            "group": g,
+            "span_deg": (k - i) * self.spec.pose_step_deg,
+            "poses": (i, j, k),
+        }
