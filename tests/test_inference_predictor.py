@@ -1,0 +1,174 @@
+"""Predictor loading (clear errors for bad files), input conversion, and the predict CLI function."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from gearscan.inference.commands import predict
+from gearscan.inference.model_io import ModelFileError, load_model, save_model
+from gearscan.inference.models import build_model
+from gearscan.inference.predictor import DEFAULT_MODEL, Predictor, frames_to_tensor
+
+from gearscan.types import Burst, Frame
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture
+def saved(tmp_path):
+    torch.manual_seed(0)
+    model = build_model("cd-dcu-net", width=4).eval()
+    return model, save_model(model, tmp_path / "net.safetensors", var_scale=1.0)
+
+
+def _frames(dtype=np.uint8, hw=(37, 45), seed=0):
+    hi = 255 if dtype == np.uint8 else 4095
+    return np.random.default_rng(seed).integers(0, hi + 1, size=(3, *hw)).astype(dtype)
+
+
+def test_corrupt_weight_file_error_names_file(saved, tmp_path):
+    _, path = saved
+    path.write_bytes(b"\x00garbage, not safetensors" * 3)
+    with pytest.raises(ModelFileError, match=r"net\.safetensors: not a readable safetensors file"):
+        load_model(path)
+
+
+def test_truncated_weight_file(saved):
+    _, path = saved
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ModelFileError, match="net.safetensors"):
+        Predictor.load(path)
+
+
+def test_mismatched_weights_error_lists_shapes(saved):
+    _, path = saved
+    cfg = json.loads(path.with_suffix(".json").read_text())
+    cfg["model"]["width"] = 8  # config says w=8, file holds w=4
+    path.with_suffix(".json").write_text(json.dumps(cfg))
+    with pytest.raises(
+        ModelFileError,
+        match=r"weights do not match the network: .*shape mismatches.*file \(4, 3, 3, 3\) vs model \(8, 3, 3, 3\)",
+    ):
+        load_model(path)
+
+
+def test_mismatched_architecture_lists_keys(saved):
+    _, path = saved
+    cfg = json.loads(path.with_suffix(".json").read_text())
+    cfg["model"]["name"] = "unet"
+    cfg["model"]["dropout"] = False
+    path.with_suffix(".json").write_text(json.dumps(cfg))
+    with pytest.raises(
+        ModelFileError,
+        match=r"net\.safetensors: weights do not match the network: .*unexpected keys",
+    ):
+        load_model(path)
+
+
+def test_missing_and_bad_config(saved):
+    _, path = saved
+    path.with_suffix(".json").write_text("{not json")
+    with pytest.raises(ModelFileError, match=r"net\.json: invalid JSON"):
+        load_model(path)
+    path.with_suffix(".json").unlink()
+    with pytest.raises(ModelFileError, match=r"model config not found: .*net\.json"):
+        load_model(path)
+
+
+def test_missing_default_model_names_path(monkeypatch, tmp_path):
+    missing = tmp_path / "weights" / "default.safetensors"
+    monkeypatch.setattr("gearscan.inference.predictor.DEFAULT_MODEL", missing)
+    with pytest.raises(ModelFileError, match="default.safetensors"):
+        Predictor.load(None)
+    assert DEFAULT_MODEL.name == "default.safetensors" and DEFAULT_MODEL.parent.name == "weights"
+
+
+def test_frames_to_tensor_scales():
+    f8 = np.array([[[0, 255]]] * 3, dtype=np.uint8)
+    assert frames_to_tensor(f8).max().item() == 1.0
+    f16 = np.full((3, 2, 2), 4095, dtype=np.uint16)
+    assert frames_to_tensor(f16, full_scale=4095).max().item() == 1.0
+    with pytest.raises(ValueError, match=r"frames: expected \(3, H, W\), got shape \(2, 4, 4\)"):
+        frames_to_tensor(np.zeros((2, 4, 4), np.uint8))
+    with pytest.raises(ValueError, match="expected uint8 or uint16"):
+        frames_to_tensor(np.zeros((3, 4, 4), np.float32))
+
+
+def test_predict_matches_model_and_sizes(saved):
+    model, path = saved
+    pred = Predictor.load(path)
+    frames = _frames()
+    r = pred.predict(frames)
+    with torch.no_grad():
+        ref = model(torch.from_numpy(frames.astype(np.float32) / 255)[None])[0].numpy()
+    assert r.phase.shape == frames.shape[1:] and r.mode == "deterministic"
+    np.testing.assert_allclose(r.M, ref[0], atol=1e-6)
+    np.testing.assert_allclose(r.phase, np.arctan2(ref[0], ref[1]), atol=1e-5)
+    assert np.all(r.sigma_model == 0) and np.all(r.sigma_data > 0)
+    mc = pred.predict(frames, mc=4)
+    assert mc.mode == "mc4" and mc.sigma_model.mean() > 0
+    np.testing.assert_allclose(mc.sigma_total, np.hypot(mc.sigma_model, mc.sigma_data), rtol=1e-5)
+
+
+def test_bf16_close_to_fp32(saved):
+    _, path = saved
+    frames = _frames(np.uint16, (32, 40))
+    a = Predictor.load(path).predict(frames, full_scale=4095)
+    b = Predictor.load(path, precision="bf16").predict(frames, full_scale=4095)
+    mod = np.hypot(a.M, a.D)
+    ok = mod > 0.05
+    err = np.angle(np.exp(1j * (a.phase - b.phase)))[ok]
+    assert np.sqrt(np.mean(err**2)) < 0.05
+
+
+def test_predict_burst_uses_bit_depth(saved):
+    _, path = saved
+    frames = _frames(np.uint16, (20, 20))
+    burst = Burst(
+        tuple(Frame(f, i, i, i, bit_depth=12) for i, f in enumerate(frames)),
+        (0.1, 0.2, 0.3),
+        index=7,
+    )
+    r = Predictor.load(path).predict_burst(burst)
+    ref = Predictor.load(path).predict(frames, full_scale=4095)
+    np.testing.assert_array_equal(r.phase, ref.phase)
+    assert r.burst_index == 7 and r.angle == pytest.approx(0.1)
+
+
+def test_peer_model_refuses_mc(tmp_path):
+    path = save_model(build_model("unet", width=4), tmp_path / "u.safetensors")
+    with pytest.raises(ValueError, match="no Concrete Dropout layers"):
+        Predictor.load(path).predict(_frames(), mc=3)
+
+
+def test_predict_cli_npz_roundtrip(saved, tmp_path):
+    _, path = saved
+    frames = _frames()
+    np.savez(tmp_path / "burst.npz", frames=frames)
+    out = tmp_path / "out" / "phase.npz"
+    predict([tmp_path / "burst.npz"], output=out, mc=0, model=path)
+    ref = Predictor.load(path).predict(frames)
+    with np.load(out) as z:
+        for key in ("phase", "M", "D", "sigma_model", "sigma_data", "sigma_total"):
+            assert z[key].dtype == np.float32 and z[key].shape == frames.shape[1:]
+            np.testing.assert_array_equal(z[key], getattr(ref, key))
+        assert str(z["mode"]) == "deterministic"
+
+
+def test_predict_cli_three_images_mc(saved, tmp_path):
+    _, path = saved
+    frames = _frames(np.uint16, (24, 33))
+    files = []
+    for i, f in enumerate(frames):
+        files.append(tmp_path / f"f{i}.png")
+        assert cv2.imwrite(str(files[-1]), f)
+    out = tmp_path / "mc.npz"
+    predict(files, output=out, mc=3, model=path)
+    with np.load(out) as z:
+        assert str(z["mode"]) == "mc3" and z["phase"].shape == (24, 33)
+        assert z["sigma_model"].mean() > 0
