@@ -17,7 +17,6 @@ import time
 from typing import Any
 
 import numpy as np
-
 from gearscan.acquisition.camera import (
     PIXEL_FORMATS,
     BaseCamera,

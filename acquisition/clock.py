@@ -7,8 +7,8 @@ jittery, so the mapping is fitted as
 
     host = host0 + slope * (device - device0) + offset
 
-with ``slope`` (1 + drift) from least squares over a sliding window and ``offset`` put on
-the LOWER envelope of the residuals: the fastest message of the window defines the
+with ``slope`` (1 + drift) from a least-squares line through the fastest message of each of
+8 time bins of a sliding window, and ``offset`` put on the LOWER envelope of the residuals: the fastest message of the window defines the
 latency floor. That is robust to latency spikes (a delayed line never pulls the mapping
 late), and only the constant minimum latency remains as a bias.
 """
@@ -58,6 +58,7 @@ class ClockSync:
 
     @property
     def drift_ppm(self) -> float:
+        """Host ns per device ns minus one, in ppm (negative: the device clock runs fast)."""
         return (self.slope - 1.0) * 1e6
 
     def fit(self) -> None:
@@ -68,9 +69,15 @@ class ClockSync:
         x = (arr[:, 0] - self._device0).astype(np.float64)
         y = (arr[:, 1] - self._host0).astype(np.float64)
         slope = 1.0
-        if x.max() - x.min() >= self.min_span_ns and len(x) >= 3:
-            xm, ym = x.mean(), y.mean()
-            slope = float(np.dot(x - xm, y - ym) / np.dot(x - xm, x - xm))
+        if x.max() - x.min() >= self.min_span_ns and len(x) >= 16:
+            # slope through the fastest message of each of 8 time bins: latency varies
+            # (a reader that falls behind reads lines late), the floor does not
+            r = y - x
+            bins = np.array_split(np.arange(len(x)), 8)
+            pick = np.array([b[np.argmin(r[b])] for b in bins])
+            xs, ys = x[pick], y[pick]
+            xm, ym = xs.mean(), ys.mean()
+            slope = float(np.dot(xs - xm, ys - ym) / np.dot(xs - xm, xs - xm))
         self.slope = slope
         self.offset_ns = float(np.min(y - slope * x))
         self._fitted = True

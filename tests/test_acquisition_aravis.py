@@ -13,7 +13,6 @@ import time
 
 import numpy as np
 import pytest
-
 from gearscan.acquisition.camera import (
     BaseCamera,
     CameraConfigError,

@@ -1,0 +1,331 @@
+"""Turntable encoder link: a pyserial reader thread speaking :mod:`encoder_protocol`.
+
+The thread reads bytes, splits lines, checks checksums and sequence numbers, converts
+counts to radians (counts-per-rev, zeroed at the index mark), maps the device clock onto
+the host clock (:class:`ClockSync`: offset and drift) and appends
+:class:`~gearscan.types.EncoderSample` to a bounded :class:`EncoderHistory` that the burst
+assembler interpolates in. It never dies on bad input: corrupt, partial and out-of-order
+lines are counted in :class:`EncoderStats` and skipped; a vanished port (unplugged adapter)
+is reported in ``events`` and reopened until it comes back.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from gearscan.acquisition.clock import ClockSync
+from gearscan.acquisition.encoder_protocol import (
+    PROTOCOL_VERSION,
+    SEQ_MODULUS,
+    Banner,
+    ProtocolError,
+    RawSample,
+    parse_line,
+)
+
+from gearscan.types import EncoderSample
+
+MAX_LINE = 256
+
+
+class EncoderError(RuntimeError):
+    """The encoder link cannot be used (port missing, wrong protocol version, bad setting)."""
+
+
+@dataclass(slots=True)
+class EncoderStats:
+    lines: int = 0
+    samples: int = 0
+    corrupt: int = 0  # bad checksum / fields / garbage
+    partial: int = 0  # over-long or cut lines (no newline within MAX_LINE)
+    out_of_order: int = 0  # seq not after the last one (duplicate or late)
+    lost: int = 0  # seq gaps while connected: lines the device sent that never arrived
+    missed_disconnected: int = 0  # seq gap across a disconnect/reconnect
+    banners: int = 0
+    disconnects: int = 0
+    reconnects: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+@dataclass(frozen=True, slots=True)
+class LinkEvent:
+    host_time_ns: int
+    kind: str  # "connected", "disconnected", "reconnected", "banner", "version"
+    detail: str
+
+
+class EncoderHistory:
+    """Bounded, time-ordered samples with interpolation of the angle at a host time."""
+
+    def __init__(self, capacity: int = 65_536):
+        self.capacity = int(capacity)
+        self._t = np.zeros(self.capacity, dtype=np.int64)
+        self._a = np.zeros(self.capacity, dtype=np.float64)
+        self._n = 0  # total ever appended
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return min(self._n, self.capacity)
+
+    def append(self, host_time_ns: int, angle: float) -> None:
+        with self._lock:
+            i = self._n % self.capacity
+            self._t[i], self._a[i] = host_time_ns, angle
+            self._n += 1
+
+    def shift(self, delta: float) -> None:
+        """Add ``delta`` rad to every stored angle (re-zeroing at the index mark)."""
+        with self._lock:
+            self._a[: len(self)] += delta
+
+    def extend(self, samples: list[EncoderSample]) -> None:
+        for s in samples:
+            self.append(s.host_time_ns, s.angle)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(times ns, angles rad), oldest first."""
+        with self._lock:
+            n = len(self)
+            if self._n <= self.capacity:
+                return self._t[:n].copy(), self._a[:n].copy()
+            i = self._n % self.capacity
+            return np.roll(self._t, -i).copy(), np.roll(self._a, -i).copy()
+
+    def interpolate(self, t_ns: int, max_gap_ns: int) -> tuple[float | None, str]:
+        """Angle at host time ``t_ns`` linearly between the two bracketing samples.
+
+        Returns ``(angle, "")`` or ``(None, reason)`` when ``t_ns`` is outside the history
+        or the bracketing samples are more than ``max_gap_ns`` apart (an encoder gap).
+        """
+        t, a = self.arrays()
+        if t.size < 2:
+            return None, "encoder history empty"
+        if t_ns < t[0]:
+            return None, f"time {t_ns} before encoder history start {t[0]}"
+        if t_ns > t[-1]:
+            return None, f"time {t_ns} after last encoder sample {t[-1]} (not yet received?)"
+        j = int(np.searchsorted(t, t_ns, side="right"))
+        j = min(max(j, 1), t.size - 1)
+        t0, t1 = int(t[j - 1]), int(t[j])
+        if t1 - t0 > max_gap_ns:
+            return None, f"encoder gap of {(t1 - t0) / 1e6:.2f} ms around the exposure (max {max_gap_ns / 1e6:g} ms)"
+        if t1 == t0:
+            return float(a[j]), ""
+        w = (t_ns - t0) / (t1 - t0)
+        return float(a[j - 1] + w * (a[j] - a[j - 1])), ""
+
+
+class EncoderReader:
+    """Reads an encoder on ``port`` in a thread; use as a context manager.
+
+    counts_per_rev: from the config; must match the device banner when it states one.
+    zero_on_index: angle 0 at the index mark; until the first index, angles are relative to
+    the first count seen (``zeroed`` says which).
+    """
+
+    def __init__(
+        self,
+        port: str,
+        counts_per_rev: int,
+        *,
+        baudrate: int = 115_200,
+        zero_on_index: bool = True,
+        history: EncoderHistory | None = None,
+        on_sample: Callable[[EncoderSample], None] | None = None,
+        reconnect_poll_s: float = 0.1,
+        clock_window: int = 4096,
+    ):
+        if counts_per_rev <= 0:
+            raise EncoderError(f"encoder.counts_per_rev must be > 0, got {counts_per_rev}")
+        self.port = port
+        self.counts_per_rev = int(counts_per_rev)
+        self.baudrate = baudrate
+        self.zero_on_index = zero_on_index
+        self.history = history if history is not None else EncoderHistory()
+        self.on_sample = on_sample
+        self.reconnect_poll_s = reconnect_poll_s
+        self.clock = ClockSync(window=clock_window, min_span_ns=500_000_000, refit_every=64)
+        self.stats = EncoderStats()
+        self.events: list[LinkEvent] = []
+        self.banner: Banner | None = None
+        self.zero_count: int | None = None
+        self.zeroed = False
+        self.connected = threading.Event()
+        self.last_sample: EncoderSample | None = None
+        self._last_seq: int | None = None
+        self._after_reconnect = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._serial = None
+        self.error: BaseException | None = None
+
+    # -- lifecycle ------------------------------------------------------------------------
+    def __enter__(self) -> EncoderReader:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def start(self, wait_connected_s: float = 2.0) -> None:
+        """Open the port (raising EncoderError naming it if missing) and start the thread."""
+        if not os.path.exists(self.port) and not self.port.startswith(("socket://", "loop://", "rfc2217://")):
+            raise EncoderError(f"encoder.port: {self.port!r} does not exist; serial ports found: {list_serial_ports()}")
+        self._open()
+        self._event("connected", self.port)
+        self._thread = threading.Thread(target=self._run, name=f"encoder {self.port}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._close()
+
+    def _open(self) -> None:
+        import serial
+
+        self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05)
+        try:
+            self._serial.write(b"HELLO\n")
+        except (OSError, serial.SerialException):
+            pass  # a read-only link still works; the banner also arrives on connect
+        self.connected.set()
+
+    def _close(self) -> None:
+        self.connected.clear()
+        if self._serial is not None:
+            try:
+                self._serial.close()
+            except OSError:
+                pass  # already gone with the device
+            self._serial = None
+
+    def _event(self, kind: str, detail: str) -> None:
+        self.events.append(LinkEvent(time.monotonic_ns(), kind, detail))
+
+    # -- thread -----------------------------------------------------------------------------
+    def _run(self) -> None:
+        import serial
+
+        buf = b""
+        while not self._stop.is_set():
+            try:
+                chunk = self._serial.read(max(1, self._serial.in_waiting))
+            except (OSError, serial.SerialException, TypeError, AttributeError) as exc:
+                self.stats.disconnects += 1
+                self._event("disconnected", f"{self.port}: {exc}")
+                self._close()
+                buf = b""
+                if not self._reconnect():
+                    return
+                continue
+            if not chunk:
+                continue
+            arrival = time.monotonic_ns()
+            buf += chunk
+            *lines, buf = buf.split(b"\n")
+            if len(buf) > MAX_LINE:
+                self.stats.partial += 1
+                buf = b""
+            for line in lines:
+                self._handle(line, arrival)
+
+    def _reconnect(self) -> bool:
+        import serial
+
+        while not self._stop.is_set():
+            time.sleep(self.reconnect_poll_s)
+            if not os.path.exists(self.port):
+                continue
+            try:
+                self._open()
+            except (OSError, serial.SerialException):
+                continue
+            self.stats.reconnects += 1
+            self._after_reconnect = True
+            self._event("reconnected", self.port)
+            return True
+        return False
+
+    def _handle(self, line: bytes, arrival_ns: int) -> None:
+        if not line.strip():
+            return
+        self.stats.lines += 1
+        if len(line) > MAX_LINE:
+            self.stats.partial += 1
+            return
+        try:
+            msg = parse_line(line)
+        except ProtocolError:
+            self.stats.corrupt += 1
+            return
+        if isinstance(msg, Banner):
+            self._on_banner(msg)
+            return
+        self._on_sample(msg, arrival_ns)
+
+    def _on_banner(self, b: Banner) -> None:
+        self.stats.banners += 1
+        if b.version != PROTOCOL_VERSION:
+            self.error = EncoderError(f"encoder at {self.port} speaks protocol v{b.version}, this reader v{PROTOCOL_VERSION}")
+            self._event("version", str(self.error))
+            self._stop.set()
+            return
+        if b.counts_per_rev != self.counts_per_rev:
+            self._event(
+                "banner",
+                f"device {b.device!r} reports {b.counts_per_rev} counts/rev, config says {self.counts_per_rev}: using config",
+            )
+        else:
+            self._event("banner", f"device {b.device!r} v{b.version}, {b.counts_per_rev} counts/rev")
+        self.banner = b
+
+    def _on_sample(self, s: RawSample, arrival_ns: int) -> None:
+        if self._last_seq is not None:
+            step = (s.seq - self._last_seq) % SEQ_MODULUS
+            if step == 0 or step > SEQ_MODULUS // 2:
+                self.stats.out_of_order += 1
+                return
+            if self._after_reconnect:
+                self.stats.missed_disconnected += step - 1
+            else:
+                self.stats.lost += step - 1
+        self._after_reconnect = False
+        self._last_seq = s.seq
+        if s.index and self.zero_on_index and not self.zeroed:
+            if self.zero_count is not None:  # re-reference what was stored before the index
+                self.history.shift(-2 * math.pi * (s.index_count - self.zero_count) / self.counts_per_rev)
+            self.zero_count, self.zeroed = s.index_count, True
+            self._event("index", f"zeroed at count {s.index_count}")
+        if self.zero_count is None:
+            self.zero_count = s.count
+        self.clock.add(s.t_us * 1000, arrival_ns)
+        sample = EncoderSample(
+            seq=s.seq,
+            device_time_us=s.t_us,
+            count=s.count,
+            index=s.index,
+            angle=2 * math.pi * (s.count - self.zero_count) / self.counts_per_rev,
+            host_time_ns=self.clock.to_host(s.t_us * 1000),
+        )
+        self.stats.samples += 1
+        self.last_sample = sample
+        self.history.append(sample.host_time_ns, sample.angle)
+        if self.on_sample is not None:
+            self.on_sample(sample)
+
+
+def list_serial_ports() -> list[str]:
+    """Serial devices pyserial can enumerate (USB/ACM/ttyS with hardware)."""
+    from serial.tools import list_ports
+
+    return [p.device for p in list_ports.comports()]
