@@ -1,0 +1,175 @@
+"""Burst assembly: frames in pattern order 0, 1, 2 -> :class:`~gearscan.types.Burst`.
+
+Each frame gets the turntable angle at its exposure midpoint, linearly interpolated in the
+encoder history (host clock). The assembler never emits a wrong burst: a frame-id gap
+(dropped frame), a pattern out of order, a duplicate/late frame or a missing encoder
+reading discards the partial burst and is reported in ``events`` and counted in ``stats``.
+
+    assembler = BurstAssembler(reader.history)
+    for frame in frames:
+        burst = assembler.push(frame)      # Burst or None
+    assembler.stats, assembler.events
+
+Frames that already carry ``encoder_angle`` (replayed recordings) use it as is, so the
+replay pipeline needs no history at all.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+from gearscan.acquisition.encoder import EncoderHistory
+
+from gearscan.types import Burst, Frame
+
+
+@dataclass(frozen=True, slots=True)
+class AssemblyEvent:
+    kind: str  # "dropped_frames", "pattern_order", "frame_order", "encoder_gap"
+    frame_id: int
+    detail: str
+
+
+@dataclass(slots=True)
+class AssemblerStats:
+    frames: int = 0
+    bursts: int = 0
+    dropped_frames: int = 0  # frames missing according to frame-id gaps
+    pattern_errors: int = 0
+    order_errors: int = 0  # duplicate or backwards frame ids
+    encoder_gaps: int = 0
+    discarded_frames: int = 0  # received frames not used in any burst
+    events_dropped: int = 0  # events beyond the bounded event list
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+@dataclass
+class BurstAssembler:
+    """Groups frames into three-pattern bursts.
+
+    history: encoder angles in host time (None: frames must carry ``encoder_angle``).
+    max_encoder_gap_ns: bracketing encoder samples farther apart than this are a gap.
+    encoder_wait_s: how long ``push`` may wait for encoder samples to cover the newest
+    exposure (the serial link can lag the camera by a few ms).
+    frame_id_modulus: wrap of the camera's frame counter (GigE v1: 65536, skipping 0).
+    """
+
+    history: EncoderHistory | None = None
+    n_patterns: int = 3
+    max_encoder_gap_ns: int = 20_000_000
+    encoder_wait_s: float = 0.05
+    frame_id_modulus: int | None = None
+    frame_id_skips_zero: bool = False
+    max_events: int = 10_000
+    stats: AssemblerStats = field(default_factory=AssemblerStats)
+    events: list[AssemblyEvent] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.n_patterns != 3:
+            raise ValueError(f"n_patterns must be 3 (Burst holds three frames), got {self.n_patterns}")
+        self._pending: list[Frame] = []
+        self._last_id: int | None = None
+        self._next_index = 0
+
+    # -- helpers --------------------------------------------------------------------------
+    def _event(self, kind: str, frame_id: int, detail: str) -> None:
+        if len(self.events) < self.max_events:
+            self.events.append(AssemblyEvent(kind, frame_id, detail))
+        else:
+            self.stats.events_dropped += 1
+
+    def _step(self, a: int, b: int) -> int:
+        if self.frame_id_modulus is None:
+            return b - a
+        d = (b - a) % self.frame_id_modulus
+        if d > self.frame_id_modulus // 2:
+            return d - self.frame_id_modulus  # backwards
+        if self.frame_id_skips_zero and b < a:
+            d -= 1
+        return d
+
+    def _discard_pending(self) -> None:
+        self.stats.discarded_frames += len(self._pending)
+        self._pending.clear()
+
+    @staticmethod
+    def host_midpoint_ns(frame: Frame) -> int:
+        """Host-clock time of the exposure midpoint (device time if no host time is known)."""
+        if frame.host_timestamp_ns:
+            return frame.host_timestamp_ns + int(round(frame.exposure_us * 500.0))
+        return frame.midpoint_ns
+
+    def _angle(self, frame: Frame) -> tuple[float | None, str]:
+        if frame.encoder_angle is not None:
+            return frame.encoder_angle, ""
+        if self.history is None:
+            return None, "frame has no encoder_angle and the assembler has no encoder history"
+        t = self.host_midpoint_ns(frame)
+        deadline = time.monotonic() + self.encoder_wait_s
+        while True:
+            angle, why = self.history.interpolate(t, self.max_encoder_gap_ns)
+            if angle is not None or "after last" not in why or time.monotonic() >= deadline:
+                return angle, why
+            time.sleep(0.001)
+
+    # -- API ------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the partial burst and the last frame id (after a camera reconnect)."""
+        self._discard_pending()
+        self._last_id = None
+
+    def push(self, frame: Frame) -> Burst | None:
+        """Add one frame; returns a complete burst or None."""
+        self.stats.frames += 1
+        if self._last_id is not None:
+            step = self._step(self._last_id, frame.frame_id)
+            if step <= 0:
+                self.stats.order_errors += 1
+                self.stats.discarded_frames += 1
+                self._event("frame_order", frame.frame_id, f"frame id {frame.frame_id} after {self._last_id}: duplicate or late, ignored")
+                return None
+            if step > 1:
+                self.stats.dropped_frames += step - 1
+                self._event(
+                    "dropped_frames",
+                    frame.frame_id,
+                    f"{step - 1} frame(s) missing between ids {self._last_id} and {frame.frame_id}; "
+                    f"partial burst of {len(self._pending)} discarded",
+                )
+                self._discard_pending()
+        self._last_id = frame.frame_id
+
+        expected = len(self._pending)
+        if frame.pattern_index != expected:
+            self.stats.pattern_errors += 1
+            self._event(
+                "pattern_order",
+                frame.frame_id,
+                f"pattern {frame.pattern_index} where {expected} was expected; partial burst of {len(self._pending)} discarded",
+            )
+            self._discard_pending()
+            if frame.pattern_index != 0:
+                self.stats.discarded_frames += 1
+                return None
+        self._pending.append(frame)
+        if len(self._pending) < self.n_patterns:
+            return None
+
+        frames = tuple(self._pending)
+        self._pending.clear()
+        angles = []
+        for f in frames:
+            angle, why = self._angle(f)
+            if angle is None:
+                self.stats.encoder_gaps += 1
+                self.stats.discarded_frames += len(frames)
+                self._event("encoder_gap", f.frame_id, f"no encoder angle for frame {f.frame_id}: {why}; burst discarded")
+                return None
+            angles.append(angle)
+        burst = Burst(frames=frames, angles=(angles[0], angles[1], angles[2]), index=self._next_index)  # type: ignore[arg-type]
+        self._next_index += 1
+        self.stats.bursts += 1
+        return burst
