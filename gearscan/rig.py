@@ -153,8 +153,11 @@ class PinholeDevice:
 
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """Pixel coordinates ``(..., 2)`` of world points ``(..., 3)`` (with distortion)."""
-        shape = points_world.shape[:-1]
         p = points_world.reshape(-1, 3) @ self.T_from_world[:3, :3].T + self.T_from_world[:3, 3]
+        return self.project_device(p).reshape(*points_world.shape[:-1], 2)
+
+    def project_device(self, p: np.ndarray) -> np.ndarray:
+        """Pixel coordinates ``(N, 2)`` of points ``(N, 3)`` already in this device's frame."""
         z = p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             x, y = p[:, 0] / z, p[:, 1] / z
@@ -170,7 +173,7 @@ class PinholeDevice:
         v = self.K[1, 1] * yd + self.K[1, 2]
         out = np.stack([u, v], axis=-1)
         out[z <= 0] = np.nan
-        return out.reshape(*shape, 2)
+        return out
 
     def to_json(self) -> dict:
         return {

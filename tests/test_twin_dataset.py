@@ -54,6 +54,7 @@ def test_motion_filters_and_crops(small_dataset):
     assert len(uni) == sum(18 - 2 * d for d in range(1, 9)) == 72
     assert len(uni) + len(non) == 816
     assert all(j - i == k - j for i, j, k in uni.combos)
+    assert len(TwinBurstDataset(root, static=True, groups=[0])) == 816 + 18
     crop = TwinBurstDataset(root, crop=48, seed=1)[3]
     assert crop["input"].shape == (3, 48, 48) and crop["mask"].shape == (48, 48)
     with pytest.raises(DatasetError, match="crop must be in 16..80"):

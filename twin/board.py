@@ -24,11 +24,6 @@ from gearscan.rig import Rig, look_at, rot_z
 BLACK_ALBEDO = 0.12  # printed black relative to the optics' albedo (white)
 
 
-def _square_wave_box(x: np.ndarray, s: float) -> np.ndarray:
-    """+1 on even squares ``[2k s, (2k+1) s)``, -1 on odd ones."""
-    return np.where(np.floor(x / s) % 2 == 0, 1.0, -1.0)
-
-
 class BoardRenderer:
     """Renders a checkerboard at given poses as the rig's camera sees it.
 
@@ -51,6 +46,7 @@ class BoardRenderer:
         fine = cam.scaled(cam.width * self.s, cam.height * self.s)
         rays = fine.pixel_rays().reshape(-1, 3)
         self._rays_world = rays @ cam.T_world_from[:3, :3].T
+        self._rays_center = cam.pixel_rays().reshape(-1, 3) @ cam.T_world_from[:3, :3].T
         self._cam_center = cam.center_world
         self._proj_center = rig.projector.center_world
         self._shape = (cam.height, cam.width)
@@ -63,27 +59,37 @@ class BoardRenderer:
         h, w = self._shape
         return x.reshape(h, self.s, w, self.s).mean(axis=(1, 3))
 
-    def _geometry(self, t_world_from_board: np.ndarray) -> dict:
-        """Sub-sample hits on the board plane: albedo, irradiance factor, projector (u, v)."""
-        t = np.asarray(t_world_from_board, dtype=np.float64)
-        normal = t[:3, 2]
-        origin = t[:3, 3]
-        denom = self._rays_world @ normal
+    def _plane_hits(self, rays_world: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World points, board-frame points and hit flags of rays from the camera centre."""
+        normal, origin = t[:3, 2], t[:3, 3]
         with np.errstate(divide="ignore", invalid="ignore"):
-            dist = ((origin - self._cam_center) @ normal) / denom
+            dist = ((origin - self._cam_center) @ normal) / (rays_world @ normal)
         hit = np.isfinite(dist) & (dist > 0)
-        pts = self._cam_center + dist[:, None] * self._rays_world
-        local = (pts - origin) @ t[:3, :3]  # board coordinates
+        pts = self._cam_center + np.where(hit, dist, 0.0)[:, None] * rays_world
+        return pts, (pts - origin) @ t[:3, :3], hit
+
+    def _albedo(self, local: np.ndarray, hit: np.ndarray) -> np.ndarray:
         b = self.board
         sq = b.square_mm
-        x0, x1 = -(1 + b.margin_squares) * sq, (b.cols + b.margin_squares) * sq
-        y0, y1 = -(1 + b.margin_squares) * sq, (b.rows + b.margin_squares) * sq
-        on_plate = hit & (local[:, 0] >= x0) & (local[:, 0] <= x1) & (local[:, 1] >= y0) & (local[:, 1] <= y1)
-        in_pattern = (local[:, 0] >= -sq) & (local[:, 0] <= b.cols * sq) & (local[:, 1] >= -sq) & (local[:, 1] <= b.rows * sq)
-        # square (a, b) with lower corner (a s, b s), a, b >= -1, black when a + b is even
-        checker = _square_wave_box(local[:, 0], sq) * _square_wave_box(local[:, 1], sq)
-        black = in_pattern & (checker > 0)
-        albedo = np.where(on_plate, np.where(black, BLACK_ALBEDO, 1.0) * self.optics.albedo, 0.0)
+        lo, hi_x, hi_y = -(1 + b.margin_squares) * sq, (b.cols + b.margin_squares) * sq, (b.rows + b.margin_squares) * sq
+        x, y = local[:, 0], local[:, 1]
+        on_plate = hit & (x >= lo) & (x <= hi_x) & (y >= lo) & (y <= hi_y)
+        in_pattern = (x >= -sq) & (x <= b.cols * sq) & (y >= -sq) & (y <= b.rows * sq)
+        # square (a, b) with lower corner (a s, b s), a, b >= -1, is black when a + b is even
+        black = in_pattern & ((np.floor(x / sq) + np.floor(y / sq)) % 2 == 0)
+        return np.where(on_plate, np.where(black, BLACK_ALBEDO, 1.0) * self.optics.albedo, 0.0)
+
+    def _geometry(self, t_world_from_board: np.ndarray) -> dict:
+        """Albedo (supersampled, binned) and the smooth projector terms at pixel centres.
+
+        Albedo edges are integrated over ``s x s`` sub-samples; projector coordinates and the
+        irradiance factor vary slowly and are taken at pixel centres.
+        """
+        t = np.asarray(t_world_from_board, dtype=np.float64)
+        _, local_f, hit_f = self._plane_hits(self._rays_world, t)
+        albedo = self._bin(self._albedo(local_f, hit_f))
+        pts, _, hit = self._plane_hits(self._rays_center, t)
+        normal, origin = t[:3, 2], t[:3, 3]
         uv = self.rig.projector.project(pts)
         pw, ph = self.rig.projector.width, self.rig.projector.height
         inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= pw - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= ph - 0.5)
@@ -91,12 +97,15 @@ class BoardRenderer:
         dp = np.linalg.norm(to_pt, axis=1)
         cos_inc = np.abs(to_pt @ normal) / dp
         facing = ((self._proj_center - origin) @ normal) * ((self._cam_center - origin) @ normal) > 0
-        lit = on_plate & inside & facing
-        irr = np.where(lit, albedo * self.optics.projector_power * cos_inc * (self._d0 / dp) ** 2, 0.0)
-        return {"albedo": albedo, "irr": irr, "uv": np.where(lit[:, None], uv, 0.0)}
+        lit = (hit & inside & facing).reshape(self._shape)
+        factor = (self.optics.projector_power * cos_inc * (self._d0 / dp) ** 2).reshape(self._shape)
+        irr = np.where(lit, albedo * factor, 0.0)
+        uv = np.where(lit[..., None], uv.reshape(*self._shape, 2), 0.0)
+        return {"albedo": albedo, "irr": irr, "uv": uv}
 
     def _blur(self, img: np.ndarray) -> np.ndarray:
         s = self.optics.camera_defocus_px
+        img = np.ascontiguousarray(img, dtype=np.float32)
         if s <= 0:
             return img
         return cv2.GaussianBlur(img, (0, 0), s, borderType=cv2.BORDER_REPLICATE)
@@ -116,27 +125,34 @@ class BoardRenderer:
         name: str = "view",
         turntable_angle: float | None = None,
     ) -> BoardCapture:
-        """White image plus ``steps``-step fringes at each period, both orientations."""
+        """White image plus ``steps``-step fringes at each period, both orientations.
+
+        The white image is the projector's full-white frame; fringe images are
+        ``A + B cos(phi + 2 pi n / steps)`` with ``phi = 2 pi u_p / period`` (``fringes_u``)
+        or ``2 pi v_p / period`` (``fringes_v``).
+        """
         if steps < 3:
             raise ValueError(f"steps must be >= 3, got {steps}")
         rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
         g = self._geometry(t_world_from_board)
         o = self.optics
-        amb = self._blur(self._bin(g["albedo"] * o.ambient).astype(np.float32))
-        half = g["irr"] * 0.5
-        white = self._expose((amb + self._blur(self._bin(g["irr"]).astype(np.float32)))[None], rng)[0]
+        amb = g["albedo"] * o.ambient
+        white = self._expose(self._blur(amb + g["irr"])[None], rng)[0]
+        half = 0.5 * g["irr"]
+        dc = self._blur(amb + half)
         shifts = 2 * np.pi * np.arange(steps) / steps
+        cos_s = np.cos(shifts).astype(np.float32)[:, None, None]
+        sin_s = np.sin(shifts).astype(np.float32)[:, None, None]
         out: dict[str, dict[float, np.ndarray]] = {"u": {}, "v": {}}
         for axis, periods in (("u", periods_u), ("v", periods_v)):
-            coord = g["uv"][:, 0 if axis == "u" else 1]
+            coord = g["uv"][..., 0 if axis == "u" else 1]
             for period in periods:
                 phi = 2 * np.pi * coord / period
                 b = half * self._contrast(period)
-                dc = amb + self._blur(self._bin(half).astype(np.float32))
-                bc = self._blur(self._bin(b * np.cos(phi)).astype(np.float32))
-                bs = self._blur(self._bin(b * np.sin(phi)).astype(np.float32))
-                lin = dc[None] + np.cos(shifts)[:, None, None].astype(np.float32) * bc - np.sin(shifts)[:, None, None].astype(np.float32) * bs
-                out[axis][float(period)] = self._expose(lin.astype(np.float32), rng)
+                bc = self._blur(b * np.cos(phi))
+                bs = self._blur(b * np.sin(phi))
+                lin = dc[None] + cos_s * bc[None] - sin_s * bs[None]
+                out[axis][float(period)] = self._expose(lin, rng)
         return BoardCapture(
             name=name,
             white=white,
@@ -145,6 +161,18 @@ class BoardRenderer:
             full_scale=o.full_scale,
             turntable_angle=turntable_angle,
         )
+
+    def corners_truth(self, t_world_from_board: np.ndarray) -> np.ndarray:
+        """Exact camera pixels ``(N, 2)`` of the board's inner corners (with distortion)."""
+        obj = self.board.object_points().astype(np.float64)
+        t = np.asarray(t_world_from_board, dtype=np.float64)
+        return self.rig.camera.project(obj @ t[:3, :3].T + t[:3, 3])
+
+    def projector_truth(self, t_world_from_board: np.ndarray) -> np.ndarray:
+        """Exact projector pixels ``(N, 2)`` of the board's inner corners."""
+        obj = self.board.object_points().astype(np.float64)
+        t = np.asarray(t_world_from_board, dtype=np.float64)
+        return self.rig.projector.project(obj @ t[:3, :3].T + t[:3, 3])
 
 
 class _OpticsHolder:

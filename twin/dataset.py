@@ -174,7 +174,8 @@ class TwinBurstDataset:
     Items are dicts: ``input`` (3, H, W) float32 in [0, 1] (patterns 0, N/3, 2N/3 at poses
     i < j < k), ``target`` (2, H, W) the 18-step M, D label at pose i, ``truth_md`` the analytic
     M, D, ``mask`` (H, W) bool, ``phase`` (H, W) truth wrapped phase, ``group`` (start point id,
-    for splits) and ``span_deg`` (angle from frame 1 to frame 3).
+    for splits) and ``span_deg`` (angle from frame 1 to frame 3). ``static=True`` adds the
+    ``poses`` motionless bursts (i, i, i) to the protocol's i < j < k ones.
     """
 
     def __init__(
@@ -183,6 +184,7 @@ class TwinBurstDataset:
         *,
         motion: Motion = "all",
         max_span: int | None = None,
+        static: bool = False,
         crop: int | None = None,
         groups: list[int] | None = None,
         seed: int = 0,
@@ -209,6 +211,8 @@ class TwinBurstDataset:
             raise DatasetError(f"motion must be all, uniform or nonuniform, got {motion!r}")
         if max_span is not None:
             combos = [c for c in combos if c[2] - c[0] <= max_span]
+        if static:  # all three frames at one pose: no motion, the static noise floor
+            combos = combos + [(p, p, p) for p in range(self.spec.poses)]
         self.combos = combos
         if crop is not None and not (16 <= crop <= min(self.spec.width, self.spec.height)):
             raise DatasetError(f"crop must be in 16..{min(self.spec.width, self.spec.height)}, got {crop}")

@@ -104,8 +104,8 @@ class TwinRenderer:
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(legacy))
         cam = rig.camera
-        r_wc = cam.T_world_from[:3, :3]
-        self._ray_dirs_world = (cam.pixel_rays().reshape(-1, 3) @ r_wc.T)  # (HW, 3)
+        self._rays_cam = cam.pixel_rays().reshape(-1, 3).astype(np.float32)  # (HW, 3) camera frame
+        self._rays_buf = np.empty((self._rays_cam.shape[0], 6), np.float32)
         self._cam_center = cam.center_world
         self._proj_center = rig.projector.center_world
         self._shape = (cam.height, cam.width)
@@ -114,59 +114,69 @@ class TwinRenderer:
         self._check_visibility()
 
     # --- geometry -------------------------------------------------------------------
-    def _cast(self, origins: np.ndarray, dirs: np.ndarray) -> dict:
+    def _cast(self, rays: np.ndarray) -> dict:
         import open3d as o3d
 
-        rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
-        return self.scene.cast_rays(o3d.core.Tensor(rays))
+        return self.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
 
     def surface(self, angle: float) -> Surface:
-        """Ray-cast the camera at turntable angle ``angle`` (rad)."""
-        h, w = self._shape
-        r_gw = rot_z(-angle)[:3, :3]  # gear frame from world
-        r_wg = r_gw.T
-        dirs_g = self._ray_dirs_world @ r_gw.T
-        org_g = np.broadcast_to(r_gw @ self._cam_center, dirs_g.shape)
-        ans = self._cast(org_g, dirs_g)
-        t = ans["t_hit"].numpy().astype(np.float64)
-        hit = np.isfinite(t)
-        idx = np.flatnonzero(hit)
-        pts_w = self._cam_center + t[idx, None] * self._ray_dirs_world[idx]
-        normals_w = ans["primitive_normals"].numpy()[idx].astype(np.float64) @ r_wg.T
+        """Ray-cast the camera at turntable angle ``angle`` (rad).
 
-        # projector: column coordinate and shadow test (ray from projector centre to the point)
-        uv = self.rig.projector.project(pts_w)
+        Work happens in the gear's frame (the mesh stays put, the rig turns by ``-angle``).
+        """
+        h, w = self._shape
+        t_gw = rot_z(-angle)  # gear frame from world
+        t_gc = t_gw @ self.rig.camera.T_world_from
+        cam_g = t_gc[:3, 3]
+        buf = self._rays_buf
+        buf[:, :3] = cam_g
+        np.matmul(self._rays_cam, t_gc[:3, :3].T.astype(np.float32), out=buf[:, 3:])
+        ans = self._cast(buf)
+        t = ans["t_hit"].numpy()
+        idx = np.flatnonzero(np.isfinite(t))
+        t_i = t[idx].astype(np.float64)[:, None]
+        pts_cam = t_i * self._rays_cam[idx]
+        pts_g = cam_g + t_i * buf[idx, 3:]
+        normals_g = ans["primitive_normals"].numpy()[idx]
+
+        # projector: column coordinate and shadow test (ray from the projector centre to the point)
+        proj_g = t_gw[:3, :3] @ self._proj_center
+        to_pt = pts_g - proj_g
+        dist = np.sqrt(np.einsum("ij,ij->i", to_pt, to_pt))
+        dir_p = (to_pt / dist[:, None]).astype(np.float32)
+        rays_p = np.empty((len(idx), 6), np.float32)
+        rays_p[:, :3] = proj_g
+        rays_p[:, 3:] = dir_p
+        tp = self._cast(rays_p)["t_hit"].numpy()
+        unshadowed = np.abs(tp - dist) < 1e-3 + 1e-5 * dist
+        cos_inc = -np.einsum("ij,ij->i", normals_g, dir_p)
+        t_pg = self.rig.projector.T_from_world @ np.linalg.inv(t_gw)
+        uv = self.rig.projector.project_device(pts_g @ t_pg[:3, :3].T + t_pg[:3, 3])
         pw, ph = self.rig.projector.width, self.rig.projector.height
         inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= pw - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= ph - 0.5)
-        to_pt = pts_w - self._proj_center
-        dist = np.linalg.norm(to_pt, axis=1)
-        dir_p = to_pt / dist[:, None]
-        ans_p = self._cast((r_gw @ self._proj_center)[None, :].repeat(len(idx), 0), dir_p @ r_gw.T)
-        tp = ans_p["t_hit"].numpy().astype(np.float64)
-        unshadowed = np.abs(tp - dist) < 1e-3 + 1e-5 * dist
-        cos_inc = -np.einsum("ij,ij->i", normals_w, dir_p)
         lit_i = inside & unshadowed & (cos_inc > 0)
+        lit_idx = idx[lit_i]
 
-        depth = np.full(h * w, np.nan)
-        pts_cam = np.full((h * w, 3), np.nan)
-        t_cw = self.rig.camera.T_from_world
-        pc = pts_w @ t_cw[:3, :3].T + t_cw[:3, 3]
-        pts_cam[idx] = pc
-        depth[idx] = pc[:, 2]
-        u_proj = np.full(h * w, np.nan)
-        u_proj[idx[lit_i]] = uv[lit_i, 0]
-        lit = np.zeros(h * w, dtype=bool)
-        lit[idx[lit_i]] = True
-        irr = np.zeros(h * w, dtype=np.float32)
+        n = h * w
+        hit = np.zeros(n, dtype=bool)
+        hit[idx] = True
+        points = np.full((n, 3), np.nan)
+        points[idx] = pts_cam
+        u_proj = np.full(n, np.nan)
+        u_proj[lit_idx] = uv[lit_i, 0]
+        lit = np.zeros(n, dtype=bool)
+        lit[lit_idx] = True
         o = self.optics
-        irr[idx[lit_i]] = o.albedo * o.projector_power * cos_inc[lit_i] * (self._d0 / dist[lit_i]) ** 2
-        cos_full = np.zeros(h * w, dtype=np.float32)
-        cos_full[idx[lit_i]] = cos_inc[lit_i]
+        irr = np.zeros(n, dtype=np.float32)
+        irr[lit_idx] = o.albedo * o.projector_power * cos_inc[lit_i] * (self._d0 / dist[lit_i]) ** 2
+        cos_full = np.zeros(n, dtype=np.float32)
+        cos_full[lit_idx] = cos_inc[lit_i]
+        points = points.reshape(h, w, 3)
         return Surface(
             angle=angle,
             hit=hit.reshape(h, w),
-            points_cam=pts_cam.reshape(h, w, 3),
-            depth=depth.reshape(h, w),
+            points_cam=points,
+            depth=points[..., 2],
             u_proj=u_proj.reshape(h, w),
             lit=lit.reshape(h, w),
             irradiance=irr.reshape(h, w),
