@@ -1,0 +1,95 @@
+"""Pipeline mechanics: drop-oldest queues, stage errors, clean shutdown."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+
+import pytest
+
+from gearscan.pipeline import DropOldestQueue, Pipeline, PipelineError, StageSpec
+
+
+def test_queue_drops_oldest_and_counts():
+    q = DropOldestQueue(3)
+    for i in range(5):
+        q.put(i)
+    assert q.dropped == 2
+    assert [q.get(0.1) for _ in range(3)] == [2, 3, 4]
+    with pytest.raises(TimeoutError):
+        q.get(0.01)
+
+
+def test_items_flow_and_stats_count():
+    out = []
+    p = Pipeline(range(20), [StageSpec("double", lambda x: 2 * x, queue_size=100), StageSpec("sink", out.append, queue_size=100)])
+    rep = p.run(handle_signals=False)
+    assert out == [2 * i for i in range(20)]
+    assert rep.stages["double"]["processed"] == 20 and rep.stopped_by == "end of input"
+
+
+def test_slow_stage_drops_oldest_without_blocking_the_source():
+    seen = []
+
+    def slow(x):
+        time.sleep(0.02)
+        seen.append(x)
+
+    p = Pipeline(range(200), [StageSpec("slow", slow, queue_size=2)])
+    rep = p.run(handle_signals=False)
+    assert rep.stages["slow"]["dropped_in"] > 100
+    assert seen[-1] == 199  # the newest item always survives
+    assert rep.stages["slow"]["dropped_in"] + len(seen) == 200
+
+
+def test_failing_stage_is_named_and_closes_everything():
+    closed = []
+
+    def boom(x):
+        if x == 5:
+            raise ValueError("bad burst")
+        return x
+
+    def forever():
+        i = 0
+        while True:
+            yield i
+            i += 1
+            time.sleep(0.001)
+
+    p = Pipeline(forever, [StageSpec("infer", boom, close=lambda: closed.append("infer")),
+                           StageSpec("record", lambda x: x, close=lambda: closed.append("record"))])
+    with pytest.raises(PipelineError, match=r"stage 'infer' failed: ValueError: bad burst"):
+        p.run(handle_signals=False)
+    assert sorted(closed) == ["infer", "record"]
+
+
+def test_sigint_drains_and_finalises():
+    closed = threading.Event()
+    done = []
+
+    def forever():
+        i = 0
+        while True:
+            yield i
+            i += 1
+            time.sleep(0.002)
+
+    p = Pipeline(forever, [StageSpec("record", done.append, close=closed.set)])
+    threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+    rep = p.run()
+    assert rep.stopped_by == "SIGINT" and closed.is_set() and len(done) > 10
+    # the previous handler is back: SIGINT raises KeyboardInterrupt again
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_duration_limit():
+    def forever():
+        while True:
+            time.sleep(0.005)
+            yield 1
+
+    rep = Pipeline(forever, [StageSpec("sink", lambda x: None)]).run(duration=0.2, handle_signals=False)
+    assert rep.stopped_by == "duration reached" and rep.wall_s < 2
