@@ -166,6 +166,7 @@ class BaseCamera:
     driver = "base"
     frame_id_modulus: int | None = None
     frame_id_skips_zero = False
+    timestamps_are_host = False  # device stamps in CLOCK_MONOTONIC already (V4L2)
 
     def __init__(self) -> None:
         self.settings = CameraSettings()
@@ -284,7 +285,7 @@ class BaseCamera:
             pattern_index=pattern,
             exposure_us=float(self.settings.exposure_us),
             bit_depth=raw.bit_depth,
-            host_timestamp_ns=self.clock.to_host(raw.device_timestamp_ns),
+            host_timestamp_ns=raw.device_timestamp_ns if self.timestamps_are_host else self.clock.to_host(raw.device_timestamp_ns),
         )
 
     def _id_distance(self, a: int, b: int) -> int:

@@ -1,0 +1,68 @@
+"""CLI command functions of the acquisition package (registered by gearscan/cli.py).
+
+Only light imports at module level; drivers are imported inside the functions.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def devices(
+    timeout: float = typer.Option(1.0, help="Seconds to wait for GigE discovery."),
+) -> None:
+    """List cameras (Aravis: GigE/USB3 Vision; V4L2) and serial ports with what was found."""
+    from gearscan.acquisition.camera import CameraError
+    from gearscan.acquisition.encoder import list_serial_ports
+    from gearscan.acquisition.v4l2 import list_v4l2_devices
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    table = Table(title="Cameras")
+    for col in ("driver", "id", "vendor", "model", "serial", "address"):
+        table.add_column(col)
+    notes = []
+    try:
+        from gearscan.acquisition.aravis import list_cameras
+
+        for c in list_cameras():
+            table.add_row(c.driver, c.id, c.vendor, c.model, c.serial, c.address)
+    except CameraError as exc:
+        notes.append(f"Aravis: {exc}")
+    for c in list_v4l2_devices():
+        table.add_row(c.driver, c.id, c.vendor, c.model, c.serial, c.address)
+    console.print(table if table.row_count else "No camera found. Is one connected and powered? (GigE: same subnet?)")
+    for n in notes:
+        console.print(f"[yellow]{n}[/yellow]")
+    ports = list_serial_ports()
+    console.print("Serial ports: " + (", ".join(ports) if ports else "none found (encoder unplugged?)"))
+
+
+def record(
+    out: Path = typer.Argument(..., help="Recording folder to create."),
+    config: Path = typer.Option(..., "--config", "-c", help="Acquisition TOML (camera, encoder, projector)."),
+    bursts: int = typer.Option(10, "--bursts", "-n", help="Number of valid three-frame bursts to record."),
+    overwrite: bool = typer.Option(False, help="Replace an existing recording in OUT."),
+) -> None:
+    """Record BURSTS bursts from the configured camera, projector and encoder into OUT."""
+    from gearscan.acquisition.config import AcquisitionConfig
+    from gearscan.acquisition.record import record_bursts
+    from rich.console import Console
+    from rich.progress import Progress
+
+    console = Console()
+    cfg = AcquisitionConfig.load(config)
+    with Progress(console=console) as progress:
+        task = progress.add_task("recording bursts", total=bursts)
+        summary = record_bursts(cfg, out, bursts, overwrite=overwrite, on_burst=lambda n: progress.update(task, completed=n))
+    console.print(
+        f"{summary.bursts} bursts ({summary.frames} frames, {summary.encoder_samples} encoder samples) "
+        f"in {summary.seconds:.1f} s -> {summary.out}"
+    )
+    console.print(f"assembler: {summary.assembler}")
+    console.print(f"camera: {summary.camera}")
+    if summary.encoder is not None:
+        console.print(f"encoder: {summary.encoder}")

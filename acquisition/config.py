@@ -1,0 +1,104 @@
+"""Acquisition config (camera, encoder, projector) read from TOML and validated.
+
+Example ``rig.toml``::
+
+    [camera]
+    driver = "aravis"            # "aravis" | "v4l2" | "replay"
+    id = "Aravis-Fake-GS01"      # Aravis id, serial or IP; /dev/videoN; recording folder
+    pixel_format = "Mono8"
+    exposure_us = 10000
+    roi = [0, 0, 800, 800]
+    trigger = "software"
+
+    [encoder]
+    port = "/dev/ttyUSB0"        # or omit the table: frames then carry no angle
+    counts_per_rev = 10000
+
+    [projector]
+    backend = "mock"             # "mock" | "window" | "lightcrafter"
+    period_px = 16
+    settle_ms = 20
+
+Errors name the key, the allowed range and the value found
+(``encoder.counts_per_rev: Input should be greater than 0 (got 0)``). Angles are
+radians inside; the config has no angles.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from gearscan.acquisition.camera import CameraSettings
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+
+class ConfigError(ValueError):
+    """The acquisition config is invalid; the message names every bad key."""
+
+
+class CameraConfig(CameraSettings):
+    driver: Literal["aravis", "v4l2", "replay"] = "aravis"
+    id: str | None = None
+
+    def settings(self) -> CameraSettings:
+        return CameraSettings(**self.model_dump(exclude={"driver", "id"}))
+
+
+class EncoderConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    port: str
+    counts_per_rev: int = Field(gt=0)
+    baudrate: int = Field(115_200, gt=0)
+    zero_on_index: bool = True
+    max_gap_ms: float = Field(20.0, gt=0)
+
+
+class ProjectorConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    backend: Literal["mock", "window", "lightcrafter"] = "mock"
+    display: int = Field(0, ge=0)
+    width: int = Field(912, gt=0)
+    height: int = Field(1140, gt=0)
+    period_px: float = Field(16.0, ge=2)
+    settle_ms: float = Field(20.0, ge=0)
+    gamma: float | None = Field(None, gt=0)
+
+
+class AcquisitionConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    camera: CameraConfig = Field(default_factory=CameraConfig)
+    encoder: EncoderConfig | None = None
+    projector: ProjectorConfig = Field(default_factory=ProjectorConfig)
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "config") -> AcquisitionConfig:
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise ConfigError(f"{source}: " + format_errors(exc)) from exc
+
+    @classmethod
+    def load(cls, path: str | Path) -> AcquisitionConfig:
+        path = Path(path)
+        if not path.exists():
+            raise ConfigError(f"config file {path} does not exist")
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: invalid TOML ({exc})") from exc
+        return cls.from_dict(data, str(path))
+
+
+def format_errors(exc: ValidationError) -> str:
+    """One line per bad key: ``a.b: message (got value)``."""
+    parts = []
+    for e in exc.errors():
+        key = ".".join(str(p) for p in e["loc"])
+        got = e.get("input")
+        parts.append(f"{key}: {e['msg']} (got {got!r})")
+    return "; ".join(parts)
