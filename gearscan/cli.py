@@ -126,39 +126,76 @@ def twin_dataset(
     typer.echo(f"dataset ready in {out}: {n} start points x 816 three-step inputs")
 
 
+def _speed(value: str) -> float | None:
+    if value == "max":
+        return None
+    try:
+        speed = float(value)
+    except ValueError:
+        raise _fail(f"--speed must be a positive number or 'max', got {value!r}") from None
+    if speed <= 0:
+        raise _fail(f"--speed must be a positive number or 'max', got {value!r}")
+    return speed
+
+
+def _decoder(classical: bool, mc: int, model: Path | None):
+    from gearscan.measure import Decoder
+
+    if classical:
+        return Decoder(classical=True)
+    try:
+        return Decoder(model, mc=mc)
+    except (ValueError, FileNotFoundError) as exc:  # ModelFileError is a ValueError
+        raise _fail(f"cannot load the model: {exc}") from exc
+
+
 @app.command("replay")
 def replay_cmd(
     recording: Annotated[Path, typer.Argument(help="recording folder")],
     save: Annotated[Path | None, typer.Option(help="write the rerun stream to this .rrd file")] = None,
-    metrics: Annotated[Path | None, typer.Option(help="write accuracy metrics (JSON) here")] = None,
+    connect: Annotated[str | None, typer.Option(help="stream to a rerun viewer at this gRPC URL")] = None,
+    serve: Annotated[bool, typer.Option(help="serve the web viewer (gRPC + web) from this machine")] = False,
+    bind: Annotated[str, typer.Option(help="address --serve binds to")] = "127.0.0.1",
+    metrics: Annotated[Path | None, typer.Option(help="write accuracy and pipeline metrics (JSON) here")] = None,
+    speed: Annotated[str, typer.Option(help="replay speed: 1.0 = recorded timing, 'max' = as fast as possible")] = "max",
     classical: Annotated[bool, typer.Option(help="decode with three-step PS instead of the network")] = False,
     mc: Annotated[int, typer.Option(min=0, help="Monte Carlo passes (0: deterministic)")] = 0,
     model: Annotated[Path | None, typer.Option(help="model weights (.safetensors); default: the shipped model")] = None,
 ) -> None:
-    """Replay a recording: decode each burst, log to rerun, print accuracy when it has truth."""
+    """Replay a recording through the live pipeline; print accuracy when it holds truth."""
+    from gearscan.pipeline import PipelineError
     from gearscan.recording import RecordingError
     from gearscan.replay import replay
 
-    decode = None
-    if not classical:
-        try:
-            from gearscan.inference.predictor import Predictor
+    decoder = _decoder(classical, mc, model)
+    web = None
+    if serve:
+        from gearscan.viewer.serve import serve_web
 
-            predictor = Predictor.load(model) if model else Predictor.default()
-            decode = lambda b: predictor.predict_burst(b, mc=mc)  # noqa: E731
-        except (ImportError, FileNotFoundError) as exc:
-            typer.secho(f"network unavailable ({exc}); decoding with three-step PS", fg=typer.colors.YELLOW, err=True)
+        web = serve_web(bind)
+        connect = web.grpc_url
+        typer.echo(f"web viewer: {web.web_url}")
+    if not (save or connect):
+        save = Path("out") / f"{recording.name}.rrd"
     try:
-        with _progress("bursts") as prog:
-            task = prog.add_task("replay", total=None)
-            result = replay(recording, save=save, metrics_path=metrics, decode=decode,
-                            progress=lambda i, n: prog.update(task, completed=i, total=n))
-    except RecordingError as exc:
+        result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed))
+    except (RecordingError, PipelineError) as exc:
         raise _fail(str(exc)) from exc
+    finally:
+        if web is not None and not serve:
+            web.close()
     for k, v in result.summary().items():
         typer.echo(f"{k}: {v:.4f}" if isinstance(v, float) else f"{k}: {v}")
     if save:
         typer.echo(f"rerun stream saved to {save} (open with: rerun {save})")
+    if web is not None:
+        typer.echo(f"serving {web.web_url} — Ctrl-C to stop")
+        try:
+            web.process.wait()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            web.close()
 
 
 def _register(module: str, names: list[str], target: typer.Typer = app) -> None:

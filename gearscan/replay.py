@@ -1,99 +1,166 @@
-"""Replay a recording through decoding and into the viewer, with accuracy when truth exists."""
+"""``gearscan replay``: the live pipeline fed by a recording, with accuracy when it holds truth.
+
+Stages: replay camera -> burst assembler -> decoder -> reconstructor -> output (viewer,
+metrics). With ``speed="max"`` frames are served as fast as the pipeline takes them and no
+queue drops anything; with a real-time speed a slow stage drops its oldest input, as live.
+"""
 
 from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from gearscan.recon.phase import phase_error, three_step
-from gearscan.recording import RecordingReader
-from gearscan.types import Burst, PhaseResult
+from gearscan.measure import Decoder, Measurement, Reconstructor
+from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
+from gearscan.recon.phase import phase_error
+from gearscan.recording import RecordingError, RecordingReader
+from gearscan.types import Burst
 
 log = logging.getLogger(__name__)
 
 
-def classical_result(burst: Burst) -> PhaseResult:
-    """Three-step phase shifting of a burst, with the noise-only phase sigma as data uncertainty."""
-    phase, m, d = three_step(burst.images, burst.full_scale)
-    mod = np.hypot(m, d)
-    # sigma_phi = s_I sqrt(2/N) / B with one DN of noise: a floor, not a motion-aware estimate
-    with np.errstate(divide="ignore"):
-        sigma = np.where(mod > 0, (2.0 / burst.full_scale) * np.sqrt(2 / 3) / mod, np.inf).astype(np.float32)
-    zero = np.zeros_like(sigma)
-    return PhaseResult(phase=phase, M=m, D=d, sigma_model=zero, sigma_data=sigma, sigma_total=sigma, mode="three-step",
-                       burst_index=burst.index, angle=burst.angles[0])
-
-
-def recording_bursts(reader: RecordingReader) -> Iterator[tuple[Burst, int]]:
-    """Consecutive frames with pattern indices 0, 1, 2 as bursts, with the first frame's index."""
-    from gearscan.acquisition.bursts import BurstAssembler
-
-    assembler = BurstAssembler()
-    for i in range(len(reader)):
-        burst = assembler.push(reader.frame(i))
-        if burst is not None:
-            yield burst, i - 2
-
-
 @dataclass
 class ReplayMetrics:
-    bursts: int = 0
+    """Per-burst accuracy against the twin's truth, and pipeline statistics."""
+
     per_burst: list[dict[str, float]] = field(default_factory=list)
+    pipeline: dict[str, dict[str, float]] = field(default_factory=dict)
+    assembler: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def bursts(self) -> int:
+        return len(self.per_burst)
 
     def summary(self) -> dict[str, float]:
         out: dict[str, float] = {"bursts": self.bursts}
         if self.per_burst:
             for key in self.per_burst[0]:
-                if key.endswith("_rmse_rad"):
-                    vals = np.array([b[key] for b in self.per_burst])
-                    out[key] = float(np.sqrt(np.mean(vals**2)))
+                vals = np.array([b[key] for b in self.per_burst if key in b], dtype=float)
+                if key.endswith("_rmse_rad") or key.endswith("_rms_mm"):
+                    out[key] = float(np.sqrt(np.nanmean(vals**2)))
+                elif key.endswith("_sigma_rad"):
+                    out[key] = float(np.nanmean(vals))
         return out
+
+    def to_json(self) -> dict:
+        return {"summary": self.summary(), "bursts": self.per_burst, "pipeline": self.pipeline,
+                "assembler": self.assembler}
+
+
+class TruthScorer:
+    """Phase and cloud accuracy of a measurement against a twin recording's truth."""
+
+    def __init__(self, reader: RecordingReader) -> None:
+        self.reader = reader
+        self.index = {rec.frame_id: i for i, rec in enumerate(reader.records)}
+        gear = reader.gear
+        self.scene = None
+        if gear is not None:
+            import open3d as o3d
+
+            self.scene = o3d.t.geometry.RaycastingScene()
+            self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh()))
+
+    def __call__(self, m: Measurement) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+        truth = self.reader.truth(self.index[m.burst.frames[0].frame_id])
+        mask = truth["mask"]
+        err = np.where(mask, phase_error(m.result.phase, truth["phase"]), 0.0)
+        row = {
+            "burst": m.burst.index,
+            "angle_deg": float(np.degrees(m.burst.angles[0])),
+            "span_deg": float(np.degrees(m.burst.angles[2] - m.burst.angles[0])),
+            f"{m.result.mode}_rmse_rad": float(np.sqrt(np.mean(err[mask] ** 2))),
+            "mean_sigma_rad": float(np.mean(m.result.sigma_total[mask])),
+        }
+        if m.result.mode != "three-step":
+            from gearscan.measure import classical_result
+
+            base = classical_result(m.burst)
+            row["three-step_rmse_rad"] = float(np.sqrt(np.mean(phase_error(base.phase, truth["phase"])[mask] ** 2)))
+        if self.scene is not None and m.cloud is not None and len(m.cloud):
+            import open3d as o3d
+
+            d = self.scene.compute_signed_distance(o3d.core.Tensor(m.cloud.points.astype(np.float32))).numpy()
+            m.cloud.deviation = d.astype(np.float64)
+            row["cloud_rms_mm"] = float(np.sqrt(np.mean(d**2)))
+            row["cloud_p95_mm"] = float(np.percentile(np.abs(d), 95))
+            row["cloud_points"] = len(m.cloud)
+        return row, err, mask
 
 
 def replay(
     recording: str | Path,
     *,
+    decoder: Callable[[Burst], object] | None = None,
     save: str | Path | None = None,
+    connect: str | None = None,
+    spawn: bool = False,
     metrics_path: str | Path | None = None,
-    decode: Callable[[Burst], PhaseResult] | None = None,
-    progress: Callable[[int, int], None] | None = None,
+    speed: float | None = None,
+    reconstruct: bool = True,
+    on_burst: Callable[[Measurement, dict], None] | None = None,
 ) -> ReplayMetrics:
-    """Decode every burst of ``recording``; log to rerun if ``save``; return accuracy metrics."""
-    from gearscan.viewer.log import RerunLogger
+    """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible."""
+    from gearscan.acquisition.bursts import BurstAssembler
+    from gearscan.mocks.replay_camera import ReplayCamera
 
     reader = RecordingReader(recording)
-    decode = decode or classical_result
-    logger = RerunLogger(save=save) if save else None
-    if logger:
-        logger.log_rig(reader.rig)
+    if len(reader) < 3:
+        raise RecordingError(f"{reader.path}: {len(reader)} complete frames, a burst needs 3")
+    decoder = decoder or Decoder(classical=True)
+    rig = reader.rig
+    patterns = reader.patterns
+    period = patterns.periods[0]
+    gear = reader.gear
+    recon = Reconstructor.for_gear(rig, period, gear) if (reconstruct and gear is not None) else None
+    scorer = TruthScorer(reader) if reader.has_truth() else None
+    logger = None
+    if save or connect or spawn:
+        from gearscan.viewer.log import RerunLogger
+
+        logger = RerunLogger(save=save, connect=connect, spawn=spawn)
+        logger.log_rig(rig)
     metrics = ReplayMetrics()
-    total = len(reader) // 3
-    truth_ok = reader.has_truth()
-    for burst, first in recording_bursts(reader):
-        result = decode(burst)
-        row: dict[str, float] = {"burst": burst.index, "angle_deg": float(np.degrees(burst.angles[0]))}
-        err = mask = None
-        if truth_ok:
-            truth = reader.truth(first)
-            mask = truth["mask"]
-            err = np.where(mask, phase_error(result.phase, truth["phase"]), 0.0)
-            row[f"{result.mode}_rmse_rad"] = float(np.sqrt(np.mean(err[mask] ** 2)))
-            if result.mode != "three-step":
-                base = classical_result(burst)
-                row["three-step_rmse_rad"] = float(np.sqrt(np.mean(phase_error(base.phase, truth["phase"])[mask] ** 2)))
+    assembler = BurstAssembler()
+    camera = ReplayCamera(reader, realtime=speed is not None, speed=speed or 1.0)
+
+    def frames():
+        camera.open()
+        camera.start()
+        for _ in range(len(reader)):
+            yield camera.grab(timeout=5.0)
+
+    def close_camera():
+        camera.stop()
+        camera.close()
+
+    def output(m: Measurement) -> None:
+        row, err, mask = scorer(m) if scorer else ({"burst": m.burst.index}, None, None)
         metrics.per_burst.append(row)
-        metrics.bursts += 1
         if logger:
-            logger.log_burst(burst, result, mask=mask, error=err, stats={k: v for k, v in row.items() if k.endswith("rmse_rad")})
-        if progress:
-            progress(metrics.bursts, total)
-    if logger:
-        logger.close()
+            logger.log_burst(m.burst, m.result, mask=mask, cloud=m.cloud, error=err,
+                             stats={k: v for k, v in row.items() if k.endswith(("rmse_rad", "rms_mm"))})
+        if on_burst:
+            on_burst(m, row)
+
+    stages = [
+        StageSpec("assemble", assembler.push),
+        StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2),
+        StageSpec("reconstruct", (lambda m: recon(m.burst, m.result)) if recon else (lambda m: m)),
+        StageSpec("output", output, close=logger.close if logger else None, queue_size=8),
+    ]
+    if speed is None:  # as fast as possible: nothing may be dropped
+        for s in stages:
+            s.queue_size = max(s.queue_size, len(reader))
+    pipeline = Pipeline(frames, stages, source_name="camera", source_close=close_camera)
+    report: PipelineReport = pipeline.run()
+    metrics.pipeline = report.stages
+    metrics.assembler = assembler.stats.as_dict()
     if metrics_path:
-        Path(metrics_path).write_text(json.dumps({"summary": metrics.summary(), "bursts": metrics.per_burst}, indent=2))
+        Path(metrics_path).write_text(json.dumps(metrics.to_json(), indent=2))
     return metrics

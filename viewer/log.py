@@ -45,8 +45,39 @@ def colorize(values: np.ndarray, lo: float, hi: float, cmap: str, mask: np.ndarr
     return rgb
 
 
+def default_blueprint():
+    """Frames and phase on the left, uncertainty in the middle, cloud and plots on the right."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial2DView(name="frame", origin="world/camera", contents="world/camera/frames/0"),
+                rrb.Spatial2DView(name="wrapped phase", origin="world/camera", contents="world/camera/phase"),
+                rrb.Spatial2DView(name="phase error", origin="world/camera", contents="world/camera/error"),
+            ),
+            rrb.Vertical(
+                rrb.Spatial2DView(name="total uncertainty", origin="world/camera", contents="world/camera/sigma/total"),
+                rrb.Spatial2DView(name="model uncertainty", origin="world/camera", contents="world/camera/sigma/model"),
+                rrb.Spatial2DView(name="data uncertainty", origin="world/camera", contents="world/camera/sigma/data"),
+            ),
+            rrb.Vertical(
+                rrb.Spatial3DView(name="point cloud", origin="world"),
+                rrb.TimeSeriesView(name="turntable and accuracy", origin="stats"),
+                row_shares=[3, 2],
+            ),
+            column_shares=[1, 1, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
 class RerunLogger:
-    """Streams pipeline results to a rerun sink (file, remote viewer or spawned viewer)."""
+    """Streams pipeline results to a rerun sink: a file, a remote viewer, or a spawned viewer.
+
+    ``connect`` takes a gRPC URL (``rerun+http://HOST:9876/proxy``) of a viewer elsewhere on
+    the shop floor. If the viewer goes away, rerun drops data for it; measurement goes on.
+    """
 
     def __init__(
         self,
@@ -60,14 +91,16 @@ class RerunLogger:
 
         self.rr = rr
         self.stream = rr.RecordingStream(APP_ID, recording_id=recording_id)
+        blueprint = default_blueprint()
         if save is not None:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
-            self.stream.save(str(save))
+            self.stream.save(str(save), default_blueprint=blueprint)
         elif connect is not None:
-            self.stream.connect_grpc(connect)
+            self.stream.connect_grpc(connect, default_blueprint=blueprint)
         elif spawn:
-            self.stream.spawn()
-        self.sigma_max = 0.2  # rad, top of the uncertainty colour scale
+            self.stream.spawn(default_blueprint=blueprint)
+        else:
+            raise ValueError("RerunLogger needs a sink: save, connect or spawn")
 
     def log_rig(self, rig: Rig) -> None:
         """Camera intrinsics and pose in the turntable frame, logged once (static)."""

@@ -1,0 +1,112 @@
+"""The measurement stages between a burst and the viewer: decode, then reconstruct.
+
+``Decoder`` turns a :class:`Burst` into a :class:`PhaseResult` (CD-DCU-Net, or three-step
+phase shifting as the classical fallback); ``Reconstructor`` unwraps it with the geometric
+constraint of the gear's tip and root cylinders, triangulates it with per-point depth
+uncertainty and moves the points into the turntable frame at the burst's encoder angle.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gearscan.recon.phase import three_step
+from gearscan.rig import Rig
+from gearscan.types import Burst, Cloud, PhaseResult
+
+log = logging.getLogger(__name__)
+
+
+def classical_result(burst: Burst, read_noise_dn: float = 1.0) -> PhaseResult:
+    """Three-step phase shifting of a burst.
+
+    Its data uncertainty is the noise-only phase sigma ``s_I sqrt(2/N) / B`` for a read noise
+    of ``read_noise_dn``; three-step PS has no estimate of its (dominant) motion error.
+    """
+    phase, m, d = three_step(burst.images, burst.full_scale)
+    mod = np.hypot(m, d)  # 2B/S
+    with np.errstate(divide="ignore"):
+        sigma = np.where(mod > 0, (2.0 * read_noise_dn / burst.full_scale) * np.sqrt(2 / 3) / mod, np.inf)
+    sigma = sigma.astype(np.float32)
+    return PhaseResult(
+        phase=phase, M=m, D=d, sigma_model=np.zeros_like(sigma), sigma_data=sigma, sigma_total=sigma,
+        mode="three-step", burst_index=burst.index, angle=float(burst.angles[0]),
+    )
+
+
+class Decoder:
+    """Burst -> PhaseResult with the network (``mc`` passes, 0 = deterministic) or three-step PS."""
+
+    def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
+                 precision: str = "bf16") -> None:
+        self.mc = mc
+        self.predictor = None
+        if not classical:
+            from gearscan.inference.predictor import Predictor
+
+            self.predictor = Predictor.load(model, precision=precision)
+        self.mode = "three-step" if classical else (f"mc{mc}" if mc else "deterministic")
+
+    def __call__(self, burst: Burst) -> PhaseResult:
+        if self.predictor is None:
+            return classical_result(burst)
+        return self.predictor.predict_burst(burst, mc=self.mc)
+
+
+@dataclass
+class Measurement:
+    """Everything one burst produced, as it travels to the viewer and the metrics."""
+
+    burst: Burst
+    result: PhaseResult
+    cloud: Cloud | None = None
+    phase_abs: np.ndarray | None = None
+    valid: np.ndarray | None = None
+
+
+class Reconstructor:
+    """PhaseResult -> absolute phase -> points (turntable frame) with depth sigma.
+
+    Pixels are kept where the fringe order is unambiguous, the modulation is above
+    ``min_modulation`` (2B/S) and the total phase sigma is below ``max_sigma`` rad.
+    """
+
+    def __init__(self, rig: Rig, period_px: float, *, tip_radius: float, root_radius: float,
+                 face_width: float, min_modulation: float = 0.05, max_sigma: float = 0.3,
+                 margin: float = 0.3) -> None:
+        from gearscan.recon.triangulate import Triangulator
+        from gearscan.recon.unwrap import gear_depth_bounds, phase_bounds
+
+        self.rig = rig
+        self.period_px = period_px
+        bounds = gear_depth_bounds(rig, tip_radius, root_radius, face_width)
+        self.phi_min, self.phi_max = phase_bounds(rig, bounds, period_px)
+        self.triangulator = Triangulator(rig, period_px)
+        self.min_modulation = min_modulation
+        self.max_sigma = max_sigma
+        self.margin = margin
+
+    @classmethod
+    def for_gear(cls, rig: Rig, period_px: float, gear, **kw) -> Reconstructor:
+        return cls(rig, period_px, tip_radius=gear.tip_radius, root_radius=gear.root_radius,
+                   face_width=gear.face_width, **kw)
+
+    def __call__(self, burst: Burst, result: PhaseResult) -> Measurement:
+        from gearscan.recon.triangulate import to_cloud
+        from gearscan.recon.unwrap import geometric_unwrap
+
+        if result.phase.shape != self.phi_min.shape:
+            raise ValueError(
+                f"phase map {result.phase.shape} does not match the rig camera "
+                f"{self.phi_min.shape}: wrong rig file for this camera/ROI?"
+            )
+        un = geometric_unwrap(result.phase, self.phi_min, self.phi_max, self.period_px, margin=self.margin)
+        keep = un.valid & (result.modulation >= self.min_modulation) & (result.sigma_total <= self.max_sigma)
+        phase_abs = np.where(keep, un.phase_abs, np.nan)
+        tri = self.triangulator(phase_abs, result.sigma_total)
+        cloud = to_cloud(tri, self.rig, result.angle, burst_index=burst.index)
+        return Measurement(burst, result, cloud, phase_abs, tri.valid)
