@@ -69,3 +69,15 @@ class GvSimulator:
 
     def __exit__(self, *exc: object) -> None:
         self.kill()
+
+
+def aravis_missing_reason() -> str | None:
+    """Why the Aravis Python bindings cannot be used here (None when they can)."""
+    try:
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis  # noqa: F401
+    except (ImportError, ValueError) as exc:
+        return f"gi/Aravis typelib missing ({exc}); install gir1.2-aravis-0.8 and pip 'pygobject<3.51'"
+    return None
