@@ -19,9 +19,31 @@ import numpy as np
 from gearscan.recon.calibration import BoardCapture, Checkerboard
 from gearscan.twin.render import Optics, TwinRenderer
 
-from gearscan.rig import Rig, look_at, rot_z
+from gearscan.rig import PinholeDevice, Rig, look_at, rot_z
 
 BLACK_ALBEDO = 0.12  # printed black relative to the optics' albedo (white)
+
+
+def _subsample_rays(cam: PinholeDevice, s: int) -> np.ndarray:
+    """Undistorted unit rays ``(H*s, W*s, 3)`` at ``s x s`` sub-pixel centres.
+
+    Undistorting every sub-sample is slow (iterative); the normalised coordinates are a
+    smooth field, so they are computed at pixel centres on a one-pixel padded grid and
+    interpolated bilinearly (error far below 1e-4 px for lens distortion).
+    """
+    if s == 1:
+        return cam.pixel_rays()
+    k = cam.K.copy()
+    k[0, 2] += 1
+    k[1, 2] += 1
+    padded = PinholeDevice(cam.width + 2, cam.height + 2, k, cam.dist, cam.T_from_world).pixel_rays()
+    xy = (padded[..., :2] / padded[..., 2:3]).astype(np.float32)
+    fx = (np.arange(cam.width * s, dtype=np.float32) + 0.5) / s - 0.5 + 1
+    fy = (np.arange(cam.height * s, dtype=np.float32) + 0.5) / s - 0.5 + 1
+    mx, my = np.meshgrid(fx, fy)
+    fine = cv2.remap(xy, mx, my, cv2.INTER_LINEAR).astype(np.float64)
+    rays = np.concatenate([fine, np.ones((*fine.shape[:2], 1))], axis=-1)
+    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
 
 class BoardRenderer:
@@ -43,9 +65,8 @@ class BoardRenderer:
         self.optics = optics or Optics()
         self.s = int(supersample)
         cam = rig.camera
-        fine = cam.scaled(cam.width * self.s, cam.height * self.s)
-        rays = fine.pixel_rays().reshape(-1, 3)
-        self._rays_world = rays @ cam.T_world_from[:3, :3].T
+        rays = _subsample_rays(cam, self.s).reshape(-1, 3)
+        self._rays_world = np.ascontiguousarray((rays @ cam.T_world_from[:3, :3].T).T, dtype=np.float32)  # (3, n)
         self._rays_center = cam.pixel_rays().reshape(-1, 3) @ cam.T_world_from[:3, :3].T
         self._cam_center = cam.center_world
         self._proj_center = rig.projector.center_world
@@ -57,7 +78,7 @@ class BoardRenderer:
     def _bin(self, x: np.ndarray) -> np.ndarray:
         """Average ``s x s`` sub-samples into camera pixels: ``(H*s*W*s,) -> (H, W)``."""
         h, w = self._shape
-        return x.reshape(h, self.s, w, self.s).mean(axis=(1, 3))
+        return x.reshape(h, self.s, w, self.s).mean(axis=(1, 3), dtype=np.float64)
 
     def _plane_hits(self, rays_world: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World points, board-frame points and hit flags of rays from the camera centre."""
@@ -68,16 +89,38 @@ class BoardRenderer:
         pts = self._cam_center + np.where(hit, dist, 0.0)[:, None] * rays_world
         return pts, (pts - origin) @ t[:3, :3], hit
 
-    def _albedo(self, local: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    def _albedo(self, x: np.ndarray, y: np.ndarray, hit: np.ndarray) -> np.ndarray:
         b = self.board
-        sq = b.square_mm
+        sq = np.float32(b.square_mm)
         lo, hi_x, hi_y = -(1 + b.margin_squares) * sq, (b.cols + b.margin_squares) * sq, (b.rows + b.margin_squares) * sq
-        x, y = local[:, 0], local[:, 1]
         on_plate = hit & (x >= lo) & (x <= hi_x) & (y >= lo) & (y <= hi_y)
         in_pattern = (x >= -sq) & (x <= b.cols * sq) & (y >= -sq) & (y <= b.rows * sq)
         # square (a, b) with lower corner (a s, b s), a, b >= -1, is black when a + b is even
-        black = in_pattern & ((np.floor(x / sq) + np.floor(y / sq)) % 2 == 0)
-        return np.where(on_plate, np.where(black, BLACK_ALBEDO, 1.0) * self.optics.albedo, 0.0)
+        parity = (np.floor(x / sq) + np.floor(y / sq)).astype(np.int64) & 1
+        black = in_pattern & (parity == 0)
+        white = np.float32(self.optics.albedo)
+        return np.where(on_plate, np.where(black, np.float32(BLACK_ALBEDO) * white, white), np.float32(0.0))
+
+    def _local_fine(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Board-plane coordinates ``(x, y)`` of every sub-sample ray, float32, and hit flags.
+
+        ``p = c + lam d`` with ``lam = n.(o - c) / n.d``; board coordinates are
+        ``e_k.(c - o) + lam e_k.d`` for the board's in-plane axes ``e_1, e_2``.
+        """
+        axes = t[:3, :3]
+        dx, dy, dz = self._rays_world
+
+        def dot(k: int) -> np.ndarray:  # e_k . d for every ray (three fused scalings: fast)
+            e = axes[:, k].astype(np.float32)
+            return dx * e[0] + dy * e[1] + dz * e[2]
+
+        rel = self._cam_center - t[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = np.float32(-(axes[:, 2] @ rel)) / dot(2)
+        hit = np.isfinite(lam) & (lam > 0)
+        x = np.float32(axes[:, 0] @ rel) + lam * dot(0)
+        y = np.float32(axes[:, 1] @ rel) + lam * dot(1)
+        return x, y, hit
 
     def _geometry(self, t_world_from_board: np.ndarray) -> dict:
         """Albedo (supersampled, binned) and the smooth projector terms at pixel centres.
@@ -86,8 +129,7 @@ class BoardRenderer:
         irradiance factor vary slowly and are taken at pixel centres.
         """
         t = np.asarray(t_world_from_board, dtype=np.float64)
-        _, local_f, hit_f = self._plane_hits(self._rays_world, t)
-        albedo = self._bin(self._albedo(local_f, hit_f))
+        albedo = self._bin(self._albedo(*self._local_fine(t))).astype(np.float64)
         pts, _, hit = self._plane_hits(self._rays_center, t)
         normal, origin = t[:3, 2], t[:3, 3]
         uv = self.rig.projector.project(pts)
@@ -186,14 +228,27 @@ def calibration_poses(
     rig: Rig,
     board: Checkerboard,
     *,
-    free_tilts_deg: Sequence[tuple[float, float]] = ((0, 0), (18, 0), (-18, 0), (0, 18), (0, -18), (14, 14), (-14, 14), (14, -14)),
-    turntable_angles_deg: Sequence[float] = (-20.0, -10.0, 0.0, 10.0, 20.0),
+    free_views: Sequence[tuple[float, float, float, float]] = (
+        (0, 0, 0, 0),
+        (18, 0, 0, 0),
+        (-18, 0, 0, 0),
+        (0, 18, 0, 0),
+        (0, -18, 0, 0),
+        (12, 12, 2.5, 3.5),
+        (-12, 12, -2.5, 3.5),
+        (12, -12, 2.5, -3.5),
+        (-12, -12, -2.5, -3.5),
+        (0, 0, 0, 4.0),
+        (0, 0, 0, -4.0),
+    ),
+    turntable_angles_deg: Sequence[float] = (-24.0, -12.0, 0.0, 12.0, 24.0),
     free_distance_mm: float | None = None,
 ) -> list[tuple[str, np.ndarray, float | None]]:
     """Board poses for a calibration set: ``(name, T_world_from_board, turntable angle rad or None)``.
 
-    Free-hand views face the camera at the working distance, tilted about the board's x and
-    y axes. Turntable views stand the board in a plane through the rotation axis, facing the
+    Free-hand views ``(tilt_x, tilt_y, shift_x, shift_y)`` (deg, mm) face the camera at the
+    working distance, tilted about the board's x and y axes and shifted across the field so
+    the corners reach the image edges (distortion is only observable there). Turntable views stand the board in a plane through the rotation axis, facing the
     camera at encoder angle 0 with its centre on the axis (so the fitted world origin is the
     rig's), turned by each encoder angle.
     """
@@ -204,7 +259,7 @@ def calibration_poses(
     target_free = c + fwd * (free_distance_mm or float(np.linalg.norm(c[:2]) - 21.0))
     poses: list[tuple[str, np.ndarray, float | None]] = []
 
-    def facing(centre: np.ndarray, tilt_x: float, tilt_y: float) -> np.ndarray:
+    def facing(centre: np.ndarray, tilt_x: float, tilt_y: float, shift: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
         # board frame: x along the image columns, y along the image rows, z away from the camera
         t_cb = look_at(c, centre, np.array([0.0, 0.0, 1.0]))  # camera-like frame at the camera
         r = t_cb[:3, :3].T  # world from that frame: columns x (right), y (down), z (forward)
@@ -213,11 +268,11 @@ def calibration_poses(
         rot = r @ rx @ ry
         t = np.eye(4)
         t[:3, :3] = rot
-        t[:3, 3] = centre - rot @ board.centre
+        t[:3, 3] = centre + r[:, 0] * shift[0] + r[:, 1] * shift[1] - rot @ board.centre
         return t
 
-    for i, (tx, ty) in enumerate(free_tilts_deg):
-        poses.append((f"free_{i:02d}", facing(target_free, tx, ty), None))
+    for i, (tx, ty, sx, sy) in enumerate(free_views):
+        poses.append((f"free_{i:02d}", facing(target_free, tx, ty, (sx, sy)), None))
     base = facing(np.zeros(3), 0.0, 0.0)
     for i, a in enumerate(turntable_angles_deg):
         ang = math.radians(a)

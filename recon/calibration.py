@@ -1,0 +1,453 @@
+"""Camera-projector calibration: Zhang's method, projector as inverse camera, turntable axis.
+
+Steps (:func:`calibrate_rig`):
+
+1. Camera intrinsics and per-view board poses from checkerboard corners (OpenCV
+   ``findChessboardCorners`` + ``cornerSubPix``, then ``calibrateCameraExtended``).
+2. The projector pixel of every corner from the absolute phase of horizontal (``u_p``) and
+   vertical (``v_p``) fringes, temporally unwrapped; a modulation-weighted local quadratic fit
+   around the corner evaluates the phase at the sub-pixel corner. The projector is then
+   calibrated as an inverse camera from the same board points.
+3. Stereo extrinsics ``T_proj_from_cam`` (``stereoCalibrateExtended`` with both intrinsics
+   fixed), per-view reprojection errors of both devices.
+4. The turntable axis from the views of a board fixed on the turntable at known encoder
+   angles: the relative board motions are rotations about one axis; its direction and a point
+   on it are fitted in least squares. The world (turntable) frame has z along that axis,
+   its origin on the axis level with the first turntable view's board centre, x towards the
+   camera.
+
+References
+----------
+Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11) (2000).
+Zhang, Huang, "Novel method for structured light system calibration", Opt. Eng. 45(8) (2006).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from gearscan.recon.phase import decode_phase
+from gearscan.recon.unwrap import temporal_unwrap
+
+from gearscan.rig import PinholeDevice, Rig
+
+
+class CalibrationError(RuntimeError):
+    """Calibration cannot proceed (too few usable views, board not found...)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Checkerboard:
+    """A printed checkerboard: ``cols x rows`` inner corners, ``square_mm`` pitch.
+
+    Board frame: inner corner ``(i, j)`` at ``(i s, j s, 0)``; the square between corners
+    ``(0, 0)`` and ``(1, 1)`` is black, which fixes the 180 degree ambiguity (use one odd
+    and one even count). The plate extends ``margin_squares`` white squares beyond the
+    outer black/white squares.
+    """
+
+    cols: int = 9
+    rows: int = 6
+    square_mm: float = 1.6
+    margin_squares: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.cols < 3 or self.rows < 3:
+            raise ValueError(f"board needs >= 3x3 inner corners, got {self.cols}x{self.rows}")
+        if (self.cols + self.rows) % 2 == 0:
+            raise ValueError(
+                f"use one odd and one even inner-corner count so the board orientation is unique, got {self.cols}x{self.rows}"
+            )
+        if not self.square_mm > 0:
+            raise ValueError(f"square_mm must be positive, got {self.square_mm}")
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return (self.cols, self.rows)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Board-frame centre of the corner grid, mm."""
+        return np.array([(self.cols - 1) / 2, (self.rows - 1) / 2, 0.0]) * self.square_mm
+
+    def object_points(self) -> np.ndarray:
+        """``(cols*rows, 3)`` float32 corner coordinates in OpenCV's row-major order."""
+        i, j = np.meshgrid(np.arange(self.cols), np.arange(self.rows))
+        pts = np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], axis=1) * self.square_mm
+        return pts.astype(np.float32)
+
+    def to_json(self) -> dict:
+        return {"type": "checkerboard", "cols": self.cols, "rows": self.rows, "square_mm": self.square_mm, "margin_squares": self.margin_squares}
+
+    @classmethod
+    def from_json(cls, data: dict) -> Checkerboard:
+        if data.get("type", "checkerboard") != "checkerboard":
+            raise ValueError(f"board.type: only 'checkerboard' is supported, got {data.get('type')!r}")
+        return cls(int(data["cols"]), int(data["rows"]), float(data["square_mm"]), float(data.get("margin_squares", 1.0)))
+
+
+@dataclass(slots=True)
+class BoardCapture:
+    """Raw captures of one board pose (camera images in raw dtype).
+
+    ``fringes_u[period]`` is the ``(steps, H, W)`` stack of fringes varying along projector
+    columns (phase ``2 pi u_p / period``), ``fringes_v`` along projector rows; shifts are
+    ``2 pi n / steps``. ``turntable_angle`` (rad) is set for views of a board fixed on the
+    turntable (used to fit the axis), None for free-hand views.
+    """
+
+    name: str
+    white: np.ndarray
+    fringes_u: dict[float, np.ndarray]
+    fringes_v: dict[float, np.ndarray]
+    full_scale: int
+    turntable_angle: float | None = None
+
+
+@dataclass(slots=True)
+class BoardView:
+    """Decoded board pose: projector coordinate maps and modulation, ``(H, W)`` each."""
+
+    name: str
+    white: np.ndarray
+    u_proj: np.ndarray  # projector column, NaN where not decoded
+    v_proj: np.ndarray  # projector row, NaN where not decoded
+    modulation: np.ndarray  # 2B/S of the finest fringes (min of both orientations)
+    turntable_angle: float | None = None
+
+
+def decode_capture(capture: BoardCapture, projector_size: tuple[int, int], *, min_modulation: float = 0.01) -> BoardView:
+    """N-step decode and temporal unwrapping of both fringe orientations of one pose."""
+    pw, ph = projector_size
+    maps, mods = [], []
+    for fringes, width, label in ((capture.fringes_u, pw, "fringes_u"), (capture.fringes_v, ph, "fringes_v")):
+        if not fringes:
+            raise CalibrationError(f"{capture.name}: {label} is empty (need horizontal and vertical fringes)")
+        periods = sorted(fringes)
+        wrapped, fine_mod = [], None
+        for p in periods:
+            stack = fringes[p]
+            n = stack.shape[0]
+            phase, m, d = decode_phase(stack, 2 * np.pi * np.arange(n) / n, capture.full_scale)
+            wrapped.append(phase)
+            if p == periods[0]:
+                fine_mod = np.hypot(m, d)
+        res = temporal_unwrap(wrapped, periods, width)
+        maps.append(res.phase_abs * periods[0] / (2 * np.pi))
+        mods.append(fine_mod)
+    mod = np.minimum(mods[0], mods[1])
+    ok = mod >= min_modulation
+    return BoardView(
+        name=capture.name,
+        white=capture.white,
+        u_proj=np.where(ok, maps[0], np.nan),
+        v_proj=np.where(ok, maps[1], np.nan),
+        modulation=mod,
+        turntable_angle=capture.turntable_angle,
+    )
+
+
+def detect_corners(image: np.ndarray, board: Checkerboard, *, refine_sigma_px: float = 1.5) -> np.ndarray | None:
+    """Sub-pixel inner corners ``(cols*rows, 2)`` in board order, or None if not found."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"image: expected (H, W) grayscale, got shape {img.shape}")
+    if img.dtype != np.uint8:
+        img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    found, corners = cv2.findChessboardCorners(img, board.pattern_size, flags=flags)
+    if not found:
+        return None
+    # Refine on a Gaussian-smoothed float image: on a sharp image the gradient-based
+    # refinement locks towards pixel centres (~0.06 px bias at quarter-pixel offsets);
+    # a symmetric blur does not move the saddle point and cuts that bias to ~0.02 px.
+    smooth = cv2.GaussianBlur(np.asarray(image, dtype=np.float32), (0, 0), refine_sigma_px)
+    spacing = np.median(np.linalg.norm(np.diff(corners.reshape(-1, 2), axis=0), axis=1))
+    win = int(max(3, min(8, spacing * 0.3)))
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
+    corners = cv2.cornerSubPix(smooth, corners, (win, win), (-1, -1), crit).reshape(-1, 2).astype(np.float64)
+    # orientation: the square between corners 0, 1, cols, cols+1 must be the dark one
+    c = board.cols
+    first = corners[[0, 1, c, c + 1]].mean(axis=0)
+    second = corners[[1, 2, c + 1, c + 2]].mean(axis=0)
+    if _sample(img, first) > _sample(img, second):
+        corners = corners[::-1].copy()
+    return corners
+
+
+def _sample(img: np.ndarray, xy: np.ndarray) -> float:
+    x, y = int(round(xy[0])), int(round(xy[1]))
+    return float(img[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2].mean())
+
+
+def sample_projector_coords(view: BoardView, corners: np.ndarray, radius: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """Projector pixel ``(N, 2)`` of each camera corner, and a per-corner ok flag ``(N,)``.
+
+    A quadratic in the pixel offset is fitted to ``u_p`` and ``v_p`` in a ``(2r+1)^2``
+    window, weighted by modulation squared (the inverse phase variance), and evaluated at
+    the sub-pixel corner. Near a checker corner the blurred dark/bright squares bias the
+    phase in a pattern odd about the corner, which a centred window cancels to first order.
+    """
+    h, w = view.u_proj.shape
+    corners = np.asarray(corners, dtype=np.float64)
+    dy, dx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
+    base = np.rint(corners).astype(int)
+    xs = base[:, 0:1] + dx.ravel()[None, :]
+    ys = base[:, 1:2] + dy.ravel()[None, :]
+    inside = (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
+    xs_c, ys_c = np.clip(xs, 0, w - 1), np.clip(ys, 0, h - 1)
+    u = view.u_proj[ys_c, xs_c]
+    v = view.v_proj[ys_c, xs_c]
+    wgt = np.where(inside & np.isfinite(u) & np.isfinite(v), view.modulation[ys_c, xs_c] ** 2, 0.0)
+    ox = xs - corners[:, 0:1]
+    oy = ys - corners[:, 1:2]
+    basis = np.stack([np.ones_like(ox), ox, oy, ox * ox, ox * oy, oy * oy], axis=-1)  # (N, K, 6)
+    bw = basis * wgt[..., None]
+    ata = np.einsum("nki,nkj->nij", bw, basis)
+    rhs = np.stack([np.einsum("nki,nk->ni", bw, np.nan_to_num(u)), np.einsum("nki,nk->ni", bw, np.nan_to_num(v))], axis=-1)
+    good = (wgt > 0).sum(axis=1) >= 0.6 * wgt.shape[1]
+    ata[~good] = np.eye(6)
+    coef = np.linalg.solve(ata, rhs)  # (N, 6, 2)
+    out = coef[:, 0, :]
+    return out, good & np.all(np.isfinite(out), axis=1)
+
+
+@dataclass
+class CalibrationResult:
+    """Calibrated rig plus the numbers a user checks it by."""
+
+    rig: Rig
+    report: dict
+    residuals_camera: list[np.ndarray] = field(default_factory=list)  # per view (N, 2) px
+    residuals_projector: list[np.ndarray] = field(default_factory=list)
+    view_names: list[str] = field(default_factory=list)
+
+
+def _rt_to_t(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    import cv2
+
+    t = np.eye(4)
+    t[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0]
+    t[:3, 3] = np.asarray(tvec, dtype=np.float64).ravel()
+    return t
+
+
+def fit_turntable_axis(t_cam_from_board: Sequence[np.ndarray], angles: Sequence[float]) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Rotation axis of a board turned on the turntable, in the camera frame.
+
+    Parameters
+    ----------
+    t_cam_from_board : >= 3 poses ``T_cam_from_board`` (4x4) of the same board on the turntable
+    angles : encoder angle (rad) of each pose
+
+    Returns
+    -------
+    (direction (3,), point (3,), stats): unit axis oriented so that a positive encoder
+    step is a right-handed rotation about it, a point on it, and fit residuals. Every
+    relative motion ``T_i T_0^-1 = [R | t]`` must satisfy ``t = (I - R) p`` with ``R`` a
+    rotation about the axis by ``angle_i - angle_0``.
+    """
+    import cv2
+
+    if len(t_cam_from_board) != len(angles):
+        raise ValueError(f"got {len(t_cam_from_board)} poses but {len(angles)} angles")
+    if len(angles) < 3:
+        raise CalibrationError(f"turntable axis needs >= 3 board poses on the turntable, got {len(angles)}")
+    t0_inv = np.linalg.inv(t_cam_from_board[0])
+    dirs, weights, rows, rhs, angle_err = [], [], [], [], []
+    for t_i, a_i in zip(t_cam_from_board[1:], angles[1:], strict=True):
+        rel = t_i @ t0_inv
+        rvec = cv2.Rodrigues(rel[:3, :3])[0].ravel()
+        theta = np.linalg.norm(rvec)
+        step = a_i - angles[0]
+        if theta < 1e-6 or abs(step) < 1e-6:
+            continue
+        d = rvec / theta * np.sign(step)
+        dirs.append(d)
+        weights.append(theta)
+        angle_err.append(theta - abs(step))
+        rows.append(np.eye(3) - rel[:3, :3])
+        rhs.append(rel[:3, 3])
+    if len(dirs) < 2:
+        raise CalibrationError("turntable views must be at >= 3 distinct encoder angles")
+    dirs = np.asarray(dirs)
+    # align signs to the first (sign(step) already used) and average weighted by angle
+    direction = np.average(dirs, axis=0, weights=weights)
+    direction /= np.linalg.norm(direction)
+    a = np.concatenate(rows)
+    b = np.concatenate(rhs)
+    # the point is free along the axis: pin it with the constraint direction . p = direction . c0
+    c0 = t_cam_from_board[0][:3, 3]
+    a = np.vstack([a, direction[None, :]])
+    b = np.concatenate([b, [direction @ c0]])
+    point, *_ = np.linalg.lstsq(a, b, rcond=None)
+    spread = np.degrees(np.arccos(np.clip(dirs @ direction, -1, 1)))
+    stats = {
+        "views": len(angles),
+        "direction_spread_deg": float(spread.max()),
+        "angle_error_deg_rms": float(np.degrees(np.sqrt(np.mean(np.square(angle_err))))),
+        "point_residual_mm_rms": float(np.sqrt(np.mean((a[:-1] @ point - b[:-1]) ** 2))),
+    }
+    return direction, point, stats
+
+
+def world_from_axis(direction: np.ndarray, point: np.ndarray, level_point: np.ndarray) -> np.ndarray:
+    """``T_cam_from_world`` of the turntable frame: z = axis, origin on the axis level with
+    ``level_point`` (camera frame), x from the axis towards the camera centre."""
+    z = np.asarray(direction, float) / np.linalg.norm(direction)
+    origin = point + z * (z @ (np.asarray(level_point, float) - point))
+    v = -origin  # towards the camera centre (origin of the camera frame)
+    x = v - z * (z @ v)
+    if np.linalg.norm(x) < 1e-9:
+        raise CalibrationError("the camera lies on the turntable axis: cannot orient the world x axis")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    t = np.eye(4)
+    t[:3, :3] = np.stack([x, y, z], axis=1)
+    t[:3, 3] = origin
+    return t
+
+
+def calibrate_rig(
+    views: Sequence[BoardView],
+    board: Checkerboard,
+    camera_size: tuple[int, int],
+    projector_size: tuple[int, int],
+    *,
+    camera_flags: int | None = None,
+    projector_flags: int | None = None,
+    name: str = "calibrated",
+) -> CalibrationResult:
+    """Full calibration from decoded board views (see module docstring).
+
+    ``camera_size``/``projector_size`` are ``(width, height)``. Views where the board is not
+    found are skipped and listed in the report; at least 3 are needed, 3 of them on the
+    turntable (``turntable_angle`` set) for the axis.
+    """
+    import cv2
+
+    obj = board.object_points()
+    used, img_c, img_p, skipped = [], [], [], []
+    for view in views:
+        if view.white.shape != (camera_size[1], camera_size[0]):
+            raise ValueError(f"{view.name}: image shape {view.white.shape} does not match camera_size {camera_size} (W, H)")
+        corners = detect_corners(view.white, board)
+        if corners is None:
+            skipped.append({"view": view.name, "reason": "board not found"})
+            continue
+        proj, ok = sample_projector_coords(view, corners)
+        if not ok.all():
+            skipped.append({"view": view.name, "reason": f"{int((~ok).sum())} corners without projector phase"})
+            continue
+        used.append(view)
+        img_c.append(corners.astype(np.float32).reshape(-1, 1, 2))
+        img_p.append(proj.astype(np.float32).reshape(-1, 1, 2))
+    if len(used) < 3:
+        raise CalibrationError(f"only {len(used)} usable board views (need >= 3); skipped: {skipped}")
+    objs = [obj.reshape(-1, 1, 3)] * len(used)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    cflags = cv2.CALIB_FIX_K3 if camera_flags is None else camera_flags
+    pflags = cv2.CALIB_FIX_K3 if projector_flags is None else projector_flags
+    rms_c, k_c, d_c, rv_c, tv_c, *_, err_c = cv2.calibrateCameraExtended(objs, img_c, camera_size, None, None, flags=cflags, criteria=crit)
+    rms_p, k_p, d_p, rv_p, tv_p, *_, err_p = cv2.calibrateCameraExtended(objs, img_p, projector_size, None, None, flags=pflags, criteria=crit)
+    stereo = cv2.stereoCalibrateExtended(
+        objs, img_c, img_p, k_c, d_c, k_p, d_p, camera_size, None, None, flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit
+    )
+    rms_s, r_pc, t_pc, rv_s, tv_s, err_s = stereo[0], stereo[5], stereo[6], stereo[9], stereo[10], stereo[11]
+    t_proj_from_cam = np.eye(4)
+    t_proj_from_cam[:3, :3] = r_pc
+    t_proj_from_cam[:3, 3] = np.asarray(t_pc).ravel()
+
+    # board poses refined by both devices: the projector's 24-degree baseline pins the board
+    # tilt far better than the narrow-field camera alone (the axis fit hinges on it)
+    poses = [_rt_to_t(r, t) for r, t in zip(rv_s, tv_s, strict=True)]
+    turn = [i for i, v in enumerate(used) if v.turntable_angle is not None]
+    axis_stats: dict = {}
+    if len(turn) >= 3:
+        direction, point, axis_stats = fit_turntable_axis([poses[i] for i in turn], [used[i].turntable_angle for i in turn])
+        level = (poses[turn[0]] @ np.append(board.centre, 1.0))[:3]
+        t_cam_from_world = world_from_axis(direction, point, level)
+    else:
+        raise CalibrationError(
+            f"only {len(turn)} usable views with a turntable angle (need >= 3 to fit the axis)"
+        )
+    cam_dev = PinholeDevice(camera_size[0], camera_size[1], k_c, np.asarray(d_c).ravel()[:5], t_cam_from_world)
+    proj_dev = PinholeDevice(projector_size[0], projector_size[1], k_p, np.asarray(d_p).ravel()[:5], t_proj_from_cam @ t_cam_from_world)
+    rig = Rig(camera=cam_dev, projector=proj_dev, name=name)
+
+    res_c, res_p = [], []
+    for i in range(len(used)):
+        pc, _ = cv2.projectPoints(obj, rv_c[i], tv_c[i], k_c, d_c)
+        res_c.append(pc.reshape(-1, 2) - img_c[i].reshape(-1, 2))
+        pp, _ = cv2.projectPoints(obj, rv_p[i], tv_p[i], k_p, d_p)
+        res_p.append(pp.reshape(-1, 2) - img_p[i].reshape(-1, 2))
+    report = {
+        "board": board.to_json(),
+        "views_used": [v.name for v in used],
+        "views_skipped": skipped,
+        "camera_rms_px": float(rms_c),
+        "projector_rms_px": float(rms_p),
+        "stereo_rms_px": float(rms_s),
+        "camera_view_rms_px": np.asarray(err_c).ravel().tolist(),
+        "projector_view_rms_px": np.asarray(err_p).ravel().tolist(),
+        "stereo_view_rms_px": np.asarray(err_s).reshape(len(used), -1).tolist(),
+        "baseline_mm": rig.baseline_mm,
+        "turntable_axis": {
+            "direction_cam": direction.tolist(),
+            "point_cam_mm": point.tolist(),
+            "views": [used[i].name for i in turn],
+            **axis_stats,
+        },
+    }
+    return CalibrationResult(rig=rig, report=report, residuals_camera=res_c, residuals_projector=res_p, view_names=[v.name for v in used])
+
+
+def save_calibration(result: CalibrationResult, path) -> None:
+    """Write the rig JSON (readable by ``Rig.load``) with an extra ``calibration_report`` key."""
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    data = result.rig.to_json()
+    data["calibration_report"] = result.report
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    tmp.replace(path)
+
+
+def plot_residuals(result: CalibrationResult, path) -> None:
+    """PNG: residual vectors of camera and projector corners, and per-view RMS bars."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    for ax, res, label in ((axes[0], result.residuals_camera, "camera"), (axes[1], result.residuals_projector, "projector")):
+        allr = np.concatenate(res)
+        ax.scatter(allr[:, 0], allr[:, 1], s=3, alpha=0.5)
+        lim = max(1e-3, 1.1 * float(np.abs(allr).max()))
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        ax.set_aspect("equal")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.axvline(0, color="k", lw=0.5)
+        rms = math.sqrt(float(np.mean(np.sum(allr**2, axis=1))))
+        ax.set_title(f"{label} reprojection residuals (RMS {rms:.3f} px)")
+        ax.set_xlabel("du [px]")
+        ax.set_ylabel("dv [px]")
+    x = np.arange(len(result.view_names))
+    axes[2].bar(x - 0.2, result.report["camera_view_rms_px"], 0.4, label="camera")
+    axes[2].bar(x + 0.2, result.report["projector_view_rms_px"], 0.4, label="projector")
+    axes[2].set_xticks(x, result.view_names, rotation=90, fontsize=7)
+    axes[2].set_ylabel("RMS [px]")
+    axes[2].set_title("per-view reprojection error")
+    axes[2].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
