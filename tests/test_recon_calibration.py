@@ -1,0 +1,143 @@
+"""Calibration on twin renders of the default rig, board I/O, Unity export (recon/, twin/board.py)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from gearscan.recon.board_io import load_captures, save_captures
+from gearscan.recon.calibration import (
+    Checkerboard,
+    calibrate_rig,
+    decode_capture,
+    detect_corners,
+    fit_turntable_axis,
+    sample_projector_coords,
+)
+from gearscan.recon.commands import calibrate, compare_rigs
+from gearscan.recon.unity import compose_zxy, euler_zxy, unity_parameters
+from gearscan.twin.board import BoardRenderer, calibration_poses, render_calibration_set
+from gearscan.twin.render import Optics
+
+from gearscan.rig import Rig, default_rig, rot_z
+
+PROJ = (1280, 800)
+
+
+@pytest.fixture(scope="module")
+def twin_set():
+    rig = default_rig()
+    board = Checkerboard()
+    captures = render_calibration_set(rig, board, Optics(), steps=12, seed=1)
+    views = [decode_capture(c, PROJ) for c in captures]
+    return rig, board, captures, views
+
+
+def test_board_corners_and_projector_pixels_match_truth(twin_set):
+    rig, board, _, views = twin_set
+    renderer = BoardRenderer(rig, board, Optics(), supersample=1)
+    cam_err, proj_err = [], []
+    for (name, t, _), view in zip(calibration_poses(rig, board), views, strict=True):
+        corners = detect_corners(view.white, board)
+        assert corners is not None, name
+        cam_err.append(corners - renderer.corners_truth(t))
+        proj, ok = sample_projector_coords(view, corners)
+        assert ok.all(), name
+        proj_err.append(proj - renderer.projector_truth(t))
+    cam_rms = math.sqrt(np.mean(np.sum(np.concatenate(cam_err) ** 2, axis=1)))
+    proj_rms = math.sqrt(np.mean(np.sum(np.concatenate(proj_err) ** 2, axis=1)))
+    assert cam_rms < 0.12, cam_rms  # corner detector bias + noise, camera px
+    assert proj_rms < 0.25, proj_rms  # ~1.8 projector px per camera px at the board
+
+
+def test_calibration_recovers_the_default_rig(twin_set, tmp_path):
+    rig, board, _, views = twin_set
+    res = calibrate_rig(views, board, (rig.camera.width, rig.camera.height), PROJ)
+    rep = res.report
+    assert not rep["views_skipped"]
+    assert rep["camera_rms_px"] < 0.1
+    assert rep["projector_rms_px"] < 0.2
+    assert len(rep["camera_view_rms_px"]) == len(views)
+    cmp = compare_rigs(res.rig, rig)
+    assert cmp["baseline_rel_error"] < 1e-3, cmp
+    assert cmp["axis_error_deg"] < 0.05, cmp
+    # the recovered world frame is the rig's: centres within a fraction of a mm
+    assert cmp["camera_center_error_mm"] < 1.0, cmp
+    assert cmp["projector_center_error_mm"] < 1.5, cmp
+    np.testing.assert_allclose(res.rig.camera.K, rig.camera.K, rtol=3e-3, atol=3.0)
+
+
+def test_fit_turntable_axis_exact_poses():
+    axis_cam = np.array([0.1, -0.99, 0.05])
+    axis_cam /= np.linalg.norm(axis_cam)
+    point = np.array([1.0, 2.0, 180.0])
+    import cv2
+
+    board0 = np.eye(4)
+    board0[:3, :3] = cv2.Rodrigues(np.array([0.1, 0.2, 0.3]))[0]
+    board0[:3, 3] = [3.0, -1.0, 175.0]
+    poses, angles = [], [-0.3, -0.1, 0.2, 0.4]
+    for a in angles:
+        m = np.eye(4)
+        m[:3, :3] = cv2.Rodrigues(axis_cam * a)[0]
+        m[:3, 3] = point - m[:3, :3] @ point
+        poses.append(m @ board0)
+    d, p, stats = fit_turntable_axis(poses, angles)
+    np.testing.assert_allclose(d, axis_cam, atol=1e-9)
+    np.testing.assert_allclose(np.cross(p - point, axis_cam), 0, atol=1e-7)  # p on the axis
+    assert stats["direction_spread_deg"] < 1e-6
+
+
+def test_unity_export_of_default_rig():
+    rig = default_rig()
+    par = unity_parameters(rig, camera_pixel_mm=0.005, projector_pixel_mm=0.01)
+    cam, proj = par["camera"], par["projector"]
+    np.testing.assert_allclose(cam["position_mm"], rig.camera.center_world, atol=1e-9)  # eq. 20
+    np.testing.assert_allclose(proj["position_mm"], rig.projector.center_world, atol=1e-9)
+    # eq. 21: the Euler angles compose back to R^T
+    e = cam["euler_zxy_deg"]
+    r_t = compose_zxy(*(math.radians(e[k]) for k in ("z_phi", "x_theta", "y_psi")))
+    np.testing.assert_allclose(r_t, rig.camera.T_from_world[:3, :3].T, atol=1e-12)
+    # focal length and FOV (eq. 22): default projector sees 36 mm at 160 mm
+    assert math.isclose(proj["fov_horizontal_deg"], 2 * math.degrees(math.atan(18 / 160)), rel_tol=1e-12)
+    assert math.isclose(proj["focal_length_from_fov_mm"], proj["focal_length_mm"], rel_tol=1e-12)
+    assert math.isclose(cam["focal_length_mm"], rig.camera.K[0, 0] * 0.005)
+    np.testing.assert_allclose(cam["lens_shift"], [0.0, 0.0], atol=1e-12)  # centred principal point
+    # rotation about z by 90 deg: angles recovered exactly
+    assert np.allclose(euler_zxy(rot_z(math.pi / 2)[:3, :3]), (math.pi / 2, 0.0, 0.0))
+    r = compose_zxy(0.3, -0.7, 1.2)
+    assert np.allclose(euler_zxy(r), (0.3, -0.7, 1.2))
+
+
+def test_captures_folder_roundtrip_and_command(twin_set, tmp_path):
+    rig, board, captures, _ = twin_set
+    folder = save_captures(tmp_path / "caps", captures, board, PROJ)
+    back, board2, cam_size, proj_size = load_captures(folder)
+    assert board2 == board and cam_size == (512, 512) and proj_size == PROJ
+    assert [c.name for c in back] == [c.name for c in captures]
+    assert back[-1].turntable_angle == pytest.approx(captures[-1].turntable_angle)
+    np.testing.assert_array_equal(back[3].fringes_v[20.0], captures[3].fringes_v[20.0])
+    out = tmp_path / "rig.json"
+    calibrate(captures=folder, output=out, twin=None)
+    loaded = Rig.load(out)  # the extra report key does not break loading
+    data = json.loads(out.read_text())
+    assert data["calibration_report"]["camera_rms_px"] < 0.1
+    assert compare_rigs(loaded, rig)["baseline_rel_error"] < 1e-3
+    assert out.with_suffix(".residuals.png").stat().st_size > 10_000
+    unity = json.loads(out.with_suffix(".unity.json").read_text())
+    assert set(unity) >= {"camera", "projector"}
+
+
+def test_load_captures_reports_bad_folder(tmp_path):
+    with pytest.raises(FileNotFoundError, match="board-captures folder"):
+        load_captures(tmp_path)
+
+
+@pytest.mark.slow
+def test_calibrate_command_twin_end_to_end(tmp_path):
+    out = tmp_path / "rig.json"
+    calibrate(captures=tmp_path / "caps", output=out, twin=__import__("pathlib").Path("default"), noise_free=True)
+    cmp = compare_rigs(Rig.load(out), default_rig())
+    assert cmp["baseline_rel_error"] < 1e-3 and cmp["axis_error_deg"] < 0.05
