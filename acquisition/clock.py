@@ -83,6 +83,12 @@ class ClockSync:
         self._fitted = True
         self._since_fit = 0
 
+    def to_device(self, host_ns: int) -> int:
+        """Inverse of :meth:`to_host`."""
+        if not self._fitted:
+            return int(host_ns)
+        return self._device0 + int(round((int(host_ns) - self._host0 - self.offset_ns) / self.slope))
+
     def to_host(self, device_ns: int) -> int:
         """Host time (ns) of a device-clock instant; identity before the first pair."""
         if not self._fitted:

@@ -63,10 +63,17 @@ class LinkEvent:
 
 
 class EncoderHistory:
-    """Bounded, time-ordered samples with interpolation of the angle at a host time."""
+    """Bounded, time-ordered samples with interpolation of the angle at a host time.
 
-    def __init__(self, capacity: int = 65_536):
+    With ``clock`` set, samples are stored in DEVICE time and a host-time query is mapped
+    through the clock's current fit: every sample is then placed with the best mapping
+    known at query time, and a refit (a faster message lowering the latency floor) never
+    leaves a step in the history. Without a clock, times are host times as given.
+    """
+
+    def __init__(self, capacity: int = 65_536, clock: ClockSync | None = None):
         self.capacity = int(capacity)
+        self.clock = clock
         self._t = np.zeros(self.capacity, dtype=np.int64)
         self._a = np.zeros(self.capacity, dtype=np.float64)
         self._n = 0  # total ever appended
@@ -108,6 +115,8 @@ class EncoderHistory:
         t, a = self.arrays()
         if t.size < 2:
             return None, "encoder history empty"
+        if self.clock is not None:
+            t_ns = self.clock.to_device(t_ns)
         if t_ns < t[0]:
             return None, f"time {t_ns} before encoder history start {t[0]}"
         if t_ns > t[-1]:
@@ -149,10 +158,10 @@ class EncoderReader:
         self.counts_per_rev = int(counts_per_rev)
         self.baudrate = baudrate
         self.zero_on_index = zero_on_index
-        self.history = history if history is not None else EncoderHistory()
         self.on_sample = on_sample
         self.reconnect_poll_s = reconnect_poll_s
         self.clock = ClockSync(window=clock_window, min_span_ns=500_000_000, refit_every=64)
+        self.history = history if history is not None else EncoderHistory(clock=self.clock)
         self.stats = EncoderStats()
         self.events: list[LinkEvent] = []
         self.banner: Banner | None = None
@@ -319,7 +328,7 @@ class EncoderReader:
         )
         self.stats.samples += 1
         self.last_sample = sample
-        self.history.append(sample.host_time_ns, sample.angle)
+        self.history.append(s.t_us * 1000 if self.history.clock is self.clock else sample.host_time_ns, sample.angle)
         if self.on_sample is not None:
             self.on_sample(sample)
 
