@@ -99,3 +99,13 @@ def test_bad_configs_name_the_setting(tmp_path, sim):
     cfg = AcquisitionConfig.from_dict({"camera": {"id": sim.serial, "pixel_format": "Mono12", "trigger": "software"}})
     with pytest.raises(CameraConfigError, match=r"camera.pixel_format: 'Mono12' not offered .*\['Mono8', 'Mono16'\]"):
         record_bursts(cfg, tmp_path / "r3", 1)
+
+
+def test_devices_lists_the_simulator_and_serial_ports(sim, capsys, monkeypatch):
+    from gearscan.acquisition.commands import devices
+
+    monkeypatch.setenv("COLUMNS", "200")
+    devices(timeout=1.0)
+    out = capsys.readouterr().out
+    assert sim.serial in out and "Aravis" in out and "127.0.0.1" in out
+    assert "Serial ports:" in out

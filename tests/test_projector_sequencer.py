@@ -131,3 +131,18 @@ def test_window_projector_against_a_stand_in_pygame(monkeypatch):
     with pytest.raises(ProjectorError, match="projector.display: 5 not available; 2 display"):
         WindowProjector(display=5).open()
     assert math.isfinite(w.show(img, 0))
+
+
+def test_window_projector_with_real_pygame_headless(monkeypatch):
+    """Real SDL2 window on the dummy video driver: the pixels on screen are the pattern."""
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    pygame = pytest.importorskip("pygame", reason="pygame is an optional dependency (pip install pygame)")
+    w = WindowProjector(display=0, width=64, height=16, fullscreen=False)
+    w.open()
+    try:
+        img = PatternSet.three_step(8.0).image(2, 64, 16)
+        w.show(img, 2)
+        shown = pygame.surfarray.array3d(w._screen)
+        np.testing.assert_array_equal(shown[:, :, 0].T, img)
+    finally:
+        w.close()
