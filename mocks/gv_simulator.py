@@ -47,6 +47,12 @@ class GvSimulator:
     def start(self, settle: float = 0.3) -> GvSimulator:
         if self.proc is not None and self.proc.poll() is None:
             return self
+        others = running_simulators(self.address)
+        if others:
+            raise RuntimeError(
+                f"another {BINARY} already serves {self.address} (pid {others}); two simulators on one "
+                "address clash (a killed test run may have left it): stop it first"
+            )
         self.proc = subprocess.Popen(
             [simulator_path(), "-i", self.address, "-s", self.serial],
             stdout=subprocess.DEVNULL,
@@ -69,6 +75,22 @@ class GvSimulator:
 
     def __exit__(self, *exc: object) -> None:
         self.kill()
+
+
+def running_simulators(address: str) -> list[int]:
+    """PIDs of simulator daemons listening on ``address`` (scans /proc)."""
+    pids = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/cmdline", "rb") as fh:
+                argv = fh.read().split(b"\0")
+        except OSError:
+            continue  # process ended meanwhile
+        if argv and argv[0].endswith(BINARY.encode()) and address.encode() in argv:
+            pids.append(int(d))
+    return pids
 
 
 def aravis_missing_reason() -> str | None:

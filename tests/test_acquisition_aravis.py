@@ -110,6 +110,20 @@ def test_free_run_mono16_roi_and_packet_size(cam):
     assert frames[-1].host_timestamp_ns <= time.monotonic_ns()
 
 
+def test_hardware_trigger_waits_for_the_line(cam):
+    """Trigger source Line0: without pulses on the line no frame comes, and the wait is a
+    GrabTimeout (camera alive), not a disconnect. An absent line is a config error."""
+    cam.configure(CameraSettings(exposure_us=10_000, roi=(0, 0, 64, 64), trigger="hardware", trigger_line="Line0"))
+    cam.start()
+    try:
+        with pytest.raises(GrabTimeout):
+            cam.grab(timeout=0.3)
+    finally:
+        cam.stop()
+    with pytest.raises(CameraConfigError, match=r"camera.trigger_line: 'Line7' not offered; sources: \['Line0', 'Software'\]"):
+        cam.configure(CameraSettings(trigger="hardware", trigger_line="Line7"))
+
+
 def test_pixel_format_the_camera_lacks_names_the_setting(cam):
     with pytest.raises(CameraConfigError, match=r"camera.pixel_format: 'Mono12' not offered .* \['Mono8', 'Mono16'\]"):
         cam.configure(CameraSettings(pixel_format="Mono12"))
