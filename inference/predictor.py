@@ -23,7 +23,32 @@ from gearscan.types import Burst, PhaseResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_MODEL = WEIGHTS_DIR / "default.safetensors"
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = ("auto", "fp32", "bf16")
+
+
+def cpu_has_fast_bf16() -> bool:
+    """True if the CPU has native bf16 matrix instructions (AVX512-BF16 or AMX).
+
+    Without them (e.g. AVX2-only hosts) bf16 autocast is emulated and measured 4-5x SLOWER
+    than fp32 for CD-DCU-Net w=16 at 512x512 (benchmarks/inference_speed.md).
+    """
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
+def resolve_precision(precision: str, device: str | torch.device) -> str:
+    """``auto``: bf16 on CUDA and on CPUs with native bf16, fp32 otherwise."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
+    if precision != "auto":
+        return precision
+    kind = torch.device(device).type
+    if kind == "cuda":
+        return "bf16"
+    return "bf16" if cpu_has_fast_bf16() else "fp32"
 
 
 def frames_to_tensor(frames: np.ndarray, full_scale: float | None = None) -> torch.Tensor:
@@ -57,7 +82,9 @@ class Predictor:
     model : the network (any :class:`~gearscan.inference.models.PhaseNet`)
     var_scale : variance calibration factor stored with the model (1 = none)
     device : ``"cpu"`` or ``"cuda"``
-    precision : ``"fp32"`` or ``"bf16"`` (autocast; on CPU also channels_last memory format)
+    precision : ``"auto"``, ``"fp32"`` or ``"bf16"`` (autocast); see :func:`resolve_precision`
+    channels_last : channels_last memory format (default: on CPU, where it was faster in fp32
+        and bf16 alike)
     mc_chunk : passes per batched forward in MC mode
     """
 
@@ -67,19 +94,21 @@ class Predictor:
         *,
         var_scale: float = 1.0,
         device: str = "cpu",
-        precision: str = "fp32",
+        precision: str = "auto",
         mc_chunk: int = 2,
         meta: dict | None = None,
+        channels_last: bool | None = None,
     ) -> None:
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
         self.device = torch.device(device)
-        self.precision = precision
+        self.precision = resolve_precision(precision, self.device)
+        self.channels_last = (
+            self.device.type == "cpu" if channels_last is None else bool(channels_last)
+        )
         self.var_scale = float(var_scale)
         self.mc_chunk = int(mc_chunk)
         self.meta = meta or {}
         self.model = model.to(self.device).eval()
-        if precision == "bf16":
+        if self.channels_last:
             self.model = self.model.to(memory_format=torch.channels_last)
 
     @classmethod
@@ -88,7 +117,7 @@ class Predictor:
         path: str | Path | None = None,
         *,
         device: str = "cpu",
-        precision: str = "fp32",
+        precision: str = "auto",
         mc_chunk: int = 2,
     ) -> Predictor:
         """Load ``path`` (.safetensors + .json); default: the shipped model."""
@@ -131,7 +160,7 @@ class Predictor:
                 f"mc={mc}: this model ({self.model.config.name}) has no Concrete Dropout layers; use mc=0"
             )
         x = x.to(self.device)
-        if self.precision == "bf16":
+        if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
         with self._autocast():
             stats = (
