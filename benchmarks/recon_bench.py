@@ -1,0 +1,106 @@
+"""Reconstruction speed per 2048x2448 burst on CPU: geometric unwrapping + triangulation.
+
+Run: ``.venv/bin/python benchmarks/recon_bench.py`` (writes benchmarks/recon_report.md).
+The wrapped phase is synthetic (timing does not depend on content); the rig is the default
+rig at 2448x2048 with the gear's tip/root depth bounds and a 110 px fringe period.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+from gearscan.recon.reconstruct import SingleFrequencyReconstructor
+from gearscan.recon.triangulate import Triangulator
+from gearscan.recon.unwrap import gear_depth_bounds, geometric_unwrap, phase_bounds, temporal_unwrap
+from gearscan.twin.gear import GearSpec
+
+from gearscan.rig import default_rig
+
+WIDTH, HEIGHT = 2448, 2048
+PERIOD = 110.0
+REPEATS = 15
+
+
+def _time(fn, repeats: int = REPEATS) -> dict[str, float]:
+    fn()  # warm-up (page faults, thread start)
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    ts = np.array(ts) * 1e3
+    return {"median": float(np.median(ts)), "p10": float(np.percentile(ts, 10)), "p90": float(np.percentile(ts, 90))}
+
+
+def main() -> None:
+    rig = default_rig(WIDTH, HEIGHT)
+    gear = GearSpec()
+    t0 = time.perf_counter()
+    bounds = gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
+    t_bounds = time.perf_counter() - t0
+    rng = np.random.default_rng(0)
+    phase = rng.uniform(-math.pi, math.pi, (HEIGHT, WIDTH)).astype(np.float32)
+    sigma = np.full((HEIGHT, WIDTH), 0.02, np.float32)
+    rows = []
+
+    t0 = time.perf_counter()
+    fused = SingleFrequencyReconstructor(rig, PERIOD, bounds)
+    t_setup = time.perf_counter() - t0
+    buf = fused.allocate()
+    rows.append(("fused unwrap + triangulate + sigma, reused buffers (live path)", _time(lambda: fused(phase, sigma, out=buf))))
+    rows.append(("fused, fresh output arrays per burst", _time(lambda: fused(phase, sigma))))
+    fused.close()
+    single = SingleFrequencyReconstructor(rig, PERIOD, bounds, threads=1)
+    buf1 = single.allocate()
+    rows.append(("fused, reused buffers, 1 thread", _time(lambda: single(phase, sigma, out=buf1))))
+    single.close()
+
+    lo, hi = phase_bounds(rig, bounds, PERIOD)
+    tri = Triangulator(rig, PERIOD)
+
+    def reference() -> None:
+        res = geometric_unwrap(phase, lo, hi, PERIOD, margin=0.2)
+        tri(res.phase_abs, sigma)
+
+    rows.append(("reference: geometric_unwrap then Triangulator (numpy, unfused)", _time(reference, 5)))
+    periods = [20.0, 160.0, 1408.0]
+    wrapped = [phase, phase, phase]
+    rows.append(("temporal_unwrap, 3 frequencies (static reference scans)", _time(lambda: temporal_unwrap(wrapped, periods, 1280), 5)))
+
+    lines = [
+        "# Reconstruction benchmark",
+        "",
+        f"Per burst of {WIDTH}x{HEIGHT} camera pixels, float32, CPU only; default rig, gear tip/root",
+        f"depth bounds, fringe period {PERIOD:g} projector px. Target: < 50 ms for unwrapping +",
+        "triangulation (with per-point depth sigma).",
+        "",
+        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other jobs:",
+        "timings vary by +-30 %), numpy " + np.__version__ + ".",
+        "",
+        "| step | median ms | p10 ms | p90 ms |",
+        "|---|---|---|---|",
+    ]
+    for name, t in rows:
+        lines.append(f"| {name} | {t['median']:.1f} | {t['p10']:.1f} | {t['p90']:.1f} |")
+    lines += [
+        "",
+        f"One-time setup per rig: depth bounds {t_bounds:.1f} s, fused reconstructor {t_setup:.1f} s",
+        "(undistorting 5 M camera rays and projecting the bounds; cache it for the session).",
+        "",
+        "The live path is `SingleFrequencyReconstructor(rig, period, bounds)(phase, sigma, out=buffers)`:",
+        "row blocks of 64 rows that stay in cache, on a thread pool; reusing the output buffers",
+        "avoids ~100 MB of page faults per burst.",
+        "",
+    ]
+    out = Path(__file__).with_name("recon_report.md")
+    out.write_text("\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,54 @@
+"""Fused single-frequency reconstruction equals the step-by-step path (recon/reconstruct.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gearscan.projector.patterns import PatternSet
+from gearscan.recon.phase import decode_phase
+from gearscan.recon.reconstruct import SingleFrequencyReconstructor
+from gearscan.recon.triangulate import Triangulator
+from gearscan.recon.unwrap import gear_depth_bounds, geometric_unwrap, phase_bounds
+from gearscan.twin.gear import GearSpec
+from gearscan.twin.render import Optics, TwinRenderer
+
+from gearscan.rig import PinholeDevice, Rig, default_rig
+
+PERIOD = 110.0
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_fused_matches_reference_and_truth(threads):
+    rig, gear = default_rig(), GearSpec()
+    renderer = TwinRenderer(rig, gear, Optics())
+    patterns = PatternSet.three_step(PERIOD)
+    images, truth = renderer.render(0.1, patterns, rng=5)
+    phase, _, _ = decode_phase(images, patterns.shifts, 255)
+    bounds = gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
+    with SingleFrequencyReconstructor(rig, PERIOD, bounds, margin=0.2, threads=threads, block_rows=40) as rec:
+        buf = rec.allocate()
+        tri, order = rec(phase, 0.02, out=buf)
+        assert tri is buf[0]
+    lo, hi = phase_bounds(rig, bounds, PERIOD)
+    ref_unwrap = geometric_unwrap(phase, lo, hi, PERIOD, margin=0.2)
+    ref = Triangulator(rig, PERIOD)(ref_unwrap.phase_abs, 0.02)
+    # same decisions except where float32 rounding sits exactly on an order boundary
+    assert (tri.valid != ref_unwrap.valid).mean() < 1e-4
+    both = tri.valid & ref_unwrap.valid
+    np.testing.assert_array_equal(order[both], ref_unwrap.order[both])
+    np.testing.assert_allclose(tri.depth[both], ref.depth[both], rtol=1e-5)
+    np.testing.assert_allclose(tri.sigma_depth[both], ref.sigma_depth[both], rtol=1e-3)
+    np.testing.assert_allclose(tri.points[both], ref.points[both], rtol=1e-5, atol=1e-4)
+    sel = both & truth.mask
+    assert sel.sum() > 0.99 * truth.mask.sum()
+    assert np.sqrt(np.mean((tri.depth[sel] - truth.depth[sel]) ** 2)) < 0.05  # mm, 3-step noisy
+
+
+def test_fused_rejects_projector_distortion():
+    rig = default_rig(32, 32)
+    p = rig.projector
+    bad = Rig(rig.camera, PinholeDevice(p.width, p.height, p.K, [0.01, 0, 0, 0, 0], p.T_from_world))
+    gear = GearSpec()
+    bounds = gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
+    with pytest.raises(ValueError, match="distortion"):
+        SingleFrequencyReconstructor(bad, PERIOD, bounds)
