@@ -58,7 +58,9 @@ def main() -> None:
             pred = Predictor(model, precision=v["precision"], channels_last=v.get("channels_last"))
             slow = v["precision"] == "bf16" and not cpu_has_fast_bf16()
             det = time_call(
-                lambda pred=pred, frames=frames: pred.predict(frames), 2 if slow else args.repeats, warmup=1
+                lambda pred=pred, frames=frames: pred.predict(frames),
+                2 if slow else args.repeats,
+                warmup=1,
             )
             row = {
                 "size": size,
@@ -68,7 +70,9 @@ def main() -> None:
             }
             if args.mc and not slow:
                 mc = time_call(
-                    lambda pred=pred, frames=frames: pred.predict(frames, mc=args.mc), args.mc_repeats, warmup=1
+                    lambda pred=pred, frames=frames: pred.predict(frames, mc=args.mc),
+                    args.mc_repeats,
+                    warmup=1,
                 )
                 row[f"mc{args.mc}_s_median"] = statistics.median(mc)
             rows.append(row)
@@ -80,7 +84,7 @@ def main() -> None:
         "cpu": platform.processor() or platform.machine(),
         "cores": os.cpu_count(),
         "cpu_native_bf16": cpu_has_fast_bf16(),
-        "load_average_1min_at_start": os.getloadavg()[0],
+        "load_average_1min_at_end": os.getloadavg()[0],
         "note": "shared 2-core machine; other jobs were running",
         "rows": rows,
     }
@@ -91,7 +95,7 @@ def main() -> None:
         "",
         "Per burst through `Predictor.predict` (uint8 frames in, PhaseResult out; includes conversion and",
         "phase/sigma propagation). Untrained weights; median of repeats.",
-        f"CPU native bf16 (AVX512-BF16/AMX): {cpu_has_fast_bf16()}; 1-min load average at start "
+        f"CPU native bf16 (AVX512-BF16/AMX): {cpu_has_fast_bf16()}; 1-min load average "
         f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (other engineers' jobs were running, so",
         "absolute times are pessimistic; the ratios between variants are the useful part).",
         "",

@@ -92,10 +92,15 @@ def predict(
     for phase and sigmas) and the mode used.
     """
     import numpy as np
+    from gearscan.inference.model_io import ModelFileError
     from gearscan.inference.predictor import Predictor
 
     frames, full_scale = load_frames(inputs)
-    predictor = Predictor.load(model, device=device, precision=precision)
+    try:
+        predictor = Predictor.load(model, device=device, precision=precision)
+    except ModelFileError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
     result = predictor.predict(frames, mc=mc, full_scale=full_scale)
     output.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(

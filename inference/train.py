@@ -52,6 +52,7 @@ class TrainConfig:
     epochs_dropout: int = 50
     batch_size: int = 16
     lr: float = 1e-3
+    lr_dropout: float | None = None  # peak learning rate of stage 2 (default: lr)
     schedule: str = "step"
     step_every: int = 20
     gamma: float = 0.9
@@ -92,13 +93,16 @@ class TrainConfig:
         return d
 
 
-def learning_rate(config: TrainConfig, epoch_in_stage: int, stage_epochs: int) -> float:
-    """Learning rate of an epoch (0-based within its stage)."""
+def learning_rate(
+    config: TrainConfig, epoch_in_stage: int, stage_epochs: int, stage: int = 1
+) -> float:
+    """Learning rate of an epoch (0-based within its stage); stage 2 peaks at ``lr_dropout``."""
+    base = config.lr if stage == 1 or config.lr_dropout is None else config.lr_dropout
     if config.schedule == "step":
-        return config.lr * config.gamma ** (epoch_in_stage // config.step_every)
+        return base * config.gamma ** (epoch_in_stage // config.step_every)
     if config.schedule == "cosine":
-        return 0.5 * config.lr * (1 + math.cos(math.pi * epoch_in_stage / max(1, stage_epochs)))
-    return config.lr
+        return 0.5 * base * (1 + math.cos(math.pi * epoch_in_stage / max(1, stage_epochs)))
+    return base
 
 
 # --- distributed helpers ------------------------------------------------------------------------
@@ -363,7 +367,7 @@ class Trainer:
                 )
             while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience:
                 epoch = self.state["epoch"]
-                lr = learning_rate(cfg, epoch, n_epochs)
+                lr = learning_rate(cfg, epoch, n_epochs, stage)
                 te = time.perf_counter()
                 row = {"stage": stage, "epoch": epoch + 1, "lr": lr}
                 row.update(self._train_epoch(net, stage, epoch, lr))
