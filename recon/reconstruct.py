@@ -100,30 +100,35 @@ class SingleFrequencyReconstructor:
     def _block(self, r0: int, r1: int, phase, sigma, out_pts, out_z, out_sig, out_valid, out_k) -> None:
         sl = slice(r0, r1)
         phi = np.asarray(phase[sl], dtype=np.float32)
-        u = self._a[sl] - phi * np.float32(1 / TWO_PI)  # a - f
-        k = np.ceil(u)
+        u = phi * np.float32(-1 / TWO_PI)
+        u += self._a[sl]  # a - f
+        k = out_k[sl]
+        np.ceil(u, out=k)
         top = u + self._s[sl]
-        valid = (top >= k) & (top < k + 1)  # exactly one order in the interval; NaN -> False
+        top -= k  # in [0, 1) iff exactly one order fits; NaN bounds -> NaN -> invalid
+        valid = out_valid[sl]
+        np.less(top, 1.0, out=valid)
+        valid &= top >= 0.0
         np.multiply(k, np.float32(TWO_PI), out=u)
         u += phi  # phi_abs
-        den = self._g[sl] - self._d[sl] * u
-        z = u * self._alpha
+        den = self._d[sl] * u
+        np.subtract(self._g[sl], den, out=den)
+        z = out_z[sl]
+        np.multiply(u, self._alpha, out=z)
         z += self._beta
         z /= den
-        valid &= z > 0
-        z[~valid] = np.nan
-        out_z[sl] = z
-        out_valid[sl] = valid
-        out_k[sl] = k
-        out_pts[sl, :, 0] = self._x[sl] * z
-        out_pts[sl, :, 1] = self._y[sl] * z
-        out_pts[sl, :, 2] = z
+        invalid = ~valid
+        z[invalid] = np.nan  # z > 0 holds inside the bounds: no extra test needed
+        pts = out_pts[sl]
+        np.multiply(self._x[sl], z, out=pts[..., 0])
+        np.multiply(self._y[sl], z, out=pts[..., 1])
+        pts[..., 2] = z
         if sigma is not None:
             np.multiply(den, den, out=den)
-            s = self._num[sl] / den
+            s = out_sig[sl]
+            np.divide(self._num[sl], den, out=s)
             s *= sigma[sl] if np.ndim(sigma) == 2 else np.float32(sigma)
-            s[~valid] = np.nan
-            out_sig[sl] = s
+            s[invalid] = np.nan
 
     def allocate(self) -> tuple[Triangulation, np.ndarray]:
         """Output buffers for ``out=``: reusing them saves ~100 MB of page faults per call."""
