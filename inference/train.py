@@ -283,16 +283,13 @@ class Trainer:
         gen = torch.Generator().manual_seed(self.config.seed * 100003 + epoch * 7 + self.dist.rank)
         loader = self._loader(self.train_set, True, epoch)
         total = min(len(loader), self.config.steps_per_epoch or len(loader))
-        bar = None
+        bar = task = None
         if self.config.progress and self.dist.main:
-            from tqdm import tqdm
+            from rich.progress import Progress
 
-            bar = tqdm(
-                total=total,
-                desc=f"stage {stage} epoch {epoch + 1}",
-                leave=False,
-                dynamic_ncols=True,
-            )
+            bar = Progress(*Progress.get_default_columns(), "{task.fields[loss]}", transient=True)
+            task = bar.add_task(f"stage {stage} epoch {epoch + 1}", total=total, loss="")
+            bar.start()
         sums = {"total": 0.0, "nll": 0.0, "mse": 0.0, "reg": 0.0}
         n = 0
         for i, batch in enumerate(loader):
@@ -316,10 +313,9 @@ class Trainer:
                 sums[k] += float(losses[k].detach())
             n += 1
             if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{float(losses['total']):.4g}")
+                bar.update(task, advance=1, loss=f"loss {float(losses['total'].detach()):.4g}")
         if bar is not None:
-            bar.close()
+            bar.stop()
         set_stochastic(self.model, False)
         vals = _all_reduce([sums[k] for k in sums] + [n], self.dist, self.device)
         return {f"train_{k}": vals[j] / max(vals[-1], 1) for j, k in enumerate(sums)}
@@ -498,7 +494,8 @@ def plot_history(history: list[dict], path: str | Path) -> Path:
     a.set_yscale("symlog", linthresh=1e-6)
     b.plot(x, [h["val_rmse"] for h in history], color="C2")
     b.set_ylabel("val wrapped RMSE (rad)")
-    b.set_yscale("log")
+    if all(h["val_rmse"] > 0 for h in history):
+        b.set_yscale("log")
     for ax in (a, b):
         ax.set_xlabel("epoch")
         for i in range(1, len(history)):
