@@ -41,9 +41,10 @@ class ConfigError(ValueError):
 class CameraConfig(CameraSettings):
     driver: Literal["aravis", "v4l2", "replay"] = "aravis"
     id: str | None = None
+    loop: bool = False  # replay driver only: start over at the end of the recording
 
     def settings(self) -> CameraSettings:
-        return CameraSettings(**self.model_dump(exclude={"driver", "id"}))
+        return CameraSettings(**self.model_dump(exclude={"driver", "id", "loop"}))
 
 
 class EncoderConfig(BaseModel):

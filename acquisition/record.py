@@ -10,17 +10,17 @@ from __future__ import annotations
 
 import dataclasses
 import queue
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 from gearscan.acquisition.bursts import BurstAssembler
-from gearscan.acquisition.camera import BaseCamera, CameraError
+from gearscan.acquisition.camera import BaseCamera, CameraError, GrabTimeout
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError
 from gearscan.acquisition.encoder import EncoderReader
 from gearscan.projector.patterns import PatternSet
 
-from gearscan.types import EncoderSample
+from gearscan.types import Burst, EncoderSample, Frame
 
 
 @dataclass
@@ -46,7 +46,7 @@ def open_camera(cfg: AcquisitionConfig) -> BaseCamera:
 
         if c.id is None:
             raise ConfigError("camera.id: the replay driver needs the recording folder as id (got None)")
-        return ReplayCamera(c.id)
+        return ReplayCamera(c.id, loop=c.loop)
     from gearscan.acquisition.v4l2 import V4L2Camera
 
     return V4L2Camera(c.id or "/dev/video0")
@@ -66,6 +66,139 @@ def make_projector(cfg: AcquisitionConfig):
     )
 
 
+class AcquisitionSession:
+    """Camera + projector + encoder from a config, yielding assembled bursts (and recording them).
+
+    Use as a context manager; :meth:`bursts` yields :class:`Burst` objects whose frames carry
+    the encoder angle at their exposure midpoint. With ``out`` set, every frame of every valid
+    burst is written (flushed per frame) before the burst is handed on, so a recording holds
+    exactly what was measured, and closing (also on Ctrl-C or a fault) finalises it.
+    """
+
+    def __init__(self, cfg: AcquisitionConfig, out: Path | None = None, *, overwrite: bool = False,
+                 extra_meta: dict | None = None) -> None:
+        self.cfg = cfg
+        self.settings = cfg.camera.settings()
+        self.patterns = PatternSet.three_step(cfg.projector.period_px)
+        if self.settings.trigger != "software" and self.settings.pattern_cycle != 3:
+            raise ConfigError(
+                f"camera.pattern_cycle: must be 3 with trigger {self.settings.trigger!r} (the projector cycles the "
+                f"three patterns by itself), got {self.settings.pattern_cycle}"
+            )
+        self.out, self.overwrite, self.extra_meta = out, overwrite, extra_meta or {}
+        self._samples: queue.Queue[EncoderSample] = queue.Queue()
+        self.encoder = None
+        if cfg.encoder is not None:
+            self.encoder = EncoderReader(
+                cfg.encoder.port,
+                cfg.encoder.counts_per_rev,
+                baudrate=cfg.encoder.baudrate,
+                zero_on_index=cfg.encoder.zero_on_index,
+                on_sample=self._samples.put,
+            )
+        self.camera = open_camera(cfg)
+        self.projector = None
+        self.writer = None
+        self.assembler: BurstAssembler | None = None
+        self.frames = self.encoder_samples = self.burst_count = 0
+
+    def __enter__(self) -> AcquisitionSession:
+        from gearscan.recording import RecordingWriter
+
+        cfg = self.cfg
+        try:
+            self.camera.__enter__()
+            self.camera.configure(self.settings)
+            self.assembler = BurstAssembler(
+                self.encoder.history if self.encoder else None,
+                max_encoder_gap_ns=int((cfg.encoder.max_gap_ms if cfg.encoder else 20.0) * 1e6),
+                frame_id_modulus=self.camera.frame_id_modulus,
+                frame_id_skips_zero=self.camera.frame_id_skips_zero,
+            )
+            if self.out is not None:
+                meta = {
+                    "camera": {**dataclasses.asdict(self.camera.info), "settings": self.settings.model_dump()},
+                    "patterns": self.patterns.to_json(),
+                    "encoder": None if cfg.encoder is None else cfg.encoder.model_dump(),
+                    "acquisition_config": cfg.model_dump(mode="json"),
+                    **self.extra_meta,
+                }
+                self.writer = RecordingWriter(self.out, meta, overwrite=self.overwrite)
+            if self.encoder is not None:
+                self.encoder.start()
+            self.camera.start()
+            if self.settings.trigger == "software":
+                self.projector = make_projector(cfg)
+                self.projector.open()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self.camera.stop()
+        finally:
+            if self.projector is not None:
+                self.projector.close()
+            if self.encoder is not None:
+                self.encoder.stop()
+            if self.writer is not None:
+                self._drain_encoder()
+                if self.assembler is not None:
+                    self.writer.update_meta(assembler=self.assembler.stats.as_dict(),
+                                            camera_stats=self.camera.stats.as_dict())
+                self.writer.close()
+            self.camera.__exit__(None, None, None)
+
+    def _drain_encoder(self) -> None:
+        while not self._samples.empty():
+            sample = self._samples.get_nowait()
+            if self.writer is not None:
+                self.writer.write_encoder(sample)
+            self.encoder_samples += 1
+
+    def _frames(self) -> Iterator[Frame]:
+        if self.settings.trigger == "software":
+            from gearscan.projector.sequencer import SoftwareSequencer
+
+            yield from SoftwareSequencer(self.projector, self.camera, self.patterns,
+                                         settle_s=self.cfg.projector.settle_ms / 1e3).run()
+        else:
+            yield from iter(lambda: self.camera.grab(2.0), None)
+
+    def bursts(self, max_frames: int | None = None) -> Iterator[Burst]:
+        """Valid bursts, recorded before they are yielded; raises if ``max_frames`` yield none."""
+        assert self.assembler is not None, "use AcquisitionSession as a context manager"
+        try:
+            yield from self._assemble(max_frames)
+        except GrabTimeout:
+            exhausted = getattr(self.camera, "exhausted", None)
+            if exhausted is not None and exhausted.is_set():
+                return  # a replay camera reached the end of its recording: end of input
+            raise
+
+    def _assemble(self, max_frames: int | None) -> Iterator[Burst]:
+        since_burst = 0
+        for frame in self._frames():
+            self.frames += 1
+            since_burst += 1
+            self._drain_encoder()
+            burst = self.assembler.push(frame)
+            if burst is not None:
+                since_burst = 0
+                self.burst_count += 1
+                if self.writer is not None:
+                    for f, a in zip(burst.frames, burst.angles, strict=True):
+                        self.writer.write_frame(dataclasses.replace(f, encoder_angle=a))
+                yield burst
+            elif max_frames is not None and since_burst >= max_frames:
+                raise CameraError(
+                    f"no valid burst in {since_burst} frames; assembler: {self.assembler.stats.as_dict()}, "
+                    f"last events: {[e.detail for e in self.assembler.events[-3:]]}"
+                )
+
+
 def record_bursts(
     cfg: AcquisitionConfig,
     out: Path,
@@ -75,95 +208,27 @@ def record_bursts(
     on_burst: Callable[[int], None] | None = None,
     max_frames: int | None = None,
 ) -> RecordSummary:
+    """Record ``n_bursts`` valid bursts into ``out``."""
     import time
-
-    from gearscan.recording import RecordingWriter
 
     if n_bursts <= 0:
         raise ConfigError(f"bursts must be > 0, got {n_bursts}")
-    settings = cfg.camera.settings()
-    patterns = PatternSet.three_step(cfg.projector.period_px)
-    if settings.trigger != "software" and settings.pattern_cycle != 3:
-        raise ConfigError(
-            f"camera.pattern_cycle: must be 3 with trigger {settings.trigger!r} (the projector cycles the "
-            f"three patterns by itself), got {settings.pattern_cycle}"
-        )
-    samples: queue.Queue[EncoderSample] = queue.Queue()
-    reader = None
-    if cfg.encoder is not None:
-        reader = EncoderReader(
-            cfg.encoder.port,
-            cfg.encoder.counts_per_rev,
-            baudrate=cfg.encoder.baudrate,
-            zero_on_index=cfg.encoder.zero_on_index,
-            on_sample=samples.put,
-        )
-    camera = open_camera(cfg)
     t0 = time.monotonic()
-    n_frames = n_samples = 0
     max_frames = max_frames or n_bursts * 3 * 10
-    with camera:
-        camera.configure(settings)
-        assembler = BurstAssembler(
-            reader.history if reader else None,
-            max_encoder_gap_ns=int((cfg.encoder.max_gap_ms if cfg.encoder else 20.0) * 1e6),
-            frame_id_modulus=camera.frame_id_modulus,
-            frame_id_skips_zero=camera.frame_id_skips_zero,
-        )
-        meta = {
-            "camera": {**dataclasses.asdict(camera.info), "settings": settings.model_dump()},
-            "patterns": patterns.to_json(),
-            "encoder": None if cfg.encoder is None else cfg.encoder.model_dump(),
-            "acquisition_config": cfg.model_dump(mode="json"),
-        }
-        if reader is not None:
-            reader.start()
-        projector = None
-        try:
-            with RecordingWriter(out, meta, overwrite=overwrite) as writer:
-                camera.start()
-                if settings.trigger == "software":
-                    from gearscan.projector.sequencer import SoftwareSequencer
-
-                    projector = make_projector(cfg)
-                    projector.open()
-                    frames = SoftwareSequencer(projector, camera, patterns, settle_s=cfg.projector.settle_ms / 1e3).run()
-                else:
-                    frames = iter(lambda: camera.grab(2.0), None)
-                bursts = 0
-                for frame in frames:
-                    n_frames += 1
-                    while not samples.empty():
-                        writer.write_encoder(samples.get_nowait())
-                        n_samples += 1
-                    burst = assembler.push(frame)
-                    if burst is not None:
-                        for f, a in zip(burst.frames, burst.angles, strict=True):
-                            writer.write_frame(dataclasses.replace(f, encoder_angle=a))
-                        bursts += 1
-                        if on_burst is not None:
-                            on_burst(bursts)
-                        if bursts >= n_bursts:
-                            break
-                    if n_frames >= max_frames:
-                        raise CameraError(
-                            f"only {bursts} valid bursts from {n_frames} frames; assembler: {assembler.stats.as_dict()}, "
-                            f"last events: {[e.detail for e in assembler.events[-3:]]}"
-                        )
-                writer.update_meta(assembler=assembler.stats.as_dict(), camera_stats=camera.stats.as_dict())
-        finally:
-            camera.stop()
-            if projector is not None:
-                projector.close()
-            if reader is not None:
-                reader.stop()
+    session = AcquisitionSession(cfg, out, overwrite=overwrite)
+    with session:
+        for _ in session.bursts(max_frames=max_frames):
+            if on_burst is not None:
+                on_burst(session.burst_count)
+            if session.burst_count >= n_bursts:
+                break
     return RecordSummary(
         out=Path(out),
-        bursts=bursts,
-        frames=n_frames,
-        encoder_samples=n_samples,
-        assembler=assembler.stats.as_dict(),
-        camera=camera.stats.as_dict(),
-        encoder=None if reader is None else reader.stats.as_dict(),
+        bursts=session.burst_count,
+        frames=session.frames,
+        encoder_samples=session.encoder_samples,
+        assembler=session.assembler.stats.as_dict(),
+        camera=session.camera.stats.as_dict(),
+        encoder=None if session.encoder is None else session.encoder.stats.as_dict(),
         seconds=time.monotonic() - t0,
     )

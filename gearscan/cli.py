@@ -198,6 +198,82 @@ def replay_cmd(
             web.close()
 
 
+config_app = typer.Typer(help="Live configuration files.", no_args_is_help=True)
+app.add_typer(config_app, name="config")
+
+
+@config_app.command("init")
+def config_init(
+    path: Annotated[Path, typer.Argument(help="where to write the commented template")] = Path("rig.toml"),
+    force: Annotated[bool, typer.Option(help="overwrite an existing file")] = False,
+) -> None:
+    """Write a commented template of the live configuration."""
+    from gearscan.config import TEMPLATE
+
+    if path.exists() and not force:
+        raise _fail(f"{path} exists (use --force to overwrite)")
+    path.write_text(TEMPLATE)
+    typer.echo(f"wrote {path}; edit it, then run: gearscan live --config {path} --check")
+
+
+@app.command("live")
+def live_cmd(
+    config: Annotated[Path, typer.Option(help="live configuration (TOML); see `gearscan config init`")],
+    record: Annotated[Path | None, typer.Option(help="record every measured burst into this folder")] = None,
+    overwrite: Annotated[bool, typer.Option(help="replace an existing recording")] = False,
+    bursts: Annotated[int | None, typer.Option(min=1, help="stop after this many bursts")] = None,
+    duration: Annotated[float | None, typer.Option(min=0.1, help="stop after this many seconds")] = None,
+    save: Annotated[Path | None, typer.Option(help="write the rerun stream to this .rrd file")] = None,
+    connect: Annotated[str | None, typer.Option(help="stream to a rerun viewer at this gRPC URL")] = None,
+    serve: Annotated[bool | None, typer.Option(help="serve the web viewer from this machine")] = None,
+    bind: Annotated[str | None, typer.Option(help="address --serve binds to (default from config: 127.0.0.1)")] = None,
+    check: Annotated[bool, typer.Option(help="validate the configuration and rig file, then exit")] = False,
+) -> None:
+    """Measure live: camera + projector + encoder -> network -> point cloud -> rerun viewer."""
+    import os
+
+    from gearscan.acquisition.camera import CameraError
+    from gearscan.acquisition.config import ConfigError
+    from gearscan.config import LiveConfig
+    from gearscan.live import run_live
+    from gearscan.pipeline import PipelineError
+
+    try:
+        cfg = LiveConfig.load(config)
+        rig = cfg.load_rig()
+    except ConfigError as exc:
+        raise _fail(str(exc)) from exc
+    if check:
+        typer.echo(f"{config}: OK (camera {cfg.camera.driver}, projector {cfg.projector.backend}, "
+                   f"rig {rig.camera.width}x{rig.camera.height}, gear z={cfg.gear.teeth})")
+        return
+    decoder = _decoder(False, cfg.model.mc, cfg.model.path)
+    save = save or cfg.viewer.save
+    connect = connect or cfg.viewer.connect
+    web = None
+    if serve if serve is not None else cfg.viewer.serve:
+        from gearscan.viewer.serve import serve_web
+
+        web = serve_web(bind or cfg.viewer.bind)
+        connect = web.grpc_url
+        typer.echo(f"web viewer: {web.web_url}")
+    spawn = False
+    if not (save or connect):  # default: the local viewer when there is a screen, else a file
+        spawn = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+        save = None if spawn else Path("out") / "live.rrd"
+    try:
+        report = run_live(cfg, record=record, overwrite=overwrite, bursts=bursts, duration=duration,
+                          decoder=decoder, save=save, connect=connect, spawn=spawn)
+    except (ConfigError, CameraError, PipelineError) as exc:
+        raise _fail(str(exc)) from exc
+    finally:
+        if web is not None:
+            web.close()
+    typer.echo(f"{report.bursts} bursts; {report.pipeline.summary()}")
+    if record:
+        typer.echo(f"recording: {record} (replay with: gearscan replay {record})")
+
+
 def _register(module: str, names: list[str], target: typer.Typer = app) -> None:
     """Register command functions that live in stage packages (light modules, lazy heavy imports)."""
     try:

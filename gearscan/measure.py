@@ -42,7 +42,7 @@ class Decoder:
     """Burst -> PhaseResult with the network (``mc`` passes, 0 = deterministic) or three-step PS."""
 
     def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
-                 precision: str = "bf16") -> None:
+                 precision: str = "auto") -> None:
         self.mc = mc
         self.predictor = None
         if not classical:

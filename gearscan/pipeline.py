@@ -172,6 +172,12 @@ class Pipeline:
         except BaseException as exc:  # noqa: BLE001 - reported through PipelineError
             self._fail(self._source_name, exc)
         finally:
+            close = getattr(locals().get("it"), "close", None)
+            if close is not None:  # a generator source runs its own cleanup (e.g. a `with` block)
+                try:
+                    close()
+                except Exception as exc:  # noqa: BLE001
+                    self._fail(self._source_name, exc)
             if self._source_close:
                 try:
                     self._source_close()

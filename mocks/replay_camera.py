@@ -59,6 +59,12 @@ class ReplayCamera(BaseCamera):
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._next = 0
+        self._loops = 0
+        recs = self.reader.records
+        # a looping replay keeps ids and device times increasing, as a real camera would
+        self._id_period = (max(r.frame_id for r in recs) + 1) if recs else 1
+        step = (recs[-1].timestamp_ns - recs[-2].timestamp_ns) if len(recs) > 1 else 0
+        self._time_period = (recs[-1].timestamp_ns - recs[0].timestamp_ns + step) if recs else 0
 
     def open(self) -> None:
         if len(self.reader) == 0:
@@ -101,6 +107,7 @@ class ReplayCamera(BaseCamera):
                     self.exhausted.set()
                     return
                 self._next = 0
+                self._loops += 1
                 t_start, rec_t0 = time.monotonic_ns(), self.reader.records[0].timestamp_ns
             if self.settings.trigger == "software":
                 self._triggers.acquire()
@@ -113,7 +120,12 @@ class ReplayCamera(BaseCamera):
                     return
             frame = self.reader.frame(self._next)
             self._next += 1
-            frame = dataclasses.replace(frame, host_timestamp_ns=time.monotonic_ns())
+            frame = dataclasses.replace(
+                frame,
+                host_timestamp_ns=time.monotonic_ns(),
+                frame_id=frame.frame_id + self._loops * self._id_period,
+                timestamp_ns=frame.timestamp_ns + self._loops * self._time_period,
+            )
             if self.realtime or self.settings.trigger == "software":
                 while True:  # a camera does not wait for its consumer: drop the oldest
                     try:

@@ -16,6 +16,7 @@ milli-degrees would lose meaning, so it is logged as a scalar plot instead).
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,7 @@ from gearscan.rig import Rig
 from gearscan.types import Burst, Cloud, PhaseResult
 
 APP_ID = "gearscan"
+log = logging.getLogger(__name__)
 
 
 def _lut(name: str) -> np.ndarray:
@@ -91,7 +93,11 @@ class RerunLogger:
 
         self.rr = rr
         self.stream = rr.RecordingStream(APP_ID, recording_id=recording_id)
+        self.connect_url = connect
+        self.errors = 0  # log calls lost to a broken viewer connection
+        self._retry_at = 0.0
         blueprint = default_blueprint()
+        self._blueprint = blueprint
         if save is not None:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
             self.stream.save(str(save), default_blueprint=blueprint)
@@ -121,7 +127,31 @@ class RerunLogger:
             static=True,
         )
 
-    def log_burst(
+    def _viewer_lost(self, exc: Exception) -> None:
+        """A dead viewer must not stop the measurement: count, warn once, retry later."""
+        import time
+
+        if self.errors == 0:
+            log.warning("viewer connection lost (%s); measurement continues, retrying every 5 s", exc)
+        self.errors += 1
+        self._retry_at = time.monotonic() + 5.0
+
+    def log_burst(self, *args, **kwargs) -> None:
+        """Log one burst (see :meth:`_log_burst`); viewer failures are counted, not raised."""
+        import time
+
+        if self._retry_at and time.monotonic() < self._retry_at:
+            self.errors += 1
+            return
+        try:
+            if self._retry_at and self.connect_url:
+                self.stream.connect_grpc(self.connect_url, default_blueprint=self._blueprint)
+            self._log_burst(*args, **kwargs)
+            self._retry_at = 0.0
+        except RuntimeError as exc:
+            self._viewer_lost(exc)
+
+    def _log_burst(
         self,
         burst: Burst,
         result: PhaseResult,
@@ -151,5 +181,8 @@ class RerunLogger:
             s.log(f"stats/{k}", rr.Scalars(float(v)))
 
     def close(self) -> None:
-        self.stream.flush()
-        self.stream.disconnect()
+        try:
+            self.stream.flush()
+            self.stream.disconnect()
+        except RuntimeError as exc:
+            self._viewer_lost(exc)

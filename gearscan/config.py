@@ -1,0 +1,142 @@
+"""The ``gearscan live`` configuration: one validated TOML file for the whole rig.
+
+It extends the acquisition config (camera, encoder, projector) with the rig calibration,
+the gear, the model, reconstruction and viewer settings. Every error names the key, what
+is allowed and what was found. ``gearscan config init`` writes :data:`TEMPLATE`.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from gearscan.acquisition.config import AcquisitionConfig, ConfigError, format_errors
+from gearscan.twin.gear import GearSpec
+
+TEMPLATE = """\
+# gearscan live configuration. Lengths in mm, angles in degrees, times as named.
+# Validate with: gearscan live --config THIS_FILE --check
+
+[camera]
+driver = "aravis"            # "aravis" (GenICam/GigE/USB3), "v4l2" or "replay"
+# id = "Basler-12345678"     # Aravis id, serial or IP; /dev/videoN; recording folder for replay
+pixel_format = "Mono8"       # Mono8, Mono12 or Mono16
+exposure_us = 5000.0
+gain_db = 0.0
+trigger = "software"         # "software" (projector sequencing), "hardware" or "free-run"
+# roi = [0, 0, 800, 800]     # x, y, width, height
+
+[projector]
+backend = "window"           # "window" (full-screen on a display), "lightcrafter" or "mock"
+display = 1                  # screen index for the window backend
+width = 1280
+height = 800
+period_px = 40.0             # fringe period, projector pixels
+settle_ms = 20.0             # wait after showing a pattern before triggering the camera
+# gamma = 2.2                # display gamma to pre-compensate
+
+# [encoder]                  # omit for a turntable without encoder (angles then unknown)
+# port = "/dev/ttyUSB0"
+# counts_per_rev = 131072
+# baudrate = 115200
+# zero_on_index = true
+
+[rig]
+calibration = "rig.json"     # written by `gearscan calibrate`; relative to this file
+
+[gear]                       # the gear under test (for unwrapping bounds and CAD deviation)
+teeth = 20
+module = 2.0
+pressure_angle_deg = 20.0
+face_width = 20.0
+bore = 10.0
+
+[model]
+# path = "my-model.safetensors"   # default: the model shipped with gearscan
+mc = 0                       # Monte Carlo passes for model uncertainty (0: one deterministic pass)
+precision = "auto"           # "auto", "fp32" or "bf16"
+
+[recon]
+min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S
+max_sigma_rad = 0.3          # drop pixels whose total phase uncertainty exceeds this
+cad_deviation = true         # colour the cloud by distance to the gear's CAD model
+
+[viewer]
+# save = "measurement.rrd"   # write the stream to a file
+# connect = "rerun+http://192.168.0.10:9876/proxy"   # a viewer elsewhere on the shop floor
+serve = false                # serve the web viewer from this machine
+bind = "127.0.0.1"           # address --serve binds to
+"""
+
+
+class RigRef(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    calibration: Path = Field(Path("rig.json"), description="rig calibration JSON")
+
+
+class ModelSection(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    path: Path | None = None
+    mc: int = Field(0, ge=0, le=200)
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
+
+
+class ReconSection(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    min_modulation: float = Field(0.05, ge=0, le=1)
+    max_sigma_rad: float = Field(0.3, gt=0)
+    cad_deviation: bool = True
+
+
+class ViewerSection(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    save: Path | None = None
+    connect: str | None = None
+    serve: bool = False
+    bind: str = "127.0.0.1"
+
+
+class LiveConfig(AcquisitionConfig):
+    """Everything ``gearscan live`` needs; relative paths resolve against the file's folder."""
+
+    rig: RigRef = Field(default_factory=RigRef)
+    gear: GearSpec = Field(default_factory=GearSpec)
+    model: ModelSection = Field(default_factory=ModelSection)
+    recon: ReconSection = Field(default_factory=ReconSection)
+    viewer: ViewerSection = Field(default_factory=ViewerSection)
+
+    @classmethod
+    def from_toml(cls, text: str, source: str = "config", base: Path | None = None) -> LiveConfig:
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{source}: invalid TOML ({exc})") from exc
+        try:
+            cfg = cls.model_validate(data)
+        except ValidationError as exc:
+            raise ConfigError(f"{source}: " + format_errors(exc)) from exc
+        if base is not None and not cfg.rig.calibration.is_absolute():
+            cfg = cfg.model_copy(update={"rig": RigRef(calibration=base / cfg.rig.calibration)})
+        return cfg
+
+    @classmethod
+    def load(cls, path: str | Path) -> LiveConfig:
+        path = Path(path)
+        if not path.exists():
+            raise ConfigError(f"config file {path} does not exist (write a template with `gearscan config init {path}`)")
+        return cls.from_toml(path.read_text(), str(path), path.parent)
+
+    def load_rig(self):
+        from gearscan.rig import Rig, RigError
+
+        try:
+            return Rig.load(self.rig.calibration)
+        except RigError as exc:
+            raise ConfigError(f"rig.calibration: {exc}") from exc

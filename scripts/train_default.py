@@ -1,0 +1,86 @@
+"""Recipe of the shipped default model (CPU): data, network and schedule in one place.
+
+    .venv/bin/python scripts/train_default.py --train data/train --val data/val --out runs/default
+
+Data: `gearscan twin dataset data/train --teeth 12,16,20,30,36 --repeats 4 --max-start-points 2
+--width 256 --height 256 --randomize --seed 1` (randomised rigs, optics, fringe periods and gear
+sizes) and, for validation, tooth count 25, which is never trained on:
+`gearscan twin dataset data/val --teeth 25 --repeats 3 --max-start-points 2 --width 256 --height 256
+--randomize --seed 2`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from gearscan.inference.losses import LossConfig
+from gearscan.inference.models import ModelConfig
+from gearscan.inference.train import TrainConfig, train
+from gearscan.twin.dataset import TwinBurstDataset
+from torch.utils.data import Subset
+
+WEIGHTS = Path(__file__).resolve().parents[1] / "inference" / "weights"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--train", type=Path, default=Path("data/train"))
+    ap.add_argument("--val", type=Path, default=Path("data/val"))
+    ap.add_argument("--out", type=Path, default=Path("runs/default"))
+    ap.add_argument("--width", type=int, default=16)
+    ap.add_argument("--crop", type=int, default=160)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--steps-per-epoch", type=int, default=50)
+    ap.add_argument("--epochs-det", type=int, default=30)
+    ap.add_argument("--epochs-drop", type=int, default=6)
+    ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--val-items", type=int, default=48)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--mse-weighting", default="modulation")
+    ap.add_argument("--no-residual", action="store_true")
+    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--ship", action="store_true", help="copy best model into inference/weights/default.*")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+
+    train_set = TwinBurstDataset(args.train, crop=args.crop, static=True, seed=0)
+    val_full = TwinBurstDataset(args.val, crop=None, static=True)
+    rng = np.random.default_rng(0)
+    val_set = Subset(val_full, sorted(rng.choice(len(val_full), args.val_items, replace=False).tolist()))
+    residual = not args.no_residual
+    config = TrainConfig(
+        out_dir=str(args.out),
+        model=ModelConfig(name="cd-dcu-net", width=args.width, classical_input=residual, residual=residual),
+        loss=LossConfig(alpha=1e-4, mse_weight=1.0, mse_weighting=args.mse_weighting),
+        epochs_deterministic=args.epochs_det,
+        epochs_dropout=args.epochs_drop,
+        batch_size=args.batch,
+        lr=args.lr,
+        lr_dropout=args.lr / 10,
+        schedule="cosine",
+        patience=12,
+        steps_per_epoch=args.steps_per_epoch,
+        bf16=False,
+        resume=args.resume,
+        progress=True,
+    )
+    t0 = time.time()
+    result = train(config, train_set, val_set)
+    info = {"train_seconds": time.time() - t0, "train_items": len(train_set), "val_items": len(val_set),
+            "train_data": str(args.train), "val_data": str(args.val), "args": vars(args) | {"train": str(args.train), "val": str(args.val), "out": str(args.out)}}
+    (args.out / "recipe.json").write_text(json.dumps(info, indent=2, default=str))
+    print(result)
+    if args.ship:
+        WEIGHTS.mkdir(exist_ok=True)
+        for ext in (".safetensors", ".json"):
+            shutil.copy(args.out / f"best{ext}", WEIGHTS / f"default{ext}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,158 @@
+"""`gearscan live` end to end with real counterparts: replay camera fed by a twin recording,
+the mock encoder process on a pty, the mock projector; recording on; then replay."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from gearscan.twin.recordings import render_recording
+from typer.testing import CliRunner
+
+from gearscan.cli import app
+from gearscan.config import TEMPLATE, LiveConfig
+from gearscan.measure import Decoder
+from gearscan.recording import RecordingReader
+from gearscan.rig import default_rig
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def twin(tmp_path_factory):
+    root = tmp_path_factory.mktemp("live")
+    rig = default_rig(128, 128)
+    rec = render_recording(root / "twin", rig=rig, motion="uniform:0.6", bursts=4, seed=2)
+    rig_path = root / "rig.json"
+    RecordingReader(rec).rig.save(rig_path)
+    return root, rec, rig_path
+
+
+def _config(root: Path, rec: Path, rig_path: Path, port: str | None, model: str | None = None, loop: bool = False) -> Path:
+    encoder = f'[encoder]\nport = "{port}"\ncounts_per_rev = 10000\n' if port else ""
+    text = f"""
+[camera]
+driver = "replay"
+id = "{rec}"
+trigger = "software"
+loop = {str(loop).lower()}
+
+[projector]
+backend = "mock"
+width = 1280
+height = 800
+period_px = 40.0
+settle_ms = 1
+
+{encoder}
+[rig]
+calibration = "{rig_path}"
+
+[gear]
+teeth = 20
+
+[model]
+mc = 0
+{f'path = "{model}"' if model else ""}
+"""
+    path = root / "live.toml"
+    path.write_text(text)
+    return path
+
+
+def test_template_is_valid_and_errors_name_the_key(tmp_path):
+    cfg = LiveConfig.from_toml(TEMPLATE)
+    assert cfg.camera.trigger == "software" and cfg.gear.teeth == 20
+    bad = TEMPLATE.replace("exposure_us = 5000.0", "exposure_us = -1").replace('backend = "window"', 'backend = "laser"')
+    with pytest.raises(ValueError) as err:
+        LiveConfig.from_toml(bad, "rig.toml")
+    msg = str(err.value)
+    assert "camera.exposure_us" in msg and "(got -1)" in msg
+    assert "projector.backend" in msg and "'laser'" in msg
+    res = runner.invoke(app, ["config", "init", str(tmp_path / "rig.toml")])
+    assert res.exit_code == 0 and (tmp_path / "rig.toml").read_text() == TEMPLATE
+
+
+def test_live_records_and_the_recording_replays_to_the_same_results(twin, tmp_path):
+    from gearscan.mocks.encoder_device import MockEncoderProcess
+
+    from gearscan.live import run_live
+    from gearscan.replay import replay
+
+    root, rec, rig_path = twin
+    link = str(tmp_path / "enc")
+    decoder = Decoder(classical=True)
+    live_results = {}
+    with MockEncoderProcess(link, rate=1000, cpr=10000, rpm=6.0, duration=60, linger=0) as dev:
+        cfg = LiveConfig.load(_config(tmp_path, rec, rig_path, link))
+        report = run_live(cfg, record=tmp_path / "rec", bursts=4, decoder=decoder, save=tmp_path / "live.rrd",
+                          on_burst=lambda m, row: live_results.setdefault(m.burst.index, (m.result.phase.copy(), len(m.cloud))),
+                          handle_signals=False)
+        dev.kill()
+    assert report.bursts == 4 and len(live_results) == 4
+    out = RecordingReader(tmp_path / "rec")
+    assert out.finished and len(out) == 12 and out.meta["source"] == "live"
+    assert len(out.encoder_samples()) > 0
+    # the live recording replays through the same pipeline into the same phase and clouds
+    replayed = {}
+    replay(tmp_path / "rec", decoder=decoder, on_burst=lambda m, row: replayed.setdefault(m.burst.index, (m.result.phase, len(m.cloud))))
+    assert sorted(replayed) == sorted(live_results)
+    for k, (phase, n) in live_results.items():
+        assert np.array_equal(replayed[k][0], phase) and replayed[k][1] == n > 100
+
+
+def test_ctrl_c_leaves_a_recording_that_replays(twin, tmp_path):
+    root, rec, rig_path = twin
+    cfg_path = _config(tmp_path, rec, rig_path, None, os.environ.get("GEARSCAN_TEST_MODEL"), loop=True)
+    env = {**os.environ, "HOME": str(tmp_path), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gearscan.cli", "live", "--config", str(cfg_path), "--record", str(tmp_path / "rec"),
+         "--save", str(tmp_path / "o.rrd"), "--duration", "120"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline:
+        lines = (tmp_path / "rec" / "frames.jsonl")
+        if lines.exists() and len(lines.read_text().splitlines()) >= 6:
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out
+    assert "stopped by SIGINT" in out
+    reader = RecordingReader(tmp_path / "rec")
+    assert reader.finished and len(reader) >= 6 and len(reader) % 3 == 0
+    res = runner.invoke(app, ["replay", str(tmp_path / "rec"), "--classical", "--save", str(tmp_path / "r.rrd")])
+    assert res.exit_code == 0, res.output
+    assert f"bursts: {len(reader) // 3}" in res.output
+
+
+def test_killed_viewer_does_not_stop_the_measurement(twin, tmp_path, monkeypatch):
+    from gearscan.viewer.serve import serve_web
+
+    from gearscan.live import run_live
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    root, rec, rig_path = twin
+    cfg = LiveConfig.load(_config(tmp_path, rec, rig_path, None))
+    web = serve_web()
+    done = []
+
+    def on_burst(m, row):
+        done.append(m.burst.index)
+        if len(done) == 1:
+            web.process.kill()  # the viewer goes away mid-measurement
+            web.process.wait()
+
+    try:
+        report = run_live(cfg, bursts=4, decoder=Decoder(classical=True), connect=web.grpc_url, on_burst=on_burst,
+                          handle_signals=False)
+    finally:
+        web.close()
+    assert report.bursts == 4 and len(done) == 4
