@@ -71,20 +71,25 @@ class Measurement:
 class Reconstructor:
     """PhaseResult -> absolute phase -> points (turntable frame) with depth sigma.
 
-    Pixels are kept where the fringe order is unambiguous, the modulation is above
+    Fringe orders come from the geometric constraint: by default the gear's CAD model at the
+    burst's encoder angle bounds each pixel's depth to ``+-cad_tolerance_mm`` (works for fine
+    fringes); with ``cad_tolerance_mm=None`` the tip and root cylinders bound it (needs a fringe
+    period above :func:`~gearscan.recon.unwrap.min_unambiguous_period`, about 96 px on the
+    default rig). Pixels are kept where the order is unambiguous, the modulation is above
     ``min_modulation`` (2B/S) and the total phase sigma is below ``max_sigma`` rad.
     """
 
-    def __init__(self, rig: Rig, period_px: float, *, tip_radius: float, root_radius: float,
-                 face_width: float, min_modulation: float = 0.05, max_sigma: float = 0.3,
-                 margin: float = 0.3) -> None:
+    def __init__(self, rig: Rig, period_px: float, gear, *, min_modulation: float = 0.05,
+                 max_sigma: float = 0.3, margin: float = 0.3, cad_tolerance_mm: float | None = 0.3) -> None:
         from gearscan.recon.triangulate import Triangulator
-        from gearscan.recon.unwrap import gear_depth_bounds, phase_bounds
+        from gearscan.recon.unwrap import CadDepthBounds, gear_depth_bounds, phase_bounds
 
         self.rig = rig
         self.period_px = period_px
-        bounds = gear_depth_bounds(rig, tip_radius, root_radius, face_width)
-        self.phi_min, self.phi_max = phase_bounds(rig, bounds, period_px)
+        self.cad_bounds = CadDepthBounds(rig, gear.mesh(), cad_tolerance_mm) if cad_tolerance_mm else None
+        if self.cad_bounds is None:
+            bounds = gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
+            self.phi_min, self.phi_max = phase_bounds(rig, bounds, period_px)
         self.triangulator = Triangulator(rig, period_px)
         self.min_modulation = min_modulation
         self.max_sigma = max_sigma
@@ -92,19 +97,28 @@ class Reconstructor:
 
     @classmethod
     def for_gear(cls, rig: Rig, period_px: float, gear, **kw) -> Reconstructor:
-        return cls(rig, period_px, tip_radius=gear.tip_radius, root_radius=gear.root_radius,
-                   face_width=gear.face_width, **kw)
+        return cls(rig, period_px, gear, **kw)
+
+    def bounds(self, angle: float) -> tuple[np.ndarray, np.ndarray]:
+        """Absolute-phase interval per pixel for a burst at turntable ``angle``."""
+        if self.cad_bounds is None:
+            return self.phi_min, self.phi_max
+        from gearscan.recon.unwrap import phase_bounds
+
+        return phase_bounds(self.rig, self.cad_bounds(angle), self.period_px)
 
     def __call__(self, burst: Burst, result: PhaseResult) -> Measurement:
         from gearscan.recon.triangulate import to_cloud
         from gearscan.recon.unwrap import geometric_unwrap
 
-        if result.phase.shape != self.phi_min.shape:
+        cam_shape = (self.rig.camera.height, self.rig.camera.width)
+        if result.phase.shape != cam_shape:
             raise ValueError(
                 f"phase map {result.phase.shape} does not match the rig camera "
-                f"{self.phi_min.shape}: wrong rig file for this camera/ROI?"
+                f"{cam_shape}: wrong rig file for this camera/ROI?"
             )
-        un = geometric_unwrap(result.phase, self.phi_min, self.phi_max, self.period_px, margin=self.margin)
+        phi_min, phi_max = self.bounds(burst.angles[0])
+        un = geometric_unwrap(result.phase, phi_min, phi_max, self.period_px, margin=self.margin)
         keep = un.valid & (result.modulation >= self.min_modulation) & (result.sigma_total <= self.max_sigma)
         phase_abs = np.where(keep, un.phase_abs, np.nan)
         tri = self.triangulator(phase_abs, result.sigma_total)

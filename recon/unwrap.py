@@ -207,6 +207,45 @@ def gear_depth_bounds(rig: Rig, tip_radius: float, root_radius: float, face_widt
     return DepthBounds((s_min * zc).reshape(shape), (s_max * zc).reshape(shape))
 
 
+class CadDepthBounds:
+    """Per-pixel depth bounds from the gear's CAD model at its encoder angle (expected pose).
+
+    The camera rays are cast at the CAD mesh turned to ``angle``; each hit depth ``z`` gives the
+    bounds ``z -+ tolerance`` (mm, along the ray), which must cover form error, mounting
+    run-out and calibration error. The bounds are tight enough for fine fringes, where the
+    tip/root cylinder bounds of :func:`gear_depth_bounds` admit several fringe orders. Pixels
+    whose ray misses the CAD gear get NaN bounds (reported invalid, never guessed).
+    """
+
+    def __init__(self, rig: Rig, mesh, tolerance_mm: float = 0.3) -> None:
+        import open3d as o3d
+
+        if tolerance_mm <= 0:
+            raise ValueError(f"tolerance_mm must be > 0, got {tolerance_mm}")
+        self.rig = rig
+        self.tolerance = float(tolerance_mm)
+        tmesh = mesh if isinstance(mesh, o3d.t.geometry.TriangleMesh) else o3d.t.geometry.TriangleMesh.from_legacy(mesh)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(tmesh)
+        self._rays_cam = rig.camera.pixel_rays().reshape(-1, 3).astype(np.float32)
+
+    def __call__(self, angle: float) -> DepthBounds:
+        import open3d as o3d
+
+        from gearscan.rig import rot_z
+
+        cam = self.rig.camera
+        t_gc = rot_z(-angle) @ cam.T_world_from
+        rays = np.empty((self._rays_cam.shape[0], 6), np.float32)
+        rays[:, :3] = t_gc[:3, 3]
+        rays[:, 3:] = self._rays_cam @ t_gc[:3, :3].T.astype(np.float32)
+        t = self.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))["t_hit"].numpy().astype(np.float64)
+        t[~np.isfinite(t)] = np.nan
+        zc = self._rays_cam[:, 2].astype(np.float64)
+        shape = (cam.height, cam.width)
+        return DepthBounds(((t - self.tolerance) * zc).reshape(shape), ((t + self.tolerance) * zc).reshape(shape))
+
+
 def phase_bounds(rig: Rig, bounds: DepthBounds, period_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Absolute phase interval ``(phi_min, phi_max)`` seen along each camera ray.
 

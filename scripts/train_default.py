@@ -33,7 +33,8 @@ def main() -> None:
     ap.add_argument("--train", type=Path, default=Path("data/train"))
     ap.add_argument("--val", type=Path, default=Path("data/val"))
     ap.add_argument("--out", type=Path, default=Path("runs/default"))
-    ap.add_argument("--width", type=int, default=16)
+    ap.add_argument("--name", default="cd-dcu-net", help="cd-dcu-net, unet, ts-unet or dr-unet")
+    ap.add_argument("--width", type=int, default=8)
     ap.add_argument("--crop", type=int, default=160)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--steps-per-epoch", type=int, default=50)
@@ -56,7 +57,7 @@ def main() -> None:
     residual = not args.no_residual
     config = TrainConfig(
         out_dir=str(args.out),
-        model=ModelConfig(name="cd-dcu-net", width=args.width, classical_input=residual, residual=residual),
+        model=ModelConfig(name=args.name, width=args.width, classical_input=residual, residual=residual),
         loss=LossConfig(alpha=1e-4, mse_weight=1.0, mse_weighting=args.mse_weighting),
         epochs_deterministic=args.epochs_det,
         epochs_dropout=args.epochs_drop,
