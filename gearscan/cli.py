@@ -274,6 +274,30 @@ def live_cmd(
         typer.echo(f"recording: {record} (replay with: gearscan replay {record})")
 
 
+@app.command("evaluate")
+def evaluate_cmd(
+    out: Annotated[Path, typer.Argument(help="report folder (report.md, results.json, figures)")],
+    model: Annotated[Path | None, typer.Option(help="model weights; default: the shipped model")] = None,
+    data: Annotated[list[Path] | None, typer.Option(help="validation twin dataset(s) (unseen gears); default: built-in scenes")] = None,
+    train_data: Annotated[Path | None, typer.Option(help="twin dataset for the loss-ablation runs")] = None,
+    peers: Annotated[Path | None, typer.Option(help="folder with trained unet/, ts-unet/, dr-unet/ runs")] = None,
+    per_motion: Annotated[int, typer.Option(min=1, help="bursts per motion per scene")] = 3,
+    mc: Annotated[int, typer.Option(min=1, help="Monte Carlo passes")] = 20,
+    quick: Annotated[bool, typer.Option(help="reduced version (small scenes, tiny training runs), minutes on 2 cores")] = False,
+    seed: Annotated[int, typer.Option()] = 0,
+) -> None:
+    """Reproduce the paper's experiments (section 3) on twin gears the model never saw."""
+    from gearscan.report import EvalOptions, run_evaluation
+
+    opt = EvalOptions(model=model, data=list(data or []), out=out, quick=quick, peers=peers, mc=mc,
+                      per_motion=per_motion, seed=seed, train_data=train_data)
+    try:
+        run_evaluation(opt, progress=lambda s: typer.echo(f"- {s}"))
+    except (ValueError, FileNotFoundError) as exc:
+        raise _fail(str(exc)) from exc
+    typer.echo(f"report: {out / 'report.md'}")
+
+
 def _register(module: str, names: list[str], target: typer.Typer = app) -> None:
     """Register command functions that live in stage packages (light modules, lazy heavy imports)."""
     try:

@@ -68,6 +68,18 @@ def scenes_from_dataset(root: str | Path, limit: int | None = None) -> list[Scen
     return list(seen.values())[:limit]
 
 
+def builtin_scenes(size: int = 256, seed: int = 25) -> list[Scene]:
+    """Scenes needing no rendered dataset: the default rig and a randomised rig, gear z=25."""
+    from gearscan.rig import default_rig
+    from gearscan.twin.randomize import random_scene
+
+    gear = GearSpec(teeth=25)
+    rig = default_rig(size, size, working_radius=gear.pitch_radius)
+    rnd = random_scene(np.random.default_rng(seed), gear, size, size)
+    return [Scene("default rig z=25", rig, Optics(), gear, 40.0),
+            Scene("random rig z=25", rnd[0], rnd[1], rnd[2], rnd[3])]
+
+
 @dataclass
 class BurstCase:
     """One rendered three-step burst with the truth at its first frame."""

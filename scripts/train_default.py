@@ -46,6 +46,8 @@ def main() -> None:
     ap.add_argument("--mse-weighting", default="modulation")
     ap.add_argument("--no-residual", action="store_true")
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--init", type=Path, default=None, help="start from these weights (.safetensors)")
+    ap.add_argument("--patience", type=int, default=12)
     ap.add_argument("--ship", action="store_true", help="copy best model into inference/weights/default.*")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -65,7 +67,8 @@ def main() -> None:
         lr=args.lr,
         lr_dropout=args.lr / 10,
         schedule="cosine",
-        patience=12,
+        patience=args.patience,
+        init=str(args.init) if args.init else None,
         steps_per_epoch=args.steps_per_epoch,
         bf16=False,
         resume=args.resume,

@@ -97,8 +97,13 @@ def generate_dataset(
     spec: DatasetSpec,
     *,
     progress: Callable[[int, int], None] | None = None,
+    scene: tuple[Rig, Optics, GearSpec, float] | None = None,
 ) -> Path:
-    """Render (or resume rendering) the dataset described by ``spec`` into ``root``."""
+    """Render (or resume rendering) the dataset described by ``spec`` into ``root``.
+
+    ``scene`` (rig, optics, gear, period) replaces the spec's default/randomised scene, for
+    target domains with their own rig and camera.
+    """
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     index_path = root / INDEX
@@ -121,7 +126,7 @@ def generate_dataset(
                 progress(n + 1, len(jobs))
             continue
         if g not in renderers:
-            rig, optics, gear, period = _scene_for(spec, g)
+            rig, optics, gear, period = scene if scene is not None else _scene_for(spec, g)
             renderers = {g: (TwinRenderer(rig, gear, optics), period, rig, optics, gear)}
         renderer, period, rig, optics, gear = renderers[g]
         ps = PatternSet.n_step(spec.steps, period)
@@ -198,8 +203,8 @@ class TwinBurstDataset:
         self.entries = index["entries"]
         if not self.entries:
             raise DatasetError(f"{index_path}: no rendered start points yet")
-        self.groups = list(range(len(self.entries))) if groups is None else list(groups)
-        bad = [g for g in self.groups if not 0 <= g < len(self.entries)]
+        self.start_points = list(range(len(self.entries))) if groups is None else list(groups)
+        bad = [g for g in self.start_points if not 0 <= g < len(self.entries)]
         if bad:
             raise DatasetError(f"groups {bad} out of range 0..{len(self.entries) - 1}")
         combos = combinations(self.spec.poses)
@@ -222,7 +227,12 @@ class TwinBurstDataset:
         self._idx3 = [0, self.spec.steps // 3, 2 * self.spec.steps // 3]
 
     def __len__(self) -> int:
-        return len(self.groups) * len(self.combos)
+        return len(self.start_points) * len(self.combos)
+
+    @property
+    def groups(self) -> list[int]:
+        """Start-point id of every item (the split unit: no start point in train and validation)."""
+        return [g for g in self.start_points for _ in self.combos]
 
     def _open(self, g: int) -> dict[str, np.ndarray]:
         if g not in self._arrays:
@@ -236,7 +246,7 @@ class TwinBurstDataset:
     def __getitem__(self, item: int) -> dict[str, object]:
         if not 0 <= item < len(self):
             raise IndexError(item)
-        g = self.groups[item // len(self.combos)]
+        g = self.start_points[item // len(self.combos)]
         i, j, k = self.combos[item % len(self.combos)]
         a = self._open(g)
         h, w = self.spec.height, self.spec.width
