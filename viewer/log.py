@@ -175,7 +175,9 @@ class RerunLogger:
             s.log("world/camera/error", rr.Image(np.abs(error).astype(np.float32)))
         if cloud is not None and len(cloud):
             colors = colorize(cloud.sigma, 0.0, max(float(np.percentile(cloud.sigma, 99)), 1e-6), "viridis")
-            s.log("world/cloud", rr.Points3D(cloud.points, colors=colors, radii=0.02))
+            # radius in screen points, not mm: at the 3D view's default framing (camera, projector and
+            # gear in view) one mm is well under a pixel, and 0.02 mm points vanished in the web viewer
+            s.log("world/cloud", rr.Points3D(cloud.points, colors=colors, radii=rr.Radius.ui_points(1.5)))
         s.log("stats/turntable_deg", rr.Scalars(np.degrees(burst.angles[0])))
         for k, v in (stats or {}).items():
             s.log(f"stats/{k}", rr.Scalars(float(v)))
