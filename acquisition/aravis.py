@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from gearscan.acquisition.camera import (
     PIXEL_FORMATS,
     BaseCamera,

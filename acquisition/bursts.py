@@ -20,7 +20,6 @@ import time
 from dataclasses import asdict, dataclass, field
 
 from gearscan.acquisition.encoder import EncoderHistory
-
 from gearscan.types import Burst, Frame
 
 

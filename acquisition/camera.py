@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
-from gearscan.acquisition.clock import ClockSync
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from gearscan.acquisition.clock import ClockSync
 from gearscan.types import Frame
 
 TriggerMode = Literal["free-run", "software", "hardware"]

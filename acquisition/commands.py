@@ -14,11 +14,12 @@ def devices(
     timeout: float = typer.Option(1.0, help="Seconds to wait for GigE discovery."),
 ) -> None:
     """List cameras (Aravis: GigE/USB3 Vision; V4L2) and serial ports with what was found."""
+    from rich.console import Console
+    from rich.table import Table
+
     from gearscan.acquisition.camera import CameraError
     from gearscan.acquisition.encoder import list_serial_ports
     from gearscan.acquisition.v4l2 import list_v4l2_devices
-    from rich.console import Console
-    from rich.table import Table
 
     console = Console()
     table = Table(title="Cameras")
@@ -48,10 +49,11 @@ def record(
     overwrite: bool = typer.Option(False, help="Replace an existing recording in OUT."),
 ) -> None:
     """Record BURSTS bursts from the configured camera, projector and encoder into OUT."""
-    from gearscan.acquisition.config import AcquisitionConfig
-    from gearscan.acquisition.record import record_bursts
     from rich.console import Console
     from rich.progress import Progress
+
+    from gearscan.acquisition.config import AcquisitionConfig
+    from gearscan.acquisition.record import record_bursts
 
     console = Console()
     cfg = AcquisitionConfig.load(config)

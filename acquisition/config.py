@@ -30,8 +30,9 @@ import tomllib
 from pathlib import Path
 from typing import Literal
 
-from gearscan.acquisition.camera import CameraSettings
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from gearscan.acquisition.camera import CameraSettings
 
 
 class ConfigError(ValueError):

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import numpy as np
+
 from gearscan.acquisition.clock import ClockSync
 from gearscan.acquisition.encoder_protocol import (
     PROTOCOL_VERSION,
@@ -28,7 +29,6 @@ from gearscan.acquisition.encoder_protocol import (
     RawSample,
     parse_line,
 )
-
 from gearscan.types import EncoderSample
 
 MAX_LINE = 256

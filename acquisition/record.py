@@ -19,7 +19,6 @@ from gearscan.acquisition.camera import BaseCamera, CameraError, GrabTimeout
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError
 from gearscan.acquisition.encoder import EncoderReader
 from gearscan.projector.patterns import PatternSet
-
 from gearscan.types import Burst, EncoderSample, Frame
 
 

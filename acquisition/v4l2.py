@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+
 from gearscan.acquisition.camera import (
     PIXEL_FORMATS,
     BaseCamera,

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from gearscan.acquisition.aravis import AravisCamera
 from gearscan.acquisition.bursts import BurstAssembler
 from gearscan.acquisition.camera import CameraSettings

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from gearscan.inference.predictor import Predictor
 
 from gearscan.evaluate import (
     GENERALISATION,
@@ -30,6 +29,7 @@ from gearscan.evaluate import (
     score,
     scores_table,
 )
+from gearscan.inference.predictor import Predictor
 
 HERE = Path(__file__).parent
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
 from gearscan.inference.models import build_model
 from gearscan.inference.predictor import Predictor, cpu_has_fast_bf16
 

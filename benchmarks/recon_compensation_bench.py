@@ -16,13 +16,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from gearscan.projector.patterns import PatternSet
 from gearscan.recon.compensation import aia_compensate, hilbert_compensate
 from gearscan.recon.phase import three_step, wrapped_rmse
+from gearscan.rig import default_rig
 from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
-
-from gearscan.rig import default_rig
 
 CASES = {"static": (0.0, 0.0), "uniform 0.6/0.6 deg": (0.6, 0.6), "non-uniform 0.1/1.6 deg": (0.1, 1.6)}
 STARTS_DEG = (0.0, 1.3, 4.7, 9.0)

@@ -16,12 +16,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from gearscan.projector.patterns import DEFAULT_PERIOD_PX, PatternSet
+from gearscan.rig import default_rig
 from gearscan.twin.dataset import DatasetSpec, generate_dataset
 from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
-
-from gearscan.rig import default_rig
 
 HERE = Path(__file__).parent
 

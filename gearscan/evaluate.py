@@ -160,7 +160,7 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
             err = np.concatenate(errs)
             sig = np.concatenate(sigmas)
             ece = None
-            if mname != "three-step PS":
+            if np.any(sig > 0) and np.all(np.isfinite(sig)):  # only methods that state an uncertainty
                 ece = reliability(err, np.maximum(sig, 1e-6)).ece
             out.append(Score(mname, motion, float(np.sqrt(np.mean(err**2))), ece, secs / len(sel), len(sel),
                              math.sqrt(cloud_sq / cloud_n) if cloud_n else None))

@@ -62,8 +62,8 @@ class EvalOptions:
     def budget(self) -> dict[str, int]:
         """Training budget of the small runs of parts 1 and 3 (epochs x steps, crop)."""
         if self.quick:
-            return {"epochs": 2, "steps": 4, "crop": 64, "batch": 4, "size": 96}
-        return {"epochs": 8, "steps": 30, "crop": 128, "batch": 8, "size": 256}
+            return {"epochs": 2, "steps": 4, "crop": 64, "batch": 4, "size": 160, "poses": 6}
+        return {"epochs": 8, "steps": 30, "crop": 128, "batch": 8, "size": 256, "poses": 18}
 
 
 def _plt():
@@ -111,7 +111,7 @@ def target_scenes(size: int = 256) -> list[Scene]:
     return scenes
 
 
-def _target_dataset(root: Path, scenes: list[Scene], points: int, seed: int):
+def _target_dataset(root: Path, scenes: list[Scene], points: int, seed: int, poses: int = 18):
     """Render the target domain with the dataset protocol (its own twin scenes)."""
     import shutil
 
@@ -124,7 +124,7 @@ def _target_dataset(root: Path, scenes: list[Scene], points: int, seed: int):
         if d.exists() and not (d / "index.json").exists():
             shutil.rmtree(d)
         spec = DatasetSpec(gears=[sc.gear], width=sc.rig.camera.width, height=sc.rig.camera.height,
-                           period_px=sc.period_px, max_start_points=points, seed=seed + k)
+                           period_px=sc.period_px, max_start_points=points, seed=seed + k, poses=poses)
         generate_dataset(d, spec, scene=(sc.rig, sc.optics, sc.gear, sc.period_px))
         sets.append(d)
     return sets
@@ -142,7 +142,7 @@ def part_transfer(opt: EvalOptions, work: Path) -> dict:
 
     b = opt.budget
     scenes = target_scenes(b["size"])
-    roots = _target_dataset(work / "target", scenes, 2, opt.seed)
+    roots = _target_dataset(work / "target", scenes, 2, opt.seed, b["poses"])
     # start point 0 of each target gear trains, start point 1 validates
     train_set = ConcatDataset([TwinBurstDataset(r, groups=[0], crop=b["crop"], static=True) for r in roots])
     val_set = ConcatDataset([TwinBurstDataset(r, groups=[1], static=True) for r in roots])
@@ -232,7 +232,7 @@ def part_loss_ablation(opt: EvalOptions, work: Path, cases: list[BurstCase]) -> 
     if train_root is None or not (train_root / "index.json").exists():
         train_root = work / "ablation-data"  # a small randomised twin set of its own
         spec = DatasetSpec(gears=[GearSpec(teeth=16), GearSpec(teeth=30)], width=b["size"], height=b["size"],
-                           randomize=True, max_start_points=1, seed=opt.seed + 3)
+                           randomize=True, max_start_points=1, seed=opt.seed + 3, poses=b["poses"])
         generate_dataset(train_root, spec)
     ds = TwinBurstDataset(train_root, crop=b["crop"], static=True)
     base = Predictor.load(opt.model).model.config
@@ -361,7 +361,7 @@ def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = No
     predictor = Predictor.load(opt.model)
     scenes = [s for d in opt.data for s in scenes_from_dataset(d, limit=1 if opt.quick else None)]
     if not scenes:
-        scenes = builtin_scenes(96 if opt.quick else 256)[: 1 if opt.quick else None]
+        scenes = builtin_scenes(160 if opt.quick else 256)[: 1 if opt.quick else None]
     motions = {**STATIC, **PAPER_MOTIONS, **GENERALISATION}
     per = 1 if opt.quick else opt.per_motion
     say("rendering test bursts")

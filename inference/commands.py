@@ -92,6 +92,7 @@ def predict(
     for phase and sigmas) and the mode used.
     """
     import numpy as np
+
     from gearscan.inference.model_io import ModelFileError
     from gearscan.inference.predictor import Predictor
 

@@ -140,10 +140,9 @@ def render_twin_bursts(
     frame's pose (M, D normalised; DESIGN.md). ``group`` is the start-point index.
     """
     from gearscan.projector.patterns import PatternSet
+    from gearscan.rig import default_rig
     from gearscan.twin.gear import GearSpec
     from gearscan.twin.render import TwinRenderer
-
-    from gearscan.rig import default_rig
 
     rng = np.random.default_rng(seed)
     gear = GearSpec(teeth=teeth)

@@ -32,8 +32,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import torch
-from gearscan.inference.concrete_dropout import dropout_regularization
 from torch import nn
+
+from gearscan.inference.concrete_dropout import dropout_regularization
 
 
 @dataclass

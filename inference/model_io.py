@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 
 import torch
+
 from gearscan.inference.models import ModelConfig, PhaseNet, build_model
 
 MODEL_FORMAT = "gearscan-model"

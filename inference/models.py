@@ -28,6 +28,8 @@ from dataclasses import asdict, dataclass, fields
 
 import torch
 import torch.nn.functional as F
+from torch import nn
+
 from gearscan.inference.blocks import (
     Decoder,
     DoubleConv,
@@ -37,7 +39,6 @@ from gearscan.inference.blocks import (
     make_head,
 )
 from gearscan.inference.concrete_dropout import ConcreteDropout2d
-from torch import nn
 
 MULTIPLE = 16
 VAR_FLOOR = 1e-3

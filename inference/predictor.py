@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
 from gearscan.inference.model_io import ModelFileError, load_model
 from gearscan.inference.uncertainty import deterministic_moments, mc_moments, to_phase_result
-
 from gearscan.types import Burst, PhaseResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"

@@ -33,12 +33,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils.data import DataLoader, Dataset, Subset
+
 from gearscan.inference.concrete_dropout import concrete_layers, dropout_rates, set_stochastic
 from gearscan.inference.data import dataset_groups, split_by_group
 from gearscan.inference.losses import LossConfig, PhaseLoss
 from gearscan.inference.model_io import load_into, load_state, save_model
 from gearscan.inference.models import ModelConfig, PhaseNet, build_model
-from torch.utils.data import DataLoader, Dataset, Subset
 
 SCHEDULES = ("step", "cosine", "constant")
 
@@ -512,6 +513,7 @@ if (
     __name__ == "__main__"
 ):  # torchrun entry point: torchrun --nproc_per_node 2 -m gearscan.inference.train ...
     import typer
+
     from gearscan.inference.commands import train as train_command
 
     typer.run(train_command)

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from gearscan.inference.concrete_dropout import set_stochastic
 from scipy.special import erf
 
+from gearscan.inference.concrete_dropout import set_stochastic
 from gearscan.types import PhaseResult
 
 

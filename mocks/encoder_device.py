@@ -35,6 +35,7 @@ import time
 import tty
 
 import numpy as np
+
 from gearscan.acquisition.encoder_protocol import PROTOCOL_VERSION, SEQ_MODULUS, Banner, RawSample
 
 

@@ -27,7 +27,6 @@ from gearscan.acquisition.camera import (
     CameraSettings,
     RawFrame,
 )
-
 from gearscan.recording import RecordingReader
 from gearscan.types import Frame
 

@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+
 from gearscan.projector.gamma import GammaCorrection
 from gearscan.projector.patterns import PatternSet
-
 from gearscan.types import Frame
 
 

@@ -31,6 +31,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+
 from gearscan.recon.calibration import BoardCapture, Checkerboard
 
 FORMAT = "gearscan-board-captures"

@@ -29,9 +29,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from gearscan.recon.phase import decode_phase
 from gearscan.recon.unwrap import temporal_unwrap
-
 from gearscan.rig import PinholeDevice, Rig
 
 

@@ -36,6 +36,8 @@ def calibrate(
     import json
     import tempfile
 
+    from rich.console import Console
+
     from gearscan.recon.board_io import load_captures, save_captures
     from gearscan.recon.calibration import (
         CalibrationError,
@@ -45,8 +47,6 @@ def calibrate(
         save_calibration,
     )
     from gearscan.recon.unity import unity_parameters
-    from rich.console import Console
-
     from gearscan.rig import Rig, RigError, default_rig
 
     console = Console()

@@ -35,8 +35,9 @@ import math
 
 import cv2
 import numpy as np
-from gearscan.recon.phase import THREE_STEP_SHIFTS, three_step
 from scipy.signal import hilbert
+
+from gearscan.recon.phase import THREE_STEP_SHIFTS, three_step
 
 _N = 3
 

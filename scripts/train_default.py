@@ -19,11 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils.data import Subset
+
 from gearscan.inference.losses import LossConfig
 from gearscan.inference.models import ModelConfig
 from gearscan.inference.train import TrainConfig, train
 from gearscan.twin.dataset import TwinBurstDataset
-from torch.utils.data import Subset
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "inference" / "weights"
 

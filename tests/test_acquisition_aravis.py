@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 import pytest
+
 from gearscan.acquisition.camera import (
     BaseCamera,
     CameraConfigError,

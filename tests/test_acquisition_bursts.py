@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from gearscan.acquisition.bursts import BurstAssembler
 from gearscan.acquisition.encoder import EncoderHistory
-
 from gearscan.types import Frame
 
 W = 0.5  # rad/s

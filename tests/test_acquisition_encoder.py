@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+
 from gearscan.acquisition.encoder import EncoderError, EncoderHistory, EncoderReader
 from gearscan.acquisition.encoder_protocol import ProtocolError, RawSample, parse_line
 from gearscan.mocks.encoder_device import MockEncoderProcess

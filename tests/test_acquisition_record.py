@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 import pytest
-from gearscan.acquisition.config import AcquisitionConfig, ConfigError
 
+from gearscan.acquisition.config import AcquisitionConfig, ConfigError
 from gearscan.recording import RecordingReader
 
 RPM = 6.0

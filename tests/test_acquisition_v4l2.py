@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from gearscan.acquisition.camera import (
     CameraConfigError,
     CameraDisconnected,

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+
 from gearscan.inference.concrete_dropout import (
     ConcreteDropout2d,
     dropout_rates,

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+
 from gearscan.inference.losses import LossConfig, PhaseLoss, gaussian_nll, weighted_mse
 
 

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+
 from gearscan.inference.blocks import DoubleConv
 from gearscan.inference.concrete_dropout import ConcreteDropout2d, concrete_layers
 from gearscan.inference.model_io import load_model, save_model

@@ -8,11 +8,11 @@ import cv2
 import numpy as np
 import pytest
 import torch
+
 from gearscan.inference.commands import predict
 from gearscan.inference.model_io import ModelFileError, load_model, save_model
 from gearscan.inference.models import build_model
 from gearscan.inference.predictor import DEFAULT_MODEL, Predictor, frames_to_tensor
-
 from gearscan.types import Burst, Frame
 
 torch.set_num_threads(1)

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+
 from gearscan.inference.concrete_dropout import concrete_layers
 from gearscan.inference.models import build_model
 from gearscan.inference.uncertainty import (

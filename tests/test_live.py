@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from gearscan.twin.recordings import render_recording
 from typer.testing import CliRunner
 
 from gearscan.cli import app
@@ -20,6 +19,7 @@ from gearscan.config import TEMPLATE, LiveConfig
 from gearscan.measure import Decoder
 from gearscan.recording import RecordingReader
 from gearscan.rig import default_rig
+from gearscan.twin.recordings import render_recording
 
 runner = CliRunner()
 
@@ -80,9 +80,8 @@ def test_template_is_valid_and_errors_name_the_key(tmp_path):
 
 
 def test_live_records_and_the_recording_replays_to_the_same_results(twin, tmp_path):
-    from gearscan.mocks.encoder_device import MockEncoderProcess
-
     from gearscan.live import run_live
+    from gearscan.mocks.encoder_device import MockEncoderProcess
     from gearscan.replay import replay
 
     root, rec, rig_path = twin
@@ -134,9 +133,8 @@ def test_ctrl_c_leaves_a_recording_that_replays(twin, tmp_path):
 
 
 def test_killed_viewer_does_not_stop_the_measurement(twin, tmp_path, monkeypatch):
-    from gearscan.viewer.serve import serve_web
-
     from gearscan.live import run_live
+    from gearscan.viewer.serve import serve_web
 
     monkeypatch.setenv("HOME", str(tmp_path))
     root, rec, rig_path = twin

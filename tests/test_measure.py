@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 import pytest
-from gearscan.projector.patterns import PatternSet
 
 from gearscan.measure import Reconstructor, classical_result
+from gearscan.projector.patterns import PatternSet
 from gearscan.types import Burst, Frame, PhaseResult
 
 PERIOD = 40.0

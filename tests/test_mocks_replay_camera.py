@@ -6,10 +6,10 @@ import time
 
 import numpy as np
 import pytest
+
 from gearscan.acquisition.bursts import BurstAssembler
 from gearscan.acquisition.camera import Camera, CameraError, CameraSettings, GrabTimeout
 from gearscan.mocks.replay_camera import ReplayCamera
-
 from gearscan.recording import RecordingWriter
 from gearscan.types import Frame
 

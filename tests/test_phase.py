@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from gearscan.recon.phase import (
     decode_md,
     decode_phase,

@@ -9,6 +9,7 @@ import types
 
 import numpy as np
 import pytest
+
 from gearscan.acquisition.camera import CameraSettings
 from gearscan.mocks.replay_camera import ReplayCamera
 from gearscan.projector.gamma import GammaCorrection, GammaError
@@ -24,7 +25,6 @@ from gearscan.projector.sequencer import (
     SoftwareSequencer,
     WindowProjector,
 )
-
 from gearscan.recording import RecordingWriter
 from gearscan.types import Frame
 

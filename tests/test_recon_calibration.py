@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from gearscan.recon.board_io import load_captures, save_captures
 from gearscan.recon.calibration import (
     Checkerboard,
@@ -18,10 +19,9 @@ from gearscan.recon.calibration import (
 )
 from gearscan.recon.commands import calibrate, compare_rigs
 from gearscan.recon.unity import compose_zxy, euler_zxy, unity_parameters
+from gearscan.rig import Rig, default_rig, rot_z
 from gearscan.twin.board import BoardRenderer, calibration_poses, render_calibration_set
 from gearscan.twin.render import Optics
-
-from gearscan.rig import Rig, default_rig, rot_z
 
 PROJ = (1280, 800)
 

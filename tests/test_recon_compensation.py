@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from gearscan.recon.compensation import aia_compensate, hilbert_compensate
 from gearscan.recon.phase import phase_error, three_step, wrapped_rmse
 
@@ -96,9 +97,8 @@ def test_input_checks_name_the_problem():
 def rotating_burst(gear, gear_mesh):
     """Noise-free 128x128 twin burst at 0, 0.6, 1.2 deg, with the truths of all three poses."""
     from gearscan.projector.patterns import PatternSet
-    from gearscan.twin.render import Optics, TwinRenderer
-
     from gearscan.rig import default_rig
+    from gearscan.twin.render import Optics, TwinRenderer
 
     renderer = TwinRenderer(default_rig(128, 128), gear, Optics().noise_free(), mesh=gear_mesh)
     step = math.radians(0.6)

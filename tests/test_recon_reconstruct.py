@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from gearscan.projector.patterns import PatternSet
 from gearscan.recon.phase import decode_phase
 from gearscan.recon.reconstruct import SingleFrequencyReconstructor
 from gearscan.recon.triangulate import Triangulator
 from gearscan.recon.unwrap import gear_depth_bounds, geometric_unwrap, phase_bounds
+from gearscan.rig import PinholeDevice, Rig, default_rig
 from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
-
-from gearscan.rig import PinholeDevice, Rig, default_rig
 
 PERIOD = 110.0
 

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from gearscan.projector.patterns import PatternSet
 from gearscan.recon.cloud import (
     cad_deviation,
@@ -17,10 +18,9 @@ from gearscan.recon.cloud import (
 from gearscan.recon.phase import decode_phase
 from gearscan.recon.triangulate import Triangulator, to_cloud, to_turntable
 from gearscan.recon.unwrap import TWO_PI, temporal_unwrap
+from gearscan.rig import PinholeDevice, Rig, default_rig, rot_z
 from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
-
-from gearscan.rig import PinholeDevice, Rig, default_rig, rot_z
 
 PERIODS = [20.0, 160.0, 1400.0]
 

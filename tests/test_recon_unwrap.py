@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from gearscan.projector.patterns import PatternSet
 from gearscan.recon.phase import decode_phase, wrap
 from gearscan.recon.unwrap import (
@@ -18,10 +19,9 @@ from gearscan.recon.unwrap import (
     phase_bounds,
     temporal_unwrap,
 )
+from gearscan.rig import default_rig
 from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
-
-from gearscan.rig import default_rig
 
 PROJ_W = 1280
 

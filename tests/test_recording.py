@@ -7,10 +7,10 @@ import math
 
 import numpy as np
 import pytest
-from gearscan.twin.recordings import render_recording
 
 from gearscan.recording import RecordingError, RecordingReader, RecordingWriter
 from gearscan.rig import default_rig
+from gearscan.twin.recordings import render_recording
 from gearscan.types import EncoderSample, Frame
 
 

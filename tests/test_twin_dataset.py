@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from gearscan.recon.phase import wrapped_rmse
 from gearscan.twin.dataset import (
     DatasetError,

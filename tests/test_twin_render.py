@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 import pytest
+
 from gearscan.projector.patterns import PatternError, PatternSet
 from gearscan.recon.phase import decode_phase, phase_error, three_step, wrapped_rmse
-from gearscan.twin.render import Optics, RenderError, TwinRenderer
-
 from gearscan.rig import rot_z
+from gearscan.twin.render import Optics, RenderError, TwinRenderer
 
 PERIOD = 40.0
 
@@ -72,7 +72,8 @@ def test_error_has_second_harmonic_structure(moving_burst):
     eps1 = phase_error(truths[1].phase_abs, t0.phase_abs)
     eps2 = phase_error(truths[2].phase_abs, t0.phase_abs)
     mask = t0.mask & truths[1].mask & truths[2].mask
-    med = np.median(eps1[mask])
+    moving = mask & (np.abs(eps1) > 0.2)  # flanks moving along the projector rays barely shift
+    med = np.median(eps1[moving])
     patch = mask & (np.abs(eps1 - med) < 0.1 * abs(med)) & (np.abs(eps2 - 2 * med) < 0.2 * abs(med))
     assert patch.sum() > 300
     err = phase_error(three_step(frames, 255)[0], t0.phase)[patch]

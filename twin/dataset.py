@@ -29,13 +29,13 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from gearscan.projector.patterns import DEFAULT_PERIOD_PX, PatternSet
-from gearscan.recon.phase import decode_md
-from gearscan.twin.gear import GearSpec
-from gearscan.twin.render import Optics, TwinRenderer
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from gearscan.projector.patterns import DEFAULT_PERIOD_PX, PatternSet
+from gearscan.recon.phase import decode_md
 from gearscan.rig import Rig, default_rig
+from gearscan.twin.gear import GearSpec
+from gearscan.twin.render import Optics, TwinRenderer
 
 INDEX = "index.json"
 FORMAT = "gearscan-twin-dataset"

@@ -7,10 +7,10 @@ The ranges are the model's validity range (stated in its model card).
 from __future__ import annotations
 
 import numpy as np
-from gearscan.twin.gear import GearSpec
-from gearscan.twin.render import Optics
 
 from gearscan.rig import Rig, default_rig
+from gearscan.twin.gear import GearSpec
+from gearscan.twin.render import Optics
 
 RANGES = {
     "standoff_mm": (120.0, 220.0),

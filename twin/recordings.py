@@ -11,13 +11,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
 from gearscan.projector.patterns import DEFAULT_PERIOD_PX, PatternSet
+from gearscan.recording import RecordingWriter
+from gearscan.rig import Rig, default_rig
 from gearscan.twin.gear import GearSpec
 from gearscan.twin.motion import frame_angles
 from gearscan.twin.render import Optics, TwinRenderer
-
-from gearscan.recording import RecordingWriter
-from gearscan.rig import Rig, default_rig
 from gearscan.types import EncoderSample, Frame
 
 ENCODER_COUNTS_PER_REV = 1 << 17

@@ -17,11 +17,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from gearscan.projector.patterns import PatternSet
-from gearscan.twin.gear import GearSpec
 from pydantic import BaseModel, ConfigDict, Field
 
+from gearscan.projector.patterns import PatternSet
 from gearscan.rig import Rig, rot_z
+from gearscan.twin.gear import GearSpec
 
 
 class RenderError(ValueError):
@@ -303,15 +303,15 @@ class TwinRenderer:
         jump[:, :-1] |= dx
         jump[1:, :] |= dy
         jump[:-1, :] |= dy
-        # shading creases (flank to tip land): a blurred step in modulation biases the phase
+        # shading creases (flank to tip land): a step in irradiance, which a blur turns into a
+        # phase bias. A second difference finds steps and ignores smooth shading gradients at
+        # any resolution.
         irr = surf.irradiance
         ref = np.maximum(irr, 1e-3)
-        cx = np.abs(np.diff(irr, axis=1)) > 0.1 * np.minimum(ref[:, 1:], ref[:, :-1])
-        cy = np.abs(np.diff(irr, axis=0)) > 0.1 * np.minimum(ref[1:, :], ref[:-1, :])
-        jump[:, 1:] |= cx
-        jump[:, :-1] |= cx
-        jump[1:, :] |= cy
-        jump[:-1, :] |= cy
+        cx = np.abs(irr[:, 2:] - 2 * irr[:, 1:-1] + irr[:, :-2]) > 0.1 * ref[:, 1:-1]
+        cy = np.abs(irr[2:, :] - 2 * irr[1:-1, :] + irr[:-2, :]) > 0.1 * ref[1:-1, :]
+        jump[:, 1:-1] |= cx
+        jump[1:-1, :] |= cy
         smooth = ~cv2.dilate(jump.astype(np.uint8), k).astype(bool)
         return mask & lit_core.astype(bool) & smooth
 

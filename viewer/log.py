@@ -6,12 +6,13 @@ Entity layout (stable, the blueprint and the tests rely on it)::
     world/camera/frames/{0,1,2}       raw frames of the burst
     world/camera/phase                wrapped phase, cyclic colours (RGB)
     world/camera/phase_rad            wrapped phase, float32 values (rad)
-    world/camera/sigma/{model,data,total}   uncertainty, float32 (rad)
-    world/camera/error                |phase error| vs truth (rad), when truth exists
+    world/camera/sigma/{model,data,total}   uncertainty (rad), viridis 0..sigma_max (0.2 rad)
+    world/camera/sigma_rad/total      total uncertainty, float32 values (rad)
+    world/camera/error                |phase error| vs truth, magma 0..0.5 rad, when truth exists
     world/cloud                       points (turntable frame), coloured by uncertainty
     stats/*                           scalars (encoder angle, rmse, latency)
-Timelines: ``burst`` (sequence), ``capture_time`` (timestamp), ``turntable_deg`` (sequence of
-milli-degrees would lose meaning, so it is logged as a scalar plot instead).
+Timelines: ``burst`` (sequence) and ``capture_time`` (device time since the camera's epoch);
+the turntable angle is a scalar plot (``stats/turntable_deg``).
 """
 
 from __future__ import annotations
@@ -47,7 +48,21 @@ def colorize(values: np.ndarray, lo: float, hi: float, cmap: str, mask: np.ndarr
     return rgb
 
 
-def default_blueprint():
+def _eye_for(rig: Rig):
+    """A 3/4 view of the measured rim: from behind and above the camera, towards its target."""
+    import rerun.blueprint as rrb
+
+    cam = rig.camera
+    c = cam.center_world
+    z = cam.T_world_from[:3, :3][:, 2]  # optical axis in the world frame
+    x = cam.T_world_from[:3, :3][:, 0]
+    d = 0.88 * float(np.linalg.norm(c[:2]))  # the rim lies a little before the turntable axis
+    target = c + d * z
+    eye = target - 0.3 * d * z + 0.15 * d * np.array([0.0, 0.0, 1.0]) + 0.15 * d * x
+    return rrb.EyeControls3D(position=eye, look_target=target, eye_up=[0.0, 0.0, 1.0])
+
+
+def default_blueprint(rig: Rig | None = None):
     """Frames and phase on the left, uncertainty in the middle, cloud and plots on the right."""
     import rerun.blueprint as rrb
 
@@ -64,7 +79,8 @@ def default_blueprint():
                 rrb.Spatial2DView(name="data uncertainty", origin="world/camera", contents="world/camera/sigma/data"),
             ),
             rrb.Vertical(
-                rrb.Spatial3DView(name="point cloud", origin="world"),
+                rrb.Spatial3DView(name="point cloud", origin="world",
+                                  eye_controls=_eye_for(rig) if rig is not None else None),
                 rrb.TimeSeriesView(name="turntable and accuracy", origin="stats"),
                 row_shares=[3, 2],
             ),
@@ -88,8 +104,12 @@ class RerunLogger:
         connect: str | None = None,
         spawn: bool = False,
         recording_id: str | None = None,
+        cloud_color: str = "sigma",
     ) -> None:
         import rerun as rr
+
+        if cloud_color not in ("sigma", "deviation"):
+            raise ValueError(f"cloud_color must be 'sigma' or 'deviation', got {cloud_color!r}")
 
         self.rr = rr
         self.stream = rr.RecordingStream(APP_ID, recording_id=recording_id)
@@ -107,10 +127,19 @@ class RerunLogger:
             self.stream.spawn(default_blueprint=blueprint)
         else:
             raise ValueError("RerunLogger needs a sink: save, connect or spawn")
+        self.sigma_max = 0.2  # rad, top of the uncertainty colour scale
+        self.cloud_color = cloud_color
 
     def log_rig(self, rig: Rig) -> None:
-        """Camera intrinsics and pose in the turntable frame, logged once (static)."""
+        """Camera intrinsics and pose in the turntable frame, logged once (static).
+
+        Also sends the blueprint again with the 3D view aimed at what this rig measures.
+        """
         rr = self.rr
+        try:
+            self.stream.send_blueprint(default_blueprint(rig))
+        except RuntimeError as exc:
+            self._viewer_lost(exc)
         cam = rig.camera
         t_wc = cam.T_world_from
         self.stream.log(
@@ -163,20 +192,26 @@ class RerunLogger:
     ) -> None:
         rr, s = self.rr, self.stream
         s.set_time("burst", sequence=burst.index)
-        s.set_time("capture_time", timestamp=burst.timestamp_ns * 1e-9)
+        s.set_time("capture_time", duration=burst.timestamp_ns * 1e-9)
         for i, f in enumerate(burst.frames):
             s.log(f"world/camera/frames/{i}", rr.Image(f.image))
-        valid = mask if mask is not None else result.modulation > 0.02
+        valid = mask if mask is not None else (result.modulation > 0.02) & np.isfinite(result.sigma_total)
+        # coloured views for people (fixed scales, invalid pixels black); raw float32 values for tools
         s.log("world/camera/phase", rr.Image(colorize(result.phase, -np.pi, np.pi, "twilight", valid)))
         s.log("world/camera/phase_rad", rr.Image(result.phase.astype(np.float32)))
         for name in ("model", "data", "total"):
-            s.log(f"world/camera/sigma/{name}", rr.Image(getattr(result, f"sigma_{name}").astype(np.float32)))
+            sigma = getattr(result, f"sigma_{name}")
+            s.log(f"world/camera/sigma/{name}", rr.Image(colorize(sigma, 0.0, self.sigma_max, "viridis", valid)))
+        s.log("world/camera/sigma_rad/total", rr.Image(result.sigma_total.astype(np.float32)))
         if error is not None:
-            s.log("world/camera/error", rr.Image(np.abs(error).astype(np.float32)))
+            s.log("world/camera/error", rr.Image(colorize(np.abs(error), 0.0, 0.5, "magma", valid)))
         if cloud is not None and len(cloud):
-            colors = colorize(cloud.sigma, 0.0, max(float(np.percentile(cloud.sigma, 99)), 1e-6), "viridis")
-            # radius in screen points, not mm: at the 3D view's default framing (camera, projector and
-            # gear in view) one mm is well under a pixel, and 0.02 mm points vanished in the web viewer
+            if self.cloud_color == "deviation" and cloud.deviation is not None:
+                colors = colorize(cloud.deviation, -0.1, 0.1, "coolwarm")  # mm, signed distance to CAD
+            else:  # depth sigma, stretched between its 1st and 99th percentile
+                lo, hi = np.percentile(cloud.sigma, [1, 99])
+                colors = colorize(cloud.sigma, float(lo), max(float(hi), float(lo) + 1e-9), "viridis")
+            # radius in screen points, not mm: sub-mm points vanish when the view is zoomed out
             s.log("world/cloud", rr.Points3D(cloud.points, colors=colors, radii=rr.Radius.ui_points(1.5)))
         s.log("stats/turntable_deg", rr.Scalars(np.degrees(burst.angles[0])))
         for k, v in (stats or {}).items():
