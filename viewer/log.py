@@ -41,7 +41,8 @@ _LUTS: dict[str, np.ndarray] = {}
 def colorize(values: np.ndarray, lo: float, hi: float, cmap: str, mask: np.ndarray | None = None) -> np.ndarray:
     """Map ``values`` to RGB uint8 with a matplotlib colormap; masked-out pixels black."""
     lut = _LUTS.setdefault(cmap, _lut(cmap))
-    idx = np.clip((np.nan_to_num(values) - lo) / (hi - lo) * 255, 0, 255).astype(np.uint8)
+    scale = 255.0 / max(hi - lo, 1e-12)
+    idx = np.clip((np.nan_to_num(values, posinf=hi, neginf=lo) - lo) * scale, 0, 255).astype(np.uint8)
     rgb = lut[idx]
     if mask is not None:
         rgb[~mask] = 0
