@@ -119,12 +119,24 @@ def predict(
     )
 
 
-def _load_dataset(spec: str):
-    """A folder of .npz items, or ``package.module:function`` returning a dataset or (train, val)."""
+def _load_dataset(spec: str, max_items: int | None = None):
+    """A twin dataset folder (``gearscan twin dataset``), a folder of .npz items, or
+    ``package.module:function`` returning a dataset or (train, val)."""
     import importlib
 
     from gearscan.inference.data import NpzBurstDataset
 
+    if (Path(spec) / "index.json").is_file():
+        import numpy as np
+        from torch.utils.data import Subset
+
+        from gearscan.twin.dataset import TwinBurstDataset
+
+        ds = TwinBurstDataset(spec, static=True)
+        if max_items is not None and len(ds) > max_items:  # a validation sample, seeded
+            pick = np.random.default_rng(0).choice(len(ds), max_items, replace=False)
+            return Subset(ds, sorted(pick.tolist()))
+        return ds
     if Path(spec).is_dir():
         return NpzBurstDataset(spec)
     if ":" in spec:
@@ -139,7 +151,7 @@ def train(
     data: Annotated[
         str,
         typer.Option(
-            help="folder of .npz items (input/target/mask/phase/group) or 'module:function' returning a Dataset or (train, val)"
+            help="twin dataset folder (gearscan twin dataset), folder of .npz items (input/target/mask/phase/group) or 'module:function' returning a Dataset or (train, val)"
         ),
     ],
     out: Annotated[
@@ -224,7 +236,7 @@ def train(
         progress=progress,
     )
     train_set = _load_dataset(data)
-    val_set = _load_dataset(val_data) if val_data else None
+    val_set = _load_dataset(val_data, max_items=64) if val_data else None
     if isinstance(train_set, tuple):
         train_set, val_set = train_set
     result = run_training(config, train_set, val_set)

@@ -11,8 +11,6 @@ Specs (degrees at this CLI edge, radians out):
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 
@@ -52,12 +50,3 @@ def frame_angles(spec: str, bursts: int, start_deg: float = 0.0) -> np.ndarray:
     else:
         raise MotionError(f"motion {spec!r}: kind must be static, uniform, nonuniform or angles")
     return np.radians(start_deg + np.concatenate([[0.0], np.cumsum(steps)]))
-
-
-def describe(spec: str) -> str:
-    """Human-readable summary, for recording metadata."""
-    return spec if ":" in spec or spec == "static" else f"{spec} (unparsed)"
-
-
-def deg(x: float) -> float:
-    return math.degrees(x)
