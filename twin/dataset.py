@@ -259,10 +259,11 @@ class TwinBurstDataset:
         frames = np.stack([a["images"][p, s][sl] for p, s in zip((i, j, k), self._idx3, strict=True)])
         return {
             "input": frames.astype(np.float32) / self.full_scale(g),
-            "target": np.ascontiguousarray(a["label"][i][(slice(None), *sl)]),
-            "truth_md": np.ascontiguousarray(a["truth_md"][i][(slice(None), *sl)]),
-            "mask": np.ascontiguousarray(a["mask"][i][sl]),
-            "phase": np.ascontiguousarray(a["phase"][i][sl]),
+            # copies: memory-mapped views are read-only and torch warns on them
+            "target": np.array(a["label"][i][(slice(None), *sl)]),
+            "truth_md": np.array(a["truth_md"][i][(slice(None), *sl)]),
+            "mask": np.array(a["mask"][i][sl]),
+            "phase": np.array(a["phase"][i][sl]),
             "group": g,
             "span_deg": (k - i) * self.spec.pose_step_deg,
             "poses": (i, j, k),
