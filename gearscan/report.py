@@ -221,6 +221,8 @@ def part_networks(opt: EvalOptions, methods: dict, cases: list[BurstCase]) -> di
 
 
 def part_loss_ablation(opt: EvalOptions, work: Path, cases: list[BurstCase]) -> dict:
+    import torch
+
     from gearscan.inference.losses import LossConfig
     from gearscan.inference.models import ModelConfig
     from gearscan.inference.predictor import Predictor
@@ -234,7 +236,10 @@ def part_loss_ablation(opt: EvalOptions, work: Path, cases: list[BurstCase]) -> 
         spec = DatasetSpec(gears=[GearSpec(teeth=16), GearSpec(teeth=30)], width=b["size"], height=b["size"],
                            randomize=True, max_start_points=1, seed=opt.seed + 3, poses=b["poses"])
         generate_dataset(train_root, spec)
-    ds = TwinBurstDataset(train_root, crop=b["crop"], static=True)
+    n_sp = len(TwinBurstDataset(train_root).start_points)
+    ds = TwinBurstDataset(train_root, crop=b["crop"], static=True, groups=list(range(n_sp - 1)))
+    val_full = TwinBurstDataset(train_root, static=True, groups=[n_sp - 1])  # a held-out start point
+    val = torch.utils.data.Subset(val_full, np.random.default_rng(0).choice(len(val_full), 16, replace=False).tolist())
     base = Predictor.load(opt.model).model.config
     variants = {
         "with temperature + MSE weight (ours)": LossConfig(alpha=1e-4, mse_weight=1.0, mse_weighting="modulation"),
@@ -246,7 +251,7 @@ def part_loss_ablation(opt: EvalOptions, work: Path, cases: list[BurstCase]) -> 
         cfg = TrainConfig(out_dir=str(work / ("ablation-" + label.split()[0])), model=ModelConfig(**base.to_json()), loss=loss,
                           epochs_deterministic=b["epochs"], epochs_dropout=0, batch_size=b["batch"], lr=2e-3,
                           schedule="cosine", steps_per_epoch=b["steps"], progress=False, calibrate=False)
-        res = train(cfg, ds)
+        res = train(cfg, ds, val)
         curves[label] = [h["val_rmse"] for h in res.history]
         s = score({label: network_method(Predictor.load(res.best_path))}, [c for c in cases if c.motion in PAPER_MOTIONS])
         out[label] = {x.motion: x.rmse_rad for x in s}
