@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from gearscan.projector.patterns import PatternSet
-from gearscan.recon.phase import phase_error, three_step
+from gearscan.recon.phase import phase_error
 from gearscan.rig import Rig
 from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, Truth, TwinRenderer
@@ -44,12 +44,26 @@ class Scene:
     gear: GearSpec
     period_px: float
     _renderer: TwinRenderer | None = field(default=None, repr=False)
+    _cad: tuple | None = field(default=None, repr=False)
 
     @property
     def renderer(self) -> TwinRenderer:
         if self._renderer is None:
             self._renderer = TwinRenderer(self.rig, self.gear, self.optics)
         return self._renderer
+
+    @property
+    def cad(self) -> tuple:
+        """(Reconstructor, RaycastingScene of the CAD gear), built once per scene."""
+        if self._cad is None:
+            import open3d as o3d
+
+            from gearscan.measure import Reconstructor
+
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(self.gear.mesh()))
+            self._cad = (Reconstructor.for_gear(self.rig, self.period_px, self.gear), scene)
+        return self._cad
 
 
 def scenes_from_dataset(root: str | Path, limit: int | None = None) -> list[Scene]:
@@ -167,24 +181,13 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
     return out
 
 
-_SCENES_CAD: dict[int, object] = {}
-
-
 def cloud_deviation(case: BurstCase, result: PhaseResult) -> np.ndarray:
     """Signed distance (mm) to the CAD gear of the points triangulated from ``result``."""
     import open3d as o3d
 
-    from gearscan.measure import Reconstructor
     from gearscan.types import Burst, Frame
 
-    scene = case.scene
-    key = id(scene)
-    if key not in _SCENES_CAD:
-        rc = Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear)
-        cad = o3d.t.geometry.RaycastingScene()
-        cad.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(scene.gear.mesh()))
-        _SCENES_CAD[key] = (rc, cad)
-    rc, cad = _SCENES_CAD[key]
+    rc, cad = case.scene.cad
     fr = tuple(Frame(f, i, 0, i) for i, f in enumerate(case.frames))
     angles = tuple(math.radians(a) for a in case.angles_deg)
     result.angle = angles[0]
@@ -210,8 +213,3 @@ def scores_table(scores: list[Score], baseline: str = "three-step PS") -> str:
             f"{'' if s.cloud_rms_mm is None else f'{s.cloud_rms_mm:.4f}'} | {s.seconds_per_burst:.3f} |"
         )
     return "\n".join(lines)
-
-
-def classical_three_step_rmse(case: BurstCase) -> float:
-    phase, _, _ = three_step(case.frames, case.full_scale)
-    return float(np.sqrt(np.mean(phase_error(phase, case.truth.phase)[case.truth.mask] ** 2)))
