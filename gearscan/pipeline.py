@@ -156,6 +156,7 @@ class Pipeline:
     def _run_source(self) -> None:
         st = self.stats[self._source_name]
         out = self.queues[0] if self.queues else None
+        it = None
         try:
             it = self._source() if callable(self._source) else iter(self._source)
             while not self._stop.is_set():
@@ -172,19 +173,20 @@ class Pipeline:
         except BaseException as exc:  # noqa: BLE001 - reported through PipelineError
             self._fail(self._source_name, exc)
         finally:
-            close = getattr(locals().get("it"), "close", None)
-            if close is not None:  # a generator source runs its own cleanup (e.g. a `with` block)
-                try:
-                    close()
-                except Exception as exc:  # noqa: BLE001
-                    self._fail(self._source_name, exc)
-            if self._source_close:
-                try:
-                    self._source_close()
-                except Exception as exc:  # noqa: BLE001
-                    self._fail(self._source_name, exc)
+            # a generator source runs its own cleanup (e.g. a `with` block) when closed
+            self._close(self._source_name, getattr(it, "close", None), self._source_close)
             if out is not None:
                 out.put(_END)
+
+    def _close(self, name: str, *closers: Callable[[], None] | None) -> None:
+        """Run each cleanup; a failing one is reported as that stage's error, the rest still run."""
+        for fn in closers:
+            if fn is None:
+                continue
+            try:
+                fn()
+            except Exception as exc:  # noqa: BLE001 - reported through PipelineError
+                self._fail(name, exc)
 
     def _run_stage(self, k: int) -> None:
         spec, inq = self.specs[k], self.queues[k]
@@ -215,11 +217,7 @@ class Pipeline:
             self._fail(spec.name, exc)
         finally:
             st.dropped_in = inq.dropped
-            if spec.close:
-                try:
-                    spec.close()
-                except Exception as exc:  # noqa: BLE001
-                    self._fail(spec.name, exc)
+            self._close(spec.name, spec.close)
             if outq is not None:
                 outq.put(_END)
 

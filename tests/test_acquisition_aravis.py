@@ -29,7 +29,7 @@ def _require_aravis() -> None:
 
     reason = aravis_missing_reason()
     if reason is not None:
-        pytest.skip(reason)  # only when the Python bindings are genuinely absent
+        pytest.fail(f"{reason} (scripts/setup.sh installs both)")  # a missing install must not pass as green
     simulator_path()  # raises SimulatorMissing (test fails, not skipped) when aravis-tools is absent
 
 

@@ -46,7 +46,7 @@ def sim():
     from gearscan.mocks.gv_simulator import GvSimulator, aravis_missing_reason, simulator_path
 
     if (reason := aravis_missing_reason()) is not None:
-        pytest.skip(reason)  # only when the Python bindings are genuinely absent
+        pytest.fail(f"{reason} (scripts/setup.sh installs both)")  # a missing install must not pass as green
     simulator_path()  # fails (not skips) when aravis-tools is missing
 
     with GvSimulator() as s:

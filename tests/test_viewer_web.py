@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from webshot import Chromium, find_chromium  # noqa: E402
+from webshot import Chromium  # noqa: E402
 
 ARTIFACTS = Path(__file__).parent / "artifacts"
 WIDTH, HEIGHT = 1600, 1000
@@ -28,8 +28,6 @@ WIDTH, HEIGHT = 1600, 1000
 TOP_BAR_PX, TIME_PANEL_PX = 36, 29
 TITLE_BAR_PX = 26  # each view's tab/title strip
 
-pytestmark = pytest.mark.skipif(find_chromium() is None,
-                                reason="needs Chromium (scripts/setup.sh installs the Debian package)")
 
 Rect = tuple[int, int, int, int]  # x0, y0, x1, y1 in screenshot pixels
 
