@@ -161,6 +161,7 @@ def replay_cmd(
     classical: Annotated[bool, typer.Option(help="decode with three-step PS instead of the network")] = False,
     mc: Annotated[int, typer.Option(min=0, help="Monte Carlo passes (0: deterministic)")] = 0,
     model: Annotated[Path | None, typer.Option(help="model weights (.safetensors); default: the shipped model")] = None,
+    truth: Annotated[bool, typer.Option(help="score against the recording's truth when it has one (--no-truth: what a live run does per burst)")] = True,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth."""
     from gearscan.pipeline import PipelineError
@@ -178,7 +179,8 @@ def replay_cmd(
     if not (save or connect):
         save = Path("out") / f"{recording.name}.rrd"
     try:
-        result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed))
+        result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
+                        truth=truth)
     except (RecordingError, PipelineError) as exc:
         raise _fail(str(exc)) from exc
     finally:

@@ -109,7 +109,7 @@ def run_live(
         source,
         [
             StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2),
-            StageSpec("reconstruct", lambda m: recon(m.burst, m.result), queue_size=2),
+            StageSpec("reconstruct", lambda m: recon(m.burst, m.result), queue_size=2, close=recon.close),
             StageSpec("output", output, close=logger.close if logger else None, queue_size=4),
         ],
         source_name="acquisition",

@@ -76,21 +76,31 @@ class Reconstructor:
     fringes); with ``cad_tolerance_mm=None`` the tip and root cylinders bound it (needs a fringe
     period above :func:`~gearscan.recon.unwrap.min_unambiguous_period`, about 96 px on the
     default rig). Pixels are kept where the order is unambiguous, the modulation is above
-    ``min_modulation`` (2B/S) and the total phase sigma is below ``max_sigma`` rad.
+    ``min_modulation`` (2B/S) and the total phase sigma is below ``max_sigma`` rad; the CAD
+    rays are cast only for pixels that pass the last two tests. An undistorted projector takes
+    the fused unwrap + triangulate path (:mod:`gearscan.recon.reconstruct`); a distorted one the
+    fixed-point :class:`~gearscan.recon.triangulate.Triangulator`.
     """
 
     def __init__(self, rig: Rig, period_px: float, gear, *, min_modulation: float = 0.05,
-                 max_sigma: float = 0.3, margin: float = 0.3, cad_tolerance_mm: float | None = 0.3) -> None:
+                 max_sigma: float = 0.3, margin: float = 0.3, cad_tolerance_mm: float | None = 0.3,
+                 threads: int | None = None) -> None:
+        from gearscan.recon.reconstruct import SingleFrequencyReconstructor
         from gearscan.recon.triangulate import Triangulator
         from gearscan.recon.unwrap import CadDepthBounds, gear_depth_bounds, phase_bounds
 
         self.rig = rig
         self.period_px = period_px
         self.cad_bounds = CadDepthBounds(rig, gear.mesh(), cad_tolerance_mm) if cad_tolerance_mm else None
+        fixed = None
         if self.cad_bounds is None:
-            bounds = gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
-            self.phi_min, self.phi_max = phase_bounds(rig, bounds, period_px)
-        self.triangulator = Triangulator(rig, period_px)
+            fixed = gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
+            self.phi_min, self.phi_max = phase_bounds(rig, fixed, period_px)
+        self.fused = None
+        if not np.any(rig.projector.dist != 0) and rig.projector.K[0, 1] == 0:
+            self.fused = SingleFrequencyReconstructor(rig, period_px, fixed, margin=margin, threads=threads)
+        else:
+            self.triangulator = Triangulator(rig, period_px)
         self.min_modulation = min_modulation
         self.max_sigma = max_sigma
         self.margin = margin
@@ -99,16 +109,20 @@ class Reconstructor:
     def for_gear(cls, rig: Rig, period_px: float, gear, **kw) -> Reconstructor:
         return cls(rig, period_px, gear, **kw)
 
-    def bounds(self, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    def close(self) -> None:
+        if self.fused is not None:
+            self.fused.close()
+
+    def bounds(self, angle: float, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Absolute-phase interval per pixel for a burst at turntable ``angle``."""
         if self.cad_bounds is None:
             return self.phi_min, self.phi_max
         from gearscan.recon.unwrap import phase_bounds
 
-        return phase_bounds(self.rig, self.cad_bounds(angle), self.period_px)
+        return phase_bounds(self.rig, self.cad_bounds(angle, mask), self.period_px)
 
     def __call__(self, burst: Burst, result: PhaseResult) -> Measurement:
-        from gearscan.recon.triangulate import to_cloud
+        from gearscan.recon.triangulate import Triangulation, to_cloud
         from gearscan.recon.unwrap import geometric_unwrap
 
         cam_shape = (self.rig.camera.height, self.rig.camera.width)
@@ -117,10 +131,18 @@ class Reconstructor:
                 f"phase map {result.phase.shape} does not match the rig camera "
                 f"{cam_shape}: wrong rig file for this camera/ROI?"
             )
-        phi_min, phi_max = self.bounds(burst.angles[0])
-        un = geometric_unwrap(result.phase, phi_min, phi_max, self.period_px, margin=self.margin)
-        keep = un.valid & (result.modulation >= self.min_modulation) & (result.sigma_total <= self.max_sigma)
-        phase_abs = np.where(keep, un.phase_abs, np.nan)
-        tri = self.triangulator(phase_abs, result.sigma_total)
+        candidate = (result.modulation >= self.min_modulation) & (result.sigma_total <= self.max_sigma)
+        if self.fused is not None:
+            depth = self.cad_bounds(burst.angles[0], candidate) if self.cad_bounds is not None else None
+            tri, order = self.fused(result.phase, result.sigma_total, bounds=depth)
+            keep = tri.valid & candidate
+            phase_abs = np.where(keep, result.phase + np.float32(2 * np.pi) * order, np.float32(np.nan))
+            tri = Triangulation(points=tri.points, depth=tri.depth, sigma_depth=tri.sigma_depth, valid=keep)
+        else:
+            phi_min, phi_max = self.bounds(burst.angles[0], candidate)
+            un = geometric_unwrap(result.phase, phi_min, phi_max, self.period_px, margin=self.margin)
+            keep = un.valid & candidate
+            phase_abs = np.where(keep, un.phase_abs, np.nan)
+            tri = self.triangulator(phase_abs, result.sigma_total)
         cloud = to_cloud(tri, self.rig, result.angle, burst_index=burst.index)
         return Measurement(burst, result, cloud, phase_abs, tri.valid)

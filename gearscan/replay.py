@@ -103,9 +103,14 @@ def replay(
     metrics_path: str | Path | None = None,
     speed: float | None = None,
     reconstruct: bool = True,
+    truth: bool = True,
     on_burst: Callable[[Measurement, dict], None] | None = None,
 ) -> ReplayMetrics:
-    """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible."""
+    """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
+
+    ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
+    point, a three-step baseline), so the run costs what a live run costs.
+    """
     from gearscan.acquisition.bursts import BurstAssembler
     from gearscan.mocks.replay_camera import ReplayCamera
 
@@ -118,7 +123,7 @@ def replay(
     period = patterns.periods[0]
     gear = reader.gear
     recon = Reconstructor.for_gear(rig, period, gear) if (reconstruct and gear is not None) else None
-    scorer = TruthScorer(reader) if reader.has_truth() else None
+    scorer = TruthScorer(reader) if (truth and reader.has_truth()) else None
     logger = None
     if save or connect or spawn:
         from gearscan.viewer.log import RerunLogger
@@ -151,7 +156,8 @@ def replay(
     stages = [
         StageSpec("assemble", assembler.push),
         StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2),
-        StageSpec("reconstruct", (lambda m: recon(m.burst, m.result)) if recon else (lambda m: m)),
+        StageSpec("reconstruct", (lambda m: recon(m.burst, m.result)) if recon else (lambda m: m),
+                  close=recon.close if recon else None),
         StageSpec("output", output, close=logger.close if logger else None, queue_size=8),
     ]
     if speed is None:  # as fast as possible: nothing may be dropped

@@ -181,6 +181,19 @@ def dropout_regularization(model: nn.Module) -> torch.Tensor:
     return torch.stack([layer.regularization() for layer in layers]).sum()
 
 
+def reset_dropout_rates(model: nn.Module, init_min: float, init_max: float) -> None:
+    """Re-draw every layer's rate uniformly in logit space between ``init_min`` and ``init_max``.
+
+    For fine-tuning from a deterministic pre-training whose (untrained) rates came from
+    another range.
+    """
+    if not 0.0 < init_min <= init_max < 1.0:
+        raise ValueError(f"init_min/init_max: expected 0 < min <= max < 1, got {init_min}, {init_max}")
+    with torch.no_grad():
+        for layer in concrete_layers(model):
+            layer.p_logit.uniform_(_logit(init_min), _logit(init_max))
+
+
 def dropout_rates(model: nn.Module) -> list[float]:
     """Current rate ``p`` of each Concrete Dropout layer."""
     return [float(layer.p.item()) for layer in concrete_layers(model)]

@@ -35,7 +35,12 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Subset
 
-from gearscan.inference.concrete_dropout import concrete_layers, dropout_rates, set_stochastic
+from gearscan.inference.concrete_dropout import (
+    concrete_layers,
+    dropout_rates,
+    reset_dropout_rates,
+    set_stochastic,
+)
 from gearscan.inference.data import dataset_groups, split_by_group
 from gearscan.inference.losses import LossConfig, PhaseLoss
 from gearscan.inference.model_io import load_into, load_state, save_model
@@ -66,6 +71,7 @@ class TrainConfig:
     num_workers: int = 0
     seed: int = 0
     init: str | None = None
+    reset_dropout: bool = False  # after ``init``: re-draw dropout rates from the model config's range
     resume: bool = False
     progress: bool = True
     calibrate: bool = True
@@ -201,6 +207,8 @@ class Trainer:
         self.model: PhaseNet = build_model(config.model).to(self.device)
         if config.init:
             load_into(self.model, load_state(config.init), config.init)
+            if config.reset_dropout:
+                reset_dropout_rates(self.model, config.model.init_min, config.model.init_max)
         self.criterion = PhaseLoss(config.loss)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
         self.has_dropout = bool(concrete_layers(self.model))

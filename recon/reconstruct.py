@@ -10,6 +10,10 @@ projector distortion use those (the fixed-point correction is not fused here).
 Per pixel, with ``f = phi / 2 pi``, ``a = (phi_min - margin) / 2 pi`` and
 ``s = (phi_max - phi_min + 2 margin) / 2 pi``:
 
+Bounds are fixed per rig (tip/root cylinders) or given per call (the CAD gear at each burst's
+encoder angle); per-call depth bounds become phase bounds in the same block pass, through the
+projector column along the ray, ``u(z) = fx (c1 z + t1) / (c3 z + t3) + cx``.
+
 ``k = ceil(a - f)``, valid iff ``k <= a - f + s < k + 1`` (exactly one order in the interval);
 ``phi_abs = phi + 2 pi k``; ``z = (alpha phi_abs + beta) / (g - d phi_abs)``;
 ``sigma_z = |alpha g + beta d| sigma_phi / (g - d phi_abs)^2``; ``X = z (x, y, 1)``.
@@ -37,7 +41,8 @@ class SingleFrequencyReconstructor:
     ----------
     rig : calibrated rig (projector without lens distortion for this fused path)
     period_px : fringe period, projector px
-    bounds : per-pixel depth range (e.g. :func:`gearscan.recon.unwrap.gear_depth_bounds`)
+    bounds : per-pixel depth range (e.g. :func:`gearscan.recon.unwrap.gear_depth_bounds`); None
+        when every call passes its own ``bounds=``
     margin : rad the phase interval is widened by on both sides (noise allowance)
     threads : worker threads (default: CPU count, at most 8)
     block_rows : rows per work item (cache-sized blocks)
@@ -47,7 +52,7 @@ class SingleFrequencyReconstructor:
         self,
         rig: Rig,
         period_px: float,
-        bounds: DepthBounds,
+        bounds: DepthBounds | None = None,
         *,
         margin: float = 0.2,
         threads: int | None = None,
@@ -60,9 +65,12 @@ class SingleFrequencyReconstructor:
         self.period_px = float(period_px)
         cam = rig.camera
         self.shape = (cam.height, cam.width)
-        lo, hi = phase_bounds(rig, bounds, period_px)
-        self._a = ((lo - margin) / TWO_PI).astype(np.float32)
-        self._s = ((hi - lo + 2 * margin) / TWO_PI).astype(np.float32)
+        self.margin = float(margin)
+        self._a = self._s = None
+        if bounds is not None:
+            lo, hi = phase_bounds(rig, bounds, period_px)
+            self._a = ((lo - margin) / TWO_PI).astype(np.float32)
+            self._s = ((hi - lo + 2 * margin) / TWO_PI).astype(np.float32)
         rays = cam.pixel_rays()
         rays = rays / rays[..., 2:3]
         self._x = rays[..., 0].astype(np.float32)
@@ -82,6 +90,12 @@ class SingleFrequencyReconstructor:
         self._g = (c1 - b * c3).astype(np.float32)
         self._d = (a * c3).astype(np.float32)
         self._num = np.abs(float(self._alpha) * self._g + float(self._beta) * self._d).astype(np.float32)
+        # depth -> projector phase along each ray: phi(z) = (c1 z + t1) / (c3 z + t3) * q + q0
+        self._c1 = c1.astype(np.float32)
+        self._c3 = c3.astype(np.float32)
+        self._t1, self._t3 = np.float32(tv[0]), np.float32(tv[2])
+        self._q = np.float32(TWO_PI * kp[0, 0] / self.period_px)
+        self._q0 = np.float32(TWO_PI * kp[0, 2] / self.period_px)
         self.block_rows = int(block_rows)
         self.threads = threads or min(8, os.cpu_count() or 1)
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
@@ -97,14 +111,39 @@ class SingleFrequencyReconstructor:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _block(self, r0: int, r1: int, phase, sigma, out_pts, out_z, out_sig, out_valid, out_k) -> None:
+    def _phase_at(self, depth: np.ndarray, sl: slice) -> np.ndarray:
+        """Absolute projector phase seen at camera z-depth ``depth`` along the rows ``sl``."""
+        num = self._c1[sl] * depth
+        num += self._t1
+        den = self._c3[sl] * depth
+        den += self._t3
+        num /= den
+        num *= self._q
+        num += self._q0
+        return num
+
+    def _interval(self, bounds: DepthBounds, sl: slice) -> tuple[np.ndarray, np.ndarray]:
+        """``a`` and ``s`` of the module docstring for per-call depth bounds, rows ``sl``."""
+        p0 = self._phase_at(np.asarray(bounds.t_min[sl], np.float32), sl)
+        p1 = self._phase_at(np.asarray(bounds.t_max[sl], np.float32), sl)
+        lo = np.fmin(p0, p1)
+        hi = np.fmax(p0, p1, out=p1)
+        hi -= lo
+        hi += np.float32(2 * self.margin)
+        hi *= np.float32(1 / TWO_PI)
+        lo -= np.float32(self.margin)
+        lo *= np.float32(1 / TWO_PI)
+        return lo, hi
+
+    def _block(self, r0: int, r1: int, phase, sigma, bounds, out_pts, out_z, out_sig, out_valid, out_k) -> None:
         sl = slice(r0, r1)
+        a, s = self._interval(bounds, sl) if bounds is not None else (self._a[sl], self._s[sl])
         phi = np.asarray(phase[sl], dtype=np.float32)
         u = phi * np.float32(-1 / TWO_PI)
-        u += self._a[sl]  # a - f
+        u += a  # a - f
         k = out_k[sl]
         np.ceil(u, out=k)
-        top = u + self._s[sl]
+        top = u + s
         top -= k  # in [0, 1) iff exactly one order fits; NaN bounds -> NaN -> invalid
         valid = out_valid[sl]
         np.less(top, 1.0, out=valid)
@@ -146,6 +185,7 @@ class SingleFrequencyReconstructor:
         wrapped: np.ndarray,
         sigma_phase: np.ndarray | float | None = None,
         *,
+        bounds: DepthBounds | None = None,
         out: tuple[Triangulation, np.ndarray] | None = None,
     ) -> tuple[Triangulation, np.ndarray]:
         """Unwrap and triangulate one wrapped phase ``(H, W)``.
@@ -160,13 +200,19 @@ class SingleFrequencyReconstructor:
             raise ValueError(f"wrapped: expected shape {self.shape} (camera H, W), got {wrapped.shape}")
         if sigma_phase is not None and np.ndim(sigma_phase) == 2 and np.shape(sigma_phase) != self.shape:
             raise ValueError(f"sigma_phase: expected a scalar or shape {self.shape}, got {np.shape(sigma_phase)}")
+        if bounds is None and self._a is None:
+            raise ValueError("bounds: this reconstructor has no fixed bounds; pass bounds= per call")
+        if bounds is not None:
+            for name in ("t_min", "t_max"):
+                if np.shape(getattr(bounds, name)) != self.shape:
+                    raise ValueError(f"bounds.{name}: expected shape {self.shape}, got {np.shape(getattr(bounds, name))}")
         h, w = self.shape
         tri, order = out if out is not None else self.allocate()
         pts, z, sig, valid = tri.points, tri.depth, tri.sigma_depth, tri.valid
         if sigma_phase is None:
             sig[...] = 0.0
         sigma = None if sigma_phase is None else (np.asarray(sigma_phase, np.float32) if np.ndim(sigma_phase) == 2 else float(sigma_phase))
-        args = (wrapped, sigma, pts, z, sig, valid, order)
+        args = (wrapped, sigma, bounds, pts, z, sig, valid, order)
         starts = range(0, h, self.block_rows)
         if self._pool is None:
             for r0 in starts:

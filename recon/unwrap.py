@@ -229,21 +229,33 @@ class CadDepthBounds:
         self.scene.add_triangles(tmesh)
         self._rays_cam = rig.camera.pixel_rays().reshape(-1, 3).astype(np.float32)
 
-    def __call__(self, angle: float) -> DepthBounds:
+    def __call__(self, angle: float, mask: np.ndarray | None = None) -> DepthBounds:
+        """Bounds at turntable ``angle`` (rad); only pixels where ``mask`` is True are cast (rest NaN)."""
         import open3d as o3d
 
         from gearscan.rig import rot_z
 
         cam = self.rig.camera
-        t_gc = rot_z(-angle) @ cam.T_world_from
-        rays = np.empty((self._rays_cam.shape[0], 6), np.float32)
-        rays[:, :3] = t_gc[:3, 3]
-        rays[:, 3:] = self._rays_cam @ t_gc[:3, :3].T.astype(np.float32)
-        t = self.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))["t_hit"].numpy().astype(np.float64)
-        t[~np.isfinite(t)] = np.nan
-        zc = self._rays_cam[:, 2].astype(np.float64)
         shape = (cam.height, cam.width)
-        return DepthBounds(((t - self.tolerance) * zc).reshape(shape), ((t + self.tolerance) * zc).reshape(shape))
+        rays_cam = self._rays_cam
+        if mask is not None:
+            _check_image("mask", mask, shape)
+            idx = np.flatnonzero(mask)
+            rays_cam = rays_cam[idx]
+        t_gc = rot_z(-angle) @ cam.T_world_from
+        rays = np.empty((rays_cam.shape[0], 6), np.float32)
+        rays[:, :3] = t_gc[:3, 3]
+        rays[:, 3:] = rays_cam @ t_gc[:3, :3].T.astype(np.float32)
+        t = self.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))["t_hit"].numpy()
+        t[~np.isfinite(t)] = np.nan
+        zc = rays_cam[:, 2]
+        lo, hi = (t - self.tolerance) * zc, (t + self.tolerance) * zc
+        if mask is None:
+            return DepthBounds(lo.reshape(shape), hi.reshape(shape))
+        t_min = np.full(shape, np.nan, np.float32)
+        t_max = np.full(shape, np.nan, np.float32)
+        t_min.flat[idx], t_max.flat[idx] = lo, hi
+        return DepthBounds(t_min, t_max)
 
 
 def phase_bounds(rig: Rig, bounds: DepthBounds, period_px: float) -> tuple[np.ndarray, np.ndarray]:

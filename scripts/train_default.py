@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import Subset
+from torch.utils.data import ConcatDataset, Subset
 
 from gearscan.inference.losses import LossConfig
 from gearscan.inference.models import ModelConfig
@@ -31,7 +31,7 @@ WEIGHTS = Path(__file__).resolve().parents[1] / "inference" / "weights"
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--train", type=Path, default=Path("data/train"))
+    ap.add_argument("--train", type=Path, nargs="+", default=[Path("data/train")], help="one or more dataset folders")
     ap.add_argument("--val", type=Path, default=Path("data/val"))
     ap.add_argument("--out", type=Path, default=Path("runs/default"))
     ap.add_argument("--name", default="cd-dcu-net", help="cd-dcu-net, unet, ts-unet or dr-unet")
@@ -49,18 +49,23 @@ def main() -> None:
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--init", type=Path, default=None, help="start from these weights (.safetensors)")
     ap.add_argument("--patience", type=int, default=12)
+    ap.add_argument("--dropout-init", default="0.1,0.4", help="initial Concrete Dropout rate range MIN,MAX")
+    ap.add_argument("--reset-dropout", action="store_true", help="re-draw the rates of the --init weights from --dropout-init")
     ap.add_argument("--ship", action="store_true", help="copy best model into inference/weights/default.*")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    train_set = TwinBurstDataset(args.train, crop=args.crop, static=True, seed=0)
+    parts = [TwinBurstDataset(root, crop=args.crop, static=True, seed=i) for i, root in enumerate(args.train)]
+    train_set = parts[0] if len(parts) == 1 else ConcatDataset(parts)
+    p_min, p_max = (float(v) for v in args.dropout_init.split(","))
     val_full = TwinBurstDataset(args.val, crop=None, static=True)
     rng = np.random.default_rng(0)
     val_set = Subset(val_full, sorted(rng.choice(len(val_full), args.val_items, replace=False).tolist()))
     residual = not args.no_residual
     config = TrainConfig(
         out_dir=str(args.out),
-        model=ModelConfig(name=args.name, width=args.width, classical_input=residual, residual=residual),
+        model=ModelConfig(name=args.name, width=args.width, classical_input=residual, residual=residual,
+                          init_min=p_min, init_max=p_max),
         loss=LossConfig(alpha=1e-4, mse_weight=1.0, mse_weighting=args.mse_weighting),
         epochs_deterministic=args.epochs_det,
         epochs_dropout=args.epochs_drop,
@@ -70,6 +75,7 @@ def main() -> None:
         schedule="cosine",
         patience=args.patience,
         init=str(args.init) if args.init else None,
+        reset_dropout=args.reset_dropout,
         steps_per_epoch=args.steps_per_epoch,
         bf16=False,
         resume=args.resume,
@@ -78,7 +84,7 @@ def main() -> None:
     t0 = time.time()
     result = train(config, train_set, val_set)
     info = {"train_seconds": time.time() - t0, "train_items": len(train_set), "val_items": len(val_set),
-            "train_data": str(args.train), "val_data": str(args.val), "args": vars(args) | {"train": str(args.train), "val": str(args.val), "out": str(args.out)}}
+            "train_data": [str(r) for r in args.train], "val_data": str(args.val), "args": vars(args) | {"train": [str(r) for r in args.train], "val": str(args.val), "out": str(args.out)}}
     (args.out / "recipe.json").write_text(json.dumps(info, indent=2, default=str))
     print(result)
     if args.ship:

@@ -154,6 +154,18 @@ def test_resume_and_init(tmp_path, monkeypatch):
     ref, _ = load_model(init_path)
     for (k, a), b in zip(ref.state_dict().items(), ft.model.state_dict().values(), strict=True):
         assert torch.equal(a, b), k
+    # --init with reset_dropout: same weights, rates re-drawn from the new model config's range
+    from gearscan.inference.concrete_dropout import dropout_rates
+
+    cfg4 = _cfg(tmp_path, out_dir=str(tmp_path / "ft2"), epochs_deterministic=1, epochs_dropout=0,
+                init=str(init_path), reset_dropout=True, calibrate=False,
+                model=ModelConfig(width=4, init_min=0.02, init_max=0.05))
+    ft2 = Trainer(cfg4, ds, ds)
+    rates = dropout_rates(ft2.model)
+    assert rates and all(0.02 - 1e-6 <= r <= 0.05 + 1e-6 for r in rates), rates
+    assert all(r > 0.09 for r in dropout_rates(ft.model))  # the default range 0.1..0.4, kept by plain --init
+    for (k, a), b in zip(ref.state_dict().items(), ft2.model.state_dict().values(), strict=True):
+        assert k.endswith("p_logit") or torch.equal(a, b), k
 
 
 def test_split_by_group_never_mixes():

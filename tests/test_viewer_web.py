@@ -90,7 +90,7 @@ def colormap_hits(rgb: np.ndarray, cmap: str, tol: float = 10.0, min_chroma: int
     """
     from gearscan.viewer.log import _lut
 
-    lut = _lut(cmap)[::2].astype(np.float32)  # 128 entries: neighbours differ by ~2 DN
+    lut = _lut(cmap)[1::2].astype(np.float32)  # 128 colours (entry 0 is the black of masked pixels)
     px = rgb[::2, ::2].reshape(-1, 3).astype(np.float32)
     px = px[(px.max(1) - px.min(1)) >= min_chroma]
     if len(px) == 0:

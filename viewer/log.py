@@ -30,23 +30,35 @@ log = logging.getLogger(__name__)
 
 
 def _lut(name: str) -> np.ndarray:
+    """256 x RGB: entry 0 black (masked pixels), entries 1..255 the colormap from lo to hi."""
     import matplotlib
 
-    return (matplotlib.colormaps[name](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
+    lut = np.zeros((256, 3), np.uint8)
+    lut[1:] = (matplotlib.colormaps[name](np.linspace(0, 1, 255))[:, :3] * 255).astype(np.uint8)
+    return lut
 
 
 _LUTS: dict[str, np.ndarray] = {}
 
 
 def colorize(values: np.ndarray, lo: float, hi: float, cmap: str, mask: np.ndarray | None = None) -> np.ndarray:
-    """Map ``values`` to RGB uint8 with a matplotlib colormap; masked-out pixels black."""
-    lut = _LUTS.setdefault(cmap, _lut(cmap))
-    scale = 255.0 / max(hi - lo, 1e-12)
-    idx = np.clip((np.nan_to_num(values, posinf=hi, neginf=lo) - lo) * scale, 0, 255).astype(np.uint8)
-    rgb = lut[idx]
+    """Map ``values`` to RGB uint8 with a matplotlib colormap; masked-out pixels black.
+
+    NaN and values below ``lo`` take the low colour, values above ``hi`` (and inf) the high one.
+    One gather per pixel through a table whose entry 0 is black (a few ms for 512x512).
+    """
+    lut = _LUTS.get(cmap)
+    if lut is None:
+        lut = _LUTS[cmap] = _lut(cmap)
+    x = np.subtract(values, np.float32(lo), dtype=np.float32)
+    x *= np.float32(254.0 / max(hi - lo, 1e-12))
+    np.fmax(x, 0.0, out=x)  # fmax/fmin drop NaN: NaN -> low end
+    np.fmin(x, 254.0, out=x)
+    x += 1.0
+    idx = x.astype(np.uint8)
     if mask is not None:
-        rgb[~mask] = 0
-    return rgb
+        idx[~mask] = 0
+    return np.take(lut, idx, axis=0)
 
 
 def _eye_for(rig: Rig):
