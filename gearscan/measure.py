@@ -91,7 +91,9 @@ class Reconstructor:
 
         self.rig = rig
         self.period_px = period_px
-        self.cad_bounds = CadDepthBounds(rig, gear.mesh(), cad_tolerance_mm) if cad_tolerance_mm else None
+        # the walls are extruded along z: one layer is exact, and 5x fewer triangles to cast at
+        bounds_mesh = gear.mesh(layer_mm=gear.face_width) if cad_tolerance_mm else None
+        self.cad_bounds = CadDepthBounds(rig, bounds_mesh, cad_tolerance_mm) if cad_tolerance_mm else None
         fixed = None
         if self.cad_bounds is None:
             fixed = gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)

@@ -142,3 +142,24 @@ def make_head(kind: str, width: int, out_channels: int = 4) -> nn.Module:
     if kind == "1x1":
         return nn.Conv2d(width, out_channels, 1)
     raise ValueError(f"head kind: expected 'dual3x3', '3x3' or '1x1', got {kind!r}")
+
+
+@torch.no_grad()
+def fold_batchnorm(model: nn.Module) -> nn.Module:
+    """Fold every eval-mode BatchNorm that directly follows a conv in a Sequential into that conv.
+
+    Exact for inference (BN in eval mode is affine), one pass less over each feature map. The
+    model is changed in place and returned; only for models that will not be trained again.
+    """
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    if model.training:
+        raise ValueError("fold_batchnorm: call model.eval() first (training-mode BN cannot be folded)")
+    for seq in [m for m in model.modules() if isinstance(m, nn.Sequential)]:
+        names = list(seq._modules)
+        for a, b in zip(names, names[1:], strict=False):
+            conv, bn = seq._modules[a], seq._modules[b]
+            if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
+                seq._modules[a] = fuse_conv_bn_eval(conv, bn)
+                seq._modules[b] = nn.Identity()
+    return model

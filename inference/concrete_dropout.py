@@ -148,8 +148,11 @@ class ConcreteDropout2d(nn.Module):
         if x.ndim != 4:
             raise ValueError(f"ConcreteDropout2d: expected (B, C, H, W), got {tuple(x.shape)}")
         self._input_dim = x.shape[1] if self.channelwise else x.shape[1] * x.shape[2] * x.shape[3]
-        x = self._drop(x) if self.stochastic else x * self.keep_scale().to(x.dtype)
-        return self.conv(x)
+        if self.stochastic:
+            return self.conv(self._drop(x))
+        # deterministic: conv(x * s) == conv with weights * s, without a pass over the feature map
+        scale = self.keep_scale().to(self.conv.weight.dtype)
+        return self.conv._conv_forward(x, self.conv.weight * scale, self.conv.bias)
 
     def regularization(self) -> torch.Tensor:
         """This layer's KL contribution (scalar tensor, differentiable in W and p)."""

@@ -12,11 +12,13 @@ Raw frames are converted to float32 in [0, 1] with their full scale S (255 for u
 from __future__ import annotations
 
 import contextlib
+import copy
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
 from gearscan.inference.uncertainty import deterministic_moments, mc_moments, to_phase_result
 from gearscan.types import Burst, PhaseResult
@@ -107,7 +109,8 @@ class Predictor:
         self.var_scale = float(var_scale)
         self.mc_chunk = int(mc_chunk)
         self.meta = meta or {}
-        self.model = model.to(self.device).eval()
+        # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
+        self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
         if self.channels_last:
             self.model = self.model.to(memory_format=torch.channels_last)
 

@@ -215,47 +215,93 @@ class CadDepthBounds:
     run-out and calibration error. The bounds are tight enough for fine fringes, where the
     tip/root cylinder bounds of :func:`gear_depth_bounds` admit several fringe orders. Pixels
     whose ray misses the CAD gear get NaN bounds (reported invalid, never guessed).
+
+    With ``coarse=True`` only every second pixel of every second row is cast; a pixel between
+    four such lattice points takes their bilinear interpolation when the surface there is
+    smooth (every corner's second differences and the cell's twist below ``smooth_mm``, so the
+    interpolation error is far below the tolerance); pixels near silhouettes, creases and
+    misses are cast exactly. About 2.5x fewer rays on the default rig.
     """
 
-    def __init__(self, rig: Rig, mesh, tolerance_mm: float = 0.3) -> None:
+    def __init__(self, rig: Rig, mesh, tolerance_mm: float = 0.3, *, coarse: bool = True,
+                 smooth_mm: float = 0.02) -> None:
         import open3d as o3d
 
         if tolerance_mm <= 0:
             raise ValueError(f"tolerance_mm must be > 0, got {tolerance_mm}")
         self.rig = rig
         self.tolerance = float(tolerance_mm)
+        self.coarse = bool(coarse)
+        self.smooth = float(smooth_mm)
         tmesh = mesh if isinstance(mesh, o3d.t.geometry.TriangleMesh) else o3d.t.geometry.TriangleMesh.from_legacy(mesh)
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(tmesh)
         self._rays_cam = rig.camera.pixel_rays().reshape(-1, 3).astype(np.float32)
 
-    def __call__(self, angle: float, mask: np.ndarray | None = None) -> DepthBounds:
-        """Bounds at turntable ``angle`` (rad); only pixels where ``mask`` is True are cast (rest NaN)."""
+    def _cast(self, t_gc: np.ndarray, idx: np.ndarray | None) -> np.ndarray:
+        """Ray parameter of the first hit (NaN on a miss) for the flat pixel indices ``idx``."""
         import open3d as o3d
 
-        from gearscan.rig import rot_z
-
-        cam = self.rig.camera
-        shape = (cam.height, cam.width)
-        rays_cam = self._rays_cam
-        if mask is not None:
-            _check_image("mask", mask, shape)
-            idx = np.flatnonzero(mask)
-            rays_cam = rays_cam[idx]
-        t_gc = rot_z(-angle) @ cam.T_world_from
+        rays_cam = self._rays_cam if idx is None else self._rays_cam[idx]
         rays = np.empty((rays_cam.shape[0], 6), np.float32)
         rays[:, :3] = t_gc[:3, 3]
         rays[:, 3:] = rays_cam @ t_gc[:3, :3].T.astype(np.float32)
         t = self.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))["t_hit"].numpy()
         t[~np.isfinite(t)] = np.nan
-        zc = rays_cam[:, 2]
-        lo, hi = (t - self.tolerance) * zc, (t + self.tolerance) * zc
-        if mask is None:
-            return DepthBounds(lo.reshape(shape), hi.reshape(shape))
-        t_min = np.full(shape, np.nan, np.float32)
-        t_max = np.full(shape, np.nan, np.float32)
-        t_min.flat[idx], t_max.flat[idx] = lo, hi
-        return DepthBounds(t_min, t_max)
+        return t
+
+    def _coarse_to_fine(self, t_gc: np.ndarray, shape: tuple[int, int], mask: np.ndarray) -> np.ndarray:
+        """Hit parameter ``(H, W)`` on ``mask`` (NaN elsewhere): lattice cast + smooth-cell interpolation."""
+        h, w = shape
+        ys, xs = np.arange(0, h, 2), np.arange(0, w, 2)
+        lat = self._cast(t_gc, (ys[:, None] * w + xs[None, :]).ravel()).reshape(len(ys), len(xs))
+        # a lattice point is smooth when both second differences exist and are small
+        d2y = np.full(lat.shape, np.inf, np.float32)
+        d2x = np.full(lat.shape, np.inf, np.float32)
+        d2y[1:-1] = np.abs(lat[:-2] - 2 * lat[1:-1] + lat[2:])
+        d2x[:, 1:-1] = np.abs(lat[:, :-2] - 2 * lat[:, 1:-1] + lat[:, 2:])
+        smooth = (d2y < self.smooth) & (d2x < self.smooth)  # NaN compares False
+        twist = np.abs(lat[:-1, :-1] - lat[:-1, 1:] - lat[1:, :-1] + lat[1:, 1:])
+        cell_ok = smooth[:-1, :-1] & smooth[:-1, 1:] & smooth[1:, :-1] & smooth[1:, 1:] & (twist < self.smooth)
+        # dense bilinear upsampling (lattice points exact, edge midpoints, cell centres)
+        out = np.full(shape, np.nan, np.float32)
+        ok = np.zeros(shape, bool)
+        out[0::2, 0::2] = lat
+        ok[0::2, 0::2] = np.isfinite(lat)
+        ch, cw = cell_ok.shape
+        out[1 : 2 * ch : 2, 0 : 2 * cw + 1 : 2] = 0.5 * (lat[:-1] + lat[1:])
+        out[0 : 2 * ch + 1 : 2, 1 : 2 * cw : 2] = 0.5 * (lat[:, :-1] + lat[:, 1:])
+        out[1 : 2 * ch : 2, 1 : 2 * cw : 2] = 0.25 * (lat[:-1, :-1] + lat[:-1, 1:] + lat[1:, :-1] + lat[1:, 1:])
+        # a non-lattice pixel is trusted when every cell it borders is smooth
+        cell = np.zeros((ch + 2, cw + 2), bool)
+        cell[1:-1, 1:-1] = cell_ok
+        ok[1 : 2 * ch : 2, 1 : 2 * cw : 2] = cell_ok
+        ok[1 : 2 * ch : 2, 0 : 2 * cw + 1 : 2] = cell[1:-1, :-1] & cell[1:-1, 1:]
+        ok[0 : 2 * ch + 1 : 2, 1 : 2 * cw : 2] = cell[:-1, 1:-1] & cell[1:, 1:-1]
+        rest = np.flatnonzero(mask & ~ok)
+        out[~mask] = np.nan
+        out.flat[rest] = self._cast(t_gc, rest)
+        return out
+
+    def __call__(self, angle: float, mask: np.ndarray | None = None) -> DepthBounds:
+        """Bounds at turntable ``angle`` (rad); only pixels where ``mask`` is True are cast (rest NaN)."""
+        from gearscan.rig import rot_z
+
+        cam = self.rig.camera
+        shape = (cam.height, cam.width)
+        if mask is not None:
+            _check_image("mask", mask, shape)
+        t_gc = rot_z(-angle) @ cam.T_world_from
+        if self.coarse and min(shape) >= 4:
+            t = self._coarse_to_fine(t_gc, shape, np.ones(shape, bool) if mask is None else mask.astype(bool))
+        elif mask is None:
+            t = self._cast(t_gc, None).reshape(shape)
+        else:
+            t = np.full(shape, np.nan, np.float32)
+            idx = np.flatnonzero(mask)
+            t.flat[idx] = self._cast(t_gc, idx)
+        zc = self._rays_cam[:, 2].reshape(shape)
+        return DepthBounds((t - self.tolerance) * zc, (t + self.tolerance) * zc)
 
 
 def phase_bounds(rig: Rig, bounds: DepthBounds, period_px: float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,12 +1,19 @@
 """Recipe of the shipped default model (CPU): data, network and schedule in one place.
 
-    .venv/bin/python scripts/train_default.py --train data/train --val data/val --out runs/default
+    .venv/bin/python scripts/train_default.py --train data/train data/train2 --val data/val --out runs/default
 
-Data: `gearscan twin dataset data/train --teeth 12,16,20,30,36 --repeats 4 --max-start-points 2
---width 256 --height 256 --randomize --seed 1` (randomised rigs, optics, fringe periods and gear
-sizes) and, for validation, tooth count 25, which is never trained on:
-`gearscan twin dataset data/val --teeth 25 --repeats 3 --max-start-points 2 --width 256 --height 256
---randomize --seed 2`.
+Data (randomised rigs, optics, fringe periods and gear sizes; tooth count 25 is never trained on):
+
+    gearscan twin dataset data/train --teeth 12,16,20,30,36 --repeats 4 --max-start-points 2 \
+        --width 256 --height 256 --randomize --seed 1
+    gearscan twin dataset data/train2 --teeth 11,13,14,15,17,18,19,21,22,23,24,26,27,28,29,31,33,34,38,40 \
+        --repeats 10 --max-start-points 1 --width 256 --height 256 --randomize --seed 7
+    gearscan twin dataset data/val --teeth 25 --repeats 3 --max-start-points 2 --width 256 --height 256 \
+        --randomize --seed 2
+
+The shipped weights came from two runs: the first on data/train alone (see the model card), the
+second fine-tuning its best deterministic weights on data/train + data/train2 with fresh, lower
+dropout rates (``--init runs/default/stage1_best.safetensors --reset-dropout --dropout-init 0.02,0.1``).
 """
 
 from __future__ import annotations

@@ -172,3 +172,34 @@ def test_predict_cli_three_images_mc(saved, tmp_path):
     with np.load(out) as z:
         assert str(z["mode"]) == "mc3" and z["phase"].shape == (24, 33)
         assert z["sigma_model"].mean() > 0
+
+
+def test_predictor_folds_batchnorm_exactly_and_leaves_the_callers_model_alone():
+    """BN with non-trivial statistics folded into the convs gives the same M, D and variances,
+    in deterministic and MC mode (same masks), and the model passed in keeps its BN layers."""
+    from gearscan.inference.uncertainty import deterministic_moments, mc_moments
+
+    torch.manual_seed(3)
+    model = build_model("cd-dcu-net", width=4)
+    for m in model.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.2, 0.2)
+    model.eval()
+    n_bn = sum(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
+    pred = Predictor(model, channels_last=False)
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in pred.model.modules()) == 0
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules()) == n_bn
+    x = torch.from_numpy(_frames(hw=(32, 48)).astype(np.float32) / 255)[None]
+    with torch.no_grad():
+        a, b = deterministic_moments(model, x), deterministic_moments(pred.model, x)
+        torch.testing.assert_close(b.M, a.M, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(b.data_var_D, a.data_var_D, atol=1e-5, rtol=1e-4)
+        torch.manual_seed(7)
+        a = mc_moments(model, x, 3, 3)
+        torch.manual_seed(7)
+        b = mc_moments(pred.model, x, 3, 3)
+        torch.testing.assert_close(b.D, a.D, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(b.model_var_M, a.model_var_M, atol=1e-5, rtol=1e-4)

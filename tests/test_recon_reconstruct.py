@@ -67,11 +67,15 @@ def test_per_call_cad_bounds_match_reference_and_truth():
     angle = np.radians(3.1)
     images, truth = renderer.render(angle, patterns, rng=2)
     phase, _, _ = decode_phase(images, patterns.shifts, 255)
-    cad = CadDepthBounds(rig, gear.mesh(), 0.3)
+    cad = CadDepthBounds(rig, gear.mesh(layer_mm=gear.face_width), 0.3)  # coarse-to-fine cast
+    exact = CadDepthBounds(rig, gear.mesh(), 0.3, coarse=False)  # every ray, 20-layer mesh
     mask = truth.mask.copy()
     mask[:, :40] = False  # pixels outside the mask are not cast and come out invalid
-    full, part = cad(angle), cad(angle, mask)
-    np.testing.assert_allclose(part.t_min[mask], full.t_min[mask], rtol=1e-6)
+    full, part = exact(angle), cad(angle, mask)
+    # interpolated where the surface is smooth, cast elsewhere: same hits, depths to a few um
+    np.testing.assert_array_equal(np.isfinite(part.t_min[mask]), np.isfinite(full.t_min[mask]))
+    hit = mask & np.isfinite(full.t_min)
+    assert np.abs(part.t_min[hit] - full.t_min[hit]).max() < 0.01  # mm, against a 0.3 mm tolerance
     assert np.isnan(part.t_min[~mask]).all() and np.isnan(part.t_max[~mask]).all()
     with SingleFrequencyReconstructor(rig, period, margin=0.3, threads=2, block_rows=48) as rec:
         tri, order = rec(phase, 0.02, bounds=part)
