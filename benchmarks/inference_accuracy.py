@@ -58,10 +58,10 @@ def main() -> None:
     predictor = Predictor.load(args.model)
     methods = {"three-step PS": classical_method, "CD-DCU-Net": network_method(predictor)}
     methods[f"CD-DCU-Net MC T={args.mc}"] = network_method(predictor, args.mc)
-    for peer in ("unet", "ts-unet", "dr-unet"):
+    for peer in ("cd-dcu-net", "unet", "ts-unet", "dr-unet"):  # the peers' equal, smaller budget
         path = Path(args.peers) / peer / "best.safetensors"
         if path.exists():
-            methods[peer] = network_method(Predictor.load(path))
+            methods[f"{peer} (peer budget)" if peer == "cd-dcu-net" else peer] = network_method(Predictor.load(path))
     scenes = [s for root in args.val for s in scenes_from_dataset(root)]
     motions = {**STATIC, **PAPER_MOTIONS, **GENERALISATION}
     cases = [c for i, s in enumerate(scenes) for c in render_cases(s, motions, args.per_motion, seed=100 + i)]

@@ -395,10 +395,10 @@ def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = No
     say("part 2: networks")
     nets = {"three-step PS": classical_method, "CD-DCU-Net": net}
     if opt.peers:
-        for name in ("unet", "ts-unet", "dr-unet"):
+        for name in ("cd-dcu-net", "unet", "ts-unet", "dr-unet"):  # the peers' equal, smaller budget
             p = Path(opt.peers) / name / "best.safetensors"
             if p.exists():
-                nets[name] = network_method(Predictor.load(p))
+                nets[f"{name} (peer budget)" if name == "cd-dcu-net" else name] = network_method(Predictor.load(p))
     results["networks"] = part_networks(opt, nets, cases)
     say("part 1: transfer learning")
     results["transfer"] = part_transfer(opt, work)

@@ -7,12 +7,12 @@ the GIL). Results equal :func:`gearscan.recon.unwrap.geometric_unwrap` followed 
 :class:`gearscan.recon.triangulate.Triangulator` for an undistorted projector; with
 projector distortion use those (the fixed-point correction is not fused here).
 
-Per pixel, with ``f = phi / 2 pi``, ``a = (phi_min - margin) / 2 pi`` and
-``s = (phi_max - phi_min + 2 margin) / 2 pi``:
-
 Bounds are fixed per rig (tip/root cylinders) or given per call (the CAD gear at each burst's
 encoder angle); per-call depth bounds become phase bounds in the same block pass, through the
 projector column along the ray, ``u(z) = fx (c1 z + t1) / (c3 z + t3) + cx``.
+
+Per pixel, with ``f = phi / 2 pi``, ``a = (phi_min - margin) / 2 pi`` and
+``s = (phi_max - phi_min + 2 margin) / 2 pi``:
 
 ``k = ceil(a - f)``, valid iff ``k <= a - f + s < k + 1`` (exactly one order in the interval);
 ``phi_abs = phi + 2 pi k``; ``z = (alpha phi_abs + beta) / (g - d phi_abs)``;

@@ -1,19 +1,26 @@
 """Recipe of the shipped default model (CPU): data, network and schedule in one place.
 
-    .venv/bin/python scripts/train_default.py --train data/train data/train2 --val data/val --out runs/default
-
 Data (randomised rigs, optics, fringe periods and gear sizes; tooth count 25 is never trained on):
 
     gearscan twin dataset data/train --teeth 12,16,20,30,36 --repeats 4 --max-start-points 2 \
         --width 256 --height 256 --randomize --seed 1
-    gearscan twin dataset data/train2 --teeth 11,13,14,15,17,18,19,21,22,23,24,26,27,28,29,31,33,34,38,40 \
-        --repeats 10 --max-start-points 1 --width 256 --height 256 --randomize --seed 7
+    T=11,13,14,15,17,18,19,21,22,23,24,26,27,28,29,31,33,34,38,40
+    gearscan twin dataset data/train2 --teeth $T --repeats 10 --max-start-points 1 --width 256 --height 256 --randomize --seed 7
+    gearscan twin dataset data/train3 --teeth $T --repeats 10 --max-start-points 1 --width 256 --height 256 --randomize --seed 11
     gearscan twin dataset data/val --teeth 25 --repeats 3 --max-start-points 2 --width 256 --height 256 \
         --randomize --seed 2
 
-The shipped weights came from two runs: the first on data/train alone (see the model card), the
-second fine-tuning its best deterministic weights on data/train + data/train2 with fresh, lower
-dropout rates (``--init runs/default/stage1_best.safetensors --reset-dropout --dropout-init 0.02,0.1``).
+The shipped weights are the end of three runs, each starting from the one before (CPU, ~100 min
+in all; `inference/weights/MODEL_CARD.md`):
+
+    python scripts/train_default.py --train data/train --out runs/v1 --epochs-det 35 --epochs-drop 5 \
+        --steps-per-epoch 100 --crop 128 --lr 2e-3 --val-items 32 --patience 25
+    python scripts/train_default.py --train data/train data/train2 --out runs/v2 \
+        --init runs/v1/stage1_best.safetensors --reset-dropout --dropout-init 0.02,0.1 \
+        --epochs-det 80 --epochs-drop 10 --steps-per-epoch 100 --crop 128 --lr 1e-3 --val-items 48 --patience 30
+    python scripts/train_default.py --train data/train data/train2 data/train3 --out runs/v3 \
+        --init runs/v2/best.safetensors --dropout-init 0.02,0.1 \
+        --epochs-det 50 --epochs-drop 8 --steps-per-epoch 100 --crop 128 --lr 5e-4 --val-items 48 --patience 30 --ship
 """
 
 from __future__ import annotations
