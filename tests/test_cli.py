@@ -64,6 +64,16 @@ def test_replay_classical_reports_accuracy(twin_recording, tmp_path):
     assert (tmp_path / "o.rrd").stat().st_size > 10_000
 
 
+def test_replay_no_truth_skips_scoring_but_measures(twin_recording, tmp_path):
+    metrics = tmp_path / "m.json"
+    res = runner.invoke(app, ["replay", str(twin_recording), "--classical", "--no-truth", "--metrics", str(metrics),
+                              "--save", str(tmp_path / "o.rrd")])
+    assert res.exit_code == 0, res.output
+    data = json.loads(metrics.read_text())
+    assert data["summary"] == {"bursts": 2}  # no accuracy keys: nothing was scored
+    assert data["pipeline"]["reconstruct"]["emitted"] == 2  # but every burst was measured
+
+
 def test_replay_missing_recording_is_named(tmp_path):
     res = runner.invoke(app, ["replay", str(tmp_path / "nope"), "--classical"])
     assert res.exit_code == 2
