@@ -10,7 +10,7 @@ Data (randomised rigs, optics, fringe periods and gear sizes; tooth count 25 is 
     gearscan twin dataset data/val --teeth 25 --repeats 3 --max-start-points 2 --width 256 --height 256 \
         --randomize --seed 2
 
-The shipped weights are the end of three runs, each starting from the one before (CPU, ~100 min
+The shipped weights are the end of four runs, each starting from the one before (CPU, ~105 min
 in all; `inference/weights/MODEL_CARD.md`):
 
     python scripts/train_default.py --train data/train --out runs/v1 --epochs-det 35 --epochs-drop 5 \
@@ -20,7 +20,10 @@ in all; `inference/weights/MODEL_CARD.md`):
         --epochs-det 80 --epochs-drop 10 --steps-per-epoch 100 --crop 128 --lr 1e-3 --val-items 48 --patience 30
     python scripts/train_default.py --train data/train data/train2 data/train3 --out runs/v3 \
         --init runs/v2/best.safetensors --dropout-init 0.02,0.1 \
-        --epochs-det 50 --epochs-drop 8 --steps-per-epoch 100 --crop 128 --lr 5e-4 --val-items 48 --patience 30 --ship
+        --epochs-det 50 --epochs-drop 8 --steps-per-epoch 100 --crop 128 --lr 5e-4 --val-items 48 --patience 30
+    python scripts/train_default.py --train data/train data/train2 data/train3 --out runs/v4 \
+        --init runs/v3/best.safetensors --dropout-init 0.02,0.1 --static-repeat 10 \
+        --epochs-det 8 --epochs-drop 2 --steps-per-epoch 100 --crop 128 --lr 2e-4 --val-items 48 --patience 30 --ship
 """
 
 from __future__ import annotations
@@ -63,13 +66,15 @@ def main() -> None:
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--init", type=Path, default=None, help="start from these weights (.safetensors)")
     ap.add_argument("--patience", type=int, default=12)
+    ap.add_argument("--static-repeat", type=int, default=1, help="oversample the motionless bursts this many times")
     ap.add_argument("--dropout-init", default="0.1,0.4", help="initial Concrete Dropout rate range MIN,MAX")
     ap.add_argument("--reset-dropout", action="store_true", help="re-draw the rates of the --init weights from --dropout-init")
     ap.add_argument("--ship", action="store_true", help="copy best model into inference/weights/default.*")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    parts = [TwinBurstDataset(root, crop=args.crop, static=True, seed=i) for i, root in enumerate(args.train)]
+    parts = [TwinBurstDataset(root, crop=args.crop, static=True, static_repeat=args.static_repeat, seed=i)
+             for i, root in enumerate(args.train)]
     train_set = parts[0] if len(parts) == 1 else ConcatDataset(parts)
     p_min, p_max = (float(v) for v in args.dropout_init.split(","))
     val_full = TwinBurstDataset(args.val, crop=None, static=True)

@@ -56,6 +56,12 @@ def test_motion_filters_and_crops(small_dataset):
     assert len(uni) + len(non) == 816
     assert all(j - i == k - j for i, j, k in uni.combos)
     assert len(TwinBurstDataset(root, static=True, groups=[0])) == 816 + 18
+    over = TwinBurstDataset(root, static=True, static_repeat=5, groups=[0])
+    assert len(over) == 816 + 5 * 18
+    still = over[len(over) - 1]  # a motionless burst: one pose, the three pattern phases
+    assert still["span_deg"] == 0 and len(set(still["poses"])) == 1
+    with pytest.raises(DatasetError, match="static_repeat must be >= 1"):
+        TwinBurstDataset(root, static=True, static_repeat=0)
     crop = TwinBurstDataset(root, crop=48, seed=1)[3]
     assert crop["input"].shape == (3, 48, 48) and crop["mask"].shape == (48, 48)
     with pytest.raises(DatasetError, match="crop must be in 16..80"):

@@ -180,7 +180,8 @@ class TwinBurstDataset:
     i < j < k), ``target`` (2, H, W) the 18-step M, D label at pose i, ``truth_md`` the analytic
     M, D, ``mask`` (H, W) bool, ``phase`` (H, W) truth wrapped phase, ``group`` (start point id,
     for splits) and ``span_deg`` (angle from frame 1 to frame 3). ``static=True`` adds the
-    ``poses`` motionless bursts (i, i, i) to the protocol's i < j < k ones.
+    ``poses`` motionless bursts (i, i, i) to the protocol's i < j < k ones, ``static_repeat``
+    times each (oversampling: they are 2 % of the inputs otherwise).
     """
 
     def __init__(
@@ -190,6 +191,7 @@ class TwinBurstDataset:
         motion: Motion = "all",
         max_span: int | None = None,
         static: bool = False,
+        static_repeat: int = 1,
         crop: int | None = None,
         groups: list[int] | None = None,
         seed: int = 0,
@@ -216,8 +218,10 @@ class TwinBurstDataset:
             raise DatasetError(f"motion must be all, uniform or nonuniform, got {motion!r}")
         if max_span is not None:
             combos = [c for c in combos if c[2] - c[0] <= max_span]
+        if static_repeat < 1:
+            raise DatasetError(f"static_repeat must be >= 1, got {static_repeat}")
         if static:  # all three frames at one pose: no motion, the static noise floor
-            combos = combos + [(p, p, p) for p in range(self.spec.poses)]
+            combos = combos + [(p, p, p) for p in range(self.spec.poses)] * static_repeat
         self.combos = combos
         if crop is not None and not (16 <= crop <= min(self.spec.width, self.spec.height)):
             raise DatasetError(f"crop must be in 16..{min(self.spec.width, self.spec.height)}, got {crop}")
