@@ -50,6 +50,7 @@ import math
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 EPS = 1e-7
 _GL_NODES, _GL_WEIGHTS = (torch.from_numpy(a) for a in np.polynomial.legendre.leggauss(64))
@@ -152,7 +153,8 @@ class ConcreteDropout2d(nn.Module):
             return self.conv(self._drop(x))
         # deterministic: conv(x * s) == conv with weights * s, without a pass over the feature map
         scale = self.keep_scale().to(self.conv.weight.dtype)
-        return self.conv._conv_forward(x, self.conv.weight * scale, self.conv.bias)
+        c = self.conv
+        return F.conv2d(x, c.weight * scale, c.bias, c.stride, c.padding, c.dilation, c.groups)
 
     def regularization(self) -> torch.Tensor:
         """This layer's KL contribution (scalar tensor, differentiable in W and p)."""
