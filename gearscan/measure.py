@@ -91,18 +91,18 @@ class Reconstructor:
 
         self.rig = rig
         self.period_px = period_px
-        # the walls are extruded along z: one layer is exact, and 5x fewer triangles to cast at
-        bounds_mesh = gear.mesh(layer_mm=gear.face_width) if cad_tolerance_mm else None
-        self.cad_bounds = CadDepthBounds(rig, bounds_mesh, cad_tolerance_mm) if cad_tolerance_mm else None
-        fixed = None
-        if self.cad_bounds is None:
-            fixed = gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
-            self.phi_min, self.phi_max = phase_bounds(rig, fixed, period_px)
+        self.cad_bounds = None
+        if cad_tolerance_mm:  # walls extruded along z: one layer is exact, and 5x fewer triangles
+            self.cad_bounds = CadDepthBounds(rig, gear.mesh(layer_mm=gear.face_width), cad_tolerance_mm)
+        fixed = None if self.cad_bounds else gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
         self.fused = None
+        self._fixed_phase = None  # phase interval of the cylinder bounds, fixed-point path only
         if not np.any(rig.projector.dist != 0) and rig.projector.K[0, 1] == 0:
             self.fused = SingleFrequencyReconstructor(rig, period_px, fixed, margin=margin, threads=threads)
         else:
             self.triangulator = Triangulator(rig, period_px)
+            if fixed is not None:
+                self._fixed_phase = phase_bounds(rig, fixed, period_px)
         self.min_modulation = min_modulation
         self.max_sigma = max_sigma
         self.margin = margin
@@ -115,10 +115,10 @@ class Reconstructor:
         if self.fused is not None:
             self.fused.close()
 
-    def bounds(self, angle: float, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Absolute-phase interval per pixel for a burst at turntable ``angle``."""
+    def _phase_interval(self, angle: float, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Absolute-phase interval per pixel at turntable ``angle`` (fixed-point path)."""
         if self.cad_bounds is None:
-            return self.phi_min, self.phi_max
+            return self._fixed_phase
         from gearscan.recon.unwrap import phase_bounds
 
         return phase_bounds(self.rig, self.cad_bounds(angle, mask), self.period_px)
@@ -141,7 +141,7 @@ class Reconstructor:
             phase_abs = np.where(keep, result.phase + np.float32(2 * np.pi) * order, np.float32(np.nan))
             tri = Triangulation(points=tri.points, depth=tri.depth, sigma_depth=tri.sigma_depth, valid=keep)
         else:
-            phi_min, phi_max = self.bounds(burst.angles[0], candidate)
+            phi_min, phi_max = self._phase_interval(burst.angles[0], candidate)
             un = geometric_unwrap(result.phase, phi_min, phi_max, self.period_px, margin=self.margin)
             keep = un.valid & candidate
             phase_abs = np.where(keep, un.phase_abs, np.nan)

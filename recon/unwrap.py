@@ -220,7 +220,7 @@ class CadDepthBounds:
     four such lattice points takes their bilinear interpolation when the surface there is
     smooth (every corner's second differences and the cell's twist below ``smooth_mm``, so the
     interpolation error is far below the tolerance); pixels near silhouettes, creases and
-    misses are cast exactly. About 2.5x fewer rays on the default rig.
+    misses are cast exactly. 1.45x fewer rays on the default rig at 512x512 (measured).
     """
 
     def __init__(self, rig: Rig, mesh, tolerance_mm: float = 0.3, *, coarse: bool = True,
