@@ -13,10 +13,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from gearscan.config import LiveConfig
-from gearscan.measure import Decoder, Measurement, Reconstructor
+from gearscan.measure import CadScorer, Decoder, Measurement, Reconstructor
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.types import Burst
 
@@ -29,25 +27,6 @@ class LiveReport:
     pipeline: PipelineReport
     recording: Path | None
     assembler: dict[str, int]
-
-
-class CadScorer:
-    """Signed distance of each point to the gear's CAD mesh (the cloud's deviation map)."""
-
-    def __init__(self, gear) -> None:
-        import open3d as o3d
-
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh()))
-
-    def __call__(self, m: Measurement) -> dict[str, float]:
-        import open3d as o3d
-
-        if m.cloud is None or not len(m.cloud):
-            return {}
-        d = self.scene.compute_signed_distance(o3d.core.Tensor(m.cloud.points.astype(np.float32))).numpy()
-        m.cloud.deviation = d.astype(np.float64)
-        return {"cad_rms_mm": float(np.sqrt(np.mean(d**2))), "cad_p95_mm": float(np.percentile(np.abs(d), 95))}
 
 
 def run_live(

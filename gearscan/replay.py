@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.measure import Decoder, Measurement, Reconstructor
+from gearscan.measure import CadScorer, Decoder, Measurement, Reconstructor, classical_result
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.phase import phase_error
 from gearscan.recording import RecordingError, RecordingReader
@@ -58,13 +58,7 @@ class TruthScorer:
     def __init__(self, reader: RecordingReader) -> None:
         self.reader = reader
         self.index = {rec.frame_id: i for i, rec in enumerate(reader.records)}
-        gear = reader.gear
-        self.scene = None
-        if gear is not None:
-            import open3d as o3d
-
-            self.scene = o3d.t.geometry.RaycastingScene()
-            self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh()))
+        self.cad = CadScorer(reader.gear) if reader.gear is not None else None
 
     def __call__(self, m: Measurement) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
         truth = self.reader.truth(self.index[m.burst.frames[0].frame_id])
@@ -78,17 +72,12 @@ class TruthScorer:
             "mean_sigma_rad": float(np.mean(m.result.sigma_total[mask])),
         }
         if m.result.mode != "three-step":
-            from gearscan.measure import classical_result
-
             base = classical_result(m.burst)
             row["three-step_rmse_rad"] = float(np.sqrt(np.mean(phase_error(base.phase, truth["phase"])[mask] ** 2)))
-        if self.scene is not None and m.cloud is not None and len(m.cloud):
-            import open3d as o3d
-
-            d = self.scene.compute_signed_distance(o3d.core.Tensor(m.cloud.points.astype(np.float32))).numpy()
-            m.cloud.deviation = d.astype(np.float64)
-            row["cloud_rms_mm"] = float(np.sqrt(np.mean(d**2)))
-            row["cloud_p95_mm"] = float(np.percentile(np.abs(d), 95))
+        if self.cad is not None and m.cloud is not None and len(m.cloud):
+            dev = self.cad(m)  # also stores each point's deviation on the cloud
+            row["cloud_rms_mm"] = dev["cad_rms_mm"]
+            row["cloud_p95_mm"] = dev["cad_p95_mm"]
             row["cloud_points"] = len(m.cloud)
         return row, err, mask
 
