@@ -41,6 +41,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--bursts", type=int, default=12)
     ap.add_argument("--mc", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=3, help="runs of the 512x512 deterministic row (median reported)")
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     args = ap.parse_args()
     if args.threads:
@@ -60,29 +61,37 @@ def main() -> None:
                     rec_n = render_recording(tmp / f"rec{w}mc", rig=default_rig(w, h), bursts=n, motion="nonuniform:0.1,1.6")
                 # live cost; plus, once, the replay default that also scores against truth
                 for truth in (False, True) if (w == 512 and label == "deterministic") else (False,):
-                    r = run(rec_n, dec, tmp / "o.rrd", truth=truth)
-                    r.update({"size": f"{w}x{h}", "mode": label})
+                    # the target row (512, deterministic, live cost) is repeated: the machine is shared
+                    reps = args.repeats if (w == 512 and label == "deterministic" and not truth) else 1
+                    runs = [run(rec_n, dec, tmp / "o.rrd", truth=truth) for _ in range(reps)]
+                    runs.sort(key=lambda r: r["steady_bursts_per_s"])
+                    r = runs[len(runs) // 2]  # the median run
+                    r.update({"size": f"{w}x{h}", "mode": label,
+                              "steady_all_runs": [x["steady_bursts_per_s"] for x in runs]})
                     results.append(r)
                     print(r)
     (HERE / "pipeline_report.json").write_text(json.dumps({"results": results, "loadavg": os.getloadavg()}, indent=2))
     lines = [
         "# End-to-end replay benchmark (CPU)",
         "",
-        f"`python benchmarks/pipeline_bench.py --bursts {args.bursts} --mc {args.mc}"
+        f"`python benchmarks/pipeline_bench.py --bursts {args.bursts} --mc {args.mc} --repeats {args.repeats}"
         f"{f' --threads {args.threads}' if args.threads else ''}` on {os.cpu_count()} cores, torch threads "
         f"{__import__('torch').get_num_threads()}, "
         f"load average {os.getloadavg()[0]:.1f} at the end. Replay at maximum speed with the rerun file sink on; "
         "stage latency is the time inside each stage's function. Steady state counts bursts out per second between "
         "the first and the last output; the other rate divides by the whole run, start-up included (model "
-        "load, CAD scene, viewer stream).",
+        "load, CAD scene, viewer stream). The 512x512 deterministic row is the median of the repeated runs.",
         "",
         "| camera | decoder | truth scoring | bursts | bursts/s steady | bursts/s incl. start-up | assemble ms | infer ms | reconstruct ms | output ms |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         st = r["stages"]
+        steady = f"{r['steady_bursts_per_s']:.2f}"
+        if len(r["steady_all_runs"]) > 1:
+            steady += f" (runs: {', '.join(f'{v:.2f}' for v in r['steady_all_runs'])})"
         lines.append(f"| {r['size']} | {r['mode']} | {'yes' if r['truth'] else 'no'} | {r['bursts']} | "
-                     f"{r['steady_bursts_per_s']:.2f} | {r['bursts_per_s']:.2f} | "
+                     f"{steady} | {r['bursts_per_s']:.2f} | "
                      f"{st['assemble']['latency_ms_mean']:.1f} | {st['infer']['latency_ms_mean']:.0f} | "
                      f"{st['reconstruct']['latency_ms_mean']:.0f} | {st['output']['latency_ms_mean']:.0f} |")
     lines += ["", "Target on 2 CPU cores at 512x512 deterministic: >= 5 bursts/s end to end with the viewer on.",
@@ -91,6 +100,8 @@ def main() -> None:
               "--no-truth`); the scored row adds the replay's CAD distance of every point and a three-step",
               "baseline to `output`. `reconstruct` casts the CAD gear's rays (only where the modulation",
               "and sigma pass) for the fringe-order bounds and runs the fused unwrap + triangulation.",
+              "The pipeline runs numpy's BLAS single-threaded (`Pipeline(blas_threads=1)`): its own spinning",
+              "pool competed with torch's and the other stages for the 2 cores (4.0 -> ~5 bursts/s).",
               "No GPU was lent to this task."]
     (HERE / "pipeline_report.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 log = logging.getLogger(__name__)
 
@@ -121,8 +122,13 @@ class Pipeline:
 
     def __init__(self, source: Iterable[Any] | Callable[[], Iterator[Any]], stages: list[StageSpec],
                  *, source_name: str = "source", source_close: Callable[[], None] | None = None,
-                 on_stats: Callable[[dict[str, dict[str, float]]], None] | None = None) -> None:
+                 on_stats: Callable[[dict[str, dict[str, float]]], None] | None = None,
+                 blas_threads: int | None = 1) -> None:
         self._source = source
+        # The stages already run in parallel; a multi-threaded BLAS (numpy's OpenBLAS) spins its
+        # own pool on the same cores as torch's and the other stages. One BLAS thread measured
+        # 4.0 -> 5.0-5.4 bursts/s (benchmarks/pipeline_report.md); None leaves BLAS alone.
+        self.blas_threads = blas_threads
         self._source_name = source_name
         self._source_close = source_close
         self.specs = stages
@@ -231,6 +237,7 @@ class Pipeline:
         threads = [threading.Thread(target=self._run_source, name=self._source_name, daemon=True)]
         threads += [threading.Thread(target=self._run_stage, args=(k,), name=s.name, daemon=True)
                     for k, s in enumerate(self.specs)]
+        blas = threadpool_limits(self.blas_threads, user_api="blas") if self.blas_threads else None
         try:
             for t in threads:
                 t.start()
@@ -246,6 +253,8 @@ class Pipeline:
                 t.join(timeout=30)
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+            if blas is not None:
+                blas.restore_original_limits()
         if self._error is not None:
             raise self._error
         return PipelineReport({n: s.as_dict() for n, s in self.stats.items()}, time.perf_counter() - t_start, self.stopped_by)

@@ -47,6 +47,10 @@ def phase_sigma(M: np.ndarray, D: np.ndarray, var_M: np.ndarray, var_D: np.ndarr
     return np.sqrt((D**2 * var_M + M**2 * var_D) / r2**2).astype(np.float32)
 
 
+def _is_zero(t: torch.Tensor) -> bool:
+    return not bool(t.any())
+
+
 @torch.no_grad()
 def mc_moments(model: torch.nn.Module, x: torch.Tensor, passes: int, chunk: int = 2) -> MomentStats:
     """Run ``passes`` stochastic forward passes of ``x`` ``(B, C, H, W)`` in chunks of ``chunk``.
@@ -119,20 +123,27 @@ def to_phase_result(
         return t[index].detach().cpu().numpy().astype(np.float32)
 
     M, D = np_(stats.M), np_(stats.D)
-    mvM, mvD = np_(stats.model_var_M) * var_scale, np_(stats.model_var_D) * var_scale
     dvM, dvD = np_(stats.data_var_M) * var_scale, np_(stats.data_var_D) * var_scale
-    s_model = phase_sigma(M, D, mvM, mvD)
     s_data = phase_sigma(M, D, dvM, dvD)
+    if _is_zero(stats.model_var_M[index]) and _is_zero(stats.model_var_D[index]):
+        # deterministic pass: no model variance, so skip its propagation (same numbers)
+        s_model = np.zeros_like(s_data)
+        s_total, var_M, var_D = s_data.copy(), dvM, dvD
+    else:
+        mvM, mvD = np_(stats.model_var_M) * var_scale, np_(stats.model_var_D) * var_scale
+        s_model = phase_sigma(M, D, mvM, mvD)
+        s_total = np.sqrt(s_model**2 + s_data**2).astype(np.float32)
+        var_M, var_D = (mvM + dvM).astype(np.float32), (mvD + dvD).astype(np.float32)
     return PhaseResult(
         phase=np.arctan2(M, D).astype(np.float32),
         M=M,
         D=D,
         sigma_model=s_model,
         sigma_data=s_data,
-        sigma_total=np.sqrt(s_model**2 + s_data**2).astype(np.float32),
+        sigma_total=s_total,
         mode=mode,
-        var_M=(mvM + dvM).astype(np.float32),
-        var_D=(mvD + dvD).astype(np.float32),
+        var_M=var_M,
+        var_D=var_D,
     )
 
 

@@ -93,3 +93,18 @@ def test_duration_limit():
 
     rep = Pipeline(forever, [StageSpec("sink", lambda x: None)]).run(duration=0.2, handle_signals=False)
     assert rep.stopped_by == "duration reached" and rep.wall_s < 2
+
+
+def test_blas_runs_single_threaded_inside_the_pipeline_and_is_restored():
+    """Stages run in parallel already; numpy's BLAS pool must not spin on the same cores."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads() -> list[int]:
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert before, "numpy's BLAS not found by threadpoolctl"
+    inside: list[list[int]] = []
+    Pipeline(range(3), [StageSpec("probe", lambda _: inside.append(blas_threads()))]).run(handle_signals=False)
+    assert inside and all(t == [1] * len(before) for t in inside)
+    assert blas_threads() == before
