@@ -314,7 +314,7 @@ def _register(module: str, names: list[str], target: typer.Typer = app) -> None:
             target.command(name.replace("_", "-"))(fn)
 
 
-_register("gearscan.inference.commands", ["predict", "train"])
+_register("gearscan.inference.commands", ["predict", "train", "calibrate_uncertainty"])
 _register("gearscan.recon.commands", ["calibrate"])
 _register("gearscan.acquisition.commands", ["devices", "record"])
 

@@ -51,11 +51,17 @@ def save_model(
         "var_scale": float(var_scale),
     }
     meta.update(extra or {})
+    write_config(path, meta)
+    return path
+
+
+def write_config(path: str | Path, meta: dict) -> Path:
+    """Atomically (re)write the JSON beside ``path`` (.safetensors); the weights are untouched."""
     cfg = config_path(path)
     tmp_cfg = cfg.with_name(cfg.name + ".tmp")
-    tmp_cfg.write_text(json.dumps(meta, indent=2))
+    tmp_cfg.write_text(json.dumps(meta, indent=2) + "\n")
     tmp_cfg.replace(cfg)
-    return path
+    return cfg
 
 
 def unwrap(model: torch.nn.Module) -> PhaseNet:

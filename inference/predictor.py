@@ -20,12 +20,18 @@ import torch
 
 from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
-from gearscan.inference.uncertainty import deterministic_moments, mc_moments, to_phase_result
+from gearscan.inference.uncertainty import (
+    SigmaCalibration,
+    deterministic_moments,
+    mc_moments,
+    to_phase_result,
+)
 from gearscan.types import Burst, PhaseResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_MODEL = WEIGHTS_DIR / "default.safetensors"
 PRECISIONS = ("auto", "fp32", "bf16")
+CALIBRATION_MODES = ("deterministic", "mc")
 
 
 def cpu_has_fast_bf16() -> bool:
@@ -83,6 +89,8 @@ class Predictor:
     ----------
     model : the network (any :class:`~gearscan.inference.models.PhaseNet`)
     var_scale : variance calibration factor stored with the model (1 = none)
+    calibration : sigma calibration per mode (``"deterministic"``, ``"mc"``), applied after
+        propagation (:class:`~gearscan.inference.uncertainty.SigmaCalibration`); none: identity
     device : ``"cpu"`` or ``"cuda"``
     precision : ``"auto"``, ``"fp32"`` or ``"bf16"`` (autocast); see :func:`resolve_precision`
     channels_last : channels_last memory format (default: on CPU, where it was faster in fp32
@@ -100,8 +108,13 @@ class Predictor:
         mc_chunk: int = 2,
         meta: dict | None = None,
         channels_last: bool | None = None,
+        calibration: dict[str, SigmaCalibration] | None = None,
     ) -> None:
         self.device = torch.device(device)
+        self.calibration = dict(calibration or {})
+        unknown = set(self.calibration) - set(CALIBRATION_MODES)
+        if unknown:
+            raise ValueError(f"calibration: unknown modes {sorted(unknown)} (known: {list(CALIBRATION_MODES)})")
         self.precision = resolve_precision(precision, self.device)
         self.channels_last = (
             self.device.type == "cpu" if channels_last is None else bool(channels_last)
@@ -135,6 +148,18 @@ class Predictor:
             )
             raise ModelFileError(f"model weights not found: {path}{hint}")
         model, meta = load_model(path, map_location=device)
+        calibration = {}
+        raw = meta.get("sigma_calibration", {})
+        if not isinstance(raw, dict) or set(raw) - set(CALIBRATION_MODES):
+            raise ModelFileError(
+                f"{path.with_suffix('.json')}: sigma_calibration: expected an object with keys "
+                f"{list(CALIBRATION_MODES)}, got {raw!r}"
+            )
+        for mode, entry in raw.items():
+            try:
+                calibration[mode] = SigmaCalibration.from_json(entry, f"sigma_calibration.{mode}")
+            except ValueError as exc:
+                raise ModelFileError(f"{path.with_suffix('.json')}: {exc}") from exc
         return cls(
             model,
             var_scale=float(meta.get("var_scale", 1.0)),
@@ -142,6 +167,7 @@ class Predictor:
             precision=precision,
             mc_chunk=mc_chunk,
             meta=meta,
+            calibration=calibration,
         )
 
     @property
@@ -172,7 +198,8 @@ class Predictor:
                 else deterministic_moments(self.model, x)
             )
         mode = f"mc{mc}" if mc > 0 else "deterministic"
-        return to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale)
+        calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
+        return to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale, calibration=calibration)
 
     def predict(
         self, frames: np.ndarray, mc: int = 0, *, full_scale: float | None = None

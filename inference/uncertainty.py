@@ -13,6 +13,13 @@ Calibration: per pixel, ``confidence = P(|err| < eps) = erf(eps / (sigma sqrt 2)
 ``N(0, sigma^2)``, ``eps = 0.03 rad``; pixels are binned by confidence (30 equal bins on
 [0, 1]); the reliability diagram plots empirical ``P(|err| < eps)`` against mean confidence per
 bin; ``ECE = sum_b (n_b / n) |acc_b - conf_b|``.
+
+Two calibration maps are stored with a model. ``var_scale`` (fitted by training) multiplies the
+M, D variances before propagation. ``sigma_calibration`` (:class:`SigmaCalibration`, fitted by
+``gearscan calibrate-uncertainty``, one per mode: deterministic and Monte Carlo) then maps the
+propagated total sigma monotonically, ``sigma' = a * sigma**b``, fitted by the Gaussian negative
+log-likelihood, a proper scoring rule: ECE alone is minimised by a constant sigma (measured:
+ECE 0.001 with every pixel at 0.07 rad), which would erase where the network is unsure.
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -110,13 +118,100 @@ def deterministic_moments(model: torch.nn.Module, x: torch.Tensor) -> MomentStat
     return MomentStats(out[:, 0], out[:, 1], zero, zero, out[:, 2], out[:, 3])
 
 
+@dataclass(frozen=True, slots=True)
+class SigmaCalibration:
+    """Monotone map of the total phase sigma: ``sigma' = a * sigma**b`` (identity: a = b = 1).
+
+    Applied per pixel as one factor ``sigma'/sigma`` on the model, data and total sigmas (their
+    ratio is kept) and its square on the M, D variances, so the result stays self-consistent.
+    """
+
+    a: float = 1.0
+    b: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.a) and self.a > 0 and math.isfinite(self.b) and 0 < self.b <= 3):
+            raise ValueError(f"sigma calibration: expected a > 0 and 0 < b <= 3, got a={self.a}, b={self.b}")
+
+    @property
+    def identity(self) -> bool:
+        return self.a == 1.0 and self.b == 1.0
+
+    def __call__(self, sigma: np.ndarray) -> np.ndarray:
+        s = np.maximum(np.asarray(sigma, np.float64), 1e-12)
+        return (self.a * s**self.b).astype(np.float32)
+
+    def factor(self, sigma_total: np.ndarray) -> np.ndarray:
+        """``sigma'/sigma`` per pixel (float32)."""
+        s = np.maximum(np.asarray(sigma_total, np.float64), 1e-12)
+        return (self.a * s ** (self.b - 1.0)).astype(np.float32)
+
+    def to_json(self) -> dict[str, float]:
+        return {"a": self.a, "b": self.b}
+
+    @classmethod
+    def from_json(cls, data: Any, source: str = "sigma_calibration") -> SigmaCalibration:
+        if not isinstance(data, dict) or set(data) != {"a", "b"}:
+            raise ValueError(f"{source}: expected {{'a': float, 'b': float}}, got {data!r}")
+        try:
+            return cls(float(data["a"]), float(data["b"]))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{source}: {exc}") from exc
+
+
+def gaussian_nll(error: np.ndarray, sigma: np.ndarray) -> float:
+    """Mean Gaussian negative log-likelihood of ``error`` under ``N(0, sigma^2)`` (without log 2 pi / 2)."""
+    e = np.asarray(error, np.float64)
+    s = np.maximum(np.asarray(sigma, np.float64), 1e-12)
+    return float(np.mean(np.log(s) + 0.5 * (e / s) ** 2))
+
+
+def fit_sigma_calibration(
+    error: np.ndarray, sigma: np.ndarray, *, eps: float = 0.03, bins: int = 30
+) -> tuple[SigmaCalibration, dict[str, float]]:
+    """Fit ``sigma' = a * sigma**b`` to phase errors by Gaussian NLL; returns it and the metrics.
+
+    ``b`` is bounded to [0.05, 3]; the identity is kept when the fit does not lower the NLL.
+    The metrics hold NLL and ECE (``eps``, ``bins``) before and after, and the pixel count.
+    """
+    from scipy.optimize import minimize
+
+    e = np.asarray(error, np.float64).ravel()
+    s = np.maximum(np.asarray(sigma, np.float64).ravel(), 1e-12)
+    if e.size == 0 or e.shape != s.shape:
+        raise ValueError(f"fit_sigma_calibration: expected equal non-empty error and sigma, got {e.shape}, {s.shape}")
+    log_s = np.log(s)
+
+    def nll(p: np.ndarray) -> float:
+        log_sc = p[0] + p[1] * log_s
+        return float(np.mean(log_sc + 0.5 * e**2 * np.exp(-2.0 * log_sc)))
+
+    res = minimize(nll, x0=np.array([0.0, 1.0]), method="L-BFGS-B", bounds=[(-20.0, 20.0), (0.05, 3.0)])
+    before = nll(np.array([0.0, 1.0]))
+    cal = SigmaCalibration(float(math.exp(res.x[0])), float(res.x[1])) if res.fun < before else SigmaCalibration()
+    after = cal(s)
+    return cal, {
+        "nll_before": before,
+        "nll_after": gaussian_nll(e, after),
+        "ece_before": reliability(e, s, eps=eps, bins=bins).ece,
+        "ece_after": reliability(e, after, eps=eps, bins=bins).ece,
+        "pixels": int(e.size),
+    }
+
+
 def to_phase_result(
-    stats: MomentStats, index: int = 0, *, mode: str = "deterministic", var_scale: float = 1.0
+    stats: MomentStats,
+    index: int = 0,
+    *,
+    mode: str = "deterministic",
+    var_scale: float = 1.0,
+    calibration: SigmaCalibration | None = None,
 ) -> PhaseResult:
     """Turn batch element ``index`` of ``stats`` into a :class:`PhaseResult`.
 
     ``var_scale`` multiplies every variance (model and data) before propagation, so the phase
-    sigmas scale by ``sqrt(var_scale)`` (the calibration fitted by :func:`fit_variance_scale`).
+    sigmas scale by ``sqrt(var_scale)`` (the calibration fitted by :func:`fit_variance_scale`);
+    ``calibration`` then maps the propagated sigmas (:class:`SigmaCalibration`).
     """
 
     def np_(t: torch.Tensor) -> np.ndarray:
@@ -134,6 +229,10 @@ def to_phase_result(
         s_model = phase_sigma(M, D, mvM, mvD)
         s_total = np.sqrt(s_model**2 + s_data**2).astype(np.float32)
         var_M, var_D = (mvM + dvM).astype(np.float32), (mvD + dvD).astype(np.float32)
+    if calibration is not None and not calibration.identity:
+        f = calibration.factor(s_total)
+        s_model, s_data, s_total = s_model * f, s_data * f, s_total * f
+        var_M, var_D = var_M * f**2, var_D * f**2
     return PhaseResult(
         phase=np.arctan2(M, D).astype(np.float32),
         M=M,

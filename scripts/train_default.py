@@ -24,6 +24,10 @@ in all; `inference/weights/MODEL_CARD.md`):
     python scripts/train_default.py --train data/train data/train2 data/train3 --out runs/v4 \
         --init runs/v3/best.safetensors --dropout-init 0.02,0.1 --static-repeat 10 \
         --epochs-det 8 --epochs-drop 2 --steps-per-epoch 100 --crop 128 --lr 2e-4 --val-items 48 --patience 30 --ship
+
+Then the uncertainty calibration (sigma' = a sigma^b per mode, by Gaussian NLL; ~6 CPU minutes):
+
+    gearscan calibrate-uncertainty data/val --items 64 --mc 20
 """
 
 from __future__ import annotations

@@ -203,3 +203,31 @@ def test_predictor_folds_batchnorm_exactly_and_leaves_the_callers_model_alone():
         b = mc_moments(pred.model, x, 3, 3)
         torch.testing.assert_close(b.D, a.D, atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(b.model_var_M, a.model_var_M, atol=1e-5, rtol=1e-4)
+
+
+def test_predictor_applies_the_calibration_of_its_mode(saved):
+    model, path = saved
+    frames = _frames(hw=(32, 40), seed=3)
+    plain = Predictor.load(path)
+    meta = json.loads(path.with_suffix(".json").read_text())
+    meta["sigma_calibration"] = {"deterministic": {"a": 2.0, "b": 1.0}, "mc": {"a": 0.5, "b": 0.8}}
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    cal = Predictor.load(path)
+    np.testing.assert_allclose(cal.predict(frames).sigma_total, 2.0 * plain.predict(frames).sigma_total, rtol=1e-5)
+    torch.manual_seed(1)
+    ref = plain.predict(frames, mc=3).sigma_total
+    torch.manual_seed(1)
+    np.testing.assert_allclose(cal.predict(frames, mc=3).sigma_total, 0.5 * ref**0.8, rtol=1e-4)
+
+
+@pytest.mark.parametrize("entry, match", [
+    ({"fast": {"a": 1.0, "b": 1.0}}, r"sigma_calibration: expected an object with keys \['deterministic', 'mc'\]"),
+    ({"mc": {"a": 0.0, "b": 1.0}}, r"net\.json: sigma_calibration\.mc: sigma calibration: expected a > 0"),
+])
+def test_bad_sigma_calibration_in_the_config_is_named(saved, entry, match):
+    _, path = saved
+    meta = json.loads(path.with_suffix(".json").read_text())
+    meta["sigma_calibration"] = entry
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    with pytest.raises(ModelFileError, match=match):
+        Predictor.load(path)

@@ -12,8 +12,10 @@ from gearscan.inference.concrete_dropout import concrete_layers
 from gearscan.inference.models import build_model
 from gearscan.inference.uncertainty import (
     MomentStats,
+    SigmaCalibration,
     confidence,
     deterministic_moments,
+    fit_sigma_calibration,
     fit_variance_scale,
     mc_moments,
     phase_sigma,
@@ -154,3 +156,42 @@ def test_plot_reliability(tmp_path):
     sigma = rng.uniform(0.005, 0.1, 1000)
     p = plot_reliability(reliability(sigma * rng.standard_normal(1000), sigma), tmp_path / "r.png")
     assert p.stat().st_size > 1000
+
+
+def test_sigma_calibration_fit_recovers_a_power_law_by_nll():
+    rng = np.random.default_rng(7)
+    raw = rng.uniform(0.02, 0.5, 200000)
+    true = 0.2 * raw**0.5  # the network's sigma spreads too much, like the shipped one's
+    err = true * rng.standard_normal(raw.size)
+    cal, m = fit_sigma_calibration(err, raw)
+    assert cal.a == pytest.approx(0.2, rel=0.05) and cal.b == pytest.approx(0.5, abs=0.03)
+    assert m["nll_after"] < m["nll_before"] and m["ece_after"] < 0.01 < m["ece_before"]
+    np.testing.assert_allclose(cal(raw), cal.a * raw**cal.b, rtol=1e-5)
+    ident, _ = fit_sigma_calibration(err, true)  # already calibrated: stays (near) identity
+    assert ident.a == pytest.approx(1.0, rel=0.1) and ident.b == pytest.approx(1.0, abs=0.03)
+
+
+def test_sigma_calibration_is_one_factor_on_every_sigma_and_variance():
+    M = torch.tensor([[[0.3, -0.2, 0.05]]])
+    D = torch.tensor([[[0.4, 0.5, -0.1]]])
+    mv = torch.tensor([[[1e-4, 4e-4, 2e-5]]])
+    dv = torch.tensor([[[9e-4, 1e-4, 3e-4]]])
+    stats = MomentStats(M, D, mv, mv, dv, dv)
+    cal = SigmaCalibration(0.3, 0.6)
+    r, c = to_phase_result(stats, mode="mc20"), to_phase_result(stats, mode="mc20", calibration=cal)
+    np.testing.assert_allclose(c.sigma_total, 0.3 * r.sigma_total**0.6, rtol=1e-5)
+    np.testing.assert_allclose(c.sigma_model / c.sigma_data, r.sigma_model / r.sigma_data, rtol=1e-5)
+    # the calibrated M, D variances propagate to the calibrated total sigma
+    np.testing.assert_allclose(phase_sigma(c.M, c.D, c.var_M, c.var_D), c.sigma_total, rtol=1e-4)
+    np.testing.assert_array_equal(c.phase, r.phase)
+    det = to_phase_result(MomentStats(M, D, 0 * mv, 0 * mv, dv, dv), calibration=cal)
+    assert np.all(det.sigma_model == 0)
+    np.testing.assert_allclose(det.sigma_total, det.sigma_data, rtol=1e-6)
+
+
+def test_sigma_calibration_rejects_bad_values_by_name():
+    with pytest.raises(ValueError, match="a > 0 and 0 < b <= 3"):
+        SigmaCalibration(-1.0, 0.5)
+    with pytest.raises(ValueError, match=r"sigma_calibration.mc: expected \{'a': float, 'b': float\}"):
+        SigmaCalibration.from_json({"a": 1.0}, "sigma_calibration.mc")
+    assert SigmaCalibration.from_json({"a": 0.5, "b": 0.4}) == SigmaCalibration(0.5, 0.4)
