@@ -138,13 +138,12 @@ class SigmaCalibration:
         return self.a == 1.0 and self.b == 1.0
 
     def __call__(self, sigma: np.ndarray) -> np.ndarray:
-        s = np.maximum(np.asarray(sigma, np.float64), 1e-12)
-        return (self.a * s**self.b).astype(np.float32)
+        return self.factor(sigma) * np.maximum(np.asarray(sigma, np.float32), np.float32(1e-12))
 
     def factor(self, sigma_total: np.ndarray) -> np.ndarray:
-        """``sigma'/sigma`` per pixel (float32)."""
-        s = np.maximum(np.asarray(sigma_total, np.float64), 1e-12)
-        return (self.a * s ** (self.b - 1.0)).astype(np.float32)
+        """``sigma'/sigma`` per pixel (float32: this runs on every burst)."""
+        s = np.maximum(np.asarray(sigma_total, np.float32), np.float32(1e-12))
+        return np.float32(self.a) * np.power(s, np.float32(self.b - 1.0))
 
     def to_json(self) -> dict[str, float]:
         return {"a": self.a, "b": self.b}
