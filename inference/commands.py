@@ -204,6 +204,9 @@ def train(
     ] = None,
     resume: Annotated[bool, typer.Option(help="resume from OUT/last.* if present")] = False,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
+    calibrate_mc: Annotated[
+        int, typer.Option(min=0, help="MC passes for the MC-mode sigma calibration at the end (0: skip)")
+    ] = 20,
 ) -> None:
     """Train a phase network (two stages: deterministic, then Concrete Dropout); DDP via torchrun."""
     from gearscan.inference.losses import LossConfig
@@ -234,6 +237,7 @@ def train(
         init=str(init) if init else None,
         resume=resume,
         progress=progress,
+        calibrate_mc=calibrate_mc,
     )
     train_set = _load_dataset(data)
     val_set = _load_dataset(val_data, max_items=64) if val_data else None

@@ -10,7 +10,7 @@
   it compares across stages.
 - Split by ``group``: no start point in both train and validation.
 - Output folder: ``best.safetensors/.json`` (a Predictor-ready model, with the fitted variance
-  scale), ``last.*`` + ``last_optim.pt`` (resume), ``metrics.csv``, ``metrics.json``,
+  scale and the per-mode sigma calibration of :mod:`gearscan.inference.uncertainty`), ``last.*`` + ``last_optim.pt`` (resume), ``metrics.csv``, ``metrics.json``,
   ``loss_curve.png``, ``reliability.png``.
 - ``init``: start from pre-trained weights (transfer learning: pre-train on twin, fine-tune).
 - DDP: launched with ``torchrun`` (env ``WORLD_SIZE`` > 1), gloo on CPU, nccl on CUDA; rank 0
@@ -75,6 +75,7 @@ class TrainConfig:
     resume: bool = False
     progress: bool = True
     calibrate: bool = True
+    calibrate_mc: int = 20  # MC passes for the MC-mode sigma calibration (0: deterministic only)
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):
@@ -414,9 +415,9 @@ class Trainer:
             if self.dist.main:
                 self._save_last()
                 self._write_metrics(plot=True)
-        var_scale, calib = 1.0, {}
+        var_scale, calib, sigma_cal = 1.0, {}, {}
         if cfg.calibrate:
-            var_scale, calib = self._calibrate()
+            var_scale, calib, sigma_cal = self._calibrate()
         best_path = None
         if self.dist.main:
             final = self.history[-1] if self.history else {}
@@ -428,6 +429,7 @@ class Trainer:
                     "training": cfg.to_json(),
                     "metrics": final,
                     "calibration": calib,
+                    **({"sigma_calibration": sigma_cal} if sigma_cal else {}),
                     "train_seconds": time.perf_counter() - t0,
                 },
             )
@@ -443,44 +445,74 @@ class Trainer:
             dist.barrier()
 
     @torch.no_grad()
-    def _calibrate(self) -> tuple[float, dict]:
-        """Fit the deterministic-mode variance scale on validation data (kept only if ECE improves)."""
+    def _calibrate(self) -> tuple[float, dict, dict]:
+        """Fit the uncertainty calibration on validation data: returns (var_scale, report, sigma maps).
+
+        The deterministic-mode variance scale (kept only if ECE improves), then the sigma map
+        ``a * sigma**b`` per mode by Gaussian NLL (:func:`fit_sigma_calibration`; MC mode with
+        ``calibrate_mc`` passes when the model has Concrete Dropout), as
+        ``gearscan calibrate-uncertainty`` fits it.
+        """
         from gearscan.inference.uncertainty import (
+            fit_sigma_calibration,
             fit_variance_scale,
+            mc_moments,
             phase_sigma,
             plot_reliability,
             reliability,
         )
 
+        def collect(mc: int) -> tuple[np.ndarray, np.ndarray]:
+            errs, sigs = [], []
+            for batch in self._loader(self.val_set, False, 0):
+                x = batch["input"].to(self.device)
+                with self._autocast():
+                    if mc:
+                        st = mc_moments(self.model, x, mc)
+                        M, D = st.M.cpu().numpy(), st.D.cpu().numpy()
+                        var_M = (st.model_var_M + st.data_var_M).cpu().numpy()
+                        var_D = (st.model_var_D + st.data_var_D).cpu().numpy()
+                    else:
+                        pred = self.model(x).float().cpu().numpy()
+                        M, D, var_M, var_D = pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3]
+                mask = batch["mask"].numpy().astype(bool)
+                err = np.angle(np.exp(1j * (np.arctan2(M, D) - batch["phase"].numpy())))
+                errs.append(err[mask])
+                # model and data sigma add in quadrature: one propagation of the summed variances
+                sigs.append(phase_sigma(M, D, var_M, var_D)[mask])
+            return np.concatenate(errs), np.concatenate(sigs)
+
         self.model.eval()
         set_stochastic(self.model, False)
-        errs, sigs = [], []
-        for batch in self._loader(self.val_set, False, 0):
-            with self._autocast():
-                pred = self.model(batch["input"].to(self.device)).float().cpu().numpy()
-            mask = batch["mask"].numpy().astype(bool)
-            est = np.arctan2(pred[:, 0], pred[:, 1])
-            err = np.angle(np.exp(1j * (est - batch["phase"].numpy())))
-            sig = phase_sigma(pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3])
-            errs.append(err[mask])
-            sigs.append(sig[mask])
-        if not errs or sum(e.size for e in errs) == 0:
-            return 1.0, {}
-        err, sig = np.concatenate(errs), np.concatenate(sigs)
+        err, sig = collect(0)
+        if err.size == 0:
+            return 1.0, {}, {}
         k, before, after = fit_variance_scale(err, sig)
-        if self.dist.main:
-            plot_reliability(
-                reliability(err, sig * math.sqrt(k)),
-                self.out / "reliability.png",
-                f"validation, var scale {k:.3g}",
-            )
-        return k, {
+        sig = sig * math.sqrt(k)
+        det_map, det_fit = fit_sigma_calibration(err, sig)
+        sigma_cal = {"deterministic": det_map.to_json()}
+        report = {
             "mode": "deterministic",
             "var_scale": k,
             "ece_before": before,
             "ece_after": after,
             "pixels": int(err.size),
+            "sigma_calibration": {"deterministic": det_fit},
         }
+        if self.dist.main:
+            plot_reliability(
+                reliability(err, det_map(sig)),
+                self.out / "reliability.png",
+                f"validation, var scale {k:.3g}, sigma' = {det_map.a:.3g} sigma^{det_map.b:.2f}",
+            )
+        if self.config.calibrate_mc > 0 and self.config.model.dropout:
+            err, sig = collect(self.config.calibrate_mc)
+            mc_map, mc_fit = fit_sigma_calibration(err, sig * math.sqrt(k))
+            sigma_cal["mc"] = mc_map.to_json()
+            report["sigma_calibration"]["mc"] = mc_fit | {"passes": self.config.calibrate_mc}
+        self.model.eval()
+        set_stochastic(self.model, False)
+        return k, report, sigma_cal
 
 
 def train(config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None) -> TrainResult:
