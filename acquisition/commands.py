@@ -52,14 +52,22 @@ def record(
     from rich.console import Console
     from rich.progress import Progress
 
-    from gearscan.acquisition.config import AcquisitionConfig
+    from gearscan.acquisition.camera import CameraError
+    from gearscan.acquisition.config import AcquisitionConfig, ConfigError
+    from gearscan.acquisition.encoder import EncoderError
     from gearscan.acquisition.record import record_bursts
+    from gearscan.recording import RecordingError
 
     console = Console()
-    cfg = AcquisitionConfig.load(config)
-    with Progress(console=console) as progress:
-        task = progress.add_task("recording bursts", total=bursts)
-        summary = record_bursts(cfg, out, bursts, overwrite=overwrite, on_burst=lambda n: progress.update(task, completed=n))
+    try:
+        cfg = AcquisitionConfig.load(config)
+        with Progress(console=console) as progress:
+            task = progress.add_task("recording bursts", total=bursts)
+            summary = record_bursts(cfg, out, bursts, overwrite=overwrite,
+                                    on_burst=lambda n: progress.update(task, completed=n))
+    except (ConfigError, CameraError, EncoderError, RecordingError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
     console.print(
         f"{summary.bursts} bursts ({summary.frames} frames, {summary.encoder_samples} encoder samples) "
         f"in {summary.seconds:.1f} s -> {summary.out}"

@@ -55,6 +55,9 @@ class EncoderConfig(BaseModel):
     counts_per_rev: int = Field(gt=0)
     baudrate: int = Field(115_200, gt=0)
     zero_on_index: bool = True
+    # with zero_on_index: wait this long at start for the index mark before taking bursts, so
+    # every angle of a run is measured from the index; 0: start at once, angles from the first count
+    index_wait_s: float = Field(15.0, ge=0)
     max_gap_ms: float = Field(20.0, gt=0)
 
 

@@ -50,6 +50,7 @@ class EncoderStats:
     banners: int = 0
     disconnects: int = 0
     reconnects: int = 0
+    index_ignored: int = 0  # index marks after the reference was frozen at the first count
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -58,7 +59,7 @@ class EncoderStats:
 @dataclass(frozen=True, slots=True)
 class LinkEvent:
     host_time_ns: int
-    kind: str  # "connected", "disconnected", "reconnected", "banner", "version"
+    kind: str  # "connected", "disconnected", "reconnected", "banner", "version", "index", "reference"
     detail: str
 
 
@@ -137,7 +138,8 @@ class EncoderReader:
 
     counts_per_rev: from the config; must match the device banner when it states one.
     zero_on_index: angle 0 at the index mark; until the first index, angles are relative to
-    the first count seen (``zeroed`` says which).
+    the first count seen (``zeroed`` says which). :meth:`freeze_reference` fixes the reference
+    when acquisition starts, so one recording never mixes the two (a late index is then ignored).
     """
 
     def __init__(
@@ -167,6 +169,8 @@ class EncoderReader:
         self.banner: Banner | None = None
         self.zero_count: int | None = None
         self.zeroed = False
+        self._zeroed_event = threading.Event()
+        self.reference_frozen = False
         self.connected = threading.Event()
         self.last_sample: EncoderSample | None = None
         self._last_seq: int | None = None
@@ -192,6 +196,19 @@ class EncoderReader:
         self._event("connected", self.port)
         self._thread = threading.Thread(target=self._run, name=f"encoder {self.port}", daemon=True)
         self._thread.start()
+
+    def wait_for_index(self, timeout_s: float) -> bool:
+        """Block until the index mark has zeroed the angles (True) or ``timeout_s`` passes (False)."""
+        return self._zeroed_event.wait(timeout_s)
+
+    def freeze_reference(self) -> str:
+        """Keep the current angle reference for the rest of the run; returns it ("index" or
+        "first count"). Called when acquisition starts: angles stamped on frames before a later
+        index would otherwise sit in another reference than those after it."""
+        self.reference_frozen = True
+        reference = "index" if self.zeroed else "first count"
+        self._event("reference", f"angles relative to the {reference}")
+        return reference
 
     def stop(self) -> None:
         self._stop.set()
@@ -311,10 +328,16 @@ class EncoderReader:
         self._after_reconnect = False
         self._last_seq = s.seq
         if s.index and self.zero_on_index and not self.zeroed:
-            if self.zero_count is not None:  # re-reference what was stored before the index
-                self.history.shift(-2 * math.pi * (s.index_count - self.zero_count) / self.counts_per_rev)
-            self.zero_count, self.zeroed = s.index_count, True
-            self._event("index", f"zeroed at count {s.index_count}")
+            if self.reference_frozen:
+                if not self.stats.index_ignored:
+                    self._event("index", f"index at count {s.index_count} ignored: reference frozen at the first count")
+                self.stats.index_ignored += 1
+            else:
+                if self.zero_count is not None:  # re-reference what was stored before the index
+                    self.history.shift(-2 * math.pi * (s.index_count - self.zero_count) / self.counts_per_rev)
+                self.zero_count, self.zeroed = s.index_count, True
+                self._zeroed_event.set()
+                self._event("index", f"zeroed at count {s.index_count}")
         if self.zero_count is None:
             self.zero_count = s.count
         self.clock.add(s.t_us * 1000, arrival_ns)

@@ -17,7 +17,7 @@ from pathlib import Path
 from gearscan.acquisition.bursts import BurstAssembler
 from gearscan.acquisition.camera import BaseCamera, CameraError, GrabTimeout
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError
-from gearscan.acquisition.encoder import EncoderReader
+from gearscan.acquisition.encoder import EncoderError, EncoderReader
 from gearscan.projector.patterns import PatternSet
 from gearscan.types import Burst, EncoderSample, Frame
 
@@ -105,6 +105,10 @@ class AcquisitionSession:
         from gearscan.recording import RecordingWriter
 
         cfg = self.cfg
+        if self.out is not None and (self.out / "recording.json").exists() and not self.overwrite:
+            from gearscan.recording import RecordingError  # before any device wait
+
+            raise RecordingError(f"{self.out} already holds a recording (pass overwrite to replace it)")
         try:
             self.camera.__enter__()
             self.camera.configure(self.settings)
@@ -114,17 +118,20 @@ class AcquisitionSession:
                 frame_id_modulus=self.camera.frame_id_modulus,
                 frame_id_skips_zero=self.camera.frame_id_skips_zero,
             )
+            reference = None
+            if self.encoder is not None:  # before the recording exists: a missing index leaves no folder
+                self.encoder.start()
+                reference = self._settle_encoder_reference()
             if self.out is not None:
                 meta = {
                     "camera": {**dataclasses.asdict(self.camera.info), "settings": self.settings.model_dump()},
                     "patterns": self.patterns.to_json(),
                     "encoder": None if cfg.encoder is None else cfg.encoder.model_dump(),
+                    "encoder_reference": reference,
                     "acquisition_config": cfg.model_dump(mode="json"),
                     **self.extra_meta,
                 }
                 self.writer = RecordingWriter(self.out, meta, overwrite=self.overwrite)
-            if self.encoder is not None:
-                self.encoder.start()
             self.camera.start()
             if self.settings.trigger == "software":
                 self.projector = make_projector(cfg)
@@ -149,6 +156,19 @@ class AcquisitionSession:
                                             camera_stats=self.camera.stats.as_dict())
                 self.writer.close()
             self.camera.__exit__(None, None, None)
+
+    def _settle_encoder_reference(self) -> str:
+        """Wait for the index mark (``encoder.index_wait_s``), then freeze the angle reference:
+        the CAD pose and the turntable transform need angles from the index, and no recording
+        may mix angles from before and after it."""
+        enc_cfg = self.cfg.encoder
+        if enc_cfg.zero_on_index and enc_cfg.index_wait_s > 0 and not self.encoder.wait_for_index(enc_cfg.index_wait_s):
+            raise EncoderError(
+                f"encoder on {enc_cfg.port}: no index mark within encoder.index_wait_s = {enc_cfg.index_wait_s:g} s "
+                f"({self.encoder.stats.samples} samples read): is the turntable turning? Set encoder.index_wait_s = 0 "
+                "to measure with angles from the first count instead"
+            )
+        return self.encoder.freeze_reference()
 
     def _drain_encoder(self) -> None:
         while not self._samples.empty():

@@ -236,9 +236,11 @@ def live_cmd(
 
     from gearscan.acquisition.camera import CameraError
     from gearscan.acquisition.config import ConfigError
+    from gearscan.acquisition.encoder import EncoderError
     from gearscan.config import LiveConfig
     from gearscan.live import run_live
     from gearscan.pipeline import PipelineError
+    from gearscan.recording import RecordingError
 
     try:
         cfg = LiveConfig.load(config)
@@ -266,7 +268,7 @@ def live_cmd(
     try:
         report = run_live(cfg, record=record, overwrite=overwrite, bursts=bursts, duration=duration,
                           decoder=decoder, save=save, connect=connect, spawn=spawn)
-    except (ConfigError, CameraError, PipelineError) as exc:
+    except (ConfigError, CameraError, EncoderError, RecordingError, PipelineError) as exc:
         raise _fail(str(exc)) from exc
     finally:
         if web is not None:

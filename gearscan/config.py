@@ -42,7 +42,8 @@ settle_ms = 20.0             # wait after showing a pattern before triggering th
 # port = "/dev/ttyUSB0"
 # counts_per_rev = 131072
 # baudrate = 115200
-# zero_on_index = true
+# zero_on_index = true       # angle 0 at the index mark
+# index_wait_s = 15.0        # wait this long for the index before measuring (0: angles from the first count)
 
 [rig]
 calibration = "rig.json"     # written by `gearscan calibrate`; relative to this file

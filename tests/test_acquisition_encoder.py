@@ -117,3 +117,32 @@ def test_history_refuses_gaps_and_outside_times():
     assert h.interpolate(5_500_000, 2_000_000)[0] == pytest.approx(0.55)
     assert h.interpolate(10_000_000, 2_000_000)[0] is None  # 6 ms gap between samples 8 and 9
     assert "after last" in h.interpolate(10**9, 2_000_000)[1]
+
+
+def test_waiting_for_the_index_then_a_frozen_reference(tmp_path):
+    """The index zeroes the angles once; after freeze_reference a later index changes nothing,
+    so a run that started before the index keeps one reference (angles from the first count)."""
+    link = str(tmp_path / "enc1")
+    with MockEncoderProcess(link, rate=1000, cpr=CPR, rpm=RPM, start_angle=START, duration=1.5) as dev:
+        reader = EncoderReader(link, CPR)
+        with reader:
+            dev.wait_started()
+            assert reader.wait_for_index(5.0) and reader.zeroed  # index passes 0.48 s in
+            assert reader.freeze_reference() == "index"
+            dev.wait()
+    link = str(tmp_path / "enc2")
+    samples = []
+    with MockEncoderProcess(link, rate=1000, cpr=CPR, rpm=RPM, start_angle=START, duration=1.5) as dev:
+        reader = EncoderReader(link, CPR, on_sample=samples.append)
+        with reader:
+            dev.wait_started()
+            while reader.stats.samples < 50:
+                time.sleep(0.01)
+            assert reader.freeze_reference() == "first count"  # before the index
+            assert not reader.wait_for_index(1.2)
+            dev.wait()
+            time.sleep(0.2)
+    assert not reader.zeroed and reader.stats.index_ignored == 1
+    steps = np.diff([s.angle for s in samples])
+    # one reference throughout: steady steps of ~0.63 mrad per 1 ms sample, no jump at the index
+    assert np.all(np.abs(steps - RPM * 2 * math.pi / 60 / 1000) < 2 * 2 * math.pi / CPR), steps.min()

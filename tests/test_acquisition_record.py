@@ -65,6 +65,7 @@ def test_record_bursts_from_simulator_and_encoder(tmp_path, sim):
     assert rec.finished and len(rec) == 9
     assert [r.pattern_index for r in rec.records] == [0, 1, 2] * 3
     assert rec.meta["assembler"]["bursts"] == 3 and rec.meta["camera"]["serial"] == sim.serial
+    assert rec.meta["encoder_reference"] == "index"  # the session waited for it (0.16 s in)
     angles = np.array([r.encoder_angle for r in rec.records])
     dt = np.diff([r.host_timestamp_ns for r in rec.records]) / 1e9
     # the turntable turns at 6 rpm: angle steps match the time steps between exposures
@@ -75,6 +76,25 @@ def test_record_bursts_from_simulator_and_encoder(tmp_path, sim):
         f = rec.frame(i)
         y, x = np.mgrid[0:48, 0:64]
         np.testing.assert_array_equal(f.image, (x + y + f.frame_id) % 255)
+
+
+def test_no_index_mark_in_time_is_a_clear_error_and_zero_wait_measures_from_the_first_count(tmp_path, sim):
+    from gearscan.acquisition.encoder import EncoderError
+    from gearscan.acquisition.record import record_bursts
+    from gearscan.mocks.encoder_device import MockEncoderProcess
+
+    link = str(tmp_path / "enc")
+    # the index (theta = 0) comes 9 s in at 6 rpm from 0.5 rad
+    with MockEncoderProcess(link, rate=1000, cpr=10000, rpm=RPM, start_angle=0.5, duration=30, linger=0) as dev:
+        cfg = AcquisitionConfig.load(_toml(tmp_path, sim.serial, link, "index_wait_s = 0.5"))
+        with pytest.raises(EncoderError, match=r"no index mark within encoder.index_wait_s = 0.5 s .*turntable turning"):
+            record_bursts(cfg, tmp_path / "r0", 1)
+        assert not (tmp_path / "r0").exists()  # nothing half-made to clean up before a retry
+        cfg = AcquisitionConfig.load(_toml(tmp_path, sim.serial, link, "index_wait_s = 0"))
+        record_bursts(cfg, tmp_path / "r1", 2)
+        dev.kill()
+    rec = RecordingReader(tmp_path / "r1")
+    assert rec.meta["encoder_reference"] == "first count" and len(rec) == 6
 
 
 def test_bad_configs_name_the_setting(tmp_path, sim):
