@@ -127,7 +127,8 @@ class Pipeline:
         self._source = source
         # The stages already run in parallel; a multi-threaded BLAS (numpy's OpenBLAS) spins its
         # own pool on the same cores as torch's and the other stages. One BLAS thread measured
-        # 4.0 -> 5.0-5.4 bursts/s (benchmarks/pipeline_report.md); None leaves BLAS alone.
+        # 479 -> 345 core-ms per 512x512 burst, 4.05 -> 5.10 bursts/s on a quiet host
+        # (benchmarks/pipeline_report.md); None leaves BLAS alone.
         self.blas_threads = blas_threads
         self._source_name = source_name
         self._source_close = source_close
