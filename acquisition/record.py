@@ -105,10 +105,8 @@ class AcquisitionSession:
         from gearscan.recording import RecordingWriter
 
         cfg = self.cfg
-        if self.out is not None and (self.out / "recording.json").exists() and not self.overwrite:
-            from gearscan.recording import RecordingError  # before any device wait
-
-            raise RecordingError(f"{self.out} already holds a recording (pass overwrite to replace it)")
+        if self.out is not None:  # before any device wait
+            RecordingWriter.check_target(self.out, self.overwrite)
         try:
             self.camera.__enter__()
             self.camera.configure(self.settings)

@@ -93,10 +93,15 @@ class RecordingWriter:
     fsyncs every frame (survives power loss, costs a few ms per frame).
     """
 
+    @staticmethod
+    def check_target(path: str | Path, overwrite: bool = False) -> None:
+        """Raise :class:`RecordingError` if ``path`` already holds a recording and ``overwrite`` is off."""
+        if (Path(path) / "recording.json").exists() and not overwrite:
+            raise RecordingError(f"{path} already holds a recording (pass overwrite to replace it)")
+
     def __init__(self, path: str | Path, meta: dict[str, Any], *, overwrite: bool = False, durable: bool = False):
         self.path = Path(path)
-        if (self.path / "recording.json").exists() and not overwrite:
-            raise RecordingError(f"{self.path} already holds a recording (pass overwrite to replace it)")
+        self.check_target(self.path, overwrite)
         (self.path / "frames").mkdir(parents=True, exist_ok=True)
         if overwrite:
             for name in ("frames.jsonl", "encoder.jsonl"):

@@ -17,13 +17,14 @@ import numpy as np
 import torch
 
 from gearscan.inference.model_io import read_config, write_config
-from gearscan.inference.predictor import DEFAULT_MODEL, Predictor
+from gearscan.inference.predictor import Predictor, model_path
 from gearscan.inference.uncertainty import (
     SigmaCalibration,
     fit_sigma_calibration,
     gaussian_nll,
     reliability,
 )
+from gearscan.recon.phase import phase_error
 
 
 def collect_errors(
@@ -37,8 +38,7 @@ def collect_errors(
         x = torch.from_numpy(np.asarray(item["input"], np.float32))[None]
         r = predictor.predict_tensor(x, mc)
         mask = np.asarray(item["mask"], bool)
-        err = np.angle(np.exp(1j * (r.phase - np.asarray(item["phase"]))))
-        errs.append(err[mask].astype(np.float32))
+        errs.append(phase_error(r.phase, item["phase"])[mask].astype(np.float32))
         sigmas.append(r.sigma_total[mask])
         groups.append(np.full(int(mask.sum()), int(item["group"])))
         if progress:
@@ -82,9 +82,7 @@ def calibrate_model(
     """
     from gearscan.twin.dataset import TwinBurstDataset
 
-    path = Path(model) if model is not None else DEFAULT_MODEL
-    if path.suffix == ".json":
-        path = path.with_suffix(".safetensors")
+    path = model_path(model)
     if items < 2:
         raise ValueError(f"items: expected >= 2 validation bursts, got {items}")
     predictor = Predictor.load(path)

@@ -59,6 +59,12 @@ def resolve_precision(precision: str, device: str | torch.device) -> str:
     return "bf16" if cpu_has_fast_bf16() else "fp32"
 
 
+def model_path(path: str | Path | None) -> Path:
+    """The weights file a model argument names: ``None`` -> the shipped model, ``X.json`` -> ``X.safetensors``."""
+    path = Path(path) if path is not None else DEFAULT_MODEL
+    return path.with_suffix(".safetensors") if path.suffix == ".json" else path
+
+
 def frames_to_tensor(frames: np.ndarray, full_scale: float | None = None) -> torch.Tensor:
     """``(3, H, W)`` (or ``(C, H, W)``) raw frames -> ``(1, C, H, W)`` float32 in [0, 1].
 
@@ -137,9 +143,7 @@ class Predictor:
         mc_chunk: int = 2,
     ) -> Predictor:
         """Load ``path`` (.safetensors + .json); default: the shipped model."""
-        path = Path(path) if path is not None else DEFAULT_MODEL
-        if path.suffix == ".json":
-            path = path.with_suffix(".safetensors")
+        path = model_path(path)
         if not path.is_file():
             hint = (
                 " (the shipped default model has not been trained yet: run `gearscan train` and copy best.safetensors/.json there, or pass --model)"

@@ -461,6 +461,7 @@ class Trainer:
             plot_reliability,
             reliability,
         )
+        from gearscan.recon.phase import phase_error
 
         def collect(mc: int) -> tuple[np.ndarray, np.ndarray]:
             errs, sigs = [], []
@@ -476,8 +477,7 @@ class Trainer:
                         pred = self.model(x).float().cpu().numpy()
                         M, D, var_M, var_D = pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3]
                 mask = batch["mask"].numpy().astype(bool)
-                err = np.angle(np.exp(1j * (np.arctan2(M, D) - batch["phase"].numpy())))
-                errs.append(err[mask])
+                errs.append(phase_error(np.arctan2(M, D), batch["phase"].numpy())[mask])
                 # model and data sigma add in quadrature: one propagation of the summed variances
                 sigs.append(phase_sigma(M, D, var_M, var_D)[mask])
             return np.concatenate(errs), np.concatenate(sigs)
