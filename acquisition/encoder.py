@@ -250,6 +250,8 @@ class EncoderReader:
                 self.stats.disconnects += 1
                 self._event("disconnected", f"{self.port}: {exc}")
                 self._close()
+                if buf:
+                    self.stats.partial += 1  # a line cut by the unplug
                 buf = b""
                 if not self._reconnect():
                     return

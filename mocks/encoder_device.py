@@ -14,7 +14,9 @@ Stdout: ``READY <link>`` once the pty exists; after the host's ``HELLO`` handsha
 ``START <monotonic_ns> OFFSET_US <us> DRIFT_PPM <ppm>``, from which a test computes the true
 host time of every device timestamp (both processes read the same CLOCK_MONOTONIC):
 ``host_ns = start + (t_us - offset_us) * 1000 / (1 + drift)``; after the last line
-``SENT <samples written> DROPPED <n> GARBAGE <n>``, then the pty stays open ``--linger`` s.
+``SENT <samples written> DROPPED <n> GARBAGE <n> UNREAD_SAMPLES <n> UNREAD_GARBAGE <n>``, then
+the pty stays open ``--linger`` s. ``UNREAD_*`` count the written lines still unread in the pty
+when the cable was pulled: a real unplug loses them, so a reader can never see them.
 
 Motion (true angle theta(t), rad, t in seconds of device time):
 ``uniform``: ``w t``; ``nonuniform``: ``w t + (a w / 2 pi f)(1 - cos 2 pi f t)`` (speed
@@ -26,11 +28,14 @@ after index zeroing the reader's angle equals theta up to one count.
 from __future__ import annotations
 
 import argparse
+import collections
+import fcntl
 import math
 import os
 import select
 import subprocess
 import sys
+import termios
 import time
 import tty
 
@@ -51,6 +56,19 @@ def theta(args: argparse.Namespace, t: float) -> float:
     raise SystemExit(f"--motion must be uniform, nonuniform or stop, got {args.motion!r}")
 
 
+def unread_lines(recent: collections.deque[tuple[int, int]], unread: int) -> tuple[int, int]:
+    """(sample lines, garbage lines) whose newline lies in the last ``unread`` bytes written."""
+    samples = garbage = 0
+    for size, junk in reversed(recent):
+        if unread <= 0:
+            break
+        samples += 1  # the sample line ends the write, so its newline is unread
+        if junk and unread > size - junk:
+            garbage += 1  # the garbage line's newline is unread as well
+        unread -= size
+    return samples, garbage
+
+
 class PtyPort:
     """One pty whose slave is published under ``link``."""
 
@@ -65,6 +83,10 @@ class PtyPort:
         os.symlink(name, tmp)
         os.replace(tmp, link)
         os.set_blocking(self.master, True)
+
+    def unread_bytes(self) -> int:
+        """Bytes written to the master that no reader has taken from the slave yet."""
+        return int.from_bytes(fcntl.ioctl(self.slave, termios.FIONREAD, b"\0\0\0\0"), sys.byteorder)
 
     def close(self) -> None:
         os.close(self.master)
@@ -117,7 +139,7 @@ class MockEncoderProcess:
         return self.start_ns + (np.asarray(t_us, dtype=np.float64) - self.offset_us) * 1000.0 / (1 + self.drift)
 
     def wait(self) -> dict[str, int]:
-        """Block until the last line was written; ``{"SENT": n, "DROPPED": n, "GARBAGE": n}``."""
+        """Block until the last line was written; the summary, e.g. ``{"SENT": n, "DROPPED": n, ...}``."""
         if not self.start_ns:
             self.wait_started()
         w = self._read_until("SENT")
@@ -190,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"START {start} OFFSET_US {args.clock_offset_us} DRIFT_PPM {args.drift_ppm}", flush=True)
     period = 1.0 / args.rate
     n_total = int(round(args.duration * args.rate))
-    sent = dropped = garbage = 0
+    sent = dropped = garbage = unread_samples = unread_garbage = 0
+    recent: collections.deque[tuple[int, int]] = collections.deque(maxlen=256)  # (bytes, garbage bytes)
     last_turn = math.floor(theta(args, 0.0) / (2 * math.pi))
     disconnected = False
     inbuf = b""
@@ -203,6 +226,10 @@ def main(argv: list[str] | None = None) -> int:
             continue
         if args.disconnect_at >= 0 and not disconnected and due >= args.disconnect_at:
             disconnected = True
+            time.sleep(0.005)  # the pty moves written bytes to the slave's queue asynchronously
+            lost_s, lost_g = unread_lines(recent, port.unread_bytes())
+            unread_samples += lost_s
+            unread_garbage += lost_g
             port.close()
             os.unlink(args.link)
             time.sleep(args.disconnect_for)
@@ -223,10 +250,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.drop_every and k % args.drop_every == args.drop_every - 1 and not index:
             dropped += 1
         else:
+            junk = b""
             if args.garbage_every and k % args.garbage_every == args.garbage_every // 2:
-                line = b"\x00\xff$E,9,zz*" + line[: len(line) // 2] + b"\n" + line
+                junk = b"\x00\xff$E,9,zz*" + line[: len(line) // 2] + b"\n"
                 garbage += 1
-            os.write(port.master, line)
+            os.write(port.master, junk + line)
+            recent.append((len(junk) + len(line), len(junk)))
             sent += 1
         k += 1
         r, _, _ = select.select([port.master], [], [], 0)
@@ -238,7 +267,10 @@ def main(argv: list[str] | None = None) -> int:
             if b"HELLO" in inbuf:
                 os.write(port.master, banner)
                 inbuf = b""
-    print(f"SENT {sent} DROPPED {dropped} GARBAGE {garbage}", flush=True)
+    print(
+        f"SENT {sent} DROPPED {dropped} GARBAGE {garbage} UNREAD_SAMPLES {unread_samples} UNREAD_GARBAGE {unread_garbage}",
+        flush=True,
+    )
     time.sleep(args.linger)  # let the reader drain (and its owner stop it) before the pty closes
     port.close()
     if os.path.lexists(args.link):
