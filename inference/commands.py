@@ -171,9 +171,6 @@ def train(
     residual: Annotated[
         bool, typer.Option(help="predict a correction to the classical three-step M, D")
     ] = False,
-    normalize_input: Annotated[
-        bool, typer.Option(help="divide the frames by their mean intensity (contrast input)")
-    ] = False,
     epochs_deterministic: Annotated[
         int, typer.Option(min=0, help="stage 1 epochs (no dropout)")
     ] = 50,
@@ -220,11 +217,7 @@ def train(
     config = TrainConfig(
         out_dir=str(out),
         model=ModelConfig(
-            name=model,
-            width=width,
-            classical_input=classical_input,
-            residual=residual,
-            normalize_input=normalize_input,
+            name=model, width=width, classical_input=classical_input, residual=residual
         ),
         loss=LossConfig(alpha=alpha, mse_weight=mse_weight, mse_weighting=mse_weighting),
         epochs_deterministic=epochs_deterministic,

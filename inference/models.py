@@ -19,9 +19,6 @@ Two options let the network start from what three-step phase shifting already kn
 (computed inside the model from the first three input channels, so callers still feed only
 frames): ``classical_input`` appends the classical M, D as two extra input channels, and
 ``residual`` makes the mean outputs a correction added to the classical M, D.
-``normalize_input`` divides the frames (and the classical M, D) by each pixel's mean
-intensity before the network and multiplies its outputs back (variances by the square), so the
-network works on fringe contrast and is equivariant to exposure, albedo and projector power.
 """
 
 from __future__ import annotations
@@ -45,7 +42,6 @@ from gearscan.inference.concrete_dropout import ConcreteDropout2d
 
 MULTIPLE = 16
 VAR_FLOOR = 1e-3
-MIN_INTENSITY = 0.02  # floor of the normalising mean intensity (frames in [0, 1]): dark pixels
 MODEL_NAMES = ("cd-dcu-net", "unet", "ts-unet", "dr-unet")
 
 
@@ -58,7 +54,6 @@ class ModelConfig:
     in_channels: int = 3
     classical_input: bool = False
     residual: bool = False
-    normalize_input: bool = False
     dropout: bool | None = None  # None: Concrete Dropout for cd-dcu-net only
     channelwise: bool = True
     temperature: float | None = None
@@ -169,24 +164,16 @@ class PhaseNet(nn.Module):
                 f"{self.config.name}: expected input (B, {self.config.in_channels}, H, W), got {tuple(x.shape)}"
             )
         h, w = x.shape[-2:]
-        c = self.config
-        base = classical_md(x[:, :3].float()) if (c.classical_input or c.residual) else None
-        scale = None
-        if c.normalize_input:
-            scale = x[:, :3].float().mean(1, keepdim=True).clamp_min(MIN_INTENSITY)
-            x = x / scale.to(x.dtype)
-        if c.classical_input:
-            extra = base if scale is None else base / scale
-            inp = torch.cat([x, extra.to(x.dtype)], dim=1)
-        else:
-            inp = x
+        base = (
+            classical_md(x[:, :3].float())
+            if (self.config.classical_input or self.config.residual)
+            else None
+        )
+        inp = torch.cat([x, base.to(x.dtype)], dim=1) if self.config.classical_input else x
         padded, (left, _, top, _) = pad_to_multiple(inp)
         raw = self.core(padded)[:, :, top : top + h, left : left + w].float()
-        mean, var = raw[:, :2], F.softplus(raw[:, 2:]) + VAR_FLOOR
-        if scale is not None:
-            mean, var = mean * scale, var * scale.square()
-        if c.residual:
-            mean = mean + base
+        mean = raw[:, :2] + base if self.config.residual else raw[:, :2]
+        var = F.softplus(raw[:, 2:]) + VAR_FLOOR
         return torch.cat([mean, var], dim=1)
 
 

@@ -67,7 +67,6 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--mse-weighting", default="modulation")
     ap.add_argument("--no-residual", action="store_true")
-    ap.add_argument("--normalize-input", action="store_true", help="work on fringe contrast (frames / mean intensity)")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--init", type=Path, default=None, help="start from these weights (.safetensors)")
     ap.add_argument("--patience", type=int, default=12)
@@ -89,7 +88,7 @@ def main() -> None:
     config = TrainConfig(
         out_dir=str(args.out),
         model=ModelConfig(name=args.name, width=args.width, classical_input=residual, residual=residual,
-                          normalize_input=args.normalize_input, init_min=p_min, init_max=p_max),
+                          init_min=p_min, init_max=p_max),
         loss=LossConfig(alpha=1e-4, mse_weight=1.0, mse_weighting=args.mse_weighting),
         epochs_deterministic=args.epochs_det,
         epochs_dropout=args.epochs_drop,
