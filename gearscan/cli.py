@@ -138,13 +138,13 @@ def _speed(value: str) -> float | None:
     return speed
 
 
-def _decoder(classical: bool, mc: int, model: Path | None):
+def _decoder(classical: bool, mc: int, model: Path | None, workers: int | None = None):
     from gearscan.measure import Decoder
 
     if classical:
         return Decoder(classical=True)
     try:
-        return Decoder(model, mc=mc)
+        return Decoder(model, mc=mc, workers=workers)
     except (ValueError, FileNotFoundError) as exc:  # ModelFileError is a ValueError
         raise _fail(f"cannot load the model: {exc}") from exc
 
@@ -162,13 +162,14 @@ def replay_cmd(
     mc: Annotated[int, typer.Option(min=0, help="Monte Carlo passes (0: deterministic)")] = 0,
     model: Annotated[Path | None, typer.Option(help="model weights (.safetensors); default: the shipped model")] = None,
     truth: Annotated[bool, typer.Option(help="score against the recording's truth when it has one (--no-truth: what a live run does per burst)")] = True,
+    workers: Annotated[int | None, typer.Option(min=1, help="bursts decoded at once (default: 2 on a CPU, 1 on a GPU)")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth."""
     from gearscan.pipeline import PipelineError
     from gearscan.recording import RecordingError
     from gearscan.replay import replay
 
-    decoder = _decoder(classical, mc, model)
+    decoder = _decoder(classical, mc, model, workers)
     web = None
     if serve:
         from gearscan.viewer.serve import serve_web
@@ -251,7 +252,7 @@ def live_cmd(
         typer.echo(f"{config}: OK (camera {cfg.camera.driver}, projector {cfg.projector.backend}, "
                    f"rig {rig.camera.width}x{rig.camera.height}, gear z={cfg.gear.teeth})")
         return
-    decoder = _decoder(False, cfg.model.mc, cfg.model.path)
+    decoder = _decoder(False, cfg.model.mc, cfg.model.path, cfg.model.workers)
     save = save or cfg.viewer.save
     connect = connect or cfg.viewer.connect
     web = None

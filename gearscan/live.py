@@ -47,7 +47,8 @@ def run_live(
     from gearscan.acquisition.record import AcquisitionSession
 
     rig = cfg.load_rig()
-    decoder = decoder or Decoder(cfg.model.path, mc=cfg.model.mc, precision=cfg.model.precision)
+    decoder = decoder or Decoder(cfg.model.path, mc=cfg.model.mc, precision=cfg.model.precision,
+                                 workers=cfg.model.workers)
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None
@@ -87,7 +88,7 @@ def run_live(
     pipeline = Pipeline(
         source,
         [
-            StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2),
+            StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2, workers=getattr(decoder, "workers", 1)),
             StageSpec("reconstruct", lambda m: recon(m.burst, m.result), queue_size=2, close=recon.close),
             StageSpec("output", output, close=logger.close if logger else None, queue_size=4),
         ],

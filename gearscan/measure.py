@@ -9,6 +9,8 @@ uncertainty and moves the points into the turntable frame at the burst's encoder
 from __future__ import annotations
 
 import logging
+import os
+import queue
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,22 +41,51 @@ def classical_result(burst: Burst, read_noise_dn: float = 1.0) -> PhaseResult:
 
 
 class Decoder:
-    """Burst -> PhaseResult with the network (``mc`` passes, 0 = deterministic) or three-step PS."""
+    """Burst -> PhaseResult with the network (``mc`` passes, 0 = deterministic) or three-step PS.
+
+    ``workers`` > 1 decodes that many bursts at once, each on its own copy of the network
+    with ``cores // workers`` torch threads (a process-wide torch setting): on a few CPU cores
+    this beats one pass spread over all of them, whose threads stall whenever another stage
+    takes a core (2 cores, 512x512: 3.9-4.8 -> 5.4-6.3 bursts/s, benchmarks/pipeline_report.md). The
+    pipeline runs the infer stage with this many workers. None: 2 on a CPU with >= 2 cores, else 1.
+    """
 
     def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
-                 precision: str = "auto") -> None:
+                 precision: str = "auto", workers: int | None = None) -> None:
+        if workers is not None and workers < 1:
+            raise ValueError(f"model.workers: expected >= 1, got {workers}")
         self.mc = mc
+        self.workers = 1
         self.predictor = None
+        self._pool: queue.SimpleQueue = queue.SimpleQueue()
         if not classical:
             from gearscan.inference.predictor import Predictor
 
             self.predictor = Predictor.load(model, precision=precision)
+            cpu, cores = self.predictor.device.type == "cpu", len(os.sched_getaffinity(0))
+            self.workers = workers if workers is not None else (2 if cpu and cores >= 2 else 1)
+            for _ in range(self.workers - 1):  # own copies: MC switches the dropout masks per call
+                self._pool.put(self.predictor.replica())
+            self._pool.put(self.predictor)
+            if cpu:
+                self.use_threads(self.workers)
         self.mode = "three-step" if classical else (f"mc{mc}" if mc else "deterministic")
+
+    @staticmethod
+    def use_threads(workers: int) -> None:
+        """Give each of ``workers`` concurrent CPU passes an equal share of the cores (torch is process-wide)."""
+        import torch
+
+        torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) // workers))
 
     def __call__(self, burst: Burst) -> PhaseResult:
         if self.predictor is None:
             return classical_result(burst)
-        return self.predictor.predict_burst(burst, mc=self.mc)
+        predictor = self._pool.get()
+        try:
+            return predictor.predict_burst(burst, mc=self.mc)
+        finally:
+            self._pool.put(predictor)
 
 
 @dataclass

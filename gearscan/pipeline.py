@@ -96,12 +96,53 @@ class StageStats:
 
 @dataclass
 class StageSpec:
-    """A stage: ``fn(item) -> output | None`` (None emits nothing); ``close`` runs at shutdown."""
+    """A stage: ``fn(item) -> output | None`` (None emits nothing); ``close`` runs at shutdown.
+
+    ``workers`` > 1 runs ``fn`` on that many items at once (``fn`` must be thread-safe); the
+    outputs still leave in input order.
+    """
 
     name: str
     fn: Callable[[Any], Any]
     close: Callable[[], None] | None = None
     queue_size: int = 4
+    workers: int = 1
+
+    def __post_init__(self) -> None:
+        if self.workers < 1:
+            raise ValueError(f"stage {self.name!r}: workers must be >= 1, got {self.workers}")
+
+
+class _InOrder:
+    """Tickets taken with each input and a reorder buffer, so parallel workers emit in input order."""
+
+    def __init__(self, workers: int) -> None:
+        self.take = threading.Lock()  # held across get + ticket: tickets follow queue order
+        self.lock = threading.Lock()
+        self.next_ticket = 0
+        self.next_out = 0
+        self.done: dict[int, Any] = {}
+        self.alive = workers
+
+    def ticket(self) -> int:
+        t, self.next_ticket = self.next_ticket, self.next_ticket + 1
+        return t
+
+    def finish(self, ticket: int, result: Any) -> list[Any]:
+        """Store ``ticket``'s result; the results now due, in order (None: nothing to emit)."""
+        with self.lock:
+            self.done[ticket] = result
+            due = []
+            while self.next_out in self.done:
+                due.append(self.done.pop(self.next_out))
+                self.next_out += 1
+            return due
+
+    def retire(self) -> bool:
+        """One worker stops; True for the last one (it closes the stage)."""
+        with self.lock:
+            self.alive -= 1
+            return self.alive == 0
 
 
 @dataclass
@@ -195,38 +236,45 @@ class Pipeline:
             except Exception as exc:  # noqa: BLE001 - reported through PipelineError
                 self._fail(name, exc)
 
-    def _run_stage(self, k: int) -> None:
+    def _run_stage(self, k: int, order: _InOrder) -> None:
         spec, inq = self.specs[k], self.queues[k]
         outq = self.queues[k + 1] if k + 1 < len(self.queues) else None
         st = self.stats[spec.name]
         try:
             while True:
-                try:
-                    item = inq.get(timeout=0.1)
-                except TimeoutError:
-                    if self._error is not None:
+                with order.take:
+                    try:
+                        item = inq.get(timeout=0.1)
+                    except TimeoutError:
+                        if self._error is not None:
+                            break
+                        continue
+                    if item is _END:
+                        inq.put(_END)  # the stage's other workers stop on it too
                         break
-                    continue
-                if item is _END:
-                    break
-                if self._error is not None:
-                    continue  # drain without work after a failure elsewhere
-                t0 = time.perf_counter()
-                result = spec.fn(item)
-                st.latencies_ms.append((time.perf_counter() - t0) * 1e3)
-                st.processed += 1
-                st.dropped_in = inq.dropped
-                if result is not None:
-                    st.emitted += 1
-                    if outq is not None:
-                        outq.put(result)
+                    ticket = order.ticket()
+                result = None
+                if self._error is None:  # after a failure elsewhere: drain without work
+                    t0 = time.perf_counter()
+                    result = spec.fn(item)
+                    st.latencies_ms.append((time.perf_counter() - t0) * 1e3)
+                with order.lock:
+                    st.processed += 1
+                    st.dropped_in = inq.dropped
+                for out in order.finish(ticket, result):
+                    if out is not None:
+                        with order.lock:
+                            st.emitted += 1
+                        if outq is not None:
+                            outq.put(out)
         except BaseException as exc:  # noqa: BLE001 - reported through PipelineError
             self._fail(spec.name, exc)
         finally:
-            st.dropped_in = inq.dropped
-            self._close(spec.name, spec.close)
-            if outq is not None:
-                outq.put(_END)
+            if order.retire():
+                st.dropped_in = inq.dropped
+                self._close(spec.name, spec.close)
+                if outq is not None:
+                    outq.put(_END)
 
     def run(self, *, duration: float | None = None, handle_signals: bool = True) -> PipelineReport:
         """Run until the source ends, ``duration`` passes, :meth:`stop`, Ctrl-C or SIGTERM."""
@@ -236,8 +284,11 @@ class Pipeline:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 previous[sig] = signal.signal(sig, lambda s, f: self.stop(signal.Signals(s).name))
         threads = [threading.Thread(target=self._run_source, name=self._source_name, daemon=True)]
-        threads += [threading.Thread(target=self._run_stage, args=(k,), name=s.name, daemon=True)
-                    for k, s in enumerate(self.specs)]
+        for k, spec in enumerate(self.specs):
+            order = _InOrder(spec.workers)
+            threads += [threading.Thread(target=self._run_stage, args=(k, order), daemon=True,
+                                         name=spec.name if spec.workers == 1 else f"{spec.name}-{w}")
+                        for w in range(spec.workers)]
         blas = threadpool_limits(self.blas_threads, user_api="blas") if self.blas_threads else None
         try:
             for t in threads:

@@ -144,7 +144,7 @@ def replay(
 
     stages = [
         StageSpec("assemble", assembler.push),
-        StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2),
+        StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2, workers=getattr(decoder, "workers", 1)),
         StageSpec("reconstruct", (lambda m: recon(m.burst, m.result)) if recon else (lambda m: m),
                   close=recon.close if recon else None),
         StageSpec("output", output, close=logger.close if logger else None, queue_size=8),

@@ -174,6 +174,13 @@ class Predictor:
             calibration=calibration,
         )
 
+    def replica(self) -> Predictor:
+        """The same predictor on its own copy of the network, for a second thread."""
+        twin = copy.copy(self)
+        twin.model = copy.deepcopy(self.model)
+        twin.calibration = dict(self.calibration)
+        return twin
+
     @property
     def has_dropout(self) -> bool:
         return bool(getattr(self.model, "config", None) and self.model.config.dropout)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -65,3 +66,47 @@ def test_reconstructor_rejects_a_mismatched_rig(clean_renderer, gear):
     res = PhaseResult(z, z, z, z, z, z)
     with pytest.raises(ValueError, match=r"phase map \(10, 10\) does not match the rig camera \(256, 256\)"):
         rc(_burst(np.zeros((3, 10, 10), np.uint8), (0, 0, 0)), res)
+
+
+def test_parallel_decoder_matches_one_worker_and_keeps_its_own_networks(noisy_renderer):
+    """Two bursts decoded at once on separate network copies give the single worker's results."""
+    import threading
+
+    import torch
+
+    from gearscan.measure import Decoder
+
+    threads = torch.get_num_threads()
+    try:
+        ps = PatternSet.three_step(PERIOD)
+        bursts = []
+        for k in range(4):
+            angles = [math.radians(0.4 * k + 0.3 * i) for i in range(3)]
+            frames, _ = noisy_renderer.render_sequence(angles, ps, [0, 1, 2], rng=k)
+            bursts.append(_burst(frames, angles))
+        cores = len(os.sched_getaffinity(0))
+        assert Decoder().workers == (2 if cores >= 2 else 1)  # the CPU default
+        one = Decoder(workers=1)
+        assert torch.get_num_threads() == cores
+        two = Decoder(workers=2)
+        assert torch.get_num_threads() == max(1, cores // 2)
+        pool = [two._pool.get(), two._pool.get()]
+        assert pool[0].model is not pool[1].model  # MC switches dropout masks per call: never shared
+        for p in pool:
+            two._pool.put(p)
+        results: list[PhaseResult | None] = [None] * len(bursts)
+
+        def decode(k: int) -> None:
+            results[k] = two(bursts[k])
+
+        workers = [threading.Thread(target=decode, args=(k,)) for k in range(len(bursts))]
+        for w in workers:
+            w.start()
+        for w in workers:
+            w.join()
+        for b, r in zip(bursts, results, strict=True):
+            np.testing.assert_allclose(r.phase, one(b).phase, atol=1e-5)
+        with pytest.raises(ValueError, match=r"model.workers: expected >= 1, got 0"):
+            Decoder(workers=0)
+    finally:
+        torch.set_num_threads(threads)

@@ -108,3 +108,38 @@ def test_blas_runs_single_threaded_inside_the_pipeline_and_is_restored():
     Pipeline(range(3), [StageSpec("probe", lambda _: inside.append(blas_threads()))]).run(handle_signals=False)
     assert inside and all(t == [1] * len(before) for t in inside)
     assert blas_threads() == before
+
+
+def test_parallel_workers_overlap_and_emit_in_input_order():
+    out, running, peak = [], [0], [0]
+    lock = threading.Lock()
+
+    def slow(x):
+        with lock:
+            running[0] += 1
+            peak[0] = max(peak[0], running[0])
+        time.sleep(0.03 if x % 3 == 0 else 0.005)  # later items often finish first
+        with lock:
+            running[0] -= 1
+        return x
+
+    closed = []
+    p = Pipeline(range(30), [StageSpec("infer", slow, queue_size=100, workers=2, close=lambda: closed.append(1)),
+                             StageSpec("sink", out.append, queue_size=100)])
+    rep = p.run(handle_signals=False)
+    assert out == list(range(30))
+    assert peak[0] == 2 and closed == [1]  # two at once, closed once
+    assert rep.stages["infer"]["processed"] == rep.stages["infer"]["emitted"] == 30
+
+
+def test_failing_worker_of_a_parallel_stage_is_named():
+    def boom(x):
+        if x == 7:
+            raise ValueError("bad burst")
+        return x
+
+    p = Pipeline(range(50), [StageSpec("infer", boom, workers=2, queue_size=100), StageSpec("sink", lambda x: None)])
+    with pytest.raises(PipelineError, match=r"stage 'infer' failed: ValueError: bad burst"):
+        p.run(handle_signals=False)
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        StageSpec("infer", boom, workers=0)
