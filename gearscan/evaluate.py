@@ -33,7 +33,7 @@ GENERALISATION = {
     "0.5+1": (0.5, 1.0), "1+2": (1.0, 2.0), "2+3": (2.0, 3.0),
 }
 
-Method = Callable[[np.ndarray, float], PhaseResult]
+Method = Callable[..., PhaseResult]  # (frames (3, H, W), full_scale, angles (3,) rad) -> PhaseResult
 
 
 @dataclass
@@ -108,6 +108,11 @@ class BurstCase:
     def full_scale(self) -> float:
         return float(self.scene.optics.full_scale)
 
+    @property
+    def angles_rad(self) -> np.ndarray:
+        """The frames' turntable angles as the encoder reports them."""
+        return np.radians(np.asarray(self.angles_deg, dtype=np.float64))
+
 
 def render_cases(scene: Scene, motions: dict[str, tuple[float, float]], per_motion: int, seed: int = 0) -> list[BurstCase]:
     """``per_motion`` bursts per motion at random start angles within one tooth pitch."""
@@ -124,7 +129,7 @@ def render_cases(scene: Scene, motions: dict[str, tuple[float, float]], per_moti
     return cases
 
 
-def classical_method(frames: np.ndarray, full_scale: float) -> PhaseResult:
+def classical_method(frames: np.ndarray, full_scale: float, angles: np.ndarray | None = None) -> PhaseResult:
     from gearscan.measure import classical_result
     from gearscan.types import Burst, Frame
 
@@ -133,8 +138,8 @@ def classical_method(frames: np.ndarray, full_scale: float) -> PhaseResult:
 
 
 def network_method(predictor, mc: int = 0) -> Method:
-    def run(frames: np.ndarray, full_scale: float) -> PhaseResult:
-        return predictor.predict(frames, mc, full_scale=full_scale)
+    def run(frames: np.ndarray, full_scale: float, angles: np.ndarray | None = None) -> PhaseResult:
+        return predictor.predict(frames, mc, full_scale=full_scale, angles=angles)
 
     return run
 
@@ -162,7 +167,7 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
             errs, sigmas, secs, cloud_sq, cloud_n = [], [], 0.0, 0.0, 0
             for c in sel:
                 t0 = time.perf_counter()
-                res = method(c.frames, c.full_scale)
+                res = method(c.frames, c.full_scale, c.angles_rad)
                 secs += time.perf_counter() - t0
                 m = c.truth.mask
                 errs.append(phase_error(res.phase, c.truth.phase)[m])

@@ -94,7 +94,7 @@ def _error_maps(path: Path, rows: list[tuple[str, list[np.ndarray]]], cols: list
 
 
 def _masked_error(method, case: BurstCase) -> np.ndarray:
-    res = method(case.frames, case.full_scale)
+    res = method(case.frames, case.full_scale, case.angles_rad)
     return np.where(case.truth.mask, phase_error(res.phase, case.truth.phase), np.nan)
 
 
@@ -275,7 +275,7 @@ def part_uncertainty(opt: EvalOptions, predictor, cases: list[BurstCase]) -> dic
     sel = [c for c in cases if c.motion in PAPER_MOTIONS]
     errs, sig, maps = [], [], None
     for c in sel:
-        res = predictor.predict(c.frames, opt.mc, full_scale=c.full_scale)
+        res = predictor.predict(c.frames, opt.mc, full_scale=c.full_scale, angles=c.angles_rad)
         m = c.truth.mask
         e = phase_error(res.phase, c.truth.phase)
         errs.append(e[m])
@@ -377,10 +377,10 @@ def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = No
     net = network_method(predictor)
     mc_net = network_method(predictor, mc)
 
-    def aia(frames, s):
+    def aia(frames, s, angles=None):
         return _compensated(aia_compensate, frames, s)
 
-    def hilbert(frames, s):
+    def hilbert(frames, s, angles=None):
         return _compensated(hilbert_compensate, frames, s)
 
     results: dict[str, object] = {"options": {k: str(v) for k, v in asdict(opt).items()}, "scenes": [s.name for s in scenes]}

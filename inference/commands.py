@@ -85,6 +85,13 @@ def predict(
     precision: Annotated[
         str, typer.Option(help="fp32 or bf16 (autocast + channels_last)")
     ] = "fp32",
+    angles_deg: Annotated[
+        str | None,
+        typer.Option(
+            help="the three frames' turntable angles 'A,B,C' in degrees (models with motion "
+            "input; an .npz may hold them as 'angles', rad)"
+        ),
+    ] = None,
 ) -> None:
     """Predict wrapped phase and its uncertainty from one three-step burst.
 
@@ -102,7 +109,20 @@ def predict(
     except ModelFileError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    result = predictor.predict(frames, mc=mc, full_scale=full_scale)
+    angles = None
+    if angles_deg is not None:
+        try:
+            angles = np.radians([float(v) for v in angles_deg.split(",")])
+        except ValueError as exc:
+            raise typer.BadParameter(f"--angles-deg: expected three numbers 'A,B,C', got {angles_deg!r}") from exc
+    elif len(inputs) == 1 and inputs[0].suffix == ".npz":
+        with np.load(inputs[0]) as z:
+            angles = np.asarray(z["angles"], dtype=np.float64) if "angles" in z.files else None
+    try:
+        result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles)
+    except ValueError as exc:  # a motion-input model without angles, or bad angles
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
     output.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         output,
@@ -119,7 +139,7 @@ def predict(
     )
 
 
-def _load_dataset(spec: str, max_items: int | None = None):
+def _load_dataset(spec: str, max_items: int | None = None, motion_input: bool = False):
     """A twin dataset folder (``gearscan twin dataset``), a folder of .npz items, or
     ``package.module:function`` returning a dataset or (train, val)."""
     import importlib
@@ -132,7 +152,7 @@ def _load_dataset(spec: str, max_items: int | None = None):
 
         from gearscan.twin.dataset import TwinBurstDataset
 
-        ds = TwinBurstDataset(spec, static=True)
+        ds = TwinBurstDataset(spec, static=True, motion_input=motion_input)
         if max_items is not None and len(ds) > max_items:  # a validation sample, seeded
             pick = np.random.default_rng(0).choice(len(ds), max_items, replace=False)
             return Subset(ds, sorted(pick.tolist()))
@@ -170,6 +190,11 @@ def train(
     ] = False,
     residual: Annotated[
         bool, typer.Option(help="predict a correction to the classical three-step M, D")
+    ] = False,
+    motion_input: Annotated[
+        bool,
+        typer.Option(help="feed the encoder's rotation within the burst (twin datasets); "
+                     "with --init from a model without it, the new inputs start zero-weighted"),
     ] = False,
     epochs_deterministic: Annotated[
         int, typer.Option(min=0, help="stage 1 epochs (no dropout)")
@@ -217,7 +242,12 @@ def train(
     config = TrainConfig(
         out_dir=str(out),
         model=ModelConfig(
-            name=model, width=width, classical_input=classical_input, residual=residual
+            name=model,
+            width=width,
+            classical_input=classical_input,
+            residual=residual,
+            in_channels=3 + 2 * motion_input,
+            motion_input=motion_input,
         ),
         loss=LossConfig(alpha=alpha, mse_weight=mse_weight, mse_weighting=mse_weighting),
         epochs_deterministic=epochs_deterministic,
@@ -235,12 +265,13 @@ def train(
         num_workers=workers,
         seed=seed,
         init=str(init) if init else None,
+        widen_inputs=motion_input,
         resume=resume,
         progress=progress,
         calibrate_mc=calibrate_mc,
     )
-    train_set = _load_dataset(data)
-    val_set = _load_dataset(val_data, max_items=64) if val_data else None
+    train_set = _load_dataset(data, motion_input=motion_input)
+    val_set = _load_dataset(val_data, max_items=64, motion_input=motion_input) if val_data else None
     if isinstance(train_set, tuple):
         train_set, val_set = train_set
     result = run_training(config, train_set, val_set)

@@ -109,6 +109,27 @@ def load_state(path: str | Path) -> dict[str, torch.Tensor]:
         raise ModelFileError(f"{path}: not a readable safetensors file ({exc})") from exc
 
 
+def widen_inputs(state: dict[str, torch.Tensor], model: torch.nn.Module, after: int = 3) -> list[str]:
+    """Give ``state``'s first convs the extra input channels ``model`` has, zero-initialised.
+
+    The new channels go after the ``after`` frames (where :class:`ModelConfig` puts extras such
+    as the motion channels), so the widened network computes exactly what the file's did and
+    learns to use the new inputs from there. Returns the keys it widened.
+    """
+    own = unwrap(model).state_dict()
+    widened = []
+    for k, w in state.items():
+        o = own.get(k)
+        if o is None or w.ndim != 4 or o.ndim != 4 or o.shape[1] <= w.shape[1]:
+            continue
+        if o.shape[0] != w.shape[0] or o.shape[2:] != w.shape[2:]:
+            continue
+        extra = torch.zeros((w.shape[0], o.shape[1] - w.shape[1], *w.shape[2:]), dtype=w.dtype)
+        state[k] = torch.cat([w[:, :after], extra, w[:, after:]], dim=1)
+        widened.append(k)
+    return widened
+
+
 def load_into(model: torch.nn.Module, state: dict[str, torch.Tensor], source: str | Path) -> None:
     """Strictly load ``state`` into ``model``, with a message listing every mismatch."""
     own = unwrap(model).state_dict()

@@ -19,6 +19,9 @@ Two options let the network start from what three-step phase shifting already kn
 (computed inside the model from the first three input channels, so callers still feed only
 frames): ``classical_input`` appends the classical M, D as two extra input channels, and
 ``residual`` makes the mean outputs a correction added to the classical M, D.
+``motion_input`` (not in the paper) adds the turntable's rotation from frame 1 to frames 2 and
+3, as measured by the encoder, as two constant input channels (:func:`motion_channels`): three
+frames alone cannot tell a still gear from a slowly moving one on a smooth flank.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -42,6 +46,7 @@ from gearscan.inference.concrete_dropout import ConcreteDropout2d
 
 MULTIPLE = 16
 VAR_FLOOR = 1e-3
+MOTION_CHANNELS = 2
 MODEL_NAMES = ("cd-dcu-net", "unet", "ts-unet", "dr-unet")
 
 
@@ -54,6 +59,7 @@ class ModelConfig:
     in_channels: int = 3
     classical_input: bool = False
     residual: bool = False
+    motion_input: bool = False  # channels 3, 4 of the input: motion_channels() of the burst
     dropout: bool | None = None  # None: Concrete Dropout for cd-dcu-net only
     channelwise: bool = True
     temperature: float | None = None
@@ -72,6 +78,10 @@ class ModelConfig:
             raise ValueError(
                 f"in_channels: expected >= 3 (three frames + extras), got {self.in_channels}"
             )
+        if self.motion_input and self.in_channels < 3 + MOTION_CHANNELS:
+            raise ValueError(
+                f"in_channels: motion_input needs >= {3 + MOTION_CHANNELS} (frames + motion), got {self.in_channels}"
+            )
         if self.dropout is None:
             self.dropout = self.name == "cd-dcu-net"
 
@@ -87,6 +97,18 @@ class ModelConfig:
                 f"{source}: unknown model config keys {unknown} (known: {sorted(known)})"
             )
         return cls(**data)
+
+
+def motion_channels(angles_rad, height: int, width: int) -> np.ndarray:
+    """``(2, H, W)`` float32: |rotation| from frame 1 to frames 2 and 3 in degrees, constant maps.
+
+    Magnitudes only: the sign depends on the turntable's direction, which the images show.
+    """
+    a = np.asarray(angles_rad, dtype=np.float64).reshape(-1)
+    if a.size != 3 or not np.all(np.isfinite(a)):
+        raise ValueError(f"angles: expected the 3 finite frame angles of a burst (rad), got {angles_rad!r}")
+    deltas = np.degrees(np.abs(a[1:] - a[0])).astype(np.float32)
+    return np.broadcast_to(deltas[:, None, None], (MOTION_CHANNELS, height, width)).copy()
 
 
 def classical_md(frames: torch.Tensor) -> torch.Tensor:

@@ -20,6 +20,7 @@ import torch
 
 from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
+from gearscan.inference.models import motion_channels
 from gearscan.inference.uncertainty import (
     SigmaCalibration,
     deterministic_moments,
@@ -212,15 +213,38 @@ class Predictor:
         calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
         return to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale, calibration=calibration)
 
+    @property
+    def needs_angles(self) -> bool:
+        """The network takes the encoder's rotation within the burst (``motion_input``)."""
+        return bool(getattr(getattr(self.model, "config", None), "motion_input", False))
+
     def predict(
-        self, frames: np.ndarray, mc: int = 0, *, full_scale: float | None = None
+        self,
+        frames: np.ndarray,
+        mc: int = 0,
+        *,
+        full_scale: float | None = None,
+        angles: np.ndarray | None = None,
     ) -> PhaseResult:
-        """Raw frames ``(3, H, W)`` uint8/uint16 -> :class:`PhaseResult` at the input size."""
-        return self.predict_tensor(frames_to_tensor(frames, full_scale), mc)
+        """Raw frames ``(3, H, W)`` uint8/uint16 -> :class:`PhaseResult` at the input size.
+
+        ``angles``: the three frames' turntable angles (rad); required by a ``motion_input``
+        network, ignored otherwise.
+        """
+        x = frames_to_tensor(frames, full_scale)
+        if self.needs_angles:
+            if angles is None:
+                raise ValueError(
+                    "angles: this model takes the turntable's rotation within the burst "
+                    "(motion_input); pass the three frames' encoder angles (rad)"
+                )
+            motion = motion_channels(angles, *x.shape[-2:])
+            x = torch.cat([x, torch.from_numpy(motion)[None]], dim=1)
+        return self.predict_tensor(x, mc)
 
     def predict_burst(self, burst: Burst, mc: int = 0) -> PhaseResult:
         """Predict a :class:`Burst` (full scale from its bit depth; angle = first frame's)."""
-        result = self.predict(burst.images, mc, full_scale=burst.full_scale)
+        result = self.predict(burst.images, mc, full_scale=burst.full_scale, angles=np.asarray(burst.angles))
         result.burst_index = burst.index
         result.angle = float(burst.angles[0])
         return result

@@ -43,7 +43,7 @@ from gearscan.inference.concrete_dropout import (
 )
 from gearscan.inference.data import dataset_groups, split_by_group
 from gearscan.inference.losses import LossConfig, PhaseLoss
-from gearscan.inference.model_io import load_into, load_state, save_model
+from gearscan.inference.model_io import load_into, load_state, save_model, widen_inputs
 from gearscan.inference.models import ModelConfig, PhaseNet, build_model
 
 SCHEDULES = ("step", "cosine", "constant")
@@ -72,6 +72,7 @@ class TrainConfig:
     seed: int = 0
     init: str | None = None
     reset_dropout: bool = False  # after ``init``: re-draw dropout rates from the model config's range
+    widen_inputs: bool = False  # ``init`` has fewer input channels: add the new ones zero-initialised
     resume: bool = False
     progress: bool = True
     calibrate: bool = True
@@ -207,7 +208,10 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
         self.model: PhaseNet = build_model(config.model).to(self.device)
         if config.init:
-            load_into(self.model, load_state(config.init), config.init)
+            state = load_state(config.init)
+            if config.widen_inputs:
+                widen_inputs(state, self.model)
+            load_into(self.model, state, config.init)
             if config.reset_dropout:
                 reset_dropout_rates(self.model, config.model.init_min, config.model.init_max)
         self.criterion = PhaseLoss(config.loss)

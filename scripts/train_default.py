@@ -67,6 +67,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--mse-weighting", default="modulation")
     ap.add_argument("--no-residual", action="store_true")
+    ap.add_argument("--motion-input", action="store_true",
+                    help="feed the encoder's rotation within the burst (2 extra channels); with --init from a "
+                         "model without them, they start zero-weighted")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--init", type=Path, default=None, help="start from these weights (.safetensors)")
     ap.add_argument("--patience", type=int, default=12)
@@ -77,17 +80,19 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    parts = [TwinBurstDataset(root, crop=args.crop, static=True, static_repeat=args.static_repeat, seed=i)
+    parts = [TwinBurstDataset(root, crop=args.crop, static=True, static_repeat=args.static_repeat, seed=i,
+                              motion_input=args.motion_input)
              for i, root in enumerate(args.train)]
     train_set = parts[0] if len(parts) == 1 else ConcatDataset(parts)
     p_min, p_max = (float(v) for v in args.dropout_init.split(","))
-    val_full = TwinBurstDataset(args.val, crop=None, static=True)
+    val_full = TwinBurstDataset(args.val, crop=None, static=True, motion_input=args.motion_input)
     rng = np.random.default_rng(0)
     val_set = Subset(val_full, sorted(rng.choice(len(val_full), args.val_items, replace=False).tolist()))
     residual = not args.no_residual
     config = TrainConfig(
         out_dir=str(args.out),
         model=ModelConfig(name=args.name, width=args.width, classical_input=residual, residual=residual,
+                          in_channels=3 + 2 * args.motion_input, motion_input=args.motion_input,
                           init_min=p_min, init_max=p_max),
         loss=LossConfig(alpha=1e-4, mse_weight=1.0, mse_weighting=args.mse_weighting),
         epochs_deterministic=args.epochs_det,
@@ -99,6 +104,7 @@ def main() -> None:
         patience=args.patience,
         init=str(args.init) if args.init else None,
         reset_dropout=args.reset_dropout,
+        widen_inputs=args.motion_input,
         steps_per_epoch=args.steps_per_epoch,
         bf16=False,
         resume=args.resume,

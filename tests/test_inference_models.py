@@ -173,3 +173,30 @@ def test_config_rejects_unknown_name_and_keys():
     with pytest.raises(ValueError, match=r"unknown model config keys \['depth'\]"):
         ModelConfig.from_json({"name": "unet", "depth": 5})
     assert set(MODEL_NAMES) == {"cd-dcu-net", "unet", "ts-unet", "dr-unet"}
+
+
+def test_motion_channels_and_zero_widened_weights_compute_the_same_as_before():
+    """Widening a trained net for the encoder's motion channels starts exactly where it was."""
+    from gearscan.inference.model_io import load_into, widen_inputs
+    from gearscan.inference.models import motion_channels
+
+    maps = motion_channels(np.radians([10.0, 10.1, 11.7]), 4, 5)
+    assert maps.shape == (2, 4, 5) and maps.dtype == np.float32
+    np.testing.assert_allclose(maps[:, 0, 0], [0.1, 1.7], rtol=1e-5)
+    np.testing.assert_allclose(motion_channels(np.radians([0.0, -0.6, -1.2]), 1, 1)[:, 0, 0], [0.6, 1.2], rtol=1e-5)
+    with pytest.raises(ValueError, match="3 finite frame angles"):
+        motion_channels([0.0, 1.0], 2, 2)
+    with pytest.raises(ValueError, match="motion_input needs >= 5"):
+        ModelConfig(motion_input=True)
+
+    torch.manual_seed(0)
+    old = build_model("cd-dcu-net", width=WIDTH, classical_input=True, residual=True).eval()
+    new = build_model("cd-dcu-net", width=WIDTH, classical_input=True, residual=True,
+                      in_channels=5, motion_input=True).eval()
+    state = dict(old.state_dict())
+    assert widen_inputs(state, new) == ["encoder.stem.0.weight"]
+    load_into(new, state, "test")
+    frames = torch.rand(1, 3, 32, 32)
+    motion = torch.from_numpy(motion_channels(np.radians([0.0, 0.6, 1.2]), 32, 32))[None]
+    with torch.no_grad():
+        torch.testing.assert_close(new(torch.cat([frames, motion], 1)), old(frames))

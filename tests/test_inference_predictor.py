@@ -140,6 +140,26 @@ def test_predict_burst_uses_bit_depth(saved):
     assert r.burst_index == 7 and r.angle == pytest.approx(0.1)
 
 
+def test_motion_input_model_takes_the_burst_angles(tmp_path):
+    torch.manual_seed(0)
+    model = build_model("cd-dcu-net", width=4, classical_input=True, residual=True, in_channels=5, motion_input=True)
+    path = save_model(model.eval(), tmp_path / "m.safetensors")
+    pred = Predictor.load(path)
+    frames = _frames(hw=(20, 24))
+    with pytest.raises(ValueError, match="angles: this model takes the turntable's rotation"):
+        pred.predict(frames)
+    angles = np.radians([5.0, 5.6, 6.2])
+    burst = Burst(tuple(Frame(f, i, i, i) for i, f in enumerate(frames)), tuple(angles))
+    r = pred.predict_burst(burst)
+    np.testing.assert_array_equal(r.phase, pred.predict(frames, angles=angles).phase)
+    # the angles matter: a still burst decodes differently from a moving one
+    assert not np.array_equal(r.phase, pred.predict(frames, angles=np.radians([5.0, 5.0, 5.0])).phase)
+    np.savez(tmp_path / "b.npz", frames=frames, angles=angles)
+    predict([tmp_path / "b.npz"], output=tmp_path / "o.npz", mc=0, model=path)
+    with np.load(tmp_path / "o.npz") as z:
+        np.testing.assert_array_equal(z["phase"], r.phase)
+
+
 def test_peer_model_refuses_mc(tmp_path):
     path = save_model(build_model("unet", width=4), tmp_path / "u.safetensors")
     with pytest.raises(ValueError, match="no Concrete Dropout layers"):

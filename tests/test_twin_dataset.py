@@ -48,6 +48,17 @@ def test_items_labels_and_truth(small_dataset):
     assert wrapped_rmse(truth_phase, item["phase"], item["mask"]) < 1e-5
 
 
+def test_motion_input_carries_the_encoder_rotation(small_dataset):
+    root, spec = small_dataset
+    plain, moving = TwinBurstDataset(root), TwinBurstDataset(root, motion_input=True)
+    a, b = plain[816 + 5], moving[816 + 5]
+    i, j, k = b["poses"]
+    assert b["input"].shape == (5, 80, 80)
+    np.testing.assert_array_equal(b["input"][:3], a["input"])
+    np.testing.assert_allclose(b["input"][3:, 0, 0], [(j - i) * spec.pose_step_deg, (k - i) * spec.pose_step_deg], rtol=1e-5)
+    assert np.ptp(b["input"][3:], axis=(1, 2)).max() == 0  # constant maps
+
+
 def test_motion_filters_and_crops(small_dataset):
     root, _ = small_dataset
     uni = TwinBurstDataset(root, motion="uniform", groups=[0])
