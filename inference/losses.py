@@ -24,9 +24,7 @@ means altogether (they then learn from the MSE alone).
 ``w_i``: ``mse_weighting="uniform"`` gives 1; ``"modulation"`` gives ``1 / max(m_i, floor)^2``
 (normalised to mean 1 over valid pixels) with ``m_i = hypot(M_i, D_i)`` of the label, so the MSE
 on (M, D) approximates the squared *phase* error ``|dMD|^2 / m^2``, and weakly modulated pixels
-are not under-weighted. ``"phase"`` weights like ``"modulation"`` but splits the error into its
-component along the label's (M, D) direction (modulation, weighted ``radial_weight``) and across
-it (the phase error, weight 1), so the net's capacity goes to the quantity that is measured.
+are not under-weighted.
 """
 
 from __future__ import annotations
@@ -45,7 +43,6 @@ class LossConfig:
     mse_weight: float = 1.0
     mse_weighting: str = "uniform"  # "uniform" or "modulation"
     modulation_floor: float = 0.05
-    radial_weight: float = 0.25  # "phase" weighting only
     detach_mean: bool = False
     regularization: bool = True
 
@@ -54,12 +51,10 @@ class LossConfig:
             raise ValueError(
                 f"alpha and mse_weight: expected >= 0, got {self.alpha}, {self.mse_weight}"
             )
-        if self.mse_weighting not in ("uniform", "modulation", "phase"):
+        if self.mse_weighting not in ("uniform", "modulation"):
             raise ValueError(
-                f"mse_weighting: expected 'uniform', 'modulation' or 'phase', got {self.mse_weighting!r}"
+                f"mse_weighting: expected 'uniform' or 'modulation', got {self.mse_weighting!r}"
             )
-        if self.radial_weight < 0:
-            raise ValueError(f"radial_weight: expected >= 0, got {self.radial_weight}")
         if self.modulation_floor <= 0:
             raise ValueError(f"modulation_floor: expected > 0, got {self.modulation_floor}")
 
@@ -106,19 +101,11 @@ def weighted_mse(
     *,
     weighting: str = "uniform",
     floor: float = 0.05,
-    radial_weight: float = 1.0,
 ) -> torch.Tensor:
     """Mean squared error of the means over valid pixels and both channels, optionally 1/m^2 weighted."""
     valid = _check(pred, target, mask).float()
-    err = target - pred[:, :2]
-    if weighting == "phase":  # across the label's (M, D) direction = phase; along it = modulation
-        unit = target / torch.hypot(target[:, 0], target[:, 1]).clamp_min(1e-6).unsqueeze(1)
-        radial = (err * unit).sum(1)
-        across = err[:, 0] * unit[:, 1] - err[:, 1] * unit[:, 0]
-        sq = across**2 + radial_weight * radial**2
-    else:
-        sq = (err**2).sum(1)  # (B, H, W), summed over M and D
-    if weighting in ("modulation", "phase"):
+    sq = ((target - pred[:, :2]) ** 2).sum(1)  # (B, H, W), summed over M and D
+    if weighting == "modulation":
         w = 1.0 / torch.hypot(target[:, 0], target[:, 1]).clamp_min(floor) ** 2
         w = w * valid
         w = w / (w.sum() / valid.sum().clamp_min(1)).clamp_min(1e-12)
@@ -147,8 +134,7 @@ class PhaseLoss(nn.Module):
         pred = pred.float()
         target = target.float()
         nll = gaussian_nll(pred, target, mask, detach_mean=c.detach_mean)
-        mse = weighted_mse(pred, target, mask, weighting=c.mse_weighting, floor=c.modulation_floor,
-                           radial_weight=c.radial_weight)
+        mse = weighted_mse(pred, target, mask, weighting=c.mse_weighting, floor=c.modulation_floor)
         use_reg = c.regularization if include_regularization is None else include_regularization
         reg = (
             dropout_regularization(model)

@@ -72,24 +72,6 @@ def test_modulation_weighting_approximates_phase_error():
     )
 
 
-def test_phase_weighting_splits_phase_and_modulation_errors():
-    """Across the label's (M, D) direction the error is phase (weight 1); along it, modulation."""
-    phi, m = 0.7, 0.5
-    target = torch.tensor([m * math.sin(phi), m * math.cos(phi)]).view(1, 2, 1, 1)
-    pred = torch.ones(1, 4, 1, 1)
-    rot = 0.02  # a pure phase error of 0.02 rad
-    pred[0, :2, 0, 0] = torch.tensor([m * math.sin(phi + rot), m * math.cos(phi + rot)])
-    phase_only = weighted_mse(pred, target, weighting="phase", radial_weight=0.0).item()
-    # one pixel: the weight normalises to 1; the chord 2 m sin(rot/2) ~ m rot, over 2 channels
-    assert phase_only == pytest.approx((2 * m * math.sin(rot / 2)) ** 2 / 2, rel=1e-3)
-    pred[0, :2, 0, 0] = target[0, :, 0, 0] * 1.1  # a pure modulation error: no phase error
-    assert weighted_mse(pred, target, weighting="phase", radial_weight=0.0).item() == pytest.approx(0.0, abs=1e-9)
-    radial = weighted_mse(pred, target, weighting="phase", radial_weight=0.25).item()
-    assert radial == pytest.approx(0.25 * (0.1 * m) ** 2 / 2, rel=1e-4)
-    with pytest.raises(ValueError, match="radial_weight"):
-        LossConfig(radial_weight=-1.0)
-
-
 def test_shape_errors_name_the_argument():
     with pytest.raises(ValueError, match=r"pred: expected \(B, 4, H, W\)"):
         gaussian_nll(torch.zeros(1, 2, 3, 3), torch.zeros(1, 2, 3, 3))
@@ -98,4 +80,4 @@ def test_shape_errors_name_the_argument():
             torch.zeros(1, 4, 3, 3), torch.zeros(1, 2, 3, 3), torch.ones(1, 2, 2, dtype=torch.bool)
         )
     with pytest.raises(ValueError, match="mse_weighting"):
-        LossConfig(mse_weighting="angle")
+        LossConfig(mse_weighting="phase")
