@@ -138,13 +138,14 @@ def _speed(value: str) -> float | None:
     return speed
 
 
-def _decoder(classical: bool, mc: int, model: Path | None, workers: int | None = None):
+def _decoder(classical: bool, mc: int, model: Path | None, **options):
+    """The decoder, or a clear CLI error when the model cannot be loaded; ``options`` go to Decoder."""
     from gearscan.measure import Decoder
 
     if classical:
         return Decoder(classical=True)
     try:
-        return Decoder(model, mc=mc, workers=workers)
+        return Decoder(model, mc=mc, **options)
     except (ValueError, FileNotFoundError) as exc:  # ModelFileError is a ValueError
         raise _fail(f"cannot load the model: {exc}") from exc
 
@@ -163,13 +164,14 @@ def replay_cmd(
     model: Annotated[Path | None, typer.Option(help="model weights (.safetensors); default: the shipped model")] = None,
     truth: Annotated[bool, typer.Option(help="score against the recording's truth when it has one (--no-truth: what a live run does per burst)")] = True,
     workers: Annotated[int | None, typer.Option(min=1, help="bursts decoded at once (default: 2 on a CPU, 1 on a GPU)")] = None,
+    still_span_deg: Annotated[float, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never)")] = 0.075,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth."""
     from gearscan.pipeline import PipelineError
     from gearscan.recording import RecordingError
     from gearscan.replay import replay
 
-    decoder = _decoder(classical, mc, model, workers)
+    decoder = _decoder(classical, mc, model, workers=workers, still_span_deg=still_span_deg)
     web = None
     if serve:
         from gearscan.viewer.serve import serve_web
@@ -252,7 +254,8 @@ def live_cmd(
         typer.echo(f"{config}: OK (camera {cfg.camera.driver}, projector {cfg.projector.backend}, "
                    f"rig {rig.camera.width}x{rig.camera.height}, gear z={cfg.gear.teeth})")
         return
-    decoder = _decoder(False, cfg.model.mc, cfg.model.path, cfg.model.workers)
+    decoder = _decoder(False, cfg.model.mc, cfg.model.path, precision=cfg.model.precision,
+                       workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg)
     save = save or cfg.viewer.save
     connect = connect or cfg.viewer.connect
     web = None

@@ -14,6 +14,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError, format_errors
+from gearscan.measure import STILL_SPAN_DEG
 from gearscan.twin.gear import GearSpec
 
 TEMPLATE = """\
@@ -60,6 +61,7 @@ bore = 10.0
 mc = 0                       # Monte Carlo passes for model uncertainty (0: one deterministic pass)
 precision = "auto"           # "auto", "fp32" or "bf16"
 # workers = 2                # bursts decoded at once; default: 2 on a CPU (faster than 1), 1 on a GPU
+still_span_deg = 0.075       # bursts spanning less turntable angle go to three-step PS (0: never)
 
 [recon]
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S
@@ -87,6 +89,7 @@ class ModelSection(BaseModel):
     mc: int = Field(0, ge=0, le=200)
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     workers: int | None = Field(None, ge=1, le=16)
+    still_span_deg: float = Field(STILL_SPAN_DEG, ge=0, le=10)
 
 
 class ReconSection(BaseModel):

@@ -110,3 +110,24 @@ def test_parallel_decoder_matches_one_worker_and_keeps_its_own_networks(noisy_re
             Decoder(workers=0)
     finally:
         torch.set_num_threads(threads)
+
+
+def test_still_bursts_go_to_three_step_and_moving_ones_to_the_network(noisy_renderer):
+    """The encoder span routes a still gear to three-step PS, which has no motion error."""
+    from gearscan.measure import Decoder
+
+    ps = PatternSet.three_step(PERIOD)
+
+    def burst(step_deg):
+        angles = [math.radians(3.0 + step_deg * i) for i in range(3)]
+        return _burst(noisy_renderer.render_sequence(angles, ps, [0, 1, 2], rng=1)[0], angles)
+
+    still, moving = burst(0.02), burst(0.6)  # spans 0.04 and 1.2 deg
+    dec = Decoder(workers=1)
+    r = dec(still)
+    assert r.mode == "three-step" and dec.still_bursts == 1
+    np.testing.assert_array_equal(r.phase, classical_result(still).phase)
+    assert dec(moving).mode == "deterministic" and dec.still_bursts == 1
+    assert Decoder(workers=1, still_span_deg=0)(still).mode == "deterministic"
+    with pytest.raises(ValueError, match="model.still_span_deg: expected >= 0"):
+        Decoder(still_span_deg=-1)

@@ -1,0 +1,81 @@
+"""Three-step PS against the shipped network by burst span: where the correction starts to pay.
+
+    .venv/bin/python benchmarks/still_crossover.py [--per-motion 2]
+
+Uniform bursts with frame steps from 0 (a still gear) to 0.2 deg on the validation scenes
+(tooth count 25, never trained on): the default rig and randomised rigs. The span below which
+three-step PS wins sets the Decoder's ``still_span_deg`` (bursts the encoder sees spanning
+less go to three-step PS). Writes benchmarks/still_crossover_report.{md,json}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import torch
+
+from gearscan.evaluate import (
+    classical_method,
+    network_method,
+    render_cases,
+    scenes_from_dataset,
+    score,
+)
+from gearscan.inference.predictor import Predictor
+from gearscan.measure import STILL_SPAN_DEG
+
+HERE = Path(__file__).parent
+STEPS_DEG = (0.0, 0.0125, 0.025, 0.05, 0.1, 0.2)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--val", nargs="+", default=["data/val_default", "data/val"])
+    ap.add_argument("--scenes", type=int, default=3)
+    ap.add_argument("--per-motion", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    methods = {"three-step PS": classical_method, "CD-DCU-Net": network_method(Predictor.load())}
+    motions = {f"{d:g}": (d, d) for d in STEPS_DEG}
+    rows = []
+    for root in args.val:
+        scenes = scenes_from_dataset(root, limit=args.scenes)
+        cases = [c for s in scenes for c in render_cases(s, motions, args.per_motion, seed=1)]
+        for s in score(methods, cases):
+            rows.append({"data": root, "step_deg": float(s.motion), "method": s.method, "rmse_rad": s.rmse_rad,
+                         "bursts": s.bursts})
+    (HERE / "still_crossover_report.json").write_text(json.dumps({"rows": rows, "loadavg": os.getloadavg()}, indent=2))
+    lines = [
+        "# Still and slow bursts: three-step PS against the network",
+        "",
+        f"`python benchmarks/still_crossover.py --per-motion {args.per_motion}`: uniform bursts (frame 1 to 2 "
+        "and 2 to 3 the same step), wrapped-phase RMSE on the truth's valid pixels, validation scenes "
+        f"({args.scenes} per dataset, tooth count 25 never trained on), shipped model deterministic.",
+        "",
+        "| data | step deg | span deg | three-step PS rad | CD-DCU-Net rad | better |",
+        "|---|---|---|---|---|---|",
+    ]
+    for root in args.val:
+        for d in STEPS_DEG:
+            r = {x["method"]: x["rmse_rad"] for x in rows if x["data"] == root and x["step_deg"] == d}
+            best = min(r, key=r.get)
+            lines.append(f"| {root} | {d:g} | {2 * d:g} | {r['three-step PS']:.3f} | {r['CD-DCU-Net']:.3f} | {best} |")
+    lines += [
+        "",
+        "Three-step PS has no motion error on a still gear, only noise (and the projector's residual",
+        "gamma on the randomised rigs); the network's regression error is larger than that floor. The",
+        "two cross between spans of about 0.05 and 0.1 deg on both kinds of rig, so the pipeline's",
+        f"Decoder sends bursts whose encoder span is below {STILL_SPAN_DEG} deg to three-step PS",
+        "(`model.still_span_deg`, `gearscan replay --still-span-deg`; 0 turns it off). The crossing",
+        "depends on the rig (image motion per degree grows with gear radius and magnification):",
+        "re-measure it on your rig with this script's method before changing the setting.",
+    ]
+    (HERE / "still_crossover_report.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
