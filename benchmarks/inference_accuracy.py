@@ -21,6 +21,7 @@ import torch
 from gearscan.evaluate import (
     GENERALISATION,
     PAPER_MOTIONS,
+    REVERSED,
     STATIC,
     classical_method,
     network_method,
@@ -63,7 +64,7 @@ def main() -> None:
         if path.exists():
             methods[f"{peer} (peer budget)" if peer == "cd-dcu-net" else peer] = network_method(Predictor.load(path))
     scenes = [s for root in args.val for s in scenes_from_dataset(root)]
-    motions = {**STATIC, **PAPER_MOTIONS, **GENERALISATION}
+    motions = {**STATIC, **PAPER_MOTIONS, **REVERSED, **GENERALISATION}
     cases = [c for i, s in enumerate(scenes) for c in render_cases(s, motions, args.per_motion, seed=100 + i)]
     t0 = time.perf_counter()
     scores = score(methods, cases, clouds=True)

@@ -28,6 +28,8 @@ from gearscan.types import PhaseResult
 # frame-to-frame steps (deg): the paper's motions, a static reference and the §3.7 intervals
 PAPER_MOTIONS = {"uniform 0.6/0.6": (0.6, 0.6), "non-uniform 0.1/1.6": (0.1, 1.6)}
 STATIC = {"static": (0.0, 0.0)}
+# the paper's motions with the turntable turning the other way
+REVERSED = {"reversed uniform 0.6/0.6": (-0.6, -0.6), "reversed non-uniform 0.1/1.6": (-0.1, -1.6)}
 GENERALISATION = {
     "uniform 0.5": (0.5, 0.5), "uniform 1": (1.0, 1.0), "uniform 2": (2.0, 2.0),
     "0.5+1": (0.5, 1.0), "1+2": (1.0, 2.0), "2+3": (2.0, 3.0),

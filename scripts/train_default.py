@@ -73,6 +73,7 @@ def main() -> None:
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--init", type=Path, default=None, help="start from these weights (.safetensors)")
     ap.add_argument("--patience", type=int, default=12)
+    ap.add_argument("--reverse", action="store_true", help="add every moving burst played backwards (the other rotation sense)")
     ap.add_argument("--static-repeat", type=int, default=1, help="oversample the motionless bursts this many times")
     ap.add_argument("--dropout-init", default="0.1,0.4", help="initial Concrete Dropout rate range MIN,MAX")
     ap.add_argument("--reset-dropout", action="store_true", help="re-draw the rates of the --init weights from --dropout-init")
@@ -81,11 +82,11 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     parts = [TwinBurstDataset(root, crop=args.crop, static=True, static_repeat=args.static_repeat, seed=i,
-                              motion_input=args.motion_input)
+                              motion_input=args.motion_input, reverse=args.reverse)
              for i, root in enumerate(args.train)]
     train_set = parts[0] if len(parts) == 1 else ConcatDataset(parts)
     p_min, p_max = (float(v) for v in args.dropout_init.split(","))
-    val_full = TwinBurstDataset(args.val, crop=None, static=True, motion_input=args.motion_input)
+    val_full = TwinBurstDataset(args.val, crop=None, static=True, motion_input=args.motion_input, reverse=args.reverse)
     rng = np.random.default_rng(0)
     val_set = Subset(val_full, sorted(rng.choice(len(val_full), args.val_items, replace=False).tolist()))
     residual = not args.no_residual

@@ -94,3 +94,18 @@ def test_generation_resumes_and_refuses_another_spec(small_dataset):
 def test_spec_validation():
     with pytest.raises(ValueError, match="multiple of 3"):
         DatasetSpec(steps=16)
+
+
+def test_reverse_plays_moving_bursts_backwards(small_dataset):
+    root, spec = small_dataset
+    fwd, both = TwinBurstDataset(root, groups=[0]), TwinBurstDataset(root, groups=[0], reverse=True, static=True)
+    assert len(both) == 2 * 816 + 18
+    i, j, k = fwd.combos[40]
+    rev = both[both.combos.index((k, j, i))]
+    sp = root / both.entries[0]["id"]
+    a = np.load(sp / "images.npy", mmap_mode="r")
+    # the same three patterns in the same order, shown at the poses in reverse
+    np.testing.assert_allclose(rev["input"][0], a[k, 0] / fwd.full_scale(0), rtol=1e-6)
+    np.testing.assert_allclose(rev["input"][2], a[i, 2 * spec.steps // 3] / fwd.full_scale(0), rtol=1e-6)
+    np.testing.assert_array_equal(rev["target"], np.load(sp / "label.npy")[k])
+    assert rev["span_deg"] == pytest.approx(-(k - i) * spec.pose_step_deg)

@@ -183,6 +183,9 @@ class TwinBurstDataset:
     ``poses`` motionless bursts (i, i, i) to the protocol's i < j < k ones, ``static_repeat``
     times each (oversampling: they are 2 % of the inputs otherwise). ``motion_input=True``
     appends the encoder's rotation channels (:func:`~gearscan.inference.models.motion_channels`).
+    ``reverse=True`` adds every moving burst played backwards (poses k > j > i, the same three
+    patterns in the same order, label at pose k): the turntable turning the other way, from the
+    same renders.
     """
 
     def __init__(
@@ -197,6 +200,7 @@ class TwinBurstDataset:
         groups: list[int] | None = None,
         seed: int = 0,
         motion_input: bool = False,
+        reverse: bool = False,
     ) -> None:
         self.root = Path(root)
         index_path = self.root / INDEX
@@ -222,6 +226,8 @@ class TwinBurstDataset:
             combos = [c for c in combos if c[2] - c[0] <= max_span]
         if static_repeat < 1:
             raise DatasetError(f"static_repeat must be >= 1, got {static_repeat}")
+        if reverse:  # the turntable turning the other way: poses k > j > i, label at pose k
+            combos = combos + [c[::-1] for c in combos]
         if static:  # all three frames at one pose: no motion, the static noise floor
             combos = combos + [(p, p, p) for p in range(self.spec.poses)] * static_repeat
         self.combos = combos
@@ -278,6 +284,6 @@ class TwinBurstDataset:
             "mask": np.array(a["mask"][i][sl]),
             "phase": np.array(a["phase"][i][sl]),
             "group": g,
-            "span_deg": (k - i) * self.spec.pose_step_deg,
+            "span_deg": (k - i) * self.spec.pose_step_deg,  # negative: turning backwards
             "poses": (i, j, k),
         }
