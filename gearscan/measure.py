@@ -55,8 +55,8 @@ class Decoder:
     Bursts whose encoder angles span less than ``still_span_deg`` (frame 1 to 3) go to
     three-step PS instead of the network: without motion it has no motion error, and below
     about 0.075 deg it beat the shipped network on twin validation gears (static: 0.018 vs
-    0.072 rad on the default rig, 0.064 vs 0.093 on randomised rigs; the network wins from
-    0.1 deg on). 0 sends every burst to the network.
+    0.053 rad on the default rig, 0.064 vs 0.070 on randomised rigs; the network wins from
+    0.1 deg on; benchmarks/still_crossover_report.md). 0 sends every burst to the network.
     """
 
     def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,

@@ -87,8 +87,9 @@ def calibrate_model(
         raise ValueError(f"items: expected >= 2 validation bursts, got {items}")
     predictor = Predictor.load(path)
     predictor.calibration = {}  # fit on the uncalibrated sigma (var_scale stays applied)
-    # both rotation senses: a turntable may turn either way
-    dataset = TwinBurstDataset(val, crop=None, static=True, reverse=True, motion_input=predictor.needs_angles)
+    # the bursts the network decodes in use: moving ones (the pipeline's Decoder sends still
+    # bursts to three-step PS), turning either way
+    dataset = TwinBurstDataset(val, crop=None, reverse=True, motion_input=predictor.needs_angles)
     rng = np.random.default_rng(seed)
     pick = sorted(rng.choice(len(dataset), min(items, len(dataset)), replace=False).tolist())
     modes = [("deterministic", 0)] + ([("mc", mc)] if mc > 0 and predictor.has_dropout else [])

@@ -10,7 +10,7 @@ Data (randomised rigs, optics, fringe periods and gear sizes; tooth count 25 is 
     gearscan twin dataset data/val --teeth 25 --repeats 3 --max-start-points 2 --width 256 --height 256 \
         --randomize --seed 2
 
-The shipped weights are the end of four runs, each starting from the one before (CPU, ~105 min
+The shipped weights are the end of five runs, each starting from the one before (CPU, ~130 min
 in all; `inference/weights/MODEL_CARD.md`):
 
     python scripts/train_default.py --train data/train --out runs/v1 --epochs-det 35 --epochs-drop 5 \
@@ -23,7 +23,10 @@ in all; `inference/weights/MODEL_CARD.md`):
         --epochs-det 50 --epochs-drop 8 --steps-per-epoch 100 --crop 128 --lr 5e-4 --val-items 48 --patience 30
     python scripts/train_default.py --train data/train data/train2 data/train3 --out runs/v4 \
         --init runs/v3/best.safetensors --dropout-init 0.02,0.1 --static-repeat 10 \
-        --epochs-det 8 --epochs-drop 2 --steps-per-epoch 100 --crop 128 --lr 2e-4 --val-items 48 --patience 30 --ship
+        --epochs-det 8 --epochs-drop 2 --steps-per-epoch 100 --crop 128 --lr 2e-4 --val-items 48 --patience 30
+    python scripts/train_default.py --train data/train data/train2 data/train3 --out runs/v5r \
+        --init runs/v4/best.safetensors --reverse --dropout-init 0.02,0.1 --static-repeat 20 \
+        --epochs-det 40 --epochs-drop 4 --steps-per-epoch 100 --crop 128 --lr 3e-4 --val-items 48 --patience 30 --ship
 
 Then the uncertainty calibration (sigma' = a sigma^b per mode, by Gaussian NLL; ~6 CPU minutes):
 

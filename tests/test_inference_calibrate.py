@@ -46,7 +46,7 @@ def test_calibration_is_fitted_on_truth_stored_and_applied(val_set, model_path, 
         assert r["all"]["nll_after"] <= r["all"]["nll_before"] and r["all"]["pixels"] > 1500
         assert r["held_out"]["fitted_on_start_points"] == [0]  # fitted on one start point, scored on the other
     # the stored map, applied by the predictor, lowers the NLL of the twin's truth on those bursts
-    ds = TwinBurstDataset(val_set, crop=None, static=True, reverse=True)  # what calibrate_model scores
+    ds = TwinBurstDataset(val_set, crop=None, reverse=True)  # what calibrate_model scores
     pick = sorted(np.random.default_rng(0).choice(len(ds), 8, replace=False).tolist())
     err0, sig0, _ = collect_errors(Predictor.load(model_path), ds, pick)
     err1, sig1, _ = collect_errors(Predictor.load(out), ds, pick)

@@ -251,3 +251,21 @@ def test_bad_sigma_calibration_in_the_config_is_named(saved, entry, match):
     path.with_suffix(".json").write_text(json.dumps(meta))
     with pytest.raises(ModelFileError, match=match):
         Predictor.load(path)
+
+
+def test_mirrored_fringes_are_decoded_in_the_trained_orientation(saved):
+    """Phase decreasing along the columns (a mirrored camera or projector) is mirrored in and out."""
+    from gearscan.inference.predictor import fringe_phase_decreases_along_columns
+
+    _, path = saved
+    h, w = 24, 40
+    xx = np.arange(w)[None, :] + 0.02 * np.arange(h)[:, None] ** 2
+    shifts = (0.0, 2 * np.pi / 3, 4 * np.pi / 3)
+    frames = np.stack([127 + 100 * np.cos(2 * np.pi * xx / 11 + d) for d in shifts]).astype(np.uint8)
+    mirrored = np.ascontiguousarray(frames[:, :, ::-1])
+    assert not fringe_phase_decreases_along_columns(frames_to_tensor(frames))
+    assert fringe_phase_decreases_along_columns(frames_to_tensor(mirrored))
+    pred = Predictor.load(path)
+    a, b = pred.predict(frames), pred.predict(mirrored)
+    for key in ("phase", "M", "D", "sigma_total"):
+        np.testing.assert_allclose(getattr(b, key)[:, ::-1], getattr(a, key), atol=1e-6)
