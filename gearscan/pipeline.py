@@ -129,14 +129,17 @@ class _InOrder:
         return t
 
     def finish(self, ticket: int, result: Any) -> list[Any]:
-        """Store ``ticket``'s result; the results now due, in order (None: nothing to emit)."""
-        with self.lock:
-            self.done[ticket] = result
-            due = []
-            while self.next_out in self.done:
-                due.append(self.done.pop(self.next_out))
-                self.next_out += 1
-            return due
+        """Store ``ticket``'s result; the results now due, in order (None: nothing to emit).
+
+        Call with ``lock`` held, and emit the results before releasing it: two workers emitting
+        outside the lock could still swap their outputs.
+        """
+        self.done[ticket] = result
+        due = []
+        while self.next_out in self.done:
+            due.append(self.done.pop(self.next_out))
+            self.next_out += 1
+        return due
 
     def retire(self) -> bool:
         """One worker stops; True for the last one (it closes the stage)."""
@@ -258,15 +261,14 @@ class Pipeline:
                     t0 = time.perf_counter()
                     result = spec.fn(item)
                     st.latencies_ms.append((time.perf_counter() - t0) * 1e3)
-                with order.lock:
+                with order.lock:  # DropOldestQueue.put never blocks
                     st.processed += 1
                     st.dropped_in = inq.dropped
-                for out in order.finish(ticket, result):
-                    if out is not None:
-                        with order.lock:
+                    for out in order.finish(ticket, result):
+                        if out is not None:
                             st.emitted += 1
-                        if outq is not None:
-                            outq.put(out)
+                            if outq is not None:
+                                outq.put(out)
         except BaseException as exc:  # noqa: BLE001 - reported through PipelineError
             self._fail(spec.name, exc)
         finally:
