@@ -49,7 +49,7 @@ class Decoder:
     ``workers`` > 1 decodes that many bursts at once, each on its own copy of the network
     with ``cores // workers`` torch threads (a process-wide torch setting): on a few CPU cores
     this beats one pass spread over all of them, whose threads stall whenever another stage
-    takes a core (2 cores, 512x512: 3.9-4.8 -> 5.4-6.3 bursts/s, benchmarks/pipeline_report.md). The
+    takes a core (2 cores, 512x512: 3.6-4.8 -> 5.2-6.3 bursts/s, benchmarks/pipeline_report.md). The
     pipeline runs the infer stage with this many workers. None: 2 on a CPU with >= 2 cores, else 1.
 
     Bursts whose encoder angles span less than ``still_span_deg`` (frame 1 to 3) go to
