@@ -164,14 +164,15 @@ def replay_cmd(
     model: Annotated[Path | None, typer.Option(help="model weights (.safetensors); default: the shipped model")] = None,
     truth: Annotated[bool, typer.Option(help="score against the recording's truth when it has one (--no-truth: what a live run does per burst)")] = True,
     workers: Annotated[int | None, typer.Option(min=1, help="bursts decoded at once (default: 2 on a CPU, 1 on a GPU)")] = None,
-    still_span_deg: Annotated[float, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never)")] = 0.075,
+    still_span_deg: Annotated[float | None, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never; default 0.075)")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth."""
     from gearscan.pipeline import PipelineError
     from gearscan.recording import RecordingError
     from gearscan.replay import replay
 
-    decoder = _decoder(classical, mc, model, workers=workers, still_span_deg=still_span_deg)
+    span = {} if still_span_deg is None else {"still_span_deg": still_span_deg}
+    decoder = _decoder(classical, mc, model, workers=workers, **span)
     web = None
     if serve:
         from gearscan.viewer.serve import serve_web

@@ -139,7 +139,8 @@ def predict(
     )
 
 
-def _load_dataset(spec: str, max_items: int | None = None, motion_input: bool = False):
+def _load_dataset(spec: str, max_items: int | None = None, motion_input: bool = False,
+                  reverse: bool = False):
     """A twin dataset folder (``gearscan twin dataset``), a folder of .npz items, or
     ``package.module:function`` returning a dataset or (train, val)."""
     import importlib
@@ -152,7 +153,7 @@ def _load_dataset(spec: str, max_items: int | None = None, motion_input: bool = 
 
         from gearscan.twin.dataset import TwinBurstDataset
 
-        ds = TwinBurstDataset(spec, static=True, motion_input=motion_input)
+        ds = TwinBurstDataset(spec, static=True, motion_input=motion_input, reverse=reverse)
         if max_items is not None and len(ds) > max_items:  # a validation sample, seeded
             pick = np.random.default_rng(0).choice(len(ds), max_items, replace=False)
             return Subset(ds, sorted(pick.tolist()))
@@ -190,6 +191,10 @@ def train(
     ] = False,
     residual: Annotated[
         bool, typer.Option(help="predict a correction to the classical three-step M, D")
+    ] = False,
+    reverse: Annotated[
+        bool,
+        typer.Option(help="twin datasets: add every moving burst played backwards (the other rotation sense)"),
     ] = False,
     motion_input: Annotated[
         bool,
@@ -270,8 +275,9 @@ def train(
         progress=progress,
         calibrate_mc=calibrate_mc,
     )
-    train_set = _load_dataset(data, motion_input=motion_input)
-    val_set = _load_dataset(val_data, max_items=64, motion_input=motion_input) if val_data else None
+    train_set = _load_dataset(data, motion_input=motion_input, reverse=reverse)
+    val_set = (_load_dataset(val_data, max_items=64, motion_input=motion_input, reverse=reverse)
+               if val_data else None)
     if isinstance(train_set, tuple):
         train_set, val_set = train_set
     result = run_training(config, train_set, val_set)
