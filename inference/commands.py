@@ -61,6 +61,20 @@ def load_frames(inputs: list[Path]):
     return frames, full_scale
 
 
+def check_device(device: str, *, allow_auto: bool = False) -> str:
+    """A torch device the user named: ``cpu``, ``cuda`` or ``cuda:N`` (and ``auto`` where allowed)."""
+    import torch
+
+    kinds = ("auto", "cpu", "cuda") if allow_auto else ("cpu", "cuda")
+    kind, _, index = device.partition(":")
+    if kind not in kinds or (index and (kind != "cuda" or not index.isdigit())):
+        raise typer.BadParameter(f"expected {', '.join(kinds)} or cuda:N, got {device!r}", param_hint="--device")
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise typer.BadParameter("cuda: no CUDA device is available on this machine (use --device cpu)",
+                                 param_hint="--device")
+    return device
+
+
 def predict(
     inputs: Annotated[
         list[Path],
@@ -83,8 +97,9 @@ def predict(
     ] = None,
     device: Annotated[str, typer.Option(help="cpu or cuda")] = "cpu",
     precision: Annotated[
-        str, typer.Option(help="fp32 or bf16 (autocast + channels_last)")
-    ] = "fp32",
+        str,
+        typer.Option(help="auto (bf16 where the CPU has native bf16 or on CUDA, else fp32), fp32 or bf16"),
+    ] = "auto",
     angles_deg: Annotated[
         str | None,
         typer.Option(
@@ -101,8 +116,11 @@ def predict(
     import numpy as np
 
     from gearscan.inference.model_io import ModelFileError
-    from gearscan.inference.predictor import Predictor
+    from gearscan.inference.predictor import PRECISIONS, Predictor
 
+    if precision not in PRECISIONS:
+        raise typer.BadParameter(f"expected one of {', '.join(PRECISIONS)}, got {precision!r}", param_hint="--precision")
+    check_device(device)
     frames, full_scale = load_frames(inputs)
     try:
         predictor = Predictor.load(model, device=device, precision=precision)
@@ -225,7 +243,9 @@ def train(
         str, typer.Option(help="uniform or modulation (1/m^2, phase-like)")
     ] = "uniform",
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
-    bf16: Annotated[bool, typer.Option(help="bf16 autocast")] = False,
+    precision: Annotated[
+        str, typer.Option(help="autocast: auto (bf16 on CUDA and on CPUs with native bf16, else fp32), fp32 or bf16")
+    ] = "auto",
     workers: Annotated[int, typer.Option(min=0, help="DataLoader workers")] = 0,
     seed: Annotated[int, typer.Option()] = 0,
     init: Annotated[
@@ -244,6 +264,7 @@ def train(
     from gearscan.inference.train import TrainConfig
     from gearscan.inference.train import train as run_training
 
+    check_device(device, allow_auto=True)
     config = TrainConfig(
         out_dir=str(out),
         model=ModelConfig(
@@ -266,7 +287,7 @@ def train(
         crop=crop,
         steps_per_epoch=steps_per_epoch,
         device=device,
-        bf16=bf16,
+        precision=precision,
         num_workers=workers,
         seed=seed,
         init=str(init) if init else None,

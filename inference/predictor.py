@@ -36,6 +36,7 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_MODEL = WEIGHTS_DIR / "default.safetensors"
 PRECISIONS = ("auto", "fp32", "bf16")
 CALIBRATION_MODES = ("deterministic", "mc")
+CPUINFO = Path("/proc/cpuinfo")
 
 
 def cpu_has_fast_bf16() -> bool:
@@ -45,7 +46,7 @@ def cpu_has_fast_bf16() -> bool:
     than fp32 for CD-DCU-Net w=16 at 512x512 (benchmarks/inference_speed.md).
     """
     try:
-        flags = Path("/proc/cpuinfo").read_text()
+        flags = CPUINFO.read_text()
     except OSError:
         return False
     return "avx512_bf16" in flags or "amx_bf16" in flags

@@ -67,7 +67,7 @@ class TrainConfig:
     crop: int | None = None  # random square crop per batch (multiple of 16 recommended)
     steps_per_epoch: int | None = None  # cap on batches per epoch
     device: str = "auto"
-    bf16: bool = False
+    precision: str = "auto"  # autocast: "auto" = bf16 on CUDA and CPUs with native bf16, else fp32
     num_workers: int = 0
     seed: int = 0
     init: str | None = None
@@ -94,6 +94,10 @@ class TrainConfig:
             )
         if self.lr <= 0:
             raise ValueError(f"lr: expected > 0, got {self.lr}")
+        from gearscan.inference.predictor import PRECISIONS
+
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision: expected one of {PRECISIONS}, got {self.precision!r}")
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -198,6 +202,9 @@ class Trainer:
         self.device = _resolve_device(config.device, Dist())
         self.dist = init_distributed(self.device.type)
         self.device = _resolve_device(config.device, self.dist)
+        from gearscan.inference.predictor import resolve_precision
+
+        self.precision = resolve_precision(config.precision, self.device)  # by the CPU's bf16 support
         torch.manual_seed(config.seed + self.dist.rank)
         if val_set is None:
             tr, va = split_by_group(dataset_groups(train_set), config.val_fraction, config.seed)
@@ -262,7 +269,7 @@ class Trainer:
 
     # one epoch -------------------------------------------------------------------------------
     def _autocast(self):
-        if self.config.bf16:
+        if self.precision == "bf16":
             return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
         return contextlib.nullcontext()
 

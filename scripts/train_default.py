@@ -68,6 +68,8 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--val-items", type=int, default=48)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
+                    help="autocast; auto = bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), else fp32")
     ap.add_argument("--mse-weighting", default="modulation")
     ap.add_argument("--no-residual", action="store_true")
     ap.add_argument("--motion-input", action="store_true",
@@ -110,7 +112,7 @@ def main() -> None:
         reset_dropout=args.reset_dropout,
         widen_inputs=args.motion_input,
         steps_per_epoch=args.steps_per_epoch,
-        bf16=False,
+        precision=args.precision,
         resume=args.resume,
         progress=True,
     )
