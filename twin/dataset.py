@@ -104,6 +104,13 @@ def generate_dataset(
     ``scene`` (rig, optics, gear, period) replaces the spec's default/randomised scene, for
     target domains with their own rig and camera.
     """
+    from gearscan.twin.splits import SplitError, refuse_test
+
+    try:  # test scenes are rendered on the fly by the report, never stored (twin/splits.py)
+        refuse_test(teeth=[g.teeth for g in ([scene[2]] if scene is not None else spec.gears)], seed=spec.seed,
+                    what=f"dataset {root}")
+    except SplitError as exc:
+        raise DatasetError(str(exc)) from exc
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     index_path = root / INDEX

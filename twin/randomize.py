@@ -6,11 +6,15 @@ The ranges are the model's validity range (stated in its model card).
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+from typing import Literal
+
 import numpy as np
 
-from gearscan.rig import Rig, default_rig
+from gearscan.rig import Rig, default_rig, look_at, rotation_about
 from gearscan.twin.gear import GearSpec
-from gearscan.twin.render import Optics
+from gearscan.twin.render import Optics, Surface
 
 RANGES = {
     "standoff_mm": (120.0, 220.0),
@@ -41,6 +45,13 @@ def projector_period_for(rig: Rig, camera_period_px: float, radius: float) -> fl
     return float(camera_period_px * proj / cam)
 
 
+def random_optics(rng: np.random.Generator) -> Optics:
+    """Photometry drawn from :data:`RANGES` (albedo, power, ambient, gammas, defocus, noise), in that order."""
+    keys = ("albedo", "projector_power", "ambient", "projector_gamma", "camera_gamma", "camera_defocus_px",
+            "projector_defocus_px", "full_well", "read_noise")
+    return Optics(**{k: float(rng.uniform(*RANGES[k])) for k in keys})
+
+
 def random_scene(
     rng: np.random.Generator, gear: GearSpec, width: int, height: int
 ) -> tuple[Rig, Optics, GearSpec, float]:
@@ -68,16 +79,102 @@ def random_scene(
         elevation_deg=u("elevation_deg"),
         projector_field_mm=field * 1.4,
     )
-    optics = Optics(
-        albedo=u("albedo"),
-        projector_power=u("projector_power"),
-        ambient=u("ambient"),
-        projector_gamma=u("projector_gamma"),
-        camera_gamma=u("camera_gamma"),
-        camera_defocus_px=u("camera_defocus_px"),
-        projector_defocus_px=u("projector_defocus_px"),
-        full_well=u("full_well"),
-        read_noise=u("read_noise"),
-    )
+    optics = random_optics(rng)
     period = projector_period_for(rig, u("camera_period_px"), g.pitch_radius)
     return rig, optics, g, period
+
+
+# --- view geometries ---------------------------------------------------------------------------
+View = Literal["radial", "side", "oblique", "face"]
+VIEWS: tuple[View, ...] = ("radial", "side", "oblique", "face")
+
+
+def view_rig(
+    width: int,
+    height: int,
+    gear: GearSpec,
+    *,
+    view: View,
+    angle_deg: float = 0.0,
+    standoff: float = 160.0,
+    field_mm: float = 26.0,
+    triangulation_deg: float = 24.0,
+    projector_field_mm: float | None = None,
+) -> Rig:
+    """A rig looking at ``gear``'s rim from one of four views, fringes across the camera columns.
+
+    ``radial``: from outside the rim, ``angle_deg`` of elevation (the default rig's view).
+    ``side``: in the plane normal to the axis, ``angle_deg`` (40-80) around from radial, so the
+    camera sees the flanks facing it side-on. ``oblique``: from above the face edge at the pitch
+    circle, ``angle_deg`` (30-60) of elevation. ``face``: along the axis onto the face at the pitch
+    circle, tilted ``angle_deg`` towards the rim; only the tooth outline moves as the gear turns.
+    The projector sits ``triangulation_deg`` around the target about the camera's up axis (so the
+    phase varies along camera columns), both at ``standoff`` mm; intrinsics and distortion are
+    the default rig's (:func:`gearscan.rig.default_rig` with the same field and stand-off).
+    """
+    if view not in VIEWS:
+        raise ValueError(f"view: expected one of {VIEWS}, got {view!r}")
+    a = math.radians(angle_deg)
+    r, top = gear.pitch_radius, gear.face_width / 2
+    axis, radial = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    if view == "radial":
+        target, look, up = np.array([r, 0, 0.0]), np.array([math.cos(a), 0, math.sin(a)]), axis
+    elif view == "side":
+        target, look, up = np.array([r, 0, 0.0]), np.array([math.cos(a), math.sin(a), 0]), axis
+    elif view == "oblique":
+        target, look, up = np.array([r, 0, top]), np.array([math.cos(a), 0, math.sin(a)]), axis
+    else:
+        target, look, up = np.array([r, 0, top]), np.array([math.sin(a), 0, math.cos(a)]), radial
+    base = default_rig(width, height, working_radius=r, standoff=standoff, field_mm=field_mm,
+                       triangulation_deg=triangulation_deg, projector_field_mm=projector_field_mm or 1.4 * field_mm)
+    cam_t = look_at(target + standoff * look, target, up)
+    cam_up = -cam_t[1, :3]  # the camera's image-up axis in world coordinates
+    proj_dir = rotation_about(cam_up, math.radians(triangulation_deg)) @ look
+    proj_t = look_at(target + standoff * proj_dir, target, cam_up)
+    return replace(base, camera=replace(base.camera, T_from_world=cam_t),
+                   projector=replace(base.projector, T_from_world=proj_t), name=f"{view} view")
+
+
+def projector_period_for_surface(surface: Surface, camera_period_px: float) -> float:
+    """Projector period (px) whose fringes are ``camera_period_px`` wide (median) where the camera sees them lit.
+
+    Measured from the gradient of the projector column over the lit pixels, so it holds for any
+    view (:func:`projector_period_for` assumes the radial one).
+    """
+    if not camera_period_px > 0:
+        raise ValueError(f"camera_period_px must be > 0, got {camera_period_px}")
+    gy, gx = np.gradient(surface.u_proj)
+    g = np.hypot(gx, gy)[surface.lit]
+    g = g[np.isfinite(g) & (g > 0)]
+    if g.size == 0:
+        raise ValueError("projector_period_for_surface: no lit pixel with a finite projector-column gradient")
+    return float(camera_period_px * np.median(g))
+
+
+def aim_point(rig: Rig) -> np.ndarray:
+    """Where the camera's and the projector's optical axes pass closest (midpoint): the rig's target."""
+    p1, d1 = rig.camera.center_world, rig.camera.T_world_from[:3, 2]
+    p2, d2 = rig.projector.center_world, rig.projector.T_world_from[:3, 2]
+    w = p1 - p2
+    b = float(d1 @ d2)
+    den = 1.0 - b * b
+    if den < 1e-12:
+        raise ValueError("aim_point: camera and projector axes are parallel")
+    s = (b * (d2 @ w) - (d1 @ w)) / den
+    t = ((d2 @ w) - b * (d1 @ w)) / den
+    return (p1 + s * d1 + p2 + t * d2) / 2
+
+
+def balance_projector_power(rig: Rig, optics: Optics) -> Optics:
+    """Raise the projector power where the renderer's inverse-square falloff would leave the target dim.
+
+    The twin scales irradiance by ``(d0/d)^2`` with ``d0`` the projector's distance to the rotation
+    axis; a projector above the face has a small ``d0``. A user would set the exposure for the
+    target, so the power is scaled to make that factor 1 at the view's target (at most 4, the
+    Optics limit), and left alone where it is already >= 1.
+    """
+    c = rig.projector.center_world
+    factor = (np.linalg.norm(c[:2]) / np.linalg.norm(c - aim_point(rig))) ** 2
+    if factor >= 1:
+        return optics
+    return optics.model_copy(update={"projector_power": float(min(4.0, optics.projector_power / factor))})

@@ -1,0 +1,88 @@
+"""The train / val / test splits are disjoint, and the test families only draw from test."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gearscan.rig import default_rig
+from gearscan.twin.families import FAMILIES, SEED_BLOCK, draw_gear, family_seed
+from gearscan.twin.gear import GearSpec
+from gearscan.twin.randomize import aim_point, view_rig
+from gearscan.twin.splits import (
+    SHIPPED_V5,
+    SPLITS,
+    TEETH_RANGE,
+    SplitError,
+    check_disjoint,
+    describe,
+    refuse_test,
+    split_of_rig,
+    split_of_seed,
+    split_of_teeth,
+)
+
+
+def test_splits_are_disjoint_by_gear_rig_and_seed() -> None:
+    check_disjoint()
+    train, val, test = (SPLITS[k] for k in ("train", "val", "test"))
+    for a, b in ((train, val), (train, test), (val, test)):
+        assert not a.teeth & b.teeth
+        assert not a.rig_families & b.rig_families
+        assert not any(ra.overlaps(rb) for ra in a.seeds for rb in b.seeds)
+    # every tooth count GearSpec allows has exactly one owner; test spans the families' 10-80
+    assert train.teeth | val.teeth | test.teeth == set(TEETH_RANGE)
+    assert min(test.teeth) == 10 and max(test.teeth) == 80
+    for seed in (0, 1, 2, 3, 9_999, 10_000, 19_999, 20_000, 29_999):
+        split_of_seed(seed)  # exactly one owner, or it raises
+
+
+def test_shipped_model_saw_only_train_and_val() -> None:
+    assert SHIPPED_V5.train_teeth <= SPLITS["train"].teeth
+    assert SHIPPED_V5.val_teeth <= SPLITS["val"].teeth
+    assert all(split_of_seed(s) == "train" for s in SHIPPED_V5.train_dataset_seeds)
+    assert all(split_of_seed(s) == "val" for s in SHIPPED_V5.val_dataset_seeds)
+    assert "25" in SHIPPED_V5.summary()
+
+
+def test_families_draw_test_gears_rigs_and_seeds_only() -> None:
+    seeds = {family_seed(f, i) for f in FAMILIES for i in (0, SEED_BLOCK - 1)}
+    assert len(seeds) == 2 * len(FAMILIES)
+    assert all(split_of_seed(s) == "test" for s in seeds)
+    assert all(split_of_rig(f) == "test" for f in FAMILIES)
+    rng = np.random.default_rng(0)
+    assert all(split_of_teeth(draw_gear(rng).teeth) == "test" for _ in range(50))
+    with pytest.raises(ValueError, match="family"):
+        family_seed("nope", 0)
+
+
+def test_stored_datasets_refuse_test_gears_and_seeds() -> None:
+    refuse_test(teeth=[25, 20], seed=2)
+    with pytest.raises(SplitError, match=r"tooth counts \[35\].*test split"):
+        refuse_test(teeth=[20, 35])
+    with pytest.raises(SplitError, match="seed 20000"):
+        refuse_test(seed=20_000)
+    with pytest.raises(SplitError, match=r"teeth=35 \(split test\).*seed=20000 \(split test\)"):
+        SPLITS["train"].check(teeth=35, rig_family="radial-random", seed=20_000)
+    assert "radial-random" in describe("train")
+
+
+def test_radial_view_rig_is_the_default_rig() -> None:
+    gear = GearSpec(teeth=35)
+    a, b = view_rig(64, 48, gear, view="radial"), default_rig(64, 48, working_radius=gear.pitch_radius)
+    assert np.allclose(a.camera.T_from_world, b.camera.T_from_world)
+    assert np.allclose(a.projector.T_from_world, b.projector.T_from_world)
+    assert np.allclose(aim_point(b), [gear.pitch_radius, 0, 0], atol=1e-9)
+    face = view_rig(64, 48, gear, view="face")
+    assert np.allclose(aim_point(face), [gear.pitch_radius, 0, gear.face_width / 2], atol=1e-9)
+    with pytest.raises(ValueError, match="view"):
+        view_rig(64, 48, gear, view="top")
+
+
+def test_dataset_generation_refuses_the_test_split(tmp_path) -> None:
+    from gearscan.twin.dataset import DatasetError, DatasetSpec, generate_dataset
+
+    spec = DatasetSpec(gears=[GearSpec(teeth=37)], width=32, height=32, max_start_points=1)
+    with pytest.raises(DatasetError, match=r"tooth counts \[37\] belong to the test split"):
+        generate_dataset(tmp_path / "d", spec)
+    assert not (tmp_path / "d").exists()
