@@ -20,6 +20,7 @@ import time
 from dataclasses import asdict, dataclass, field
 
 from gearscan.acquisition.encoder import EncoderHistory
+from gearscan.frame_ids import FrameIdWrap
 from gearscan.types import Burst, Frame
 
 
@@ -53,7 +54,8 @@ class BurstAssembler:
     max_encoder_gap_ns: bracketing encoder samples farther apart than this are a gap.
     encoder_wait_s: how long ``push`` may wait for encoder samples to cover the newest
     exposure (the serial link can lag the camera by a few ms).
-    frame_id_modulus: wrap of the camera's frame counter (GigE v1: 65536, skipping 0).
+    frame_id_modulus, frame_id_skips_zero: wrap of the camera's frame counter (GigE v1: 65536,
+    skipping 0; :attr:`BaseCamera.frame_id_wrap <gearscan.acquisition.camera.BaseCamera.frame_id_wrap>`).
     """
 
     history: EncoderHistory | None = None
@@ -69,6 +71,7 @@ class BurstAssembler:
     def __post_init__(self) -> None:
         if self.n_patterns != 3:
             raise ValueError(f"n_patterns must be 3 (Burst holds three frames), got {self.n_patterns}")
+        self._wrap = FrameIdWrap(self.frame_id_modulus, self.frame_id_skips_zero)
         self._pending: list[Frame] = []
         self._last_id: int | None = None
         self._next_index = 0
@@ -79,16 +82,6 @@ class BurstAssembler:
             self.events.append(AssemblyEvent(kind, frame_id, detail))
         else:
             self.stats.events_dropped += 1
-
-    def _step(self, a: int, b: int) -> int:
-        if self.frame_id_modulus is None:
-            return b - a
-        d = (b - a) % self.frame_id_modulus
-        if d > self.frame_id_modulus // 2:
-            return d - self.frame_id_modulus  # backwards
-        if self.frame_id_skips_zero and b < a:
-            d -= 1
-        return d
 
     def _discard_pending(self) -> None:
         self.stats.discarded_frames += len(self._pending)
@@ -124,7 +117,7 @@ class BurstAssembler:
         """Add one frame; returns a complete burst or None."""
         self.stats.frames += 1
         if self._last_id is not None:
-            step = self._step(self._last_id, frame.frame_id)
+            step = self._wrap.step(self._last_id, frame.frame_id)
             if step <= 0:
                 self.stats.order_errors += 1
                 self.stats.discarded_frames += 1

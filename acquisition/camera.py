@@ -27,6 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gearscan.acquisition.clock import ClockSync
+from gearscan.frame_ids import FrameIdUnwrapper, FrameIdWrap
 from gearscan.types import Frame
 
 TriggerMode = Literal["free-run", "software", "hardware"]
@@ -160,7 +161,8 @@ class BaseCamera:
     """Shared bookkeeping; drivers override the ``_`` hooks.
 
     ``frame_id_modulus`` handles counters that wrap (GigE Vision v1 block ids are 16-bit and
-    skip 0, so 65535 is followed by 1).
+    skip 0, so 65535 is followed by 1); :attr:`frame_id_wrap` is the rule every consumer of
+    this camera's ids uses (:mod:`gearscan.frame_ids`).
     """
 
     driver = "base"
@@ -175,7 +177,8 @@ class BaseCamera:
         self._open_count = 0
         self._streaming = False
         self._last_id: int | None = None
-        self._first_id: int | None = None
+        self._ids = FrameIdUnwrapper(self.frame_id_wrap)
+        self._first_ext: int | None = None  # extended id of the stream's first frame
         self._lock = threading.RLock()
 
     # -- context manager (reentrant, like linuxpy devices) -------------------------------
@@ -220,6 +223,11 @@ class BaseCamera:
 
     # -- public API ----------------------------------------------------------------------
     @property
+    def frame_id_wrap(self) -> FrameIdWrap:
+        """How this camera's frame counter wraps (from ``frame_id_modulus`` and ``frame_id_skips_zero``)."""
+        return FrameIdWrap(self.frame_id_modulus, self.frame_id_skips_zero)
+
+    @property
     def streaming(self) -> bool:
         return self._streaming
 
@@ -237,7 +245,8 @@ class BaseCamera:
         if self._streaming:
             return
         self._last_id = None
-        self._first_id = None
+        self._ids.reset()
+        self._first_ext = None
         self._start()
         self._streaming = True
 
@@ -271,12 +280,13 @@ class BaseCamera:
         return None if raw is None else self._finish(raw)
 
     def _finish(self, raw: RawFrame) -> Frame:
-        self._track_id(raw.frame_id)
+        ext = self._track_id(raw.frame_id)
         self.clock.add(raw.device_timestamp_ns, raw.host_arrival_ns)
         cycle = self.settings.pattern_cycle
         pattern = 0
-        if cycle and self._first_id is not None:
-            pattern = self._id_distance(self._first_id, raw.frame_id) % cycle
+        if cycle and self._first_ext is not None:
+            # counted on extended ids: a 2**32 counter is no multiple of 3, its wrap must not shift the cycle
+            pattern = (ext - self._first_ext) % cycle
         self.stats.frames += 1
         return Frame(
             image=raw.image,
@@ -288,25 +298,18 @@ class BaseCamera:
             host_timestamp_ns=raw.device_timestamp_ns if self.timestamps_are_host else self.clock.to_host(raw.device_timestamp_ns),
         )
 
-    def _id_distance(self, a: int, b: int) -> int:
-        """How many frames from id ``a`` to id ``b`` (wrap-aware)."""
-        if self.frame_id_modulus is None:
-            return b - a
-        m = self.frame_id_modulus
-        d = (b - a) % m
-        if self.frame_id_skips_zero and b < a:
-            d -= 1  # ids run ..., m-1, 1, 2: the skipped 0 is not a frame
-        return d
-
-    def _track_id(self, frame_id: int) -> None:
-        if self._first_id is None:
-            self._first_id = frame_id
+    def _track_id(self, frame_id: int) -> int:
+        """Count frame-id gaps (wrap-aware); returns the extended id of ``frame_id``."""
+        ext = self._ids(frame_id)
+        if self._first_ext is None:
+            self._first_ext = ext
         elif self._last_id is not None:
-            step = self._id_distance(self._last_id, frame_id)
+            step = self.frame_id_wrap.step(self._last_id, frame_id)
             if step > 1:
                 self.stats.missing_frames += step - 1
                 self.stats.gaps.append((self._last_id, frame_id))
         self._last_id = frame_id
+        return ext
 
 
 def host_now_ns() -> int:

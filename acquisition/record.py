@@ -122,7 +122,8 @@ class AcquisitionSession:
                 reference = self._settle_encoder_reference()
             if self.out is not None:
                 meta = {
-                    "camera": {**dataclasses.asdict(self.camera.info), "settings": self.settings.model_dump()},
+                    "camera": {**dataclasses.asdict(self.camera.info), "settings": self.settings.model_dump(),
+                               "frame_ids": self.camera.frame_id_wrap.to_json()},  # how replay orders the ids
                     "patterns": self.patterns.to_json(),
                     "encoder": None if cfg.encoder is None else cfg.encoder.model_dump(),
                     "encoder_reference": reference,
