@@ -165,8 +165,13 @@ def replay_cmd(
     truth: Annotated[bool, typer.Option(help="score against the recording's truth when it has one (--no-truth: what a live run does per burst)")] = True,
     workers: Annotated[int | None, typer.Option(min=1, help="bursts decoded at once (default: 2 on a CPU, 1 on a GPU)")] = None,
     still_span_deg: Annotated[float | None, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never; default 0.075)")] = None,
+    strict: Annotated[bool, typer.Option(help="exit 1 when the recording has damage (default: skip it, measure the rest, exit 0)")] = False,
 ) -> None:
-    """Replay a recording through the live pipeline; print accuracy when it holds truth."""
+    """Replay a recording through the live pipeline; print accuracy when it holds truth.
+
+    Damaged frames and lines are skipped (each named once in a warning, all listed in the
+    metrics' "damage" section); see also `gearscan check`.
+    """
     from gearscan.pipeline import PipelineError
     from gearscan.recording import RecordingError
     from gearscan.replay import replay
@@ -192,8 +197,16 @@ def replay_cmd(
             web.close()
     for k, v in result.summary().items():
         typer.echo(f"{k}: {v:.4f}" if isinstance(v, float) else f"{k}: {v}")
+    damage = result.damage.get("count", 0)
+    if damage:
+        kinds = ", ".join(f"{k} {n}" for k, n in result.damage["by_kind"].items())
+        typer.secho(f"damage: {damage} part(s) skipped ({kinds}), named in the warnings above; a skipped frame "
+                    "drops its burst", fg=typer.colors.YELLOW)
     if save:
         typer.echo(f"rerun stream saved to {save} (open with: rerun {save})")
+    if strict and damage:
+        typer.secho(f"error: --strict: {recording} has {damage} damaged part(s)", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=1)
     if web is not None:
         typer.echo(f"serving {web.web_url} — Ctrl-C to stop")
         try:
@@ -202,6 +215,35 @@ def replay_cmd(
             pass
         finally:
             web.close()
+
+
+@app.command("check")
+def check_cmd(
+    recording: Annotated[Path, typer.Argument(help="recording folder")],
+) -> None:
+    """List a recording's damage without decoding images (PNG structure and CRCs, index and
+    encoder lines, header). Exit 0: clean; 1: damaged (replay skips what is listed); 2: not a
+    readable recording (recording.json missing or damaged)."""
+    import warnings
+
+    from gearscan.recording import RecordingError, RecordingReader
+
+    with warnings.catch_warnings(record=True) as caught:  # an interrupted tail is a note, not damage
+        warnings.simplefilter("always")
+        try:
+            reader = RecordingReader(recording, warn=False)
+            notes = reader.check()
+        except RecordingError as exc:
+            raise _fail(str(exc)) from exc
+    for d in reader.damage:
+        typer.echo(f"damaged: {d} [{d.kind}]")
+    for note in [str(w.message) for w in caught] + notes:
+        typer.echo(f"note: {note}")
+    if reader.damage:
+        typer.secho(f"{recording}: {len(reader.damage)} damaged part(s); replay skips them and measures the rest",
+                    fg=typer.colors.YELLOW)
+        raise typer.Exit(code=1)
+    typer.echo(f"{recording}: OK ({len(reader)} frames)")
 
 
 config_app = typer.Typer(help="Live configuration files.", no_args_is_help=True)

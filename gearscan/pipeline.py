@@ -196,11 +196,15 @@ class Pipeline:
         return self._stop.is_set()
 
     def _fail(self, stage: str, exc: BaseException) -> None:
+        # The first error is raised by run() and printed once by whoever called it; logging it
+        # here as well printed every CLI error twice. Later ones (often consequences) are logged.
         with self._error_lock:
             if self._error is None:
                 self._error = PipelineError(stage, exc)
                 self._error.__cause__ = exc
-                log.error("%s", self._error)
+                log.debug("%s", self._error)
+            else:
+                log.warning("also failed after the first error: stage %r: %s: %s", stage, type(exc).__name__, exc)
         self.stop(f"error in {stage}")
 
     # --- threads --------------------------------------------------------------------

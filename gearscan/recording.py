@@ -10,32 +10,153 @@
 
 Writes are append-only and flushed per frame; the PNG is renamed into place before its line is
 appended, so every listed frame exists. A recording cut off mid-write (SIGKILL, cable pulled)
-replays up to its last complete line; a damaged line in the middle is an error naming the line.
+replays up to its last complete line; it may leave a ``frames/NNNNNN.tmp.png`` that no line
+names: not data, ignored by the reader and listed by ``gearscan check`` as safe to delete.
 Angles are stored in radians (``*_rad`` keys), times in nanoseconds (``*_ns``).
+
+``recording.json`` also says what every frame is (``frame_format``: dtype, width, height, bit
+depth, set by the first frame) and how the camera's frame counter wraps (``camera.frame_ids``:
+modulus and whether 0 is skipped; inferred from the ids when absent).
+
+Damage is skipped, not fatal: a line that is not JSON or has a field out of range (ids and
+times are non-negative integers, angles finite and within ``MAX_ANGLE_RAD``, NaN and infinity
+refused), a frame file that is missing, outside the folder, truncated, fails its CRC or has
+another format than the recording's. Each is reported once as a :class:`Damage` naming file
+and line, and the rest of the recording is read. Only a damaged ``recording.json`` is an error.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import json
+import logging
+import math
 import os
+import shutil
+import struct
+import threading
 import warnings
+import zipfile
+import zlib
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import cv2
 import numpy as np
 
-from gearscan.types import EncoderSample, Frame
+from gearscan.frame_ids import FrameIdUnwrapper, FrameIdWrap
+from gearscan.types import (
+    ENCODER_COUNT_MAX,
+    ENCODER_SEQ_MODULUS,
+    ENCODER_TIME_US_MAX,
+    EncoderSample,
+    Frame,
+)
+
+log = logging.getLogger(__name__)
 
 FORMAT = "gearscan-recording"
 VERSION = 1
 
+#: What a reader can find damaged (:class:`Damage.kind`).
+DAMAGE_KINDS = (
+    "index_line",  # frames.jsonl line that is not valid JSON or has a field out of range
+    "encoder_line",  # encoder.jsonl line likewise
+    "missing_frame",  # frames.jsonl lists a file that is not there
+    "path_escape",  # frames.jsonl lists a file outside the recording folder
+    "unreadable_frame",  # the PNG is truncated, fails its CRC or does not decode
+    "frame_format",  # dtype, bit depth, channels or size differ from the recording's
+    "header",  # a section of recording.json (rig, patterns, gear) is invalid (found by check)
+)
+
+_INT63 = (1 << 63) - 1
+#: Largest |encoder angle| a frame may carry: float64 still resolves 0.1 urad there (1.6e8 turns).
+MAX_ANGLE_RAD = 1e9
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
 
 class RecordingError(RuntimeError):
     """A recording folder is missing, damaged or written twice."""
+
+
+@dataclass(frozen=True, slots=True)
+class Damage:
+    """One damaged piece of a recording: ``file`` (relative to the recording), 1-based ``line``
+    of the index that names it (None for a whole file), ``kind`` (:data:`DAMAGE_KINDS`) and what
+    was found against what was expected."""
+
+    kind: str
+    file: str
+    line: int | None
+    what: str
+
+    def __str__(self) -> str:
+        where = self.file if self.line is None else f"{self.file}:{self.line}"
+        return f"{where}: {self.what}"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.kind, "file": self.file, "line": self.line, "what": self.what}
+
+
+class FrameDamaged(RecordingError):
+    """A listed frame cannot be used; ``damage`` says where and why. Replay skips the frame."""
+
+    def __init__(self, damage: Damage) -> None:
+        super().__init__(str(damage))
+        self.damage = damage
+
+
+@dataclass(frozen=True, slots=True)
+class FrameFormat:
+    """What every frame of one recording is: dtype, size and significant bits."""
+
+    dtype: str  # "uint8" or "uint16"
+    width: int
+    height: int
+    bit_depth: int
+
+    @classmethod
+    def of(cls, image: np.ndarray, bit_depth: int) -> FrameFormat:
+        return cls(str(image.dtype), int(image.shape[1]), int(image.shape[0]), int(bit_depth))
+
+    def describe(self) -> str:
+        return f"{self.width}x{self.height} {self.dtype} ({self.bit_depth}-bit)"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"dtype": self.dtype, "width": self.width, "height": self.height, "bit_depth": self.bit_depth}
+
+    @classmethod
+    def from_json(cls, d: Any) -> FrameFormat:
+        if not isinstance(d, dict):
+            raise ValueError(f"expected {{dtype, width, height, bit_depth}}, got {d!r:.80}")
+        dtype = d.get("dtype")
+        if dtype not in ("uint8", "uint16"):
+            raise ValueError(f"dtype must be 'uint8' or 'uint16', got {dtype!r:.40}")
+        return cls(dtype, _int_field(d, "width", 1, 1 << 16), _int_field(d, "height", 1, 1 << 16),
+                   _int_field(d, "bit_depth", 1, 16))
+
+
+def _int_field(d: dict[str, Any], key: str, lo: int, hi: int, default: int | None = None) -> int:
+    """``d[key]`` as an int in ``[lo, hi]``; ValueError naming the key, the range and the value."""
+    if key not in d and default is not None:
+        return default
+    v = d.get(key)
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise ValueError(f"{key}: expected an integer in [{lo}, {hi}], got {v!r:.40}")
+    return v
+
+
+def _float_field(d: dict[str, Any], key: str, lo: float, hi: float, default: float | None = None) -> float:
+    """``d[key]`` as a finite number in ``[lo, hi]`` (NaN, infinities and strings are refused)."""
+    if key not in d and default is not None:
+        return default
+    v = d.get(key)
+    if isinstance(v, bool) or not isinstance(v, int | float) or not (lo <= v <= hi) or not math.isfinite(v):
+        raise ValueError(f"{key}: expected a finite number in [{lo:g}, {hi:g}], got {v!r:.40}")
+    return float(v)
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
@@ -73,17 +194,98 @@ class FrameRecord:
         }
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> FrameRecord:
+    def from_json(cls, d: Any) -> FrameRecord:
+        """Parse and range-check one line; ValueError names the field, its range and the value."""
+        if not isinstance(d, dict):
+            raise ValueError(f"expected a JSON object, got {type(d).__name__}")
+        angle = d.get("encoder_angle_rad")
+        file = d.get("file")
+        if not isinstance(file, str) or not file:
+            raise ValueError(f"file: expected a relative path, got {file!r:.60}")
         return cls(
-            frame_id=int(d["id"]),
-            timestamp_ns=int(d["timestamp_ns"]),
-            pattern_index=int(d["pattern_index"]),
-            exposure_us=float(d.get("exposure_us", 0.0)),
-            bit_depth=int(d.get("bit_depth", 8)),
-            encoder_angle=None if d.get("encoder_angle_rad") is None else float(d["encoder_angle_rad"]),
-            host_timestamp_ns=int(d.get("host_timestamp_ns", 0)),
-            file=str(d["file"]),
+            frame_id=_int_field(d, "id", 0, (1 << 64) - 1),
+            timestamp_ns=_int_field(d, "timestamp_ns", 0, _INT63),
+            pattern_index=_int_field(d, "pattern_index", 0, 255),
+            exposure_us=_float_field(d, "exposure_us", 0.0, 1e9, default=0.0),
+            bit_depth=_int_field(d, "bit_depth", 1, 16, default=8),
+            encoder_angle=None if angle is None else _float_field(d, "encoder_angle_rad", -MAX_ANGLE_RAD, MAX_ANGLE_RAD),
+            host_timestamp_ns=_int_field(d, "host_timestamp_ns", 0, _INT63, default=0),
+            file=file,
         )
+
+
+def encoder_sample_from_json(d: Any) -> EncoderSample:
+    """Parse and range-check one ``encoder.jsonl`` line (ranges of :class:`EncoderSample`)."""
+    if not isinstance(d, dict):
+        raise ValueError(f"expected a JSON object, got {type(d).__name__}")
+    index = d.get("index")
+    if not isinstance(index, bool):
+        raise ValueError(f"index: expected true or false, got {index!r:.40}")
+    return EncoderSample(
+        seq=_int_field(d, "seq", 0, ENCODER_SEQ_MODULUS - 1),
+        device_time_us=_int_field(d, "device_time_us", 0, ENCODER_TIME_US_MAX),
+        count=_int_field(d, "count", -ENCODER_COUNT_MAX, ENCODER_COUNT_MAX),
+        index=index,
+        angle=_float_field(d, "angle_rad", -math.inf, math.inf),
+        host_time_ns=_int_field(d, "host_time_ns", 0, _INT63, default=0),
+    )
+
+
+def png_format(data: bytes) -> tuple[FrameFormat | None, str]:
+    """Check a PNG's structure without decoding its pixels: signature, every chunk's length and
+    CRC, IHDR first and IEND last. Returns the format its IHDR declares (grey images only) and
+    ``""``, or ``(None, what is wrong)``."""
+    if data[:8] != _PNG_SIGNATURE:
+        return None, "not a PNG file (signature missing)" if data else "empty file"
+    pos, header = 8, None
+    while True:
+        if pos + 12 > len(data):
+            return None, f"PNG truncated at byte {len(data)} (no IEND chunk)"
+        length, ctype = struct.unpack_from(">I4s", data, pos)
+        end = pos + 8 + length
+        if end + 4 > len(data):
+            return None, f"PNG truncated at byte {len(data)} inside chunk {ctype!r} starting at byte {pos}"
+        if zlib.crc32(memoryview(data)[pos + 4:end]) != struct.unpack_from(">I", data, end)[0]:
+            return None, f"PNG chunk {ctype!r} at byte {pos}: CRC mismatch (bytes changed)"
+        if header is None:
+            if ctype != b"IHDR" or length != 13:
+                return None, "PNG does not start with its IHDR chunk"
+            width, height, bits, color = struct.unpack_from(">IIBB", data, pos + 8)
+            header = (width, height, bits, color)
+        if ctype == b"IEND":
+            break
+        pos = end + 4
+    width, height, bits, color = header
+    if color != 0 or bits not in (8, 16):
+        return None, f"PNG is colour type {color} with {bits}-bit samples, expected 8- or 16-bit grey"
+    return FrameFormat("uint8" if bits == 8 else "uint16", width, height, bits), ""
+
+
+def _jsonl_lines(path: Path) -> Iterator[tuple[int, Any]]:
+    """``(line number, parsed JSON or Damage)`` for each complete line of a JSONL file.
+
+    Invalid UTF-8, invalid JSON and nesting too deep to parse are :class:`Damage` of the
+    caller's kind; a cut-off last line (an interrupted write) is skipped with a warning.
+    """
+    if not path.exists():
+        return
+    kind = "encoder_line" if path.name == "encoder.jsonl" else "index_line"
+    with open(path, "rb") as fh:
+        n = 0
+        for raw in fh:
+            n += 1
+            if not raw.endswith(b"\n"):
+                if raw.strip():
+                    warnings.warn(f"{path}:{n}: incomplete last line ignored (recording was interrupted)",
+                                  stacklevel=4)
+                return
+            if not raw.strip():
+                continue
+            try:
+                yield n, json.loads(raw.rstrip(b"\r\n"))
+            except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+                what = exc.msg if isinstance(exc, json.JSONDecodeError) else type(exc).__name__
+                yield n, Damage(kind, path.name, n, f"not a JSON line ({what}): {raw.rstrip()[:60]!r}")
 
 
 class RecordingWriter:
@@ -99,13 +301,25 @@ class RecordingWriter:
         if (Path(path) / "recording.json").exists() and not overwrite:
             raise RecordingError(f"{path} already holds a recording (pass overwrite to replace it)")
 
+    @staticmethod
+    def remove(path: Path) -> None:
+        """Delete the recording in ``path`` whole (header first, so a crash midway leaves no
+        recording rather than one mixing old and new parts); other files there are kept."""
+        (path / "recording.json").unlink(missing_ok=True)
+        for name in ("frames", "truth"):
+            if (path / name).is_dir() and not (path / name).is_symlink():
+                shutil.rmtree(path / name)
+            else:
+                (path / name).unlink(missing_ok=True)
+        for name in ("frames.jsonl", "encoder.jsonl", "recording.json.tmp"):
+            (path / name).unlink(missing_ok=True)
+
     def __init__(self, path: str | Path, meta: dict[str, Any], *, overwrite: bool = False, durable: bool = False):
         self.path = Path(path)
         self.check_target(self.path, overwrite)
+        if overwrite:  # an old truth/ or frame left behind would be read as part of the new recording
+            self.remove(self.path)
         (self.path / "frames").mkdir(parents=True, exist_ok=True)
-        if overwrite:
-            for name in ("frames.jsonl", "encoder.jsonl"):
-                (self.path / name).unlink(missing_ok=True)
         self.meta = {
             "format": FORMAT,
             "version": VERSION,
@@ -119,6 +333,7 @@ class RecordingWriter:
         self._encoder = open(self.path / "encoder.jsonl", "a")
         self._durable = durable
         self.frame_count = 0
+        self.format: FrameFormat | None = None
 
     def __enter__(self) -> RecordingWriter:
         return self
@@ -127,7 +342,20 @@ class RecordingWriter:
         self.close()
 
     def write_frame(self, frame: Frame, truth: dict[str, np.ndarray] | None = None) -> FrameRecord:
-        """Write the image (and truth), then append its line; flushed before returning."""
+        """Write the image (and truth), then append its line; flushed before returning.
+
+        Every frame must have the first frame's dtype, size and bit depth (stored in
+        ``recording.json`` as ``frame_format``, against which readers check each frame)."""
+        fmt = FrameFormat.of(frame.image, frame.bit_depth) if frame.image.ndim == 2 else None
+        if fmt is None or fmt.dtype not in ("uint8", "uint16"):
+            raise RecordingError(f"{self.path}: frame {frame.frame_id}: expected an (H, W) uint8 or uint16 image, "
+                                 f"got {frame.image.dtype} of shape {frame.image.shape}")
+        if self.format is None:
+            self.format = fmt
+            self.update_meta(frame_format=fmt.to_json())
+        elif fmt != self.format:
+            raise RecordingError(f"{self.path}: frame {frame.frame_id} is {fmt.describe()}, the recording holds "
+                                 f"{self.format.describe()}")
         name = f"{self.frame_count:06d}"
         rel = f"frames/{name}.png"
         tmp = self.path / "frames" / f"{name}.tmp.png"
@@ -188,54 +416,133 @@ class RecordingWriter:
         self.update_meta(finished=True, frame_count=self.frame_count)
 
 
-def _read_jsonl(path: Path) -> list[dict[str, Any]]:
-    """Complete lines of a JSONL file; a cut-off last line is dropped with a warning."""
-    if not path.exists():
-        return []
-    data = path.read_bytes()
-    lines = data.split(b"\n")
-    tail = lines.pop()  # empty if the file ends with a newline
-    out = []
-    for n, raw in enumerate(lines, start=1):
-        if not raw.strip():
-            continue
-        try:
-            out.append(json.loads(raw))
-        except json.JSONDecodeError as exc:
-            raise RecordingError(f"{path}:{n}: damaged line ({exc.msg}): {raw[:80]!r}") from exc
-    if tail.strip():
-        warnings.warn(
-            f"{path}:{len(lines) + 1}: incomplete last line ignored (recording was interrupted)", stacklevel=3
-        )
-    return out
-
-
 class RecordingReader:
-    """Reads a recording folder, tolerating an interrupted tail."""
+    """Reads a recording folder, tolerating an interrupted tail and skipping damage.
 
-    def __init__(self, path: str | Path):
+    A damaged line of ``frames.jsonl`` or ``encoder.jsonl``, a frame file that is missing,
+    outside the folder, unreadable or not of the recording's format is not data: it is left
+    out, logged once as a warning naming file and line, and listed in :attr:`damage`. Frames
+    are checked when opened (index, file presence) and when read (:meth:`frame` raises
+    :class:`FrameDamaged`). A damaged ``recording.json`` is a :class:`RecordingError`: without
+    it nothing else can be interpreted.
+
+    ``warn=False`` keeps the warnings quiet (``gearscan check`` prints the list itself).
+    """
+
+    def __init__(self, path: str | Path, *, warn: bool = True):
         self.path = Path(path)
+        self.warn = warn
+        self.damage: list[Damage] = []
+        self._seen: set[tuple[str, str, int | None]] = set()
+        self._lock = threading.Lock()
+        self.meta = self._read_meta()
+        camera = self.meta.get("camera") if isinstance(self.meta.get("camera"), dict) else {}
+        try:
+            declared = self.meta.get("frame_format")
+            if declared is not None:
+                self.format: FrameFormat | None = FrameFormat.from_json(declared)
+            elif all(k in camera for k in ("width", "height", "bit_depth")):  # twin recordings before frame_format
+                bits = _int_field(camera, "bit_depth", 1, 16)
+                self.format = FrameFormat("uint8" if bits <= 8 else "uint16", _int_field(camera, "width", 1, 1 << 16),
+                                          _int_field(camera, "height", 1, 1 << 16), bits)
+            else:
+                self.format = None  # taken from the first intact frame
+        except ValueError as exc:
+            raise RecordingError(f"{self.path / 'recording.json'}: frame_format: {exc}") from exc
+        n_patterns = len(self.patterns) if "patterns" in self.meta else 256
+        root = self.path.resolve()
+        self.records: list[FrameRecord] = []
+        self.lines: list[int] = []  # frames.jsonl line of each record
+        for n, d in _jsonl_lines(self.path / "frames.jsonl"):
+            if isinstance(d, Damage):
+                self.report(d)
+                continue
+            try:
+                rec = FrameRecord.from_json(d)
+                if rec.pattern_index >= n_patterns:
+                    raise ValueError(f"pattern_index: expected 0 to {n_patterns - 1} "
+                                     f"(the recording's pattern set), got {rec.pattern_index}")
+            except ValueError as exc:
+                self.report(Damage("index_line", "frames.jsonl", n, str(exc)))
+                continue
+            if self._frame_file_damage(rec, n, root) is None:
+                self.records.append(rec)
+                self.lines.append(n)
+        # the recording's bit depth: declared, else what most frames say (recordings before frame_format)
+        self._bits = self.format.bit_depth if self.format else (
+            Counter(r.bit_depth for r in self.records).most_common(1)[0][0] if self.records else 8)
+        for rec, n in zip(self.records, self.lines, strict=True):
+            if rec.bit_depth != self._bits:
+                self.report(Damage("frame_format", rec.file, n, f"bit_depth {rec.bit_depth} in a {self._bits}-bit recording"))
+        keep = [k for k, rec in enumerate(self.records) if rec.bit_depth == self._bits]
+        self.records = [self.records[k] for k in keep]
+        self.lines = [self.lines[k] for k in keep]
+        try:
+            wrap = FrameIdWrap.from_json(camera["frame_ids"]) if "frame_ids" in camera else None
+        except ValueError as exc:
+            raise RecordingError(f"{self.path / 'recording.json'}: camera.frame_ids: {exc}") from exc
+        #: how the recorded camera's frame counter wraps (stored by the recorder, else inferred)
+        self.frame_id_wrap = wrap or FrameIdWrap.detect([r.frame_id for r in self.records])
+        #: frame ids extended past the counter's wraps: unique and increasing in a clean recording
+        self.extended_ids = FrameIdUnwrapper(self.frame_id_wrap).extend(r.frame_id for r in self.records)
+
+    # -- damage ---------------------------------------------------------------------------
+    def report(self, damage: Damage) -> None:
+        """Record ``damage`` once (a second report of the same file, line and kind is ignored)."""
+        key = (damage.kind, damage.file, damage.line)
+        with self._lock:
+            if key in self._seen:
+                return
+            self._seen.add(key)
+            self.damage.append(damage)
+        if self.warn:
+            log.warning("damaged recording %s: %s (skipped)", self.path, damage)
+
+    def damage_summary(self) -> dict[str, Any]:
+        """Counts by kind and the list of damage, for metrics files."""
+        with self._lock:
+            items = list(self.damage)
+        return {"count": len(items), "by_kind": dict(Counter(d.kind for d in items)),
+                "items": [d.to_json() for d in items]}
+
+    def _frame_file_damage(self, rec: FrameRecord, line: int, root: Path) -> Damage | None:
+        target = (root / rec.file).resolve()
+        if not target.is_relative_to(root):
+            d = Damage("path_escape", "frames.jsonl", line, f"file {rec.file!r} points outside the recording folder")
+        elif not target.is_file():
+            d = Damage("missing_frame", rec.file, line, "frame file is missing")
+        else:
+            return None
+        self.report(d)
+        return d
+
+    # -- header ---------------------------------------------------------------------------
+    def _read_meta(self) -> dict[str, Any]:
         meta_path = self.path / "recording.json"
         if not meta_path.exists():
             raise RecordingError(f"{self.path} is not a recording: {meta_path.name} is missing")
         try:
-            self.meta: dict[str, Any] = json.loads(meta_path.read_text())
+            meta = json.loads(meta_path.read_bytes())
         except json.JSONDecodeError as exc:
             raise RecordingError(f"{meta_path}:{exc.lineno}: invalid JSON ({exc.msg})") from exc
-        if self.meta.get("format") != FORMAT:
-            raise RecordingError(f"{meta_path}: format is {self.meta.get('format')!r}, expected {FORMAT!r}")
-        if self.meta.get("version") != VERSION:
-            raise RecordingError(f"{meta_path}: version {self.meta.get('version')!r} unsupported (expected {VERSION})")
-        frames_path = self.path / "frames.jsonl"
-        self.records: list[FrameRecord] = []
-        for n, d in enumerate(_read_jsonl(frames_path), start=1):
-            try:
-                rec = FrameRecord.from_json(d)
-            except (KeyError, TypeError, ValueError) as exc:
-                raise RecordingError(f"{frames_path}:{n}: missing or invalid field {exc}") from exc
-            if not (self.path / rec.file).exists():
-                raise RecordingError(f"{frames_path}:{n}: frame file {self.path / rec.file} is missing")
-            self.records.append(rec)
+        except (ValueError, RecursionError, OSError) as exc:
+            raise RecordingError(f"{meta_path}: unreadable ({type(exc).__name__}: {exc})") from exc
+        if not isinstance(meta, dict):
+            raise RecordingError(f"{meta_path}: expected a JSON object, got {type(meta).__name__}")
+        if meta.get("format") != FORMAT:
+            raise RecordingError(f"{meta_path}: format is {meta.get('format')!r:.60}, expected {FORMAT!r}")
+        if meta.get("version") != VERSION:
+            raise RecordingError(f"{meta_path}: version {meta.get('version')!r:.60} unsupported (expected {VERSION})")
+        return meta
+
+    def _header(self, key: str, parse: Any) -> Any:
+        """``parse(meta[key])`` with every failure as a RecordingError naming recording.json and the key."""
+        try:
+            return parse(self.meta[key])
+        except KeyError as exc:
+            raise RecordingError(f"{self.path / 'recording.json'}: no {key!r} section") from exc
+        except (ValueError, TypeError, AttributeError, OverflowError) as exc:  # RigError, PatternError, pydantic
+            raise RecordingError(f"{self.path / 'recording.json'}: {key}: {exc}") from exc
 
     def __len__(self) -> int:
         return len(self.records)
@@ -246,29 +553,58 @@ class RecordingReader:
 
     @property
     def rig(self):
+        """The rig calibration; its camera must have the frames' size (else triangulation is wrong)."""
         from gearscan.rig import Rig
 
-        if "rig" not in self.meta:
-            raise RecordingError(f"{self.path}/recording.json has no rig calibration")
-        return Rig.from_json(self.meta["rig"], f"{self.path}/recording.json: rig")
+        rig = self._header("rig", lambda d: Rig.from_json(d, f"{self.path}/recording.json: rig"))
+        fmt = self.format
+        if fmt is not None and (rig.camera.width, rig.camera.height) != (fmt.width, fmt.height):
+            raise RecordingError(f"{self.path / 'recording.json'}: rig camera is {rig.camera.width}x{rig.camera.height}, "
+                                 f"the frames are {fmt.width}x{fmt.height}")
+        return rig
 
     @property
     def gear(self):
         from gearscan.twin.gear import GearSpec
 
-        return GearSpec(**self.meta["gear"]) if self.meta.get("gear") else None
+        return self._header("gear", lambda d: GearSpec(**d)) if self.meta.get("gear") else None
 
     @property
     def patterns(self):
         from gearscan.projector.patterns import PatternSet
 
-        return PatternSet.from_json(self.meta["patterns"])
+        return self._header("patterns", PatternSet.from_json)
+
+    # -- frames ---------------------------------------------------------------------------
+    def _check_format(self, i: int, fmt: FrameFormat) -> None:
+        rec = self.records[i]
+        with self._lock:
+            if self.format is None:  # old recordings: the first intact frame sets the format
+                self.format = FrameFormat(fmt.dtype, fmt.width, fmt.height, self._bits)
+            expected = self.format
+        want_dtype = "uint8" if rec.bit_depth <= 8 else "uint16"
+        if fmt.dtype != want_dtype or (fmt.width, fmt.height) != (expected.width, expected.height):
+            self._damaged(Damage("frame_format", rec.file, self.lines[i],
+                                 f"{fmt.width}x{fmt.height} {fmt.dtype} where the recording holds {expected.describe()}"))
+
+    def _damaged(self, damage: Damage) -> NoReturn:
+        self.report(damage)
+        raise FrameDamaged(damage)
 
     def frame(self, i: int) -> Frame:
+        """Frame ``i``; raises :class:`FrameDamaged` (reported once) when its file is not usable."""
         rec = self.records[i]
-        img = cv2.imread(str(self.path / rec.file), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise RecordingError(f"{self.path / rec.file}: unreadable image (frames.jsonl line {i + 1})")
+        try:
+            data = (self.path / rec.file).read_bytes()
+        except OSError as exc:
+            self._damaged(Damage("missing_frame", rec.file, self.lines[i], f"cannot read ({exc.strerror})"))
+        fmt, why = png_format(data)
+        if fmt is None:
+            self._damaged(Damage("unreadable_frame", rec.file, self.lines[i], why))
+        self._check_format(i, fmt)
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None or img.ndim != 2:
+            self._damaged(Damage("unreadable_frame", rec.file, self.lines[i], "PNG data does not decode"))
         return Frame(
             image=img,
             frame_id=rec.frame_id,
@@ -281,8 +617,12 @@ class RecordingReader:
         )
 
     def frames(self) -> Iterator[Frame]:
+        """Every usable frame in order (damaged ones are reported and skipped)."""
         for i in range(len(self.records)):
-            yield self.frame(i)
+            try:
+                yield self.frame(i)
+            except FrameDamaged:
+                continue
 
     def has_truth(self) -> bool:
         return (self.path / "truth").is_dir()
@@ -292,24 +632,51 @@ class RecordingReader:
         path = self.path / "truth" / f"{Path(self.records[i].file).stem}.npz"
         if not path.exists():
             raise RecordingError(f"{path}: no truth for frame {i}")
-        with np.load(path) as z:
-            return {k: z[k] for k in z.files}
+        try:
+            with np.load(path) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError, EOFError, zlib.error, zipfile.BadZipFile) as exc:
+            raise RecordingError(f"{path}: damaged truth file ({type(exc).__name__}: {exc})") from exc
 
+    # -- encoder --------------------------------------------------------------------------
     def encoder_samples(self) -> list[EncoderSample]:
-        path = self.path / "encoder.jsonl"
+        """Valid samples of ``encoder.jsonl``; damaged lines are reported and skipped."""
         out = []
-        for n, d in enumerate(_read_jsonl(path), start=1):
+        for n, d in _jsonl_lines(self.path / "encoder.jsonl"):
+            if isinstance(d, Damage):
+                self.report(d)
+                continue
             try:
-                out.append(
-                    EncoderSample(
-                        seq=int(d["seq"]),
-                        device_time_us=int(d["device_time_us"]),
-                        count=int(d["count"]),
-                        index=bool(d["index"]),
-                        angle=float(d["angle_rad"]),
-                        host_time_ns=int(d.get("host_time_ns", 0)),
-                    )
-                )
-            except (KeyError, TypeError, ValueError) as exc:
-                raise RecordingError(f"{path}:{n}: missing or invalid field {exc}") from exc
+                out.append(encoder_sample_from_json(d))
+            except ValueError as exc:
+                self.report(Damage("encoder_line", "encoder.jsonl", n, str(exc)))
         return out
+
+    # -- whole-recording check ---------------------------------------------------------------
+    def check(self) -> list[str]:
+        """Find all damage without decoding an image: the header sections, every listed frame's
+        PNG structure and format, every encoder line. Returns notes that are not damage
+        (stray temporary files of an interrupted write, an unfinished recording)."""
+        for key in ("rig", "patterns", "gear"):
+            if key in self.meta:
+                try:
+                    getattr(self, key)
+                except RecordingError as exc:
+                    self.report(Damage("header", "recording.json", None, f"{key}: {exc.__cause__ or exc}"))
+        for i, rec in enumerate(self.records):
+            try:
+                fmt, why = png_format((self.path / rec.file).read_bytes())
+                if fmt is None:
+                    self._damaged(Damage("unreadable_frame", rec.file, self.lines[i], why))
+                self._check_format(i, fmt)
+            except FrameDamaged:
+                continue
+            except OSError as exc:
+                self.report(Damage("missing_frame", rec.file, self.lines[i], f"cannot read ({exc.strerror})"))
+        self.encoder_samples()
+        notes = [f"{p.relative_to(self.path)}: temporary file of an interrupted write, not part of the recording "
+                 "(safe to delete)" for sub in ("frames", "truth") if (self.path / sub).is_dir()
+                 for p in sorted((self.path / sub).glob("*.tmp.*"))]
+        if not self.finished:
+            notes.append("recording.json: not marked finished (interrupted recording: replays up to its last complete frame)")
+        return notes

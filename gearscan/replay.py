@@ -31,6 +31,7 @@ class ReplayMetrics:
     per_burst: list[dict[str, float]] = field(default_factory=list)
     pipeline: dict[str, dict[str, float]] = field(default_factory=dict)
     assembler: dict[str, int] = field(default_factory=dict)
+    damage: dict = field(default_factory=dict)  # RecordingReader.damage_summary(): skipped damage
 
     @property
     def bursts(self) -> int:
@@ -49,7 +50,7 @@ class ReplayMetrics:
 
     def to_json(self) -> dict:
         return {"summary": self.summary(), "bursts": self.per_burst, "pipeline": self.pipeline,
-                "assembler": self.assembler}
+                "assembler": self.assembler, "damage": self.damage}
 
 
 class TruthScorer:
@@ -57,7 +58,7 @@ class TruthScorer:
 
     def __init__(self, reader: RecordingReader) -> None:
         self.reader = reader
-        self.index = {rec.frame_id: i for i, rec in enumerate(reader.records)}
+        self.index = {fid: i for i, fid in enumerate(reader.extended_ids)}  # the ids ReplayCamera serves
         self.cad = CadScorer(reader.gear) if reader.gear is not None else None
 
     def __call__(self, m: Measurement) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
@@ -99,11 +100,17 @@ def replay(
 
     ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
+
+    Damage (a bad frame, index or encoder line) is skipped and logged once; the bursts it
+    touches are dropped by the assembler, every other burst is measured, and
+    ``metrics.damage`` lists it (``gearscan replay --strict`` turns it into a failure).
     """
     from gearscan.acquisition.bursts import BurstAssembler
+    from gearscan.acquisition.camera import GrabTimeout
     from gearscan.mocks.replay_camera import ReplayCamera
 
     reader = RecordingReader(recording)
+    reader.encoder_samples()  # replay uses the frames' angles; this counts encoder.jsonl damage
     if len(reader) < 3:
         raise RecordingError(f"{reader.path}: {len(reader)} complete frames, a burst needs 3")
     decoder = decoder or Decoder(classical=True)
@@ -126,8 +133,13 @@ def replay(
     def frames():
         camera.open()
         camera.start()
-        for _ in range(len(reader)):
-            yield camera.grab(timeout=5.0)
+        while True:
+            try:
+                yield camera.grab(timeout=5.0)
+            except GrabTimeout:
+                if camera.exhausted.is_set():  # every frame served (damaged ones skipped)
+                    return
+                raise
 
     def close_camera():
         camera.stop()
@@ -156,6 +168,7 @@ def replay(
     report: PipelineReport = pipeline.run()
     metrics.pipeline = report.stages
     metrics.assembler = assembler.stats.as_dict()
+    metrics.damage = reader.damage_summary()
     if metrics_path:
         Path(metrics_path).write_text(json.dumps(metrics.to_json(), indent=2))
     return metrics

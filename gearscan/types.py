@@ -47,9 +47,20 @@ class Frame:
         )
 
 
+#: Valid ranges of :class:`EncoderSample` fields, shared by the encoder line protocol and the
+#: recording format so a value one accepts the other accepts too.
+ENCODER_SEQ_MODULUS = 1 << 32  # seq: uint32, wraps to 0
+ENCODER_TIME_US_MAX = ((1 << 63) - 1) // 1000  # device_time_us: its nanoseconds fit int64 (292 years)
+ENCODER_COUNT_MAX = (1 << 63) - 1  # count: int64, |count| <= this
+
+
 @dataclass(frozen=True, slots=True)
 class EncoderSample:
-    """One turntable encoder reading, already mapped to the host clock."""
+    """One turntable encoder reading, already mapped to the host clock.
+
+    Ranges: ``0 <= seq < ENCODER_SEQ_MODULUS``, ``0 <= device_time_us <= ENCODER_TIME_US_MAX``,
+    ``|count| <= ENCODER_COUNT_MAX``; ``angle`` finite.
+    """
 
     seq: int
     device_time_us: int

@@ -8,8 +8,12 @@ hardware drivers, so the live pipeline runs unchanged on a recording:
   the producer waits for room in the bounded pool).
 - ``trigger="software"``: each ``software_trigger()`` releases exactly the next frame.
 
-Frames keep their recorded id, pattern index, exposure, bit depth and encoder angle; the
-host timestamp is the replay time, so latency measurements downstream stay meaningful.
+Frames keep their recorded pattern index, exposure, bit depth and encoder angle; the host
+timestamp is the replay time, so latency measurements downstream stay meaningful. Frame ids
+are the recorded ids extended past the recorded counter's wraps (a 16-bit GigE 65535, 1 is
+served as 65535, 65536; :attr:`RecordingReader.extended_ids`), so every id downstream is unique
+and increasing whatever the camera's counter width. A damaged frame (unreadable, wrong
+format) is skipped at once: the reader reports it, and the burst assembler sees the id gap.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from gearscan.acquisition.camera import (
     CameraSettings,
     RawFrame,
 )
-from gearscan.recording import RecordingReader
+from gearscan.recording import FrameDamaged, RecordingReader
 from gearscan.types import Frame
 
 
@@ -60,8 +64,10 @@ class ReplayCamera(BaseCamera):
         self._next = 0
         self._loops = 0
         recs = self.reader.records
+        ids = self.reader.extended_ids
         # a looping replay keeps ids and device times increasing, as a real camera would
-        self._id_period = (max(r.frame_id for r in recs) + 1) if recs else 1
+        self._id_period = (max(ids) - min(ids) + 1) if ids else 1
+        self.skipped = 0  # damaged frames left out
         step = (recs[-1].timestamp_ns - recs[-2].timestamp_ns) if len(recs) > 1 else 0
         self._time_period = (recs[-1].timestamp_ns - recs[0].timestamp_ns + step) if recs else 0
 
@@ -100,6 +106,7 @@ class ReplayCamera(BaseCamera):
         n = len(self.reader)
         t_start = time.monotonic_ns()
         rec_t0 = self.reader.records[self._next % n].timestamp_ns
+        need_trigger = True  # a trigger that met a damaged frame releases the next one
         while not self._stop_evt.is_set():
             if self._next >= n:
                 if not self.loop:
@@ -108,7 +115,7 @@ class ReplayCamera(BaseCamera):
                 self._next = 0
                 self._loops += 1
                 t_start, rec_t0 = time.monotonic_ns(), self.reader.records[0].timestamp_ns
-            if self.settings.trigger == "software":
+            if self.settings.trigger == "software" and need_trigger:
                 self._triggers.acquire()
                 if self._stop_evt.is_set():
                     return
@@ -117,12 +124,19 @@ class ReplayCamera(BaseCamera):
                 wait = (due - time.monotonic_ns()) / 1e9
                 if wait > 0 and self._stop_evt.wait(wait):
                     return
-            frame = self.reader.frame(self._next)
+            k = self._next
             self._next += 1
+            try:
+                frame = self.reader.frame(k)
+            except FrameDamaged:  # reported by the reader; a camera would have dropped it
+                self.skipped += 1
+                need_trigger = False
+                continue
+            need_trigger = True
             frame = dataclasses.replace(
                 frame,
                 host_timestamp_ns=time.monotonic_ns(),
-                frame_id=frame.frame_id + self._loops * self._id_period,
+                frame_id=self.reader.extended_ids[k] + self._loops * self._id_period,
                 timestamp_ns=frame.timestamp_ns + self._loops * self._time_period,
             )
             if self.realtime or self.settings.trigger == "software":
@@ -148,12 +162,18 @@ class ReplayCamera(BaseCamera):
         raise NotImplementedError  # grab/try_grab are overridden: recorded metadata is kept
 
     def _get(self, timeout: float) -> Frame | None:
+        """Next frame within ``timeout`` s; None at once when the recording is served out."""
         if not self._streaming or self._queue is None:
             raise CameraError("replay camera: grab() before start()")
-        try:
-            frame = self._queue.get(timeout=timeout) if timeout > 0 else self._queue.get_nowait()
-        except queue.Empty:
-            return None
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                frame = self._queue.get(timeout=min(0.05, max(deadline - time.monotonic(), 0.0)))
+                break
+            except queue.Empty:
+                # the producer sets `exhausted` after its last put: nothing more will come
+                if time.monotonic() >= deadline or (self.exhausted.is_set() and self._queue.empty()):
+                    return None
         self._track_id(frame.frame_id)
         self.stats.frames += 1
         return frame

@@ -39,8 +39,10 @@ class PatternSet:
         if not self.patterns:
             raise PatternError("pattern set is empty")
         for p in self.patterns:
-            if not (p.period_px >= 2):
-                raise PatternError(f"period_px must be >= 2 projector pixels, got {p.period_px}")
+            if not (2 <= p.period_px < math.inf):
+                raise PatternError(f"period_px must be finite and >= 2 projector pixels, got {p.period_px}")
+            if not math.isfinite(p.shift):
+                raise PatternError(f"shift must be a finite phase (rad), got {p.shift}")
 
     def __len__(self) -> int:
         return len(self.patterns)
@@ -108,6 +110,6 @@ class PatternSet:
     def from_json(cls, data: dict) -> PatternSet:
         try:
             pats = tuple(Pattern(float(p["period_px"]), float(p["shift"])) for p in data["patterns"])
-        except (KeyError, TypeError) as exc:
+        except (KeyError, TypeError, ValueError) as exc:
             raise PatternError(f"pattern set: expected {{'patterns': [{{'period_px', 'shift'}}...]}}, got {data!r:.200}") from exc
         return cls(pats, name=str(data.get("name", "custom")))

@@ -51,18 +51,20 @@ def test_interrupted_tail_replays_up_to_last_complete_frame(tmp_path):
     assert len(r) == 3 and not r.finished
 
 
-def test_damaged_line_and_missing_frame_are_named(tmp_path):
+def test_damaged_line_and_missing_frame_are_skipped_and_named(tmp_path):
     with RecordingWriter(tmp_path / "rec", {}) as w:
         for f in _frames(3):
             w.write_frame(f)
     lines = (tmp_path / "rec" / "frames.jsonl").read_text().splitlines()
     (tmp_path / "rec" / "frames.jsonl").write_text("\n".join([lines[0], lines[1][:20], lines[2]]) + "\n")
-    with pytest.raises(RecordingError, match=r"frames.jsonl:2: damaged line"):
-        RecordingReader(tmp_path / "rec")
+    r = RecordingReader(tmp_path / "rec")
+    assert [rec.frame_id for rec in r.records] == [10, 12] and r.lines == [1, 3]
+    assert [(d.kind, d.file, d.line) for d in r.damage] == [("index_line", "frames.jsonl", 2)]
+    assert "Unterminated string" in r.damage[0].what
     (tmp_path / "rec" / "frames.jsonl").write_text("\n".join(lines) + "\n")
     (tmp_path / "rec" / "frames" / "000001.png").unlink()
-    with pytest.raises(RecordingError, match=r"frames.jsonl:2: frame file .*000001.png is missing"):
-        RecordingReader(tmp_path / "rec")
+    r = RecordingReader(tmp_path / "rec")
+    assert len(r) == 2 and [str(d) for d in r.damage] == ["frames/000001.png:2: frame file is missing"]
 
 
 def test_refuses_to_overwrite_and_rejects_foreign_folders(tmp_path):
