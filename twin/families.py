@@ -6,6 +6,10 @@ disk and cannot leak into training:
 
 - ``default``: the product's default rig (:func:`gearscan.rig.default_rig`, default optics,
   projector period 40 px) with test gears (module 2, the module it was designed for).
+
+All families set the projector power for the target
+(:func:`~gearscan.twin.randomize.balance_projector_power`), as a user sets the exposure: without
+it the twin's falloff saturates large gears on the default rig.
 - ``radial-wide``: radial views outside the training ranges of :data:`~gearscan.twin.randomize.RANGES`
   where it matters (stand-off 80-120 or 220-320 mm, triangulation 8-15 or 32-40 deg, elevation
   +-15 deg, 2-8 teeth in view, resolutions 192-320 px).
@@ -85,7 +89,7 @@ def draw_gear(rng: np.random.Generator, module: float | None = None) -> GearSpec
 def _default_draw(rng: np.random.Generator, size: tuple[int, int]) -> tuple[Rig, Optics, GearSpec, float | None, dict]:
     gear = draw_gear(rng, module=2.0)
     rig = default_rig(*size, working_radius=gear.pitch_radius)
-    return rig, Optics(), gear, None, {"teeth": gear.teeth, "module": gear.module}
+    return rig, balance_projector_power(rig, Optics()), gear, None, {"teeth": gear.teeth, "module": gear.module}
 
 
 def _view_draw(view: View, wide: bool) -> Callable:

@@ -166,15 +166,14 @@ def aim_point(rig: Rig) -> np.ndarray:
 
 
 def balance_projector_power(rig: Rig, optics: Optics) -> Optics:
-    """Raise the projector power where the renderer's inverse-square falloff would leave the target dim.
+    """Scale the projector power so the renderer's falloff factor is 1 at the rig's target.
 
     The twin scales irradiance by ``(d0/d)^2`` with ``d0`` the projector's distance to the rotation
-    axis; a projector above the face has a small ``d0``. A user would set the exposure for the
-    target, so the power is scaled to make that factor 1 at the view's target (at most 4, the
-    Optics limit), and left alone where it is already >= 1.
+    axis: a projector above the face (small ``d0``) leaves the target dim, one far off the axis of a
+    large gear (``d0`` > ``d``) saturates it (2B/S up to 1.3 on the default rig with a 69-tooth
+    module-2 gear). A user sets the exposure for the target, so the power is divided by that
+    factor (capped at 4, the Optics limit).
     """
     c = rig.projector.center_world
     factor = (np.linalg.norm(c[:2]) / np.linalg.norm(c - aim_point(rig))) ** 2
-    if factor >= 1:
-        return optics
     return optics.model_copy(update={"projector_power": float(min(4.0, optics.projector_power / factor))})

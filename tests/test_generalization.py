@@ -1,0 +1,135 @@
+"""The generalization benchmark's machinery against physics, on a tiny clean test-split scene."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from gearscan.evaluate import Method, classical_method
+from gearscan.generalization import (
+    ALL,
+    AXES,
+    BASELINE,
+    MOVING,
+    NETWORK,
+    STILL,
+    Axis,
+    GeneralizationScorer,
+    Motion,
+    render_family_cases,
+    run_methods,
+    scene_motions,
+    strata_tables,
+    weak_strata_table,
+)
+from gearscan.rig import default_rig
+from gearscan.twin.families import FamilyScene
+from gearscan.twin.gear import GearSpec
+from gearscan.twin.randomize import balance_projector_power
+from gearscan.twin.render import Optics, TwinRenderer
+from gearscan.twin.splits import SPLITS
+from gearscan.types import PhaseResult
+
+STILL_M = Motion("still 0", "still", (0.0, 0.0))
+ONE_DEG = Motion("sweep 1 deg", "sweep", (0.5, 0.5))
+BACK = Motion("reversed uniform 0.6/0.6", "paper reversed", (-0.6, -0.6))
+
+
+def offset(method: Method, rad: float) -> Method:
+    """A deliberately bad stand-in network: ``method`` plus a constant phase offset (test only)."""
+
+    def run(frames: np.ndarray, full_scale: float, angles: np.ndarray | None = None) -> PhaseResult:
+        r = method(frames, full_scale, angles)
+        return dataclasses.replace(r, phase=np.angle(np.exp(1j * (r.phase + rad))).astype(np.float32))
+
+    return run
+
+
+@pytest.fixture(scope="module")
+def scene() -> FamilyScene:
+    """A clean (noise-free) 96x96 default-rig scene with a test gear and a test seed."""
+    gear = GearSpec(teeth=35)
+    rig = default_rig(96, 96, working_radius=gear.pitch_radius)
+    optics = balance_projector_power(rig, Optics().noise_free())
+    seed = SPLITS["test"].seed(999)
+    return FamilyScene("tiny", "default", seed, rig, optics, gear, 120.0, (), TwinRenderer(rig, gear, optics))
+
+
+@pytest.fixture(scope="module")
+def cases(scene: FamilyScene):
+    return render_family_cases(scene, [STILL_M, ONE_DEG, BACK])
+
+
+def _rmse(case, result: PhaseResult) -> float:
+    from gearscan.recon.phase import wrapped_rmse
+
+    return wrapped_rmse(result.phase, case.truth.phase, case.truth.mask)
+
+
+def test_three_step_is_at_the_noise_floor_still_and_far_above_it_moving(cases) -> None:
+    still, moving, back = (_rmse(c, classical_method(c.frames, c.full_scale)) for c in cases)
+    assert still < 0.02
+    assert moving > 10 * still
+    assert back > 10 * still
+
+
+def test_strata_partition_the_pixels_and_flag_a_worse_network(cases) -> None:
+    bad = GeneralizationScorer([BASELINE, NETWORK])
+    same = GeneralizationScorer([BASELINE, NETWORK])
+    methods = {BASELINE: classical_method, NETWORK: offset(classical_method, 0.3)}
+    for motion, case in zip([STILL_M, ONE_DEG, BACK], cases, strict=True):
+        bad.add("tiny", motion, case, run_methods(case, methods))
+        same.add("tiny", motion, case, run_methods(case, {BASELINE: classical_method, NETWORK: classical_method}))
+    strata = bad.strata()
+    for fam in ("tiny", ALL):
+        for kind in (MOVING, STILL):
+            pooled = bad.pooled_pixels(fam, kind)
+            assert pooled > 0
+            for axis in AXES:
+                counts = [s.pixels for s in strata if s.family == fam and s.kind == kind and s.axis == axis.name]
+                if kind == STILL and axis.name == "burst span":
+                    assert not counts
+                else:
+                    assert sum(counts) == pooled, (fam, kind, axis.name)
+    # the stub is worse everywhere (0.3 rad bias on a near-exact still decode)
+    still = [s for s in strata if s.kind == STILL]
+    assert still and all(s.worse for s in still)
+    assert "WORSE" in strata_tables(strata, ["tiny", ALL])
+    assert "still" in weak_strata_table(strata)
+    cells = {(c.family, c.group): c for c in bad.cells()}
+    assert cells[("tiny", "still")].gain(NETWORK) < 0.2
+    assert cells[("tiny", MOVING)].bursts == 2 and cells[("tiny", "sweep")].bursts == 1
+    assert not any(s.worse for s in same.strata())
+    assert weak_strata_table(same.strata()).startswith("No stratum")
+
+
+def test_shipped_network_runs_through_the_scorer(cases) -> None:
+    from gearscan.evaluate import network_method
+    from gearscan.inference.predictor import Predictor
+
+    methods = {BASELINE: classical_method, NETWORK: network_method(Predictor.load())}
+    scorer = GeneralizationScorer(list(methods))
+    scorer.add("tiny", ONE_DEG, cases[1], run_methods(cases[1], methods))
+    tiny = {c.group: c for c in scorer.cells() if c.family == "tiny"}
+    assert set(tiny) == {"sweep", MOVING}
+    cell = tiny["sweep"]
+    assert 0 < cell.rmse[NETWORK] < 1.0 and 0 <= cell.ece[NETWORK] <= 1 and 0 < cell.coverage[NETWORK] <= 1
+    with pytest.raises(ValueError, match="no result"):
+        scorer.add("tiny", STILL_M, cases[0], {BASELINE: classical_method(cases[0].frames, 255)})
+
+
+def test_axis_bins_are_right_closed_with_an_na_bin() -> None:
+    axis = Axis("x", "px", (2.0, 4.0))
+    assert axis.labels == ("<= 2", "2-4", "> 4", "n/a")
+    assert axis.bins(np.array([1.0, 2.0, 2.5, 4.0, 9.0, np.nan, np.inf])).tolist() == [0, 0, 1, 1, 2, 3, 3]
+
+
+def test_scene_motions_cover_both_senses_spans_and_stills() -> None:
+    ms = scene_motions(np.random.default_rng(0), sweeps=20)
+    assert {m.group for m in ms} == {"paper", "paper reversed", "sweep", "still"}
+    sweeps = [m for m in ms if m.group == "sweep"]
+    assert all(0 < m.span_deg <= 2.0 for m in sweeps)
+    assert {np.sign(sum(m.steps_deg)) for m in sweeps} == {-1.0, 1.0}
+    assert [m.steps_deg for m in ms if m.group == "paper"] == [(0.6, 0.6), (0.1, 1.6), (0.5, 1.0)]
