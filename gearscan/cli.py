@@ -65,16 +65,26 @@ def twin_render(
     motion_blur: Annotated[bool, typer.Option(help="integrate motion during the exposure")] = False,
     seed: Annotated[int, typer.Option()] = 0,
     overwrite: Annotated[bool, typer.Option(help="replace an existing recording")] = False,
+    defects: Annotated[Path | None, typer.Option(help="as-built defects JSON (GearDefects fields); the options below add to it")] = None,
+    eccentricity_um: Annotated[float | None, typer.Option(help="defect: gear axis this far from the turntable axis, µm")] = None,
+    pitch_error: Annotated[list[str] | None, typer.Option(help="defect TOOTH:UM: that tooth turned along the pitch circle (repeat)")] = None,
+    chip: Annotated[list[str] | None, typer.Option(help="defect TOOTH:MM[:SIDE[:ZMIN:ZMAX]]: tip corner chipped (repeat)")] = None,
+    wear: Annotated[list[str] | None, typer.Option(help="defect TOOTH:UM[:SIDE]: flank worn this deep mid-flank (repeat)")] = None,
+    true_module: Annotated[float | None, typer.Option(help="defect: as-built module, mm (the recording states --module as CAD)")] = None,
 ) -> None:
-    """Render a twin recording of a rotating gear (frames, encoder, ground truth)."""
+    """Render a twin recording of a rotating gear (frames, encoder, ground truth), optionally with known defects."""
     from gearscan.recording import RecordingError
     from gearscan.rig import Rig, RigError, default_rig
+    from gearscan.twin.defects import GearDefects
     from gearscan.twin.motion import MotionError
     from gearscan.twin.recordings import render_recording
     from gearscan.twin.render import Optics, RenderError
 
     gear = _gear_from_options(teeth, module, pressure_angle, face_width, bore)
     try:
+        as_built = GearDefects.from_options(
+            defects, eccentricity_um=eccentricity_um, pitch_errors=pitch_error, chips=chip, wear=wear, module=true_module
+        )
         the_rig = Rig.load(rig) if rig else default_rig()
         if (width, height) != (the_rig.camera.width, the_rig.camera.height):
             the_rig = the_rig.with_camera_resolution(width, height)
@@ -82,7 +92,7 @@ def twin_render(
         with _progress("rendering") as prog:
             task = prog.add_task("render", total=3 * bursts)
             render_recording(
-                out, rig=the_rig, gear=gear, optics=optics, motion=motion, bursts=bursts, period_px=period,
+                out, rig=the_rig, gear=gear, defects=as_built, optics=optics, motion=motion, bursts=bursts, period_px=period,
                 start_deg=start, motion_blur=motion_blur, seed=seed, overwrite=overwrite,
                 progress=lambda i, n: prog.update(task, completed=i),
             )

@@ -15,6 +15,7 @@ import numpy as np
 from gearscan.projector.patterns import DEFAULT_PERIOD_PX, PatternSet
 from gearscan.recording import RecordingWriter
 from gearscan.rig import Rig, default_rig
+from gearscan.twin.defects import GearDefects
 from gearscan.twin.gear import GearSpec
 from gearscan.twin.motion import frame_angles
 from gearscan.twin.render import Optics, TwinRenderer
@@ -29,6 +30,7 @@ def render_recording(
     *,
     rig: Rig | None = None,
     gear: GearSpec | None = None,
+    defects: GearDefects | None = None,
     optics: Optics | None = None,
     motion: str = "uniform:0.6",
     bursts: int = 4,
@@ -41,13 +43,18 @@ def render_recording(
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> Path:
-    """Render ``bursts`` three-step bursts under ``motion`` into recording folder ``out``."""
+    """Render ``bursts`` three-step bursts under ``motion`` into recording folder ``out``.
+
+    ``gear`` is the nominal spec the recording states as its CAD; with ``defects`` the twin
+    renders the as-built gear and ``recording.json`` holds the answer under ``truth``.
+    """
     rig = rig or default_rig()
     gear = gear or GearSpec()
     optics = optics or Optics()
     patterns = PatternSet.three_step(period_px)
     angles = frame_angles(motion, bursts, start_deg)
-    renderer = TwinRenderer(rig, gear, optics)
+    truth = defects.truth(gear) if defects is not None and not defects.empty else None  # validates first
+    renderer = TwinRenderer(rig, gear, optics, defects=defects)
     rng = np.random.default_rng(seed)
     dt_ns = int(round(frame_interval_ms * 1e6))
     # angular velocity per frame (rad/s) for exposure blur: the step to the next frame / interval
@@ -67,6 +74,7 @@ def render_recording(
         },
         "twin": {"optics": optics.model_dump(), "motion": motion, "seed": seed, "motion_blur": motion_blur},
         "encoder": {"counts_per_rev": ENCODER_COUNTS_PER_REV, "rate_hz": ENCODER_RATE_HZ},
+        **({"truth": truth} if truth else {}),
     }
     frame_times = np.arange(len(angles)) * dt_ns + int(exposure_us * 500)  # exposure midpoints
     with RecordingWriter(out, meta, overwrite=overwrite) as writer:

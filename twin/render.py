@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from gearscan.projector.patterns import PatternSet
 from gearscan.rig import Rig, rot_z
+from gearscan.twin.defects import GearDefects, true_mesh
 from gearscan.twin.gear import GearSpec
 
 
@@ -94,13 +95,17 @@ class Truth:
 class TwinRenderer:
     """Renders a gear on the turntable as the rig's camera sees it under fringe light."""
 
-    def __init__(self, rig: Rig, gear: GearSpec, optics: Optics | None = None, *, mesh=None) -> None:
+    def __init__(
+        self, rig: Rig, gear: GearSpec, optics: Optics | None = None, *, mesh=None, defects: GearDefects | None = None
+    ) -> None:
+        """Render ``gear`` as built with ``defects`` (``gear`` stays the nominal spec), or ``mesh``."""
         import open3d as o3d
 
         self.rig = rig
         self.gear = gear
+        self.defects = defects
         self.optics = optics or Optics()
-        legacy = mesh if mesh is not None else gear.mesh()
+        legacy = mesh if mesh is not None else true_mesh(gear, defects)
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(legacy))
         cam = rig.camera
