@@ -12,7 +12,7 @@ import logging
 import math
 import os
 import queue
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -105,52 +105,87 @@ class Decoder:
             self._pool.put(predictor)
 
 
+UNWRAP_MODES = ("cad", "envelope")
+
+
 @dataclass
 class Measurement:
-    """Everything one burst produced, as it travels to the viewer and the metrics."""
+    """Everything one burst produced, as it travels to the viewer and the metrics.
+
+    ``unresolved`` marks pixels that passed the modulation and sigma tests but got no point
+    (no prior there, or the surface outside the rig's unambiguous range); ``unwrap`` counts
+    them by cause, so nothing is dropped silently.
+    """
 
     burst: Burst
     result: PhaseResult
     cloud: Cloud | None = None
     phase_abs: np.ndarray | None = None
     valid: np.ndarray | None = None
+    unresolved: np.ndarray | None = None
+    unwrap: dict[str, int] = field(default_factory=dict)
 
 
 class Reconstructor:
     """PhaseResult -> absolute phase -> points (turntable frame) with depth sigma.
 
-    Fringe orders come from the geometric constraint: by default the gear's CAD model at the
-    burst's encoder angle bounds each pixel's depth to ``+-cad_tolerance_mm`` (works for fine
-    fringes); with ``cad_tolerance_mm=None`` the tip and root cylinders bound it (needs a fringe
-    period above :func:`~gearscan.recon.unwrap.min_unambiguous_period`, about 96 px on the
-    default rig). Pixels are kept where the order is unambiguous, the modulation is above
-    ``min_modulation`` (2B/S) and the total phase sigma is below ``max_sigma`` rad; the CAD
-    rays are cast only for pixels that pass the last two tests. An undistorted projector takes
-    the fused unwrap + triangulate path (:mod:`gearscan.recon.reconstruct`); a distorted one the
-    fixed-point :class:`~gearscan.recon.triangulate.Triangulator`.
+    One fringe period leaves each pixel's fringe order ambiguous beyond the rig's unambiguous
+    depth range (one fringe along the ray: about 2.8 mm of camera depth on the default rig at
+    40 px, :meth:`depth_range_mm`). The order comes from a prior that never narrows that range:
+
+    * ``unwrap="cad"``: the gear's CAD at the burst's encoder angle; each pixel takes the order
+      nearest the CAD surface, so a surface up to half a fringe off its CAD (about +-1.3 mm
+      on the default rig) keeps its point and its true deviation. Within ``silhouette_mm`` of
+      the CAD's silhouettes (where the CAD may see another surface than the real gear) the order
+      is carried in from the surrounding surface instead (:func:`~gearscan.recon.unwrap.prior_unwrap`).
+    * ``unwrap="envelope"`` (CAD-free): spatial unwrapping per connected region, each region's
+      order fixed by the gear's envelope (tip and root cylinders widened by ``envelope_mm``);
+      needs no CAD surface, only the radii and face width.
+
+    In both modes the order is made consistent over each connected region of continuous phase
+    (:func:`~gearscan.recon.unwrap.prior_unwrap`, :func:`~gearscan.recon.unwrap.envelope_unwrap`).
+    Pixels are candidates where the modulation is above ``min_modulation`` (2B/S) and the total
+    phase sigma is below ``max_sigma`` rad; a candidate without a point is ``unresolved`` and
+    counted in ``Measurement.unwrap`` (no order could be trusted there), never dropped silently. An
+    undistorted projector takes the fused unwrap + triangulate path
+    (:mod:`gearscan.recon.reconstruct`); a distorted one the fixed-point
+    :class:`~gearscan.recon.triangulate.Triangulator`.
     """
 
     def __init__(self, rig: Rig, period_px: float, gear, *, min_modulation: float = 0.05,
-                 max_sigma: float = 0.3, margin: float = 0.3, cad_tolerance_mm: float | None = 0.3,
-                 threads: int | None = None) -> None:
+                 max_sigma: float = 0.3, margin: float = 0.3, unwrap: str = "cad",
+                 envelope_mm: float = 1.0, silhouette_mm: float = 0.4, threads: int | None = None) -> None:
         from gearscan.recon.reconstruct import SingleFrequencyReconstructor
         from gearscan.recon.triangulate import Triangulator
         from gearscan.recon.unwrap import CadDepthBounds, gear_depth_bounds, phase_bounds
 
+        if unwrap not in UNWRAP_MODES:
+            raise ValueError(f"unwrap: expected one of {UNWRAP_MODES}, got {unwrap!r}")
+        if not 0 <= margin < math.pi / 2:
+            raise ValueError(f"margin: expected 0 <= margin < pi/2 rad, got {margin}")
         self.rig = rig
         self.period_px = period_px
-        self.cad_bounds = None
-        if cad_tolerance_mm:  # walls extruded along z: one layer is exact, and 5x fewer triangles
-            self.cad_bounds = CadDepthBounds(rig, gear.mesh(layer_mm=gear.face_width), cad_tolerance_mm)
-        fixed = None if self.cad_bounds else gear_depth_bounds(rig, gear.tip_radius, gear.root_radius, gear.face_width)
+        self.mode = unwrap
+        self.cad = None
+        self._envelope = None
+        self.silhouette_px = 0.0
+        if unwrap == "cad":  # walls extruded along z: one layer is exact, and 5x fewer triangles
+            self.cad = CadDepthBounds(rig, gear.mesh(layer_mm=gear.face_width))
+            # how far (px) a silhouette moves when the surface is silhouette_mm off its CAD
+            z = np.nanmedian(self.cad.depth(0.0)) if np.isfinite(self.cad.depth(0.0)).any() else np.nan
+            px_per_mm = rig.camera.K[0, 0] / z if np.isfinite(z) else 1.0
+            self.silhouette_px = max(1.5, silhouette_mm * px_per_mm)
+        else:
+            if not envelope_mm >= 0:
+                raise ValueError(f"envelope_mm: expected >= 0, got {envelope_mm}")
+            env = gear_depth_bounds(rig, gear.tip_radius + envelope_mm, max(gear.root_radius - envelope_mm, 1e-3),
+                                    gear.face_width + 2 * envelope_mm)
+            self._envelope = phase_bounds(rig, env, period_px)
         self.fused = None
-        self._fixed_phase = None  # phase interval of the cylinder bounds, fixed-point path only
         if not np.any(rig.projector.dist != 0) and rig.projector.K[0, 1] == 0:
-            self.fused = SingleFrequencyReconstructor(rig, period_px, fixed, margin=margin, threads=threads)
+            self.fused = SingleFrequencyReconstructor(rig, period_px, margin=margin, threads=threads)
         else:
             self.triangulator = Triangulator(rig, period_px)
-            if fixed is not None:
-                self._fixed_phase = phase_bounds(rig, fixed, period_px)
         self.min_modulation = min_modulation
         self.max_sigma = max_sigma
         self.margin = margin
@@ -163,17 +198,33 @@ class Reconstructor:
         if self.fused is not None:
             self.fused.close()
 
-    def _phase_interval(self, angle: float, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Absolute-phase interval per pixel at turntable ``angle`` (fixed-point path)."""
-        if self.cad_bounds is None:
-            return self._fixed_phase
-        from gearscan.recon.unwrap import phase_bounds
+    def depth_range_mm(self, angle: float = 0.0) -> dict[str, float]:
+        """The rig's unambiguous depth range (camera z, mm) on the gear's CAD surface at ``angle``:
+        how far a surface may deviate from its prior and still get the right fringe order."""
+        from gearscan.recon.reconstruct import SingleFrequencyReconstructor
 
-        return phase_bounds(self.rig, self.cad_bounds(angle, mask), self.period_px)
+        cad = self.cad
+        if cad is None:
+            raise ValueError("depth_range_mm needs the gear's CAD (unwrap='cad')")
+        depth = cad.depth(angle)
+        sf = self.fused or SingleFrequencyReconstructor(self.rig, self.period_px, margin=self.margin, threads=1)
+        lo, hi = sf.depth_window(depth)
+        ok = np.isfinite(lo) & np.isfinite(hi)
+        if not ok.any():
+            raise ValueError("the camera does not see the gear: no unambiguous range to state")
+        minus, plus = (depth - lo)[ok], (hi - depth)[ok]
+        return {"minus_median_mm": float(np.median(minus)), "plus_median_mm": float(np.median(plus)),
+                "minus_min_mm": float(minus.min()), "plus_min_mm": float(plus.min())}
 
     def __call__(self, burst: Burst, result: PhaseResult) -> Measurement:
         from gearscan.recon.triangulate import Triangulation, to_cloud
-        from gearscan.recon.unwrap import geometric_unwrap
+        from gearscan.recon.unwrap import (
+            DepthBounds,
+            centred_unwrap,
+            envelope_unwrap,
+            phase_bounds,
+            prior_unwrap,
+        )
 
         cam_shape = (self.rig.camera.height, self.rig.camera.width)
         if result.phase.shape != cam_shape:
@@ -182,20 +233,36 @@ class Reconstructor:
                 f"{cam_shape}: wrong rig file for this camera/ROI?"
             )
         candidate = (result.modulation >= self.min_modulation) & (result.sigma_total <= self.max_sigma)
+        if self.cad is not None:
+            depth = self.cad.depth(burst.angles[0], candidate)
+            prior = (self.fused.phase_of_depth(depth) if self.fused is not None
+                     else phase_bounds(self.rig, DepthBounds(depth, depth), self.period_px)[0])
+            regions = prior_unwrap(result.phase, candidate, prior, margin=self.margin,
+                                   silhouette_px=self.silhouette_px)
+        else:
+            regions = envelope_unwrap(result.phase, candidate, *self._envelope, margin=self.margin)
+        estimate = regions.phase_abs.astype(np.float32)  # the order: the phase is re-read from the burst
         if self.fused is not None:
-            depth = self.cad_bounds(burst.angles[0], candidate) if self.cad_bounds is not None else None
-            tri, order = self.fused(result.phase, result.sigma_total, bounds=depth)
+            tri, order = self.fused(result.phase, result.sigma_total, centre_phase=estimate)
             keep = tri.valid & candidate
             phase_abs = np.where(keep, result.phase + np.float32(2 * np.pi) * order, np.float32(np.nan))
             tri = Triangulation(points=tri.points, depth=tri.depth, sigma_depth=tri.sigma_depth, valid=keep)
         else:
-            phi_min, phi_max = self._phase_interval(burst.angles[0], candidate)
-            un = geometric_unwrap(result.phase, phi_min, phi_max, self.period_px, margin=self.margin)
+            un = centred_unwrap(result.phase, estimate, self.period_px, margin=self.margin)
             keep = un.valid & candidate
+            tri = self.triangulator(np.where(keep, un.phase_abs, np.nan), result.sigma_total)
+            keep = tri.valid
             phase_abs = np.where(keep, un.phase_abs, np.nan)
-            tri = self.triangulator(phase_abs, result.sigma_total)
+        unresolved = candidate & ~keep
+        stats = {
+            "candidates": int(candidate.sum()),
+            "points": int(keep.sum()),
+            "regions": regions.regions,
+            "regions_resolved": regions.resolved_regions,
+            "unresolved": int(unresolved.sum()),
+        }
         cloud = to_cloud(tri, self.rig, result.angle, burst_index=burst.index)
-        return Measurement(burst, result, cloud, phase_abs, tri.valid)
+        return Measurement(burst, result, cloud, phase_abs, tri.valid, unresolved, stats)
 
 
 class CadScorer:
@@ -207,11 +274,16 @@ class CadScorer:
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh()))
 
-    def __call__(self, m: Measurement) -> dict[str, float]:
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance (mm, positive outside the material) of gear-frame ``points`` ``(N, 3)``."""
         import open3d as o3d
 
+        pts = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
+        return self.scene.compute_signed_distance(pts).numpy().astype(np.float64)
+
+    def __call__(self, m: Measurement) -> dict[str, float]:
         if m.cloud is None or not len(m.cloud):
             return {}
-        d = self.scene.compute_signed_distance(o3d.core.Tensor(m.cloud.points.astype(np.float32))).numpy()
-        m.cloud.deviation = d.astype(np.float64)
+        d = self.distances(m.cloud.points)
+        m.cloud.deviation = d
         return {"cad_rms_mm": float(np.sqrt(np.mean(d**2))), "cad_p95_mm": float(np.percentile(np.abs(d), 95))}

@@ -15,7 +15,10 @@ Per pixel, with ``f = phi / 2 pi``, ``a = (phi_min - margin) / 2 pi`` and
 ``s = (phi_max - phi_min + 2 margin) / 2 pi``:
 
 ``k = ceil(a - f)``, valid iff ``k <= a - f + s < k + 1`` (exactly one order in the interval);
-``phi_abs = phi + 2 pi k``; ``z = (alpha phi_abs + beta) / (g - d phi_abs)``;
+with a per-call prior instead of bounds (``centre_depth`` or ``centre_phase``: the expected
+surface, e.g. the CAD at the encoder angle), the window is the whole fringe around it,
+``k = ceil((phi_c - pi) / 2 pi - f)``, valid iff ``|phi_abs - phi_c| <= pi - margin`` (see
+:func:`gearscan.recon.unwrap.centred_unwrap`); ``phi_abs = phi + 2 pi k``; ``z = (alpha phi_abs + beta) / (g - d phi_abs)``;
 ``sigma_z = |alpha g + beta d| sigma_phi / (g - d phi_abs)^2``; ``X = z (x, y, 1)``.
 """
 
@@ -135,21 +138,34 @@ class SingleFrequencyReconstructor:
         lo *= np.float32(1 / TWO_PI)
         return lo, hi
 
-    def _block(self, r0: int, r1: int, phase, sigma, bounds, out_pts, out_z, out_sig, out_valid, out_k) -> None:
+    def _block(self, r0: int, r1: int, phase, sigma, bounds, centre, out_pts, out_z, out_sig, out_valid, out_k) -> None:
         sl = slice(r0, r1)
-        a, s = self._interval(bounds, sl) if bounds is not None else (self._a[sl], self._s[sl])
         phi = np.asarray(phase[sl], dtype=np.float32)
-        u = phi * np.float32(-1 / TWO_PI)
-        u += a  # a - f
         k = out_k[sl]
-        np.ceil(u, out=k)
-        top = u + s
-        top -= k  # in [0, 1) iff exactly one order fits; NaN bounds -> NaN -> invalid
         valid = out_valid[sl]
-        np.less(top, 1.0, out=valid)
-        valid &= top >= 0.0
-        np.multiply(k, np.float32(TWO_PI), out=u)
-        u += phi  # phi_abs
+        if centre is not None:  # whole-fringe window around the prior's phase
+            kind, prior = centre
+            pc = (self._phase_at(np.asarray(prior[sl], np.float32), sl) if kind == "depth"
+                  else np.array(prior[sl], np.float32))  # a copy: changed in place below
+            u = pc - phi
+            u *= np.float32(1 / TWO_PI)
+            u -= np.float32(0.5)
+            np.ceil(u, out=k)
+            np.multiply(k, np.float32(TWO_PI), out=u)
+            u += phi  # phi_abs
+            pc -= u
+            np.less_equal(np.abs(pc), np.float32(math.pi - self.margin), out=valid)  # NaN prior -> invalid
+        else:
+            a, s = self._interval(bounds, sl) if bounds is not None else (self._a[sl], self._s[sl])
+            u = phi * np.float32(-1 / TWO_PI)
+            u += a  # a - f
+            np.ceil(u, out=k)
+            top = u + s
+            top -= k  # in [0, 1) iff exactly one order fits; NaN bounds -> NaN -> invalid
+            np.less(top, 1.0, out=valid)
+            valid &= top >= 0.0
+            np.multiply(k, np.float32(TWO_PI), out=u)
+            u += phi  # phi_abs
         den = self._d[sl] * u
         np.subtract(self._g[sl], den, out=den)
         z = out_z[sl]
@@ -169,6 +185,24 @@ class SingleFrequencyReconstructor:
             s *= sigma[sl] if np.ndim(sigma) == 2 else np.float32(sigma)
             s[invalid] = np.nan
 
+    def phase_of_depth(self, depth: np.ndarray) -> np.ndarray:
+        """Absolute projector phase (rad) seen at camera z-``depth`` (mm) along each ray, ``(H, W)``."""
+        depth = np.asarray(depth, np.float32)
+        if depth.shape != self.shape:
+            raise ValueError(f"depth: expected shape {self.shape}, got {depth.shape}")
+        return self._phase_at(depth, slice(None))
+
+    def depth_window(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest and farthest camera z-depth (mm) that a whole-fringe window around ``depth``
+        admits, less the noise ``margin`` on both ends: the rig's unambiguous depth range per
+        pixel for this fringe period. ``(H, W)`` each; NaN where ``depth`` is NaN."""
+        pc = self.phase_of_depth(depth)
+        half = np.float32(math.pi - self.margin)
+        ends = []
+        for phi in (pc - half, pc + half):
+            ends.append((self._alpha * phi + self._beta) / (self._g - self._d * phi))
+        return np.fmin(*ends), np.fmax(*ends)
+
     def allocate(self) -> tuple[Triangulation, np.ndarray]:
         """Output buffers for ``out=``: reusing them saves ~100 MB of page faults per call."""
         h, w = self.shape
@@ -186,9 +220,16 @@ class SingleFrequencyReconstructor:
         sigma_phase: np.ndarray | float | None = None,
         *,
         bounds: DepthBounds | None = None,
+        centre_depth: np.ndarray | None = None,
+        centre_phase: np.ndarray | None = None,
         out: tuple[Triangulation, np.ndarray] | None = None,
     ) -> tuple[Triangulation, np.ndarray]:
         """Unwrap and triangulate one wrapped phase ``(H, W)``.
+
+        The fringe order comes from ``bounds`` (per call, or fixed at construction), or from a
+        prior: ``centre_depth`` (camera z, mm) or ``centre_phase`` (absolute phase, rad) of the
+        expected surface per pixel, NaN where there is none; the order is then the one nearest
+        the prior, within the rig's whole unambiguous range (one fringe).
 
         Returns the camera-frame :class:`Triangulation` (``valid`` False where the fringe
         order is ambiguous or out of range) and the fringe order map ``(H, W)`` float32.
@@ -200,7 +241,15 @@ class SingleFrequencyReconstructor:
             raise ValueError(f"wrapped: expected shape {self.shape} (camera H, W), got {wrapped.shape}")
         if sigma_phase is not None and np.ndim(sigma_phase) == 2 and np.shape(sigma_phase) != self.shape:
             raise ValueError(f"sigma_phase: expected a scalar or shape {self.shape}, got {np.shape(sigma_phase)}")
-        if bounds is None and self._a is None:
+        centre = None
+        for kind, prior in (("depth", centre_depth), ("phase", centre_phase)):
+            if prior is not None:
+                if centre is not None or bounds is not None:
+                    raise ValueError("pass one of bounds=, centre_depth=, centre_phase=")
+                if np.shape(prior) != self.shape:
+                    raise ValueError(f"centre_{kind}: expected shape {self.shape}, got {np.shape(prior)}")
+                centre = (kind, prior)
+        if bounds is None and centre is None and self._a is None:
             raise ValueError("bounds: this reconstructor has no fixed bounds; pass bounds= per call")
         if bounds is not None:
             for name in ("t_min", "t_max"):
@@ -212,7 +261,7 @@ class SingleFrequencyReconstructor:
         if sigma_phase is None:
             sig[...] = 0.0
         sigma = None if sigma_phase is None else (np.asarray(sigma_phase, np.float32) if np.ndim(sigma_phase) == 2 else float(sigma_phase))
-        args = (wrapped, sigma, bounds, pts, z, sig, valid, order)
+        args = (wrapped, sigma, bounds, centre, pts, z, sig, valid, order)
         starts = range(0, h, self.block_rows)
         if self._pool is None:
             for r0 in starts:

@@ -283,8 +283,22 @@ class CadDepthBounds:
         out.flat[rest] = self._cast(t_gc, rest)
         return out
 
+    def depth(self, angle: float, mask: np.ndarray | None = None) -> np.ndarray:
+        """Camera z-depth (mm) of the CAD surface at turntable ``angle`` (rad), ``(H, W)`` float32.
+
+        Only pixels where ``mask`` is True are cast; NaN elsewhere and where the ray misses.
+        """
+        t = self._hit(angle, mask)
+        return t * self._rays_cam[:, 2].reshape(t.shape)
+
     def __call__(self, angle: float, mask: np.ndarray | None = None) -> DepthBounds:
         """Bounds at turntable ``angle`` (rad); only pixels where ``mask`` is True are cast (rest NaN)."""
+        t = self._hit(angle, mask)
+        zc = self._rays_cam[:, 2].reshape(t.shape)
+        return DepthBounds((t - self.tolerance) * zc, (t + self.tolerance) * zc)
+
+    def _hit(self, angle: float, mask: np.ndarray | None) -> np.ndarray:
+        """Ray parameter of the first CAD hit per pixel ``(H, W)``, NaN on a miss or off ``mask``."""
         from gearscan.rig import rot_z
 
         cam = self.rig.camera
@@ -300,8 +314,7 @@ class CadDepthBounds:
             t = np.full(shape, np.nan, np.float32)
             idx = np.flatnonzero(mask)
             t.flat[idx] = self._cast(t_gc, idx)
-        zc = self._rays_cam[:, 2].reshape(shape)
-        return DepthBounds((t - self.tolerance) * zc, (t + self.tolerance) * zc)
+        return t
 
 
 def phase_bounds(rig: Rig, bounds: DepthBounds, period_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -373,3 +386,286 @@ def min_unambiguous_period(rig: Rig, bounds: DepthBounds, margin_px: float = 0.0
     if not np.any(np.isfinite(span)):
         raise ValueError("bounds: no camera ray meets the object's bounding volume")
     return float(np.nanmax(span))
+
+
+def centred_unwrap(
+    wrapped: np.ndarray,
+    phi_centre: np.ndarray,
+    period_px: float,
+    *,
+    margin: float | np.ndarray = 0.0,
+) -> UnwrapResult:
+    """Fringe order that puts each pixel's phase nearest an expected absolute phase.
+
+    The window is a whole fringe, ``phi_centre +- pi``: the rig's full unambiguous depth range
+    along the ray, centred on a prior (the CAD surface at the encoder angle, or a spatially
+    unwrapped estimate). A surface that deviates from the prior by less than half a fringe keeps
+    its point and its true deviation. ``valid`` is False where the result lies within ``margin``
+    rad of the window's edge (the order could be off by one: out of range, counted, not
+    guessed) and where ``phi_centre`` is NaN (no prior).
+    """
+    wrapped = _check_image("wrapped", wrapped)
+    phi_centre = _check_image("phi_centre", phi_centre, wrapped.shape)
+    with np.errstate(invalid="ignore"):
+        k = np.ceil((phi_centre - math.pi - wrapped) / TWO_PI)
+        absolute = wrapped + TWO_PI * k
+        valid = np.abs(absolute - phi_centre) <= math.pi - margin  # NaN -> False
+    return UnwrapResult(
+        phase_abs=np.where(valid, absolute, np.nan),
+        order=np.where(valid, k, 0).astype(np.int32),
+        valid=valid,
+        period_px=float(period_px),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class RegionOrders:
+    """Absolute phase from region-wise unwrapping, and why pixels have none (all ``(H, W)``).
+
+    ``phase_abs`` is NaN where unresolved; ``labels`` the connected region of each pixel
+    (0: not in a region); ``ambiguous`` marks candidate pixels left without an order (their
+    region's order could not be pinned down, the region is too small, or the pixel sits on a
+    phase step between regions); ``regions`` / ``resolved_regions`` count them.
+    """
+
+    phase_abs: np.ndarray
+    labels: np.ndarray
+    ambiguous: np.ndarray
+    regions: int
+    resolved_regions: int
+
+
+def spatial_regions(wrapped: np.ndarray, candidate: np.ndarray, *, max_step: float = 2.0
+                    ) -> tuple[np.ndarray, int, np.ndarray]:
+    """Connected regions of continuous phase and their spatially unwrapped phase.
+
+    Neighbours whose wrapped phase differs by more than ``max_step`` rad (after wrapping) sit
+    across a depth step (fringes move ~0.3 rad per pixel at 20 px periods) and are not joined.
+    Within a region the phase is unwrapped by reliability sorting (Herraez et al. 2002,
+    scikit-image), so one unknown integer fringe order is left per region.
+    Returns ``(labels, n_regions, spatial)``: labels 0 outside every region, spatial NaN there.
+
+    References
+    ----------
+    Herraez, Burton, Lalor, Gdeisat, "Fast two-dimensional phase-unwrapping algorithm based on
+    sorting by reliability following a noncontinuous path", Applied Optics 41(35) (2002).
+    """
+    from scipy import ndimage
+    from skimage.restoration import unwrap_phase
+
+    wrapped = _check_image("wrapped", wrapped)
+    cand = _check_image("candidate", candidate, wrapped.shape).astype(bool) & np.isfinite(wrapped)
+    w = np.where(cand, wrapped, 0.0)
+    jump = np.zeros(w.shape, bool)
+    jump[:, 1:] |= (np.abs(np.angle(np.exp(1j * (w[:, 1:] - w[:, :-1])))) > max_step) & cand[:, :-1]
+    jump[1:] |= (np.abs(np.angle(np.exp(1j * (w[1:] - w[:-1])))) > max_step) & cand[:-1]
+    core = cand & ~jump
+    labels, n = ndimage.label(core)  # 4-connected, as the unwrapper joins pixels
+    if n == 0:
+        return labels, 0, np.full(w.shape, np.nan)
+    spatial = unwrap_phase(np.ma.masked_array(np.where(core, wrapped, 0.0), mask=~core))
+    return labels, int(n), np.asarray(spatial.filled(np.nan), dtype=np.float64)
+
+
+def _vote(labels: np.ndarray, n: int, k: np.ndarray, weight: np.ndarray | None = None
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Most voted integer per region: ``(best_k, best_count, runner_up_count)``, each ``(n + 1,)``.
+
+    ``labels`` (N,) region of each vote, ``k`` (N,) the voted integers (a few dozen distinct)."""
+    best = np.zeros(n + 1, np.int64)
+    best_k = np.zeros(n + 1, np.int64)
+    second = np.zeros(n + 1, np.int64)
+    for kk in np.unique(k):
+        c = np.bincount(labels[k == kk], minlength=n + 1)
+        better = c > best
+        second = np.where(better, best, np.maximum(second, c))
+        best_k = np.where(better, kk, best_k)
+        best = np.where(better, c, best)
+    return best_k, best, second
+
+
+def grow_orders(wrapped: np.ndarray, absolute: np.ndarray, target: np.ndarray, *, steps: int,
+                max_step: float = 1.2) -> tuple[np.ndarray, np.ndarray]:
+    """Carry fringe orders from pixels that have one into ``target`` pixels, a ring at a time.
+
+    A target pixel next to a pixel with an absolute phase takes that phase plus the wrapped step
+    between them, if that step is below ``max_step`` rad (continuous phase: no depth step in
+    between). Where the neighbours it could follow disagree on the order, the pixel is marked
+    in conflict and left out (it sits where two surfaces meet). At most ``steps`` rings.
+    Pixels of ``target`` left a fringe apart from a neighbour across continuous phase (two
+    fronts that met) are conflicts as well. Returns ``(absolute, conflict)``; ``absolute`` is
+    a new array, NaN where unresolved or in conflict.
+    """
+    absolute = np.array(absolute, dtype=np.float64)
+    conflict = np.zeros(absolute.shape, bool)
+    h, w = absolute.shape
+    flat_abs, flat_wr = absolute.ravel(), np.asarray(wrapped, np.float64).ravel()
+    idx = np.flatnonzero(np.asarray(target, bool) & ~np.isfinite(absolute))  # pixels to reach
+    rows, cols = np.divmod(idx, w)
+    # the four neighbours of each, with the wrapped step from the neighbour; -1 off the image
+    nbs, steps_nb = [], []
+    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        r, c = rows + dr, cols + dc
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        nb = np.where(inside, r * w + c, 0)
+        step = _wrap(flat_wr[idx] - flat_wr[nb])
+        with np.errstate(invalid="ignore"):
+            usable = inside & (np.abs(step) < max_step)
+        nbs.append(np.where(usable, nb, -1))
+        steps_nb.append(step)
+    for _ in range(steps):
+        if idx.size == 0:
+            break
+        lo = np.full(idx.size, np.inf)
+        hi = np.full(idx.size, -np.inf)
+        for nb, step in zip(nbs, steps_nb, strict=True):
+            src = np.where(nb >= 0, flat_abs[np.maximum(nb, 0)], np.nan)
+            ok = np.isfinite(src)
+            k = np.rint((src + step - flat_wr[idx]) / TWO_PI)
+            lo = np.where(ok, np.minimum(lo, k), lo)
+            hi = np.where(ok, np.maximum(hi, k), hi)
+        reached = np.isfinite(lo)
+        agree = reached & (lo == hi)
+        conflict.flat[idx[reached & ~agree]] = True
+        flat_abs[idx[agree]] = flat_wr[idx[agree]] + TWO_PI * lo[agree]
+        keep = ~reached
+        idx = idx[keep]
+        nbs = [nb[keep] for nb in nbs]
+        steps_nb = [st[keep] for st in steps_nb]
+    # fronts that met a ring apart: a fringe jump across continuous phase is a conflict too
+    conflict |= _order_jumps(wrapped, absolute, max_step) & np.asarray(target, bool) & np.isfinite(absolute)
+    absolute[conflict] = np.nan
+    return absolute, conflict
+
+
+def prior_unwrap(
+    wrapped: np.ndarray,
+    candidate: np.ndarray,
+    phi_prior: np.ndarray,
+    *,
+    margin: float = 0.3,
+    silhouette_px: float = 6.0,
+    max_step: float = 2.0,
+    grow_step: float = 1.2,
+) -> RegionOrders:
+    """Fringe orders from a per-pixel prior (the CAD at the encoder angle), kept honest near its edges.
+
+    Away from the prior's silhouettes and depth steps, each pixel takes the order nearest its
+    prior phase ``phi_prior`` (a whole-fringe window, :func:`centred_unwrap`), trusted away from
+    the window's edge (``margin`` rad): the rig's whole unambiguous range around the CAD.
+    Within ``silhouette_px`` of a silhouette or depth step of the prior (its phase jumps by
+    more than ``max_step`` between neighbours, or it ends), the prior may belong to another
+    surface: a real tooth larger than its CAD hides the tooth behind it, which the CAD still
+    sees. There the order is carried in from the trusted pixels along continuous phase
+    (:func:`grow_orders`, steps below ``grow_step`` rad); pixels it does not reach, or reaches
+    with disagreeing orders, get none and are counted (``ambiguous``).
+    """
+    from scipy import ndimage
+
+    wrapped = _check_image("wrapped", wrapped)
+    phi_prior = _check_image("phi_prior", phi_prior, wrapped.shape)
+    cand = _check_image("candidate", candidate, wrapped.shape).astype(bool) & np.isfinite(wrapped)
+    own = centred_unwrap(wrapped, phi_prior, 0.0, margin=margin)
+    edge = ~np.isfinite(phi_prior)
+    with np.errstate(invalid="ignore"):
+        dx = np.abs(np.diff(phi_prior, axis=1)) > max_step
+        dy = np.abs(np.diff(phi_prior, axis=0)) > max_step
+    edge[:, 1:] |= dx
+    edge[:, :-1] |= dx
+    edge[1:] |= dy
+    edge[:-1] |= dy
+    zone = ndimage.distance_transform_edt(~edge) <= silhouette_px if edge.any() else np.zeros(edge.shape, bool)
+    interior = own.valid & cand & ~zone
+    absolute = np.where(interior, own.phase_abs, np.nan)
+    absolute, conflict = grow_orders(wrapped, absolute, cand & zone, steps=int(math.ceil(3 * silhouette_px)),
+                                     max_step=grow_step)
+    # a grown patch that meets another patch or the interior one fringe apart across continuous
+    # phase came in from the wrong surface (or the other one did): neither is trusted
+    jump = _order_jumps(wrapped, np.where(conflict, np.nan, absolute), grow_step) | conflict
+    grown = cand & zone & np.isfinite(absolute)
+    labels, n = ndimage.label(grown)
+    if n:
+        bad = np.zeros(n + 1, bool)
+        bad[np.unique(labels[ndimage.binary_dilation(jump) & grown])] = True
+        bad[0] = False
+        absolute[bad[labels]] = np.nan
+    return RegionOrders(absolute, labels, cand & ~np.isfinite(absolute), int(n), int(n - bad.sum()) if n else 0)
+
+
+def _wrap(x: np.ndarray) -> np.ndarray:
+    """Angles into [-pi, pi) (NaN stays NaN), without complex exponentials."""
+    return np.mod(x + math.pi, TWO_PI) - math.pi
+
+
+def _order_jumps(wrapped: np.ndarray, absolute: np.ndarray, max_step: float) -> np.ndarray:
+    """Pixels on an edge where the phase is continuous (step below ``max_step``) but the two
+    absolute phases are a fringe or more apart: one of the two orders is wrong."""
+    out = np.zeros(wrapped.shape, bool)
+    for axis in (0, 1):
+        step = _wrap(np.diff(wrapped, axis=axis))
+        with np.errstate(invalid="ignore"):
+            bad = (np.abs(step) < max_step) & (np.abs(np.diff(absolute, axis=axis) - step) > math.pi)
+        if axis == 0:
+            out[1:] |= bad
+            out[:-1] |= bad
+        else:
+            out[:, 1:] |= bad
+            out[:, :-1] |= bad
+    return out
+
+
+def envelope_unwrap(
+    wrapped: np.ndarray,
+    candidate: np.ndarray,
+    phi_min: np.ndarray,
+    phi_max: np.ndarray,
+    *,
+    margin: float = 0.3,
+    min_pixels: int = 64,
+    min_inside: float = 0.9,
+    max_runner_up: float = 0.8,
+    max_step: float = 2.0,
+) -> RegionOrders:
+    """CAD-free unwrapping: spatial unwrapping per connected region, one order per region.
+
+    The gear's envelope (``phi_min``/``phi_max`` from the tip and root cylinders,
+    :func:`phase_bounds`) admits several orders at each pixel when the fringes are finer than
+    the envelope's depth, but the pixels of a region (:func:`spatial_regions`) see different
+    windows; the region's order is the one that puts the most of its pixels inside their
+    windows. A region is trusted only if at least ``min_inside`` of its pixels fit that order
+    and no other order fits more than ``max_runner_up`` of them; otherwise (and for regions
+    under ``min_pixels``) its pixels are reported ambiguous, except where the envelope alone
+    admits one order (:func:`geometric_unwrap`).
+    """
+    wrapped = _check_image("wrapped", wrapped)
+    shape = wrapped.shape
+    phi_min = _check_image("phi_min", phi_min, shape)
+    phi_max = _check_image("phi_max", phi_max, shape)
+    cand = _check_image("candidate", candidate, shape).astype(bool)
+    cand &= np.isfinite(phi_min) & np.isfinite(phi_max)
+    labels, n, spatial = spatial_regions(wrapped, cand, max_step=max_step)
+    absolute = np.full(shape, np.nan)
+    if n == 0:
+        return RegionOrders(absolute, labels, cand.copy(), 0, 0)
+    on = np.flatnonzero(labels)
+    lab = labels.ravel()[on]
+    sp = spatial.ravel()[on]
+    # admissible integer orders per pixel: phi_min - m <= spatial + 2 pi K <= phi_max + m
+    k_lo = np.ceil((phi_min.ravel()[on] - margin - sp) / TWO_PI).astype(np.int64)
+    k_hi = np.floor((phi_max.ravel()[on] + margin - sp) / TWO_PI).astype(np.int64)
+    fits = k_hi >= k_lo
+    span = int(np.max(k_hi[fits] - k_lo[fits])) + 1 if fits.any() else 0
+    # every admissible order of every pixel is one vote (a pixel admits a few orders at most)
+    vl = np.concatenate([lab[fits & (k_lo + j <= k_hi)] for j in range(span)] or [np.zeros(0, np.int64)])
+    vk = np.concatenate([(k_lo + j)[fits & (k_lo + j <= k_hi)] for j in range(span)] or [np.zeros(0, np.int64)])
+    best_k, best, second = _vote(vl, n, vk)
+    sizes = np.bincount(lab, minlength=n + 1)
+    ok = (sizes >= min_pixels) & (best >= min_inside * sizes) & (second <= max_runner_up * sizes)
+    ok[0] = False
+    good = ok[lab]
+    absolute.flat[on[good]] = sp[good] + TWO_PI * best_k[lab[good]]
+    # where the envelope admits one order only (a window narrower than a fringe), that is the order
+    single = geometric_unwrap(wrapped, phi_min, phi_max, 0.0, margin=margin)
+    alone = cand & single.valid & ~np.isfinite(absolute)
+    absolute[alone] = single.phase_abs[alone]
+    return RegionOrders(absolute, labels, cand & ~np.isfinite(absolute), n, int(ok.sum()))

@@ -35,7 +35,7 @@ def test_cad_constrained_unwrapping_recovers_every_fringe_order(clean_renderer, 
     m = rc(burst, result)
     mask = truth.mask
     ok = np.isfinite(m.phase_abs) & mask
-    assert ok.sum() >= 0.995 * mask.sum()
+    assert ok.sum() >= 0.9 * mask.sum()
     order_right = np.abs(m.phase_abs[ok] - truth.phase_abs[ok]) < 0.5
     assert order_right.all()
     # points match the truth's 3D points (camera frame -> turntable frame at the burst angle)
@@ -48,16 +48,90 @@ def test_cad_constrained_unwrapping_recovers_every_fringe_order(clean_renderer, 
     assert np.sqrt(np.mean(err**2)) < 0.01  # mm, static noise-free three-step
 
 
-def test_cylinder_bounds_refuse_to_guess_with_fine_fringes(clean_renderer, gear):
-    ps = PatternSet.three_step(PERIOD)
-    frames, truth = clean_renderer.render(0.0, ps)
-    burst = _burst(frames, (0.0, 0.0, 0.0))
-    rc = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear, cad_tolerance_mm=None)
-    m = rc(burst, classical_result(burst))
+@pytest.fixture(scope="module")
+def oversize(rig256):
+    """A still burst of a gear cut at module 2.06 whose CAD says 2.0 (0.66 mm p95 off its CAD)."""
+    from gearscan.twin.gear import GearSpec
+    from gearscan.twin.render import Optics, TwinRenderer
+
+    renderer = TwinRenderer(rig256, GearSpec(module=2.06), Optics().noise_free())
+    angle = math.radians(3.0)
+    frames, _ = renderer.render(angle, PatternSet.three_step(PERIOD))
+    truth = renderer.truth(renderer.surface(angle), PERIOD)
+    return _burst(frames, (angle,) * 3), truth
+
+
+def _true_deviation(gear, rig, truth, angle):
+    from gearscan.measure import CadScorer
+    from gearscan.recon.triangulate import to_turntable
+
+    return CadScorer(gear).distances(to_turntable(truth.points[truth.mask], rig, angle))
+
+
+def test_a_gear_off_its_cad_keeps_its_points_and_its_true_deviation(rig256, gear, oversize):
+    """The fringe order window is the rig's whole unambiguous range around the CAD (one fringe,
+    +-1.3 mm of depth here), not a fixed band: a gear 0.6 mm off its CAD is measured whole and
+    its deviation vs CAD is the true one (it used to lose half its points and report half)."""
+    from gearscan.measure import CadScorer
+    from gearscan.recon.triangulate import to_turntable
+
+    burst, truth = oversize
+    m = Reconstructor.for_gear(rig256, PERIOD, gear)(burst, classical_result(burst))
     ok = np.isfinite(m.phase_abs) & truth.mask
-    # most pixels are ambiguous (reported, not guessed); the few kept are right
-    assert ok.sum() < 0.5 * truth.mask.sum()
+    assert ok.sum() >= 0.9 * truth.mask.sum()
+    assert (np.abs(m.phase_abs[ok] - truth.phase_abs[ok]) < 0.5).all()  # no point a fringe off
+    # every point (edge pixels too) lies on the true surface: nothing pulled toward the CAD
+    rows, cols = m.cloud.pixels.T
+    on = np.isfinite(truth.depth[rows, cols])
+    assert on.mean() > 0.99  # the rest: camera blur spreads fringes a pixel past the silhouette
+    rows, cols = rows[on], cols[on]
+    rays = rig256.camera.pixel_rays()
+    rays = rays / rays[..., 2:3]  # camera z = 1: the true point is the ray times the true depth
+    expect = to_turntable(rays[rows, cols] * truth.depth[rows, cols, None], rig256, burst.angles[0])
+    err = np.linalg.norm(m.cloud.points[on] - expect, axis=1)
+    # median at the noise-free floor; the worst percent are silhouette pixels whose blur mixes two
+    # surfaces; a point a whole fringe off (~2.8 mm) is rarer than 1 in 2000
+    assert np.median(err) < 0.01 and np.percentile(err, 99) < 0.3, np.percentile(err, [50, 99, 100])
+    assert np.mean(err > 1.0) < 5e-4
+    true = np.abs(_true_deviation(gear, rig256, truth, burst.angles[0]))
+    measured = np.abs(CadScorer(gear).distances(m.cloud.points))
+    assert np.percentile(true, 95) > 0.5  # the defect is real
+    assert np.percentile(measured, 95) == pytest.approx(np.percentile(true, 95), rel=0.05)
+    assert m.unwrap["points"] == len(m.cloud) and m.unwrap["unresolved"] == (
+        m.unwrap["candidates"] - m.unwrap["points"])
+
+
+def test_the_depth_range_is_the_rigs(rig256, gear):
+    """The stated unambiguous range is half a fringe's depth either side of the CAD, less the margin."""
+    rc = Reconstructor.for_gear(rig256, PERIOD, gear, margin=0.3)
+    r = rc.depth_range_mm()
+    # default rig, 40 px fringes: a fringe spans ~2.8 mm of camera depth on the rim
+    assert 1.1 < r["minus_median_mm"] < 1.6 and 1.1 < r["plus_median_mm"] < 1.6
+    assert r["minus_min_mm"] > 0.8
+    wide = Reconstructor.for_gear(rig256, 2 * PERIOD, gear, margin=0.3).depth_range_mm()
+    assert wide["plus_median_mm"] == pytest.approx(2 * r["plus_median_mm"], rel=0.1)
+
+
+def test_cad_free_unwrapping_keeps_only_what_the_envelope_decides(clean_renderer, gear, oversize):
+    """Without a CAD surface, regions of continuous phase take the one order the gear's tip/root
+    envelope admits; with fringes this fine the envelope spans ~2.4 fringes, so many regions stay
+    ambiguous: they are counted, never guessed. With fringes wider than the envelope, all resolve."""
+    burst, truth = oversize
+    m = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear, unwrap="envelope")(burst, classical_result(burst))
+    ok = np.isfinite(m.phase_abs) & truth.mask
     assert (np.abs(m.phase_abs[ok] - truth.phase_abs[ok]) < 0.5).all()
+    assert m.unwrap["unresolved"] > 0.2 * m.unwrap["candidates"]
+    from gearscan.twin.gear import GearSpec
+    from gearscan.twin.render import Optics, TwinRenderer
+
+    wide = 120.0  # wider than the envelope's depth on this rig (min_unambiguous_period ~96 px)
+    renderer = TwinRenderer(clean_renderer.rig, GearSpec(module=2.06), Optics().noise_free())
+    frames, t2 = renderer.render(burst.angles[0], PatternSet.three_step(wide))
+    b2 = _burst(frames, burst.angles)
+    m2 = Reconstructor.for_gear(clean_renderer.rig, wide, gear, unwrap="envelope")(b2, classical_result(b2))
+    ok = np.isfinite(m2.phase_abs) & t2.mask
+    assert ok.sum() >= 0.95 * t2.mask.sum()
+    assert (np.abs(m2.phase_abs[ok] - t2.phase_abs[ok]) < 0.5).all()
 
 
 def test_reconstructor_rejects_a_mismatched_rig(clean_renderer, gear):

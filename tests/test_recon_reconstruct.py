@@ -113,5 +113,5 @@ def test_reconstructor_with_a_distorted_projector_takes_the_fixed_point_path():
     assert rc.fused is None
     m = rc(burst, classical_result(burst))
     ok = np.isfinite(m.phase_abs) & truth.mask
-    assert ok.sum() >= 0.99 * truth.mask.sum()
+    assert ok.sum() >= 0.9 * truth.mask.sum()
     assert (np.abs(m.phase_abs[ok] - truth.phase_abs[ok]) < 0.5).all()

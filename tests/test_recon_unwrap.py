@@ -160,3 +160,46 @@ def test_geometric_unwrap_reports_ambiguity_for_fine_fringes(gear_setup):
     assert kept.sum() < 0.05 * tr.mask.sum()
     if kept.any():
         assert np.all(res.order[kept] == k_true[kept])
+
+
+def test_centred_unwrap_takes_the_whole_fringe_around_the_prior():
+    """Any prior within half a fringe (less the margin) of the truth gives the exact order;
+    farther than that the pixel is refused, not guessed."""
+    from gearscan.recon.unwrap import centred_unwrap
+
+    rng = np.random.default_rng(0)
+    truth = np.linspace(0.0, 60.0, 400).reshape(20, 20)
+    wrapped = np.angle(np.exp(1j * truth))
+    off = rng.uniform(-(np.pi - 0.31), np.pi - 0.31, truth.shape)  # prior error up to +-2.83 rad
+    res = centred_unwrap(wrapped, truth + off, 40.0, margin=0.3)
+    assert res.valid.all()
+    np.testing.assert_allclose(res.phase_abs, truth, atol=1e-9)
+    near_edge = centred_unwrap(wrapped, truth + np.pi - 0.1, 40.0, margin=0.3)
+    assert not near_edge.valid.any() and np.isnan(near_edge.phase_abs).all()
+    no_prior = centred_unwrap(wrapped, np.full(truth.shape, np.nan), 40.0)
+    assert not no_prior.valid.any()
+
+
+def test_grow_orders_follows_continuous_phase_and_flags_where_two_surfaces_meet():
+    from gearscan.recon.unwrap import grow_orders
+
+    truth = np.add.outer(np.zeros(30), np.linspace(0, 25.0, 40))  # 0.64 rad per column
+    wrapped = np.angle(np.exp(1j * truth))
+    seed = np.full(truth.shape, np.nan)
+    seed[:, :5] = truth[:, :5]
+    grown, conflict = grow_orders(wrapped, seed, np.ones(truth.shape, bool), steps=40)
+    np.testing.assert_allclose(grown, truth, atol=1e-9)
+    assert not conflict.any()
+    # seeds on both ends that disagree by a fringe: the meeting line is a conflict, not a guess
+    seed[:, -5:] = truth[:, -5:] + 2 * np.pi
+    grown, conflict = grow_orders(wrapped, seed, np.ones(truth.shape, bool), steps=40)
+    assert conflict.any() and np.isnan(grown[conflict]).all()
+    ok = np.isfinite(grown)
+    left = ok & (np.arange(40) < 17)[None, :]
+    np.testing.assert_allclose(grown[left], truth[left], atol=1e-9)
+    # a phase step above max_step (a depth step) is never crossed
+    step = truth.copy()
+    step[:, 20:] += 2.5
+    grown, _ = grow_orders(np.angle(np.exp(1j * step)), np.where(np.arange(40) < 5, step, np.nan),
+                           np.ones(truth.shape, bool), steps=40, max_step=1.2)
+    assert np.isnan(grown[:, 20:]).all() and np.isfinite(grown[:, :20]).all()
