@@ -38,8 +38,8 @@ class FrameIdWrap:
     skips_zero: bool = False
 
     def __post_init__(self) -> None:
-        if self.modulus is not None and (self.modulus < 4 or self.modulus & (self.modulus - 1)):
-            raise ValueError(f"frame id modulus must be a power of two >= 4, got {self.modulus}")
+        if self.modulus is not None and (not 4 <= self.modulus <= 1 << 64 or self.modulus & (self.modulus - 1)):
+            raise ValueError(f"frame id modulus must be a power of two from 4 to 2**64, got {self.modulus}")
         if self.skips_zero and self.modulus is None:
             raise ValueError("skips_zero needs a modulus (a counter that never wraps never skips 0)")
 

@@ -18,11 +18,16 @@ Angles are stored in radians (``*_rad`` keys), times in nanoseconds (``*_ns``).
 depth, set by the first frame) and how the camera's frame counter wraps (``camera.frame_ids``:
 modulus and whether 0 is skipped; inferred from the ids when absent).
 
-Damage is skipped, not fatal: a line that is not JSON or has a field out of range (ids and
-times are non-negative integers, angles finite and within ``MAX_ANGLE_RAD``, NaN and infinity
-refused), a frame file that is missing, outside the folder, truncated, fails its CRC or has
-another format than the recording's. Each is reported once as a :class:`Damage` naming file
-and line, and the rest of the recording is read. Only a damaged ``recording.json`` is an error.
+Damage is skipped, not fatal: a line that is not JSON, lacks a key or has an unknown one, or
+has a field out of range (ids and times are non-negative integers, angles finite and within
+``MAX_ANGLE_RAD``, NaN and infinity refused); a line out of place (a recording holds whole
+bursts: line n has pattern ``(n-1) % len(patterns)``, ids increase, by one within a burst); a
+finished recording whose index files hold another number of lines than ``recording.json``'s
+``frame_count`` / ``encoder_count`` (lines lost or added); a frame file that is missing,
+outside the folder, truncated, fails its CRC or has another format than the recording's. Each
+is reported once as a :class:`Damage` naming file and line, and the rest of the recording is
+read. Only a damaged ``recording.json`` is an error. What no reader can see is a number changed
+into another valid one (a calibration digit, an angle): the format has no checksum.
 """
 
 from __future__ import annotations
@@ -159,6 +164,25 @@ def _float_field(d: dict[str, Any], key: str, lo: float, hi: float, default: flo
     return float(v)
 
 
+_FRAME_KEYS = ("id", "timestamp_ns", "host_timestamp_ns", "pattern_index", "encoder_angle_rad", "exposure_us",
+               "bit_depth", "file")
+_ENCODER_KEYS = ("seq", "device_time_us", "count", "index", "angle_rad", "host_time_ns")
+
+
+def _check_keys(d: Any, known: tuple[str, ...], required: tuple[str, ...]) -> None:
+    """A line is an object with the writer's keys: a missing or unknown key means a damaged name."""
+    if not isinstance(d, dict):
+        raise ValueError(f"expected a JSON object, got {type(d).__name__}")
+    missing = [k for k in required if k not in d]
+    unknown = [k for k in d if k not in known]
+    if missing or unknown:
+        raise ValueError(f"keys: missing {missing}, unknown {[k[:40] for k in unknown]} (expected {list(known)})")
+
+
+def _is_count(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
 def _atomic_write_text(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "w") as fh:
@@ -196,8 +220,7 @@ class FrameRecord:
     @classmethod
     def from_json(cls, d: Any) -> FrameRecord:
         """Parse and range-check one line; ValueError names the field, its range and the value."""
-        if not isinstance(d, dict):
-            raise ValueError(f"expected a JSON object, got {type(d).__name__}")
+        _check_keys(d, _FRAME_KEYS, required=("id", "timestamp_ns", "pattern_index", "encoder_angle_rad", "file"))
         angle = d.get("encoder_angle_rad")
         file = d.get("file")
         if not isinstance(file, str) or not file:
@@ -216,8 +239,7 @@ class FrameRecord:
 
 def encoder_sample_from_json(d: Any) -> EncoderSample:
     """Parse and range-check one ``encoder.jsonl`` line (ranges of :class:`EncoderSample`)."""
-    if not isinstance(d, dict):
-        raise ValueError(f"expected a JSON object, got {type(d).__name__}")
+    _check_keys(d, _ENCODER_KEYS, required=_ENCODER_KEYS[:5])
     index = d.get("index")
     if not isinstance(index, bool):
         raise ValueError(f"index: expected true or false, got {index!r:.40}")
@@ -333,6 +355,7 @@ class RecordingWriter:
         self._encoder = open(self.path / "encoder.jsonl", "a")
         self._durable = durable
         self.frame_count = 0
+        self.encoder_count = 0
         self.format: FrameFormat | None = None
 
     def __enter__(self) -> RecordingWriter:
@@ -387,6 +410,7 @@ class RecordingWriter:
 
     def write_encoder(self, sample: EncoderSample) -> None:
         """Append one raw encoder sample (flushed with the next frame)."""
+        self.encoder_count += 1
         self._encoder.write(
             json.dumps(
                 {
@@ -413,7 +437,7 @@ class RecordingWriter:
         self._encoder.flush()
         self._frames.close()
         self._encoder.close()
-        self.update_meta(finished=True, frame_count=self.frame_count)
+        self.update_meta(finished=True, frame_count=self.frame_count, encoder_count=self.encoder_count)
 
 
 class RecordingReader:
@@ -449,42 +473,77 @@ class RecordingReader:
                 self.format = None  # taken from the first intact frame
         except ValueError as exc:
             raise RecordingError(f"{self.path / 'recording.json'}: frame_format: {exc}") from exc
-        n_patterns = len(self.patterns) if "patterns" in self.meta else 256
-        root = self.path.resolve()
+        cycle = len(self.patterns) if "patterns" in self.meta else None
         self.records: list[FrameRecord] = []
         self.lines: list[int] = []  # frames.jsonl line of each record
-        for n, d in _jsonl_lines(self.path / "frames.jsonl"):
-            if isinstance(d, Damage):
-                self.report(d)
-                continue
-            try:
-                rec = FrameRecord.from_json(d)
-                if rec.pattern_index >= n_patterns:
-                    raise ValueError(f"pattern_index: expected 0 to {n_patterns - 1} "
-                                     f"(the recording's pattern set), got {rec.pattern_index}")
-            except ValueError as exc:
-                self.report(Damage("index_line", "frames.jsonl", n, str(exc)))
-                continue
-            if self._frame_file_damage(rec, n, root) is None:
-                self.records.append(rec)
-                self.lines.append(n)
+        self._read_index(cycle)
         # the recording's bit depth: declared, else what most frames say (recordings before frame_format)
         self._bits = self.format.bit_depth if self.format else (
             Counter(r.bit_depth for r in self.records).most_common(1)[0][0] if self.records else 8)
         for rec, n in zip(self.records, self.lines, strict=True):
             if rec.bit_depth != self._bits:
                 self.report(Damage("frame_format", rec.file, n, f"bit_depth {rec.bit_depth} in a {self._bits}-bit recording"))
-        keep = [k for k, rec in enumerate(self.records) if rec.bit_depth == self._bits]
-        self.records = [self.records[k] for k in keep]
-        self.lines = [self.lines[k] for k in keep]
+        self._keep([rec.bit_depth == self._bits for rec in self.records])
         try:
             wrap = FrameIdWrap.from_json(camera["frame_ids"]) if "frame_ids" in camera else None
         except ValueError as exc:
             raise RecordingError(f"{self.path / 'recording.json'}: camera.frame_ids: {exc}") from exc
         #: how the recorded camera's frame counter wraps (stored by the recorder, else inferred)
         self.frame_id_wrap = wrap or FrameIdWrap.detect([r.frame_id for r in self.records])
-        #: frame ids extended past the counter's wraps: unique and increasing in a clean recording
-        self.extended_ids = FrameIdUnwrapper(self.frame_id_wrap).extend(r.frame_id for r in self.records)
+        #: frame ids extended past the counter's wraps: unique and increasing (one per record)
+        self.extended_ids: list[int] = []
+        self._check_order(cycle)
+
+    def _read_index(self, cycle: int | None) -> None:
+        """Parse ``frames.jsonl`` into :attr:`records`, reporting bad lines and frame files."""
+        root = self.path.resolve()
+        lines = 0
+        for n, d in _jsonl_lines(self.path / "frames.jsonl"):
+            lines += 1
+            if isinstance(d, Damage):
+                self.report(d)
+                continue
+            try:
+                rec = FrameRecord.from_json(d)
+            except ValueError as exc:
+                self.report(Damage("index_line", "frames.jsonl", n, str(exc)))
+                continue
+            if self._frame_file_damage(rec, n, root) is None:
+                self.records.append(rec)
+                self.lines.append(n)
+        self._check_count("frames.jsonl", "frame_count", lines)
+
+    def _keep(self, keep: list[bool]) -> None:
+        self.records = [r for r, k in zip(self.records, keep, strict=True) if k]
+        self.lines = [n for n, k in zip(self.lines, keep, strict=True) if k]
+
+    def _check_order(self, cycle: int | None) -> None:
+        """A recording holds whole bursts in capture order (the recorder writes only complete
+        bursts, frame after frame): line n holds pattern ``(n - 1) % cycle``, ids increase, and
+        within a burst they increase by one. A line that breaks this has a wrong number in it,
+        which the assembler would otherwise turn into an unexplained lost burst."""
+        unwrap, keep, prev = FrameIdUnwrapper(self.frame_id_wrap), [], None  # prev: (line, extended id)
+        angles = any(r.encoder_angle is not None for r in self.records)
+        for rec, n in zip(self.records, self.lines, strict=True):
+            ext = unwrap(rec.frame_id)
+            why = ""
+            if angles and rec.encoder_angle is None:
+                why = "encoder_angle_rad is null where the recording's other frames have an angle"
+            elif cycle is not None and rec.pattern_index != (n - 1) % cycle:
+                why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole "
+                       f"{cycle}-frame bursts holds pattern {(n - 1) % cycle}")
+            elif prev is not None and ext <= prev[1]:
+                why = f"frame id {rec.frame_id} does not come after the id on line {prev[0]}"
+            elif (cycle is not None and prev is not None and prev[0] == n - 1 and (n - 1) // cycle == (n - 2) // cycle
+                  and ext != prev[1] + 1):
+                why = f"frame id {rec.frame_id} is {ext - prev[1]} after the id on line {prev[0]}, within a burst it is 1"
+            if why:
+                self.report(Damage("index_line", "frames.jsonl", n, why))
+            else:
+                prev = (n, ext)
+                self.extended_ids.append(ext)
+            keep.append(not why)
+        self._keep(keep)
 
     # -- damage ---------------------------------------------------------------------------
     def report(self, damage: Damage) -> None:
@@ -515,6 +574,15 @@ class RecordingReader:
             return None
         self.report(d)
         return d
+
+    def _check_count(self, name: str, key: str, lines: int) -> None:
+        """A finished recording says how many lines its index files hold: fewer means the file was
+        cut (whole lines lost, which no parser can see), more means lines were added."""
+        expected = self.meta.get(key)
+        if self.finished and _is_count(expected) and expected != lines:
+            self.report(Damage("index_line" if name == "frames.jsonl" else "encoder_line", name, None,
+                               f"{lines} complete lines where the finished recording wrote {expected} "
+                               f"(recording.json {key}): lines were lost or added"))
 
     # -- header ---------------------------------------------------------------------------
     def _read_meta(self) -> dict[str, Any]:
@@ -642,7 +710,9 @@ class RecordingReader:
     def encoder_samples(self) -> list[EncoderSample]:
         """Valid samples of ``encoder.jsonl``; damaged lines are reported and skipped."""
         out = []
+        lines = 0
         for n, d in _jsonl_lines(self.path / "encoder.jsonl"):
+            lines += 1
             if isinstance(d, Damage):
                 self.report(d)
                 continue
@@ -650,6 +720,7 @@ class RecordingReader:
                 out.append(encoder_sample_from_json(d))
             except ValueError as exc:
                 self.report(Damage("encoder_line", "encoder.jsonl", n, str(exc)))
+        self._check_count("encoder.jsonl", "encoder_count", lines)
         return out
 
     # -- whole-recording check ---------------------------------------------------------------

@@ -101,6 +101,8 @@ class PinholeDevice:
         d = np.asarray(self.dist, dtype=np.float64).ravel()
         if d.size not in (4, 5, 8):
             raise RigError(f"dist: expected 4, 5 or 8 OpenCV coefficients, got {d.size}")
+        if not np.all(np.isfinite(d)):
+            raise RigError(f"dist: contains non-finite values: {d.tolist()}")
         dist = d if d.size != 4 else np.append(d, 0.0)
         object.__setattr__(self, "dist", dist)
         t = _as_matrix(self.T_from_world, (4, 4), "T_from_world")

@@ -39,6 +39,11 @@ def rec(clean, tmp_path):
     return shutil.copytree(clean, tmp_path / "rec")
 
 
+def _set_value(path, n: int, key: str, value) -> None:
+    """Set ``key`` on JSON line ``n`` (json.dumps writes NaN as the bare token a damaged file would hold)."""
+    _edit_line(path, n, lambda s: json.dumps({**json.loads(s), key: value}))
+
+
 def _edit_line(path, n: int, fn) -> None:
     """Replace line ``n`` (1-based) of a JSONL file with ``fn(old line)``."""
     lines = path.read_text().splitlines()
@@ -90,7 +95,7 @@ def test_truncated_png_skips_its_burst_only_and_names_it_once(rec, caplog):
         # a line claiming 16 bits in an 8-bit recording
         (lambda r: _edit_line(r / "frames.jsonl", 5, lambda s: s.replace('"bit_depth": 8', '"bit_depth": 16')),
          "frame_format", ("frames/000004.png", 5)),
-        (lambda r: _edit_line(r / "frames.jsonl", 5, lambda s: s.replace('"encoder_angle_rad": ', '"encoder_angle_rad": NaN, "x": ')),
+        (lambda r: _set_value(r / "frames.jsonl", 5, "encoder_angle_rad", float("nan")),
          "index_line", ("frames.jsonl", 5)),
     ],
     ids=["missing", "garbage-index-line", "path-escape", "16-bit-in-8-bit", "wrong-size", "bit-depth-line", "nan-angle"],
@@ -106,7 +111,7 @@ def test_damaged_frame_is_skipped_and_the_other_bursts_replay(rec, caplog, damag
 
 def test_garbage_encoder_line_is_counted_not_silently_skipped(rec, caplog):
     _edit_line(rec / "encoder.jsonl", 7, lambda s: "\x00\x01 not json")
-    _edit_line(rec / "encoder.jsonl", 9, lambda s: s.replace('"count": ', '"count": 1180591620717411303424, "x": '))
+    _set_value(rec / "encoder.jsonl", 9, "count", 2**70)
     m, _, damage = _replay(rec, caplog)
     assert m.bursts == 3  # replay uses the frames' angles: every burst is still measured
     assert damage["by_kind"] == {"encoder_line": 2}
