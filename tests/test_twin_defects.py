@@ -337,3 +337,17 @@ def test_cli_renders_a_defective_gear(tmp_path):
     for bad, words in ((["--chip", "1x"], ["--chip", "TOOTH:MM"]), (["--chip", "1:1.5"], ["chips[0].size_mm"])):
         res = CliRunner().invoke(app, [*args[:2], str(tmp_path / "bad"), *args[3:], *bad])
         assert res.exit_code == 2 and all(w in res.output for w in words), res.output
+
+
+def test_options_add_to_a_defects_file(tmp_path):
+    path = tmp_path / "defects.json"
+    path.write_text(json.dumps({"eccentricity_um": 20, "pitch_errors_um": {"3": 10}, "chips": [{"tooth": 4}]}))
+    d = GearDefects.from_options(path, eccentricity_um=50, pitch_errors=["5:-8"], chips=["7:0.2:right:-2:2"])
+    assert d == GearDefects(
+        eccentricity_um=50, pitch_errors_um={3: 10, 5: -8}, chips=(Chip(tooth=4), Chip(tooth=7, side="right", size_mm=0.2, z_mm=(-2, 2)))
+    )
+    assert GearDefects.from_options() is None
+    with pytest.raises(DefectError, match="--wear"):
+        GearDefects.from_options(wear=["2"])
+    with pytest.raises(DefectError, match=r"pitch_errors_um\.5"):
+        GearDefects.from_options(pitch_errors=["5:-800"])
