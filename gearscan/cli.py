@@ -176,6 +176,7 @@ def replay_cmd(
     workers: Annotated[int | None, typer.Option(min=1, help="bursts decoded at once (default: 2 on a CPU, 1 on a GPU)")] = None,
     still_span_deg: Annotated[float | None, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never; default 0.075)")] = None,
     strict: Annotated[bool, typer.Option(help="exit 1 when the recording has damage (default: skip it, measure the rest, exit 0)")] = False,
+    unwrap: Annotated[str, typer.Option(help="fringe orders from the gear's CAD ('cad') or CAD-free from its envelope ('envelope')")] = "cad",
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
 
@@ -198,8 +199,10 @@ def replay_cmd(
     if not (save or connect):
         save = Path("out") / f"{recording.name}.rrd"
     try:
+        if unwrap not in ("cad", "envelope"):
+            raise typer.BadParameter(f"expected 'cad' or 'envelope', got {unwrap!r}", param_hint="--unwrap")
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
-                        truth=truth)
+                        truth=truth, unwrap=unwrap)
     except (RecordingError, PipelineError) as exc:
         raise _fail(str(exc)) from exc
     finally:
@@ -225,6 +228,28 @@ def replay_cmd(
             pass
         finally:
             web.close()
+
+
+def unambiguous_range_line(rig, period_px: float, gear, unwrap: str) -> str:
+    """One line saying how far a surface may be off its CAD before its fringe order is lost."""
+    from gearscan.measure import Reconstructor
+    from gearscan.recon.unwrap import gear_depth_bounds, min_unambiguous_period
+
+    rc = Reconstructor.for_gear(rig, period_px, gear)
+    try:
+        r = rc.depth_range_mm()
+    except ValueError as exc:
+        return f"unambiguous depth range: not stated ({exc})"
+    finally:
+        rc.close()
+    line = (f"unambiguous depth range at {period_px:g} px fringes: -{r['minus_median_mm']:.2f}/+{r['plus_median_mm']:.2f} mm "
+            f"around the CAD (median over the gear; at least -{r['minus_min_mm']:.2f}/+{r['plus_min_mm']:.2f} mm)")
+    if unwrap == "envelope":
+        need = min_unambiguous_period(rig, gear_depth_bounds(rig, gear.tip_radius + 1.0, gear.root_radius - 1.0,
+                                                              gear.face_width + 2.0))
+        line += (f"; CAD-free unwrapping resolves every pixel from {need:.0f} px fringes on"
+                 + (" (finer fringes leave regions ambiguous: counted, not guessed)" if period_px < need else ""))
+    return line
 
 
 @app.command("check")
@@ -306,6 +331,7 @@ def live_cmd(
     if check:
         typer.echo(f"{config}: OK (camera {cfg.camera.driver}, projector {cfg.projector.backend}, "
                    f"rig {rig.camera.width}x{rig.camera.height}, gear z={cfg.gear.teeth})")
+        typer.echo(unambiguous_range_line(rig, cfg.projector.period_px, cfg.gear, cfg.recon.unwrap))
         return
     decoder = _decoder(False, cfg.model.mc, cfg.model.path, precision=cfg.model.precision,
                        workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg)

@@ -66,6 +66,8 @@ still_span_deg = 0.075       # bursts spanning less turntable angle go to three-
 [recon]
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S
 max_sigma_rad = 0.3          # drop pixels whose total phase uncertainty exceeds this
+unwrap = "cad"               # fringe orders from the gear's CAD ("cad") or its envelope only ("envelope",
+                             # CAD-free: needs fringes wider than the tooth depth, see --check)
 cad_deviation = true         # colour the cloud by distance to the gear's CAD model
 
 [viewer]
@@ -97,6 +99,7 @@ class ReconSection(BaseModel):
 
     min_modulation: float = Field(0.05, ge=0, le=1)
     max_sigma_rad: float = Field(0.3, gt=0)
+    unwrap: Literal["cad", "envelope"] = "cad"
     cad_deviation: bool = True
 
 

@@ -50,7 +50,8 @@ def run_live(
     decoder = decoder or Decoder(cfg.model.path, mc=cfg.model.mc, precision=cfg.model.precision,
                                  workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg)
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
-                                   min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad)
+                                   min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
+                                   unwrap=cfg.recon.unwrap)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None
     logger = None
     if save or connect or spawn:

@@ -44,8 +44,10 @@ class ReplayMetrics:
                 vals = np.array([b[key] for b in self.per_burst if key in b], dtype=float)
                 if key.endswith("_rmse_rad") or key.endswith("_rms_mm"):
                     out[key] = float(np.sqrt(np.nanmean(vals**2)))
-                elif key.endswith("_sigma_rad"):
+                elif key.endswith(("_sigma_rad", "_p95_mm", "coverage")):
                     out[key] = float(np.nanmean(vals))
+                elif key.startswith("unwrap_") or key in ("cloud_points", "points_off_gear"):
+                    out[key] = float(np.nansum(vals))
         return out
 
     def to_json(self) -> dict:
@@ -54,14 +56,30 @@ class ReplayMetrics:
 
 
 class TruthScorer:
-    """Phase and cloud accuracy of a measurement against a twin recording's truth."""
+    """Phase and cloud accuracy of a measurement against a twin recording's truth.
+
+    Two different questions, never mixed (DESIGN.md, "Numbers we can trust"):
+
+    * accuracy vs truth: each point's distance to the true surface point of its pixel (the
+      twin's depth along the same ray; ``accuracy_*_mm`` over every point whose pixel sees the
+      gear, shadow and edge pixels included), with coverage = share of the truth mask that got
+      a point, and ``points_off_gear`` (points where the ray meets no gear: spurious); these
+      do not depend on the CAD that guided the unwrapping.
+    * deviation vs CAD: what a user measures (``cad_dev_*_mm``), next to the deviation the
+      true surface has on the same pixels (``true_cad_dev_*_mm``), so a deviation that the
+      reconstruction hides shows as a gap between the two.
+    """
 
     def __init__(self, reader: RecordingReader) -> None:
         self.reader = reader
         self.index = {fid: i for i, fid in enumerate(reader.extended_ids)}  # the ids ReplayCamera serves
         self.cad = CadScorer(reader.gear) if reader.gear is not None else None
+        rays = reader.rig.camera.pixel_rays()
+        self._rays = rays / rays[..., 2:3]  # camera z = 1: true point = ray * true depth
 
     def __call__(self, m: Measurement) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+        from gearscan.recon.triangulate import to_turntable
+
         truth = self.reader.truth(self.index[m.burst.frames[0].frame_id])
         mask = truth["mask"]
         err = np.where(mask, phase_error(m.result.phase, truth["phase"]), 0.0)
@@ -75,11 +93,28 @@ class TruthScorer:
         if m.result.mode != "three-step":
             base = classical_result(m.burst)
             row["three-step_rmse_rad"] = float(np.sqrt(np.mean(phase_error(base.phase, truth["phase"])[mask] ** 2)))
-        if self.cad is not None and m.cloud is not None and len(m.cloud):
-            dev = self.cad(m)  # also stores each point's deviation on the cloud
-            row["cloud_rms_mm"] = dev["cad_rms_mm"]
-            row["cloud_p95_mm"] = dev["cad_p95_mm"]
+        if m.cloud is not None:
+            rows, cols = m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]
+            depth = truth["depth"][rows, cols]
+            gear = np.isfinite(depth)
+            true_cam = self._rays[rows[gear], cols[gear]] * depth[gear, None]
+            true_pts = to_turntable(true_cam, self.reader.rig, m.cloud.angle)
+            dist = np.linalg.norm(m.cloud.points[gear] - true_pts, axis=1)
             row["cloud_points"] = len(m.cloud)
+            row["coverage"] = float(mask[rows, cols].sum() / max(int(mask.sum()), 1))
+            row["points_off_gear"] = int((~gear).sum())
+            if gear.any():
+                row["accuracy_rms_mm"] = float(np.sqrt(np.mean(dist**2)))
+                row["accuracy_p95_mm"] = float(np.percentile(dist, 95))
+            for key, val in m.unwrap.items():
+                row[f"unwrap_{key}"] = val
+            if self.cad is not None and len(m.cloud):
+                dev = self.cad(m)  # also stores each point's deviation on the cloud
+                row["cad_dev_rms_mm"] = dev["cad_rms_mm"]
+                row["cad_dev_p95_mm"] = dev["cad_p95_mm"]
+                true_dev = self.cad.distances(to_turntable(truth["points"][mask], self.reader.rig, m.cloud.angle))
+                row["true_cad_dev_rms_mm"] = float(np.sqrt(np.mean(true_dev**2)))
+                row["true_cad_dev_p95_mm"] = float(np.percentile(np.abs(true_dev), 95))
         return row, err, mask
 
 
@@ -95,10 +130,12 @@ def replay(
     reconstruct: bool = True,
     truth: bool = True,
     on_burst: Callable[[Measurement, dict], None] | None = None,
+    unwrap: str = "cad",
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
-    ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
+    ``unwrap`` picks how fringe orders are found (``"cad"`` or the CAD-free ``"envelope"``,
+    :class:`~gearscan.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
 
     Damage (a bad frame, index or encoder line) is skipped and logged once; the bursts it
@@ -118,7 +155,7 @@ def replay(
     patterns = reader.patterns
     period = patterns.periods[0]
     gear = reader.gear
-    recon = Reconstructor.for_gear(rig, period, gear) if (reconstruct and gear is not None) else None
+    recon = Reconstructor.for_gear(rig, period, gear, unwrap=unwrap) if (reconstruct and gear is not None) else None
     scorer = TruthScorer(reader) if (truth and reader.has_truth()) else None
     logger = None
     if save or connect or spawn:

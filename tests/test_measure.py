@@ -205,3 +205,12 @@ def test_still_bursts_go_to_three_step_and_moving_ones_to_the_network(noisy_rend
     assert Decoder(workers=1, still_span_deg=0)(still).mode == "deterministic"
     with pytest.raises(ValueError, match="model.still_span_deg: expected >= 0"):
         Decoder(still_span_deg=-1)
+
+
+def test_live_check_states_the_unambiguous_range(rig256, gear):
+    from gearscan.cli import unambiguous_range_line
+
+    line = unambiguous_range_line(rig256, PERIOD, gear, "cad")
+    assert line.startswith("unambiguous depth range at 40 px fringes: -1.") and "mm around the CAD" in line
+    free = unambiguous_range_line(rig256, PERIOD, gear, "envelope")
+    assert "CAD-free unwrapping resolves every pixel from" in free and "counted, not guessed" in free
