@@ -119,6 +119,14 @@ def test_garbage_encoder_line_is_counted_not_silently_skipped(rec, caplog):
     assert "count: expected an integer" in damage["items"][1]["what"]
 
 
+def test_unreadable_encoder_file_is_damage_not_a_traceback(rec):
+    (rec / "encoder.jsonl").unlink()
+    (rec / "encoder.jsonl").mkdir()  # something in its place that cannot be read as a file
+    r = RecordingReader(rec, warn=False)
+    assert r.encoder_samples() == [] and [(d.kind, d.file) for d in r.damage] == [("encoder_line", "encoder.jsonl")]
+    assert "cannot read" in r.damage[0].what
+
+
 def test_reader_reports_damage_once_however_often_a_frame_is_read(rec):
     _truncate_png(rec / "frames" / "000002.png")
     r = RecordingReader(rec, warn=False)
@@ -184,6 +192,11 @@ def test_overwrite_replaces_the_recording_whole(rec):
     r = RecordingReader(rec)
     assert len(r) == 1 and not r.has_truth() and not (rec / "frames" / "000008.png").exists()
     assert (rec / "notes.txt").read_text() == "mine"  # not part of the recording: kept
+    # a folder that holds no recording keeps what it has, even a frames/ of its own
+    (rec.parent / "other" / "frames").mkdir(parents=True)
+    (rec.parent / "other" / "frames" / "keep.png").write_bytes(b"x")
+    RecordingWriter(rec.parent / "other", {}, overwrite=True).close()
+    assert (rec.parent / "other" / "frames" / "keep.png").exists()
 
 
 def test_writer_refuses_a_frame_of_another_format(tmp_path):
