@@ -110,6 +110,7 @@ def twin_dataset(
     height: Annotated[int, typer.Option(help="image height, px")] = 512,
     period: Annotated[float, typer.Option(help="fringe period, projector px (ignored with --randomize)")] = 40.0,
     randomize: Annotated[bool, typer.Option(help="randomise rig, optics, period and gear size per gear")] = False,
+    views: Annotated[bool, typer.Option(help="with --randomize: any view (radial/side/oblique/face), module 0.5-5 mm, camera fringe period 5-60 px")] = False,
     repeats: Annotated[int, typer.Option(min=1, help="randomised scenes per tooth count")] = 1,
     max_start_points: Annotated[int | None, typer.Option(help="cap on start points per gear")] = None,
     seed: Annotated[int, typer.Option()] = 0,
@@ -123,7 +124,7 @@ def twin_dataset(
         counts = [int(t) for t in teeth.split(",") if t.strip()]
         gears = [_gear_from_options(t, module, 20.0, 20.0, 10.0) for t in counts for _ in range(repeats)]
         spec = DatasetSpec(gears=gears, width=width, height=height, period_px=period, randomize=randomize,
-                           seed=seed, max_start_points=max_start_points)
+                           views=views, seed=seed, max_start_points=max_start_points)
     except (ValueError, ValidationError) as exc:
         raise _fail(f"invalid dataset options: {exc}") from exc
     n = sum(len(start_points(g, spec.start_step_deg)[:max_start_points]) for g in gears)

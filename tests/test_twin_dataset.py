@@ -109,3 +109,29 @@ def test_reverse_plays_moving_bursts_backwards(small_dataset):
     np.testing.assert_allclose(rev["input"][2], a[i, 2 * spec.steps // 3] / fwd.full_scale(0), rtol=1e-6)
     np.testing.assert_array_equal(rev["target"], np.load(sp / "label.npy")[k])
     assert rev["span_deg"] == pytest.approx(-(k - i) * spec.pose_step_deg)
+
+
+def test_view_randomised_scenes_span_views_modules_and_fringe_periods():
+    """random_view_scene draws every view, modules 0.5-5 mm and camera periods 5-60 px (median over
+    the lit pixels, measured here on the rendered surface), keeping the gear's tooth count."""
+    import numpy as np
+
+    from gearscan.twin.gear import GearSpec
+    from gearscan.twin.randomize import VIEW_RANGES, random_view_scene
+    from gearscan.twin.render import TwinRenderer
+
+    rng = np.random.default_rng(3)
+    names, periods = set(), []
+    for _ in range(12):
+        rig, optics, g, period = random_view_scene(rng, GearSpec(teeth=23), 96, 96)
+        assert g.teeth == 23 and 0.5 <= g.module <= 5.0
+        names.add(rig.name)
+        surf = TwinRenderer(rig, g, optics).surface(0.0)
+        gy, gx = np.gradient(surf.u_proj)
+        grad = np.hypot(gx, gy)[surf.lit]
+        grad = grad[np.isfinite(grad) & (grad > 0)]
+        if grad.size > 50:
+            periods.append(period / np.median(grad))  # camera px per fringe
+    assert len(names) >= 3
+    lo, hi = VIEW_RANGES["camera_period_px"]
+    assert all(lo * 0.99 <= p <= hi * 1.01 for p in periods) and max(periods) / min(periods) > 2

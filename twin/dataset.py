@@ -59,6 +59,8 @@ class DatasetSpec(BaseModel):
     height: int = Field(512, ge=32, le=4096)
     period_px: float = Field(DEFAULT_PERIOD_PX, ge=4)
     randomize: bool = Field(False, description="randomise rig, optics and fringe period per gear")
+    views: bool = Field(False, description="with randomize: any view (radial, side, oblique, face), module "
+                        "0.5-5 mm, camera fringe period 5-60 px (twin.randomize.random_view_scene)")
     seed: int = 0
     max_start_points: int | None = Field(None, ge=1, description="per gear, for quick sets")
 
@@ -86,9 +88,16 @@ def _scene_for(spec: DatasetSpec, gear_index: int) -> tuple[Rig, Optics, GearSpe
     gear = spec.gears[gear_index]
     if not spec.randomize:
         return default_rig(spec.width, spec.height), Optics(), gear, spec.period_px
-    from gearscan.twin.randomize import random_scene
+    from gearscan.twin.randomize import random_scene, random_view_scene
 
     rng = np.random.default_rng([spec.seed, gear_index])
+    if spec.views:
+        for _ in range(20):  # a view that misses the gear (all shadow) is redrawn
+            rig, optics, g, period = random_view_scene(rng, gear, spec.width, spec.height)
+            renderer = TwinRenderer(rig, g, optics)
+            if renderer.truth(renderer.surface(0.0), period).mask.mean() >= 0.03:
+                return rig, optics, g, period
+        raise DatasetError(f"gear {gear_index}: no random view in 20 draws sees the gear")
     return random_scene(rng, gear, spec.width, spec.height)
 
 

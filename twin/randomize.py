@@ -177,3 +177,42 @@ def balance_projector_power(rig: Rig, optics: Optics) -> Optics:
     c = rig.projector.center_world
     factor = (np.linalg.norm(c[:2]) / np.linalg.norm(c - aim_point(rig))) ** 2
     return optics.model_copy(update={"projector_power": float(min(4.0, optics.projector_power / factor))})
+
+
+VIEW_RANGES = {  # the training range of random_view_scene (any view; radial RANGES for the rest)
+    "camera_period_px": (5.0, 60.0),  # log-uniform: dense fringes on flanks turning away, wide ones
+    "module_mm": (0.5, 5.0),          # log-uniform
+    "teeth_in_view": (2.0, 8.0),
+    "view_angle_deg": {"radial": (-8.0, 8.0), "side": (40.0, 75.0), "oblique": (30.0, 60.0), "face": (0.0, 12.0)},
+}
+
+
+def random_view_scene(
+    rng: np.random.Generator, gear: GearSpec, width: int, height: int
+) -> tuple[Rig, Optics, GearSpec, float]:
+    """A random rig from any of the four views (:func:`view_rig`) aimed at ``gear`` resized to a
+    random module, random optics, and a projector period giving a random camera fringe period.
+
+    Stand-off, triangulation and elevation stay in :data:`RANGES` (the radial training ranges), so
+    the test family ``radial-wide`` stays outside them; view, module, teeth in view and fringe
+    period span what users bring (:data:`VIEW_RANGES`). The camera period is the median over the
+    lit pixels of the first pose, so it holds for any view.
+    """
+    from gearscan.twin.render import TwinRenderer
+
+    def log_u(lo: float, hi: float) -> float:
+        return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+
+    view = VIEWS[int(rng.integers(len(VIEWS)))]
+    m = round(log_u(*VIEW_RANGES["module_mm"]), 3)
+    root_d = m * (gear.teeth - 2.5)
+    g = GearSpec(**{**gear.model_dump(), "module": m, "pressure_angle_deg": float(rng.uniform(*RANGES["pressure_angle_deg"])),
+                    "face_width": float(np.clip(10 * m, 4.0, 40.0)), "bore": round(min(10.0, 0.5 * root_d), 3)})
+    field = float(rng.uniform(*VIEW_RANGES["teeth_in_view"])) * g.pitch_angle * g.pitch_radius
+    tri = float(rng.uniform(*RANGES["triangulation_deg"])) * (1 if rng.random() < 0.5 else -1)
+    rig = view_rig(width, height, g, view=view, angle_deg=float(rng.uniform(*VIEW_RANGES["view_angle_deg"][view])),
+                   standoff=float(rng.uniform(*RANGES["standoff_mm"])), field_mm=field, triangulation_deg=tri)
+    optics = balance_projector_power(rig, random_optics(rng))
+    surface = TwinRenderer(rig, g, optics).surface(0.0)
+    period = projector_period_for_surface(surface, log_u(*VIEW_RANGES["camera_period_px"]))
+    return rig, optics, g, period

@@ -9,8 +9,10 @@ belongs to exactly one split:
   is never one the shipped model trained on (11-40 except 25, 32, 35, 37, 39) and the test
   families span 10-80 teeth. Val holds 25 (the shipped model's validation gear), 32 and
   42, 46, ..., 78 (for wider training later). Train holds every other count GearSpec allows.
-- **rig family**: ``radial-random`` (:mod:`gearscan.twin.randomize`, radial view) is train;
-  ``radial-random-val`` (the same randomiser, val seeds) is val; the product's ``default`` rig
+- **rig family**: ``radial-random`` (:mod:`gearscan.twin.randomize`, radial view) and
+  ``view-random`` (:func:`~gearscan.twin.randomize.random_view_scene`: any view, module 0.5-5 mm,
+  camera period 5-60 px, radial stand-off/triangulation ranges) are train; ``radial-random-val``
+  and ``view-random-val`` (the same randomisers, val gears and seeds) are val; the product's ``default`` rig
   and the families of :mod:`gearscan.twin.families` (radial rigs outside the training ranges,
   side, oblique and face views) are test.
 - **seed**: the scene seed (rig, optics, start angles and noise of a test scene derive from it).
@@ -98,11 +100,11 @@ TEST_RIG_FAMILIES = frozenset({"default", "radial-wide", "side", "oblique", "fac
 
 SPLITS: dict[SplitName, Split] = {
     "train": Split(
-        "train", _TRAIN_TEETH, frozenset({"radial-random"}), (SeedRange(1, 2), SeedRange(3, 10_000)),
+        "train", _TRAIN_TEETH, frozenset({"radial-random", "view-random"}), (SeedRange(1, 2), SeedRange(3, 10_000)),
         "fitting the weights",
     ),
     "val": Split(
-        "val", _VAL_TEETH, frozenset({"radial-random-val"}), (SeedRange(0, 1), SeedRange(2, 3), SeedRange(10_000, 20_000)),
+        "val", _VAL_TEETH, frozenset({"radial-random-val", "view-random-val"}), (SeedRange(0, 1), SeedRange(2, 3), SeedRange(10_000, 20_000)),
         "early stopping, model choice, sigma calibration, thresholds",
     ),
     "test": Split("test", _TEST_TEETH, TEST_RIG_FAMILIES, (SeedRange(20_000, 30_000),), "reporting only"),
