@@ -2,12 +2,14 @@
 
 Per burst, every method's wrapped phase is compared with the twin's analytic phase at the first
 frame's pose over its valid mask (DESIGN.md). The squared errors are summed per family, per
-motion group and per stratum of four pixel properties:
+motion group and per stratum of five pixel properties:
 
 - camera fringe period (px): ``2 pi / |grad phi|`` of the truth's absolute phase;
 - modulation: the truth's ``2B/S``;
 - distance to the mask edge (px): Euclidean distance transform of the truth mask;
-- burst span (deg, frame 1 to 3; moving bursts only).
+- burst span (deg, frame 1 to 3; moving bursts only);
+- image motion (px): how far the surface point seen at frame 1 moves in the camera by frame 3
+  (moving bursts only; the same span moves a large gear's rim further).
 
 Strata of one axis partition the pixels of their group (a last ``n/a`` bin takes non-finite
 values), so their counts add up to the pooled count. A stratum where the network's RMSE is above
@@ -115,8 +117,11 @@ AXES: tuple[Axis, ...] = (
     Axis("modulation", "2B/S", (0.1, 0.2, 0.3, 0.5)),
     Axis("distance to mask edge", "px", (2.0, 4.0, 8.0, 16.0)),
     Axis("burst span", "deg", (0.25, 0.75, 1.25, 1.5, 1.75)),
+    Axis("image motion", "px", (1.0, 2.0, 4.0, 8.0, 16.0)),
 )
 SPAN_AXIS = AXES[3].name
+MOTION_AXIS = AXES[4].name
+MOVING_ONLY = (SPAN_AXIS, MOTION_AXIS)
 
 
 def camera_period_px(phase_abs: np.ndarray) -> np.ndarray:
@@ -126,8 +131,24 @@ def camera_period_px(phase_abs: np.ndarray) -> np.ndarray:
         return 2 * np.pi / np.hypot(gx, gy)
 
 
+def image_motion_px(case: BurstCase) -> np.ndarray:
+    """How far (camera px) each truth-mask surface point moves from frame 1 to frame 3.
+
+    The point seen at frame 1 is turned by the burst's span about the turntable axis and
+    projected again: the motion the three-step decode suffers, in the camera's own units
+    (degrees say little alone: the same span moves a large gear's rim further).
+    """
+    from gearscan.rig import rot_z
+
+    cam = case.scene.rig.camera
+    p_cam = case.truth.points[case.truth.mask].astype(np.float64)
+    p_world = p_cam @ cam.T_world_from[:3, :3].T + cam.T_world_from[:3, 3]
+    turn = rot_z(float(np.radians(case.angles_deg[2] - case.angles_deg[0])))[:3, :3]
+    return np.linalg.norm(cam.project(p_world @ turn.T) - cam.project(p_world), axis=1)
+
+
 def pixel_strata(case: BurstCase, span_deg: float) -> dict[str, np.ndarray]:
-    """The four stratum values of every truth-mask pixel of ``case`` (1-D, mask order)."""
+    """The stratum values of every truth-mask pixel of ``case`` (1-D, mask order)."""
     t = case.truth
     m = t.mask
     return {
@@ -135,6 +156,7 @@ def pixel_strata(case: BurstCase, span_deg: float) -> dict[str, np.ndarray]:
         AXES[1].name: np.hypot(t.M, t.D)[m],
         AXES[2].name: distance_transform_edt(m)[m],
         SPAN_AXIS: np.full(int(m.sum()), span_deg),
+        MOTION_AXIS: image_motion_px(case) if span_deg > 0 else np.zeros(int(m.sum())),
     }
 
 
@@ -247,7 +269,7 @@ class GeneralizationScorer:
                         c.sigmas.setdefault(k, []).append(np.maximum(sig, 1e-6).astype(np.float32))
         values = pixel_strata(case, motion.span_deg)
         for axis in AXES:
-            if axis.name == SPAN_AXIS and motion.kind == STILL:
+            if axis.name in MOVING_ONLY and motion.kind == STILL:
                 continue
             idx = axis.bins(values[axis.name])
             nb = len(axis.labels)
