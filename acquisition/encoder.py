@@ -220,10 +220,6 @@ class EncoderReader:
         import serial
 
         self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05)
-        try:  # lines a previous run left unread are stale: their times and counts are not this run's
-            self._serial.reset_input_buffer()
-        except (OSError, serial.SerialException):
-            pass  # some URL handlers cannot flush; their first lines then count as out of order
         try:
             self._serial.write(b"HELLO\n")
         except (OSError, serial.SerialException):

@@ -183,31 +183,3 @@ def test_mock_counts_lines_left_unread_at_unplug(tmp_path):
         assert unread_lines(recent, 0) == (0, 0)
     finally:
         port.close()
-
-
-def test_stale_input_from_a_previous_run_is_flushed_on_open(tmp_path):
-    """Lines waiting in the port before the reader opens it (a previous run's leftovers) are dropped,
-    not parsed as this run's samples: a fresh seq 5 after stale seq 900 is not 'out of order'."""
-    import tty
-
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    link = tmp_path / "enc"
-    link.symlink_to(os.ttyname(slave))
-    stale = b"".join(RawSample(seq, 1000 * seq, seq, False, 0).encode() for seq in range(890, 900))
-    os.write(master, stale)
-    time.sleep(0.05)
-    reader = EncoderReader(str(link), CPR)
-    try:
-        reader.start()
-        fresh = b"".join(RawSample(seq, 1000 * seq, seq, False, 0).encode() for seq in range(5, 15))
-        os.write(master, fresh)
-        deadline = time.monotonic() + 3
-        while reader.stats.samples < 10 and time.monotonic() < deadline:
-            time.sleep(0.02)
-    finally:
-        reader.stop()
-        os.close(master)
-        os.close(slave)
-    assert reader.stats.samples == 10 and reader.stats.out_of_order == 0
-    assert reader.last_sample.seq == 14
