@@ -1,6 +1,6 @@
 """Generalization of the shipped network on the TEST split: families a user would bring, stratified.
 
-    .venv/bin/python benchmarks/generalization.py [--scenes 16] [--mc-scenes 3] [--quick]
+    .venv/bin/python benchmarks/generalization.py [--scenes 16] [--mc-scenes 2] [--quick]
 
 Scenes come from :mod:`gearscan.twin.families` (fixed test seeds, rendered on the fly: nothing on
 disk); per scene the paper's three motions both ways, two random spans in (0, 2] deg (random

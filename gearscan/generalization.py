@@ -397,6 +397,9 @@ def plot_strata(strata: list[StratumScore], families: list[str], path, title: st
     for r, kind in enumerate((MOVING, STILL)):
         for c, axis in enumerate(AXES):
             ax = axes[r, c]
+            if kind == STILL and axis.name in MOVING_ONLY:
+                ax.axis("off")
+                continue
             labels = [lb for lb in axis.labels if lb != "n/a"]
             for k, fam in enumerate(families):
                 by = {s.label: s for s in strata if s.family == fam and s.kind == kind and s.axis == axis.name}
