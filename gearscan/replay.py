@@ -17,6 +17,7 @@ import numpy as np
 
 from gearscan.measure import CadScorer, Decoder, Measurement, Reconstructor, classical_result
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
+from gearscan.recon.fuse import CloudFuser, FusedCloud
 from gearscan.recon.phase import phase_error
 from gearscan.recording import RecordingError, RecordingReader
 from gearscan.types import Burst
@@ -32,6 +33,7 @@ class ReplayMetrics:
     pipeline: dict[str, dict[str, float]] = field(default_factory=dict)
     assembler: dict[str, int] = field(default_factory=dict)
     damage: dict = field(default_factory=dict)  # RecordingReader.damage_summary(): skipped damage
+    fused: FusedCloud | None = None  # the revolution fused in the gear frame (replay(fuse=...))
 
     @property
     def bursts(self) -> int:
@@ -131,6 +133,7 @@ def replay(
     truth: bool = True,
     on_burst: Callable[[Measurement, dict], None] | None = None,
     unwrap: str = "cad",
+    fuse: CloudFuser | None = None,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
@@ -141,6 +144,9 @@ def replay(
     Damage (a bad frame, index or encoder line) is skipped and logged once; the bursts it
     touches are dropped by the assembler, every other burst is measured, and
     ``metrics.damage`` lists it (``gearscan replay --strict`` turns it into a failure).
+
+    ``fuse``: every burst's cloud goes into this fuser; at the end ``metrics.fused`` holds the
+    fused model with its signed deviation from the CAD, also logged to the viewer.
     """
     from gearscan.acquisition.bursts import BurstAssembler
     from gearscan.acquisition.camera import GrabTimeout
@@ -188,15 +194,31 @@ def replay(
         if logger:
             logger.log_burst(m.burst, m.result, mask=mask, cloud=m.cloud, error=err,
                              stats={k: v for k, v in row.items() if k.endswith(("rmse_rad", "rms_mm"))})
+        if fuse is not None and m.cloud is not None and len(m.cloud):
+            fuse.add(m.cloud)
         if on_burst:
             on_burst(m, row)
+
+    def close_output() -> None:
+        if fuse is not None and fuse.bursts_added:
+            try:
+                fused = fuse.result()
+            except ValueError as exc:  # no point in any burst
+                log.warning("nothing fused: %s", exc)
+            else:
+                metrics.fused = fused.with_deviation(CadScorer(gear).distances(fused.points)) if gear is not None else fused
+                if logger and metrics.fused.deviation is not None:
+                    logger.log_fused(metrics.fused.points, metrics.fused.deviation, bursts=fused.bursts_added,
+                                     sigma=fused.sigma)
+        if logger:
+            logger.close()
 
     stages = [
         StageSpec("assemble", assembler.push),
         StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2, workers=getattr(decoder, "workers", 1)),
         StageSpec("reconstruct", (lambda m: recon(m.burst, m.result)) if recon else (lambda m: m),
                   close=recon.close if recon else None),
-        StageSpec("output", output, close=logger.close if logger else None, queue_size=8),
+        StageSpec("output", output, close=close_output, queue_size=8),
     ]
     if speed is None:  # as fast as possible: nothing may be dropped
         for s in stages:

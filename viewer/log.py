@@ -10,6 +10,9 @@ Entity layout (stable, the blueprint and the tests rely on it)::
     world/camera/sigma_rad/total      total uncertainty, float32 values (rad)
     world/camera/error                |phase error| vs truth, magma 0..0.5 rad, when truth exists
     world/cloud                       points (turntable frame), coloured by uncertainty
+    world/fused                       the revolution's fused model (gear frame), coloured by
+                                      signed deviation from CAD; legend in fused/legend (text)
+                                      and fused/colorbar (image), logged once at the end
     stats/*                           scalars (encoder angle, rmse, latency)
 Timelines: ``burst`` (sequence) and ``capture_time`` (device time since the camera's epoch);
 the turntable angle is a scalar plot (``stats/turntable_deg``).
@@ -101,6 +104,50 @@ def default_blueprint(rig: Rig | None = None):
         ),
         collapse_panels=True,
     )
+
+
+DEVIATION_RANGE_MM = 0.1  # fused cloud colours: -range (blue, material missing) .. +range (red)
+
+
+def fused_blueprint():
+    """The fused model large, with its deviation legend beside it (sent when the model is logged)."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(name="fused model: deviation from CAD", origin="world", contents="world/fused"),
+            rrb.Vertical(
+                rrb.TextDocumentView(name="legend", origin="fused/legend"),
+                rrb.Spatial2DView(name="colour scale (mm)", origin="fused/colorbar"),
+                row_shares=[3, 1],
+            ),
+            column_shares=[3, 1],
+        ),
+        collapse_panels=True,
+    )
+
+
+def deviation_legend(deviation: np.ndarray, range_mm: float, bursts: int, sigma: np.ndarray | None = None) -> str:
+    """Markdown legend of the fused cloud's colours and the deviation it shows."""
+    d = deviation[np.isfinite(deviation)]
+    lines = [
+        "## Fused model: signed deviation from CAD",
+        "",
+        "| colour | deviation |",
+        "|---|---|",
+        f"| blue | <= -{range_mm:g} mm (material missing) |",
+        "| white | 0 mm (on the CAD) |",
+        f"| red | >= +{range_mm:g} mm (material added) |",
+        "",
+        f"{len(deviation):,} points fused from {bursts} bursts.",
+    ]
+    if d.size:
+        p5, p50, p95 = np.percentile(d, [5, 50, 95])
+        lines += [f"Deviation: median {p50:+.3f} mm, 5-95 % {p5:+.3f} to {p95:+.3f} mm, "
+                  f"RMS {float(np.sqrt(np.mean(d**2))):.3f} mm."]
+    if sigma is not None and len(sigma):
+        lines += [f"Fused sigma: median {float(np.median(sigma)) * 1e3:.1f} µm."]
+    return "\n".join(lines)
 
 
 class RerunLogger:
@@ -229,6 +276,24 @@ class RerunLogger:
         s.log("stats/turntable_deg", rr.Scalars(np.degrees(burst.angles[0])))
         for k, v in (stats or {}).items():
             s.log(f"stats/{k}", rr.Scalars(float(v)))
+
+    def log_fused(self, points: np.ndarray, deviation: np.ndarray, *, bursts: int,
+                  sigma: np.ndarray | None = None, range_mm: float = DEVIATION_RANGE_MM) -> None:
+        """Log the fused model coloured by signed deviation from CAD (mm, fixed scale +-``range_mm``)
+        with a text legend and a colour bar, and show it (:func:`fused_blueprint`)."""
+        rr, s = self.rr, self.stream
+        if not range_mm > 0:
+            raise ValueError(f"range_mm: expected > 0, got {range_mm}")
+        try:
+            colors = colorize(deviation, -range_mm, range_mm, "coolwarm")
+            s.log("world/fused", rr.Points3D(points, colors=colors, radii=rr.Radius.ui_points(1.5)), static=True)
+            s.log("fused/legend", rr.TextDocument(deviation_legend(deviation, range_mm, bursts, sigma),
+                                                   media_type=rr.MediaType.MARKDOWN), static=True)
+            ramp = np.linspace(range_mm, -range_mm, 256, dtype=np.float32)[:, None].repeat(24, axis=1)
+            s.log("fused/colorbar", rr.Image(colorize(ramp, -range_mm, range_mm, "coolwarm")), static=True)
+            s.send_blueprint(fused_blueprint())
+        except RuntimeError as exc:
+            self._viewer_lost(exc)
 
     def close(self) -> None:
         try:

@@ -1,0 +1,183 @@
+"""Fuse the clouds of a revolution into one gear-frame model, weighted by each point's sigma.
+
+Every burst's :class:`~gearscan.types.Cloud` is already in the gear (turntable) frame at its
+encoder angle (:func:`~gearscan.recon.triangulate.to_turntable`), so the clouds of successive
+bursts overlap where they saw the same surface. :class:`CloudFuser` bins the points into
+cubic voxels and keeps, per voxel, the inverse-variance weighted mean position
+
+    p = sum(w_i p_i) / sum(w_i),  w_i = 1 / sigma_i**2,   sigma = 1 / sqrt(sum(w_i))
+
+and how many points and how many different bursts fell into it. ``sigma`` is the fused
+standard error under the assumption that the points' errors are independent (noise, the
+motion-induced ripple that moves with the fringes); a systematic error shared by all bursts
+(calibration) does not average out and is not in it.
+
+The fuser streams: :meth:`CloudFuser.add` reduces a burst to its voxels at once and merges the
+tables in batches, so memory follows the gear's surface, not the number of bursts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gearscan.types import Cloud
+
+_BITS = 21  # voxel index bits per axis: +-2**20 voxels (+-105 m at 0.1 mm)
+_OFFSET = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+
+
+@dataclass(frozen=True)
+class FusedCloud:
+    """The fused model: one point per occupied voxel, gear frame, mm.
+
+    ``sigma`` is the inverse-variance standard error of ``points`` (mm), ``bursts`` how many
+    bursts saw the voxel, ``samples`` how many points went into it, ``deviation`` the signed
+    distance to the CAD (mm, + outside the material) when it was computed.
+    """
+
+    points: np.ndarray
+    sigma: np.ndarray
+    bursts: np.ndarray
+    samples: np.ndarray
+    voxel_mm: float
+    bursts_added: int
+    deviation: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def select(self, keep: np.ndarray) -> FusedCloud:
+        """The points where boolean ``keep`` is True (every per-point array alike)."""
+        dev = None if self.deviation is None else self.deviation[keep]
+        return FusedCloud(self.points[keep], self.sigma[keep], self.bursts[keep], self.samples[keep],
+                          self.voxel_mm, self.bursts_added, dev)
+
+    def with_deviation(self, deviation: np.ndarray) -> FusedCloud:
+        """A copy with ``deviation`` (mm, one per point) set."""
+        deviation = np.asarray(deviation, dtype=np.float64)
+        if deviation.shape != (len(self),):
+            raise ValueError(f"deviation: expected ({len(self)},), got {deviation.shape}")
+        return FusedCloud(self.points, self.sigma, self.bursts, self.samples, self.voxel_mm,
+                          self.bursts_added, deviation)
+
+    def to_cloud(self) -> Cloud:
+        """As a :class:`Cloud` (frame "world"; pixels unknown), ``extras["bursts"]`` the counts."""
+        n = len(self)
+        return Cloud(points=self.points, sigma=self.sigma, pixels=np.full((n, 2), -1, np.int32), frame="world",
+                     deviation=self.deviation, extras={"bursts": self.bursts, "samples": self.samples})
+
+
+@dataclass
+class CloudFuser:
+    """Streaming inverse-variance voxel fusion of gear-frame clouds (see the module docstring).
+
+    ``voxel_mm``: edge of the cubic bins; smaller keeps more detail, larger averages more
+    bursts per point. ``min_bursts``: :meth:`result` keeps voxels seen by at least this many
+    bursts (a point a fringe off, or a stray one, lands alone in a voxel). Points with a non-finite position or a sigma that is not a positive
+    finite number are skipped and counted in ``skipped``.
+    """
+
+    voxel_mm: float = 0.1
+    min_bursts: int = 1
+    batch_points: int = 2_000_000
+    bursts_added: int = 0
+    skipped: int = 0
+    _tables: list[tuple[np.ndarray, ...]] = field(default_factory=list, repr=False)
+    _pending: int = field(default=0, repr=False)
+    _acc: tuple[np.ndarray, ...] | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.voxel_mm) and self.voxel_mm > 0):
+            raise ValueError(f"voxel_mm: expected a positive size in mm, got {self.voxel_mm}")
+        if self.min_bursts < 1:
+            raise ValueError(f"min_bursts: expected >= 1, got {self.min_bursts}")
+
+    def add(self, cloud: Cloud) -> None:
+        """Add one burst's cloud (gear frame, ``frame="world"``)."""
+        if cloud.frame != "world":
+            raise ValueError(f"cloud.frame: expected 'world' (gear/turntable frame at the encoder angle), "
+                             f"got {cloud.frame!r}; build clouds with a rig (to_turntable)")
+        pts = np.asarray(cloud.points, dtype=np.float64)
+        sigma = np.asarray(cloud.sigma, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1:] != (3,) or sigma.shape != (len(pts),):
+            raise ValueError(f"cloud: expected points (N, 3) and sigma (N,), got {pts.shape} and {sigma.shape}")
+        ok = np.isfinite(pts).all(axis=1) & np.isfinite(sigma) & (sigma > 0)
+        self.skipped += int((~ok).sum())
+        self.bursts_added += 1
+        if not ok.any():
+            return
+        pts, w = pts[ok], 1.0 / np.square(sigma[ok])
+        keys, inv = np.unique(self._keys(pts), return_inverse=True)
+        ones = np.ones(len(keys))  # this burst saw each of its voxels once
+        self._tables.append((keys, *_sums(inv, len(keys), w, pts * w[:, None], np.ones(len(w))), ones))
+        self._pending += len(keys)
+        if self._pending >= self.batch_points:
+            self._merge()
+
+    def _keys(self, pts: np.ndarray) -> np.ndarray:
+        idx = np.floor(pts / self.voxel_mm).astype(np.int64) + _OFFSET
+        if (idx < 0).any() or (idx > _MASK).any():
+            raise ValueError(f"points beyond +-{_OFFSET * self.voxel_mm / 1000:.0f} m of the gear frame's origin "
+                             f"at voxel {self.voxel_mm} mm: not gear-frame millimetres?")
+        return (idx[:, 0] << (2 * _BITS)) | (idx[:, 1] << _BITS) | idx[:, 2]
+
+    def _merge(self) -> None:
+        """Fold the pending per-burst tables into the accumulated one."""
+        tables = self._tables + ([self._acc] if self._acc is not None else [])
+        self._tables, self._pending = [], 0
+        if not tables:
+            return
+        keys, w, wp, n, b = (np.concatenate([t[i] for t in tables]) for i in range(5))
+        keys, inv = np.unique(keys, return_inverse=True)
+        self._acc = (keys, *_sums(inv, len(keys), w, wp, n, b))
+
+    def result(self, min_bursts: int | None = None) -> FusedCloud:
+        """The fused cloud so far: voxels seen by at least ``min_bursts`` bursts (default: the fuser's)."""
+        min_bursts = self.min_bursts if min_bursts is None else min_bursts
+        if min_bursts < 1:
+            raise ValueError(f"min_bursts: expected >= 1, got {min_bursts}")
+        self._merge()
+        if self._acc is None:
+            raise ValueError("nothing to fuse: no cloud with a valid point was added")
+        _, sw, swp, n, b = self._acc
+        keep = b >= min_bursts
+        return FusedCloud(points=swp[keep] / sw[keep, None], sigma=1.0 / np.sqrt(sw[keep]),
+                          bursts=b[keep].astype(np.int32), samples=n[keep].astype(np.int32),
+                          voxel_mm=self.voxel_mm, bursts_added=self.bursts_added)
+
+
+def _sums(inv: np.ndarray, k: int, w: np.ndarray, wp: np.ndarray, *counts: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per-key sums of the weights, the weighted positions ``(N, 3)`` and each of ``counts``."""
+    wp_sum = np.stack([np.bincount(inv, wp[:, j], minlength=k) for j in range(3)], axis=1)
+    return (np.bincount(inv, w, minlength=k), wp_sum, *(np.bincount(inv, c, minlength=k) for c in counts))
+
+
+def fuse(clouds, voxel_mm: float = 0.1, min_bursts: int = 1) -> FusedCloud:
+    """Fuse an iterable of gear-frame clouds at once (see :class:`CloudFuser`)."""
+    fuser = CloudFuser(voxel_mm, min_bursts)
+    for c in clouds:
+        fuser.add(c)
+    return fuser.result()
+
+
+def save_fused(fused: FusedCloud, path: str | Path) -> Path:
+    """Write the fused cloud as PLY/PCD (open3d) with ``sigma``, ``bursts`` and, if set, ``deviation``."""
+    import open3d as o3d
+
+    from gearscan.recon.cloud import EXPORT_SUFFIXES, to_open3d
+
+    path = Path(path)
+    if path.suffix.lower() not in EXPORT_SUFFIXES:
+        raise ValueError(f"fused cloud path: expected a suffix in {EXPORT_SUFFIXES}, got {path.suffix!r} ({path})")
+    if not len(fused):
+        raise ValueError("the fused cloud is empty: nothing to write")
+    pcd = to_open3d(fused.to_cloud())  # positions, sigma, deviation
+    pcd.point["bursts"] = o3d.core.Tensor(fused.bursts.astype(np.float32).reshape(-1, 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not o3d.t.io.write_point_cloud(str(path), pcd):
+        raise OSError(f"open3d could not write {path}: check the folder is writable")
+    return path
