@@ -178,6 +178,9 @@ def replay_cmd(
     still_span_deg: Annotated[float | None, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never; default 0.075)")] = None,
     strict: Annotated[bool, typer.Option(help="exit 1 when the recording has damage (default: skip it, measure the rest, exit 0)")] = False,
     unwrap: Annotated[str, typer.Option(help="fringe orders from the gear's CAD ('cad') or CAD-free from its envelope ('envelope')")] = "cad",
+    fuse: Annotated[Path | None, typer.Option(help="fuse every burst's cloud in the gear frame and write it here (.ply/.pcd: sigma, deviation from CAD, bursts)")] = None,
+    voxel_mm: Annotated[float, typer.Option(min=0.001, help="with --fuse: voxel edge of the fused model, mm")] = 0.1,
+    min_bursts: Annotated[int, typer.Option(min=1, help="with --fuse: keep fused points seen by at least this many bursts")] = 3,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
 
@@ -202,8 +205,22 @@ def replay_cmd(
     try:
         if unwrap not in ("cad", "envelope"):
             raise typer.BadParameter(f"expected 'cad' or 'envelope', got {unwrap!r}", param_hint="--unwrap")
+        if fuse is not None and fuse.suffix.lower() not in (".ply", ".pcd"):
+            raise typer.BadParameter(f"expected a .ply or .pcd file, got {fuse}", param_hint="--fuse")
+        fuser = None
+        if fuse is not None:
+            from gearscan.recon.fuse import CloudFuser
+
+            fuser = CloudFuser(voxel_mm, min_bursts)
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
-                        truth=truth, unwrap=unwrap)
+                        truth=truth, unwrap=unwrap, fuse=fuser)
+        if fuse is not None:
+            from gearscan.recon.fuse import save_fused
+
+            if result.fused is None or not len(result.fused):
+                raise RecordingError(f"--fuse: no point was seen by {min_bursts} bursts; nothing written to {fuse}")
+            save_fused(result.fused, fuse)
+            typer.echo(f"fused model: {len(result.fused):,} points from {result.fused.bursts_added} bursts -> {fuse}")
     except (RecordingError, PipelineError) as exc:
         raise _fail(str(exc)) from exc
     finally:
@@ -384,6 +401,39 @@ def evaluate_cmd(
     except (ValueError, FileNotFoundError) as exc:
         raise _fail(str(exc)) from exc
     typer.echo(f"report: {out / 'report.md'}")
+
+
+@app.command("inspect")
+def inspect_cmd(
+    recording: Annotated[Path, typer.Argument(help="recording folder of one revolution (or more) of the gear")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="report folder (report.md, report.json, plots, fused.ply)")] = Path("report"),
+    grade: Annotated[int | None, typer.Option(min=1, max=11, help="ISO 1328-1:2013 tolerance class to check against")] = None,
+    classical: Annotated[bool, typer.Option(help="decode with three-step PS instead of the network")] = False,
+    model: Annotated[Path | None, typer.Option(help="model weights (.safetensors); default: the shipped model")] = None,
+    voxel_mm: Annotated[float, typer.Option(min=0.001, help="voxel edge of the fused model, mm")] = 0.1,
+    min_bursts: Annotated[int, typer.Option(min=1, help="keep fused points seen by at least this many bursts")] = 3,
+    unwrap: Annotated[str, typer.Option(help="fringe orders from the CAD ('cad') or its envelope ('envelope')")] = "cad",
+    save: Annotated[Path | None, typer.Option(help="also write the rerun stream (bursts + fused model) to this .rrd")] = None,
+) -> None:
+    """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
+    from gearscan.inspect import QUANTITIES, run_inspection
+    from gearscan.pipeline import PipelineError
+    from gearscan.recording import RecordingError
+
+    if unwrap not in ("cad", "envelope"):
+        raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")
+    decoder = _decoder(classical, 0, model)
+    try:
+        report = run_inspection(recording, out, decoder=decoder, grade=grade, voxel_mm=voxel_mm, min_bursts=min_bursts,
+                                unwrap=unwrap, save=save, progress=lambda s: typer.echo(f"- {s}"))
+    except (RecordingError, PipelineError, ValueError) as exc:
+        raise _fail(str(exc)) from exc
+    summary = report.inspection.summary()
+    for key, (sym, text) in QUANTITIES.items():
+        tol = f" (class {grade}: {report.tolerances[key]:g})" if report.tolerances else ""
+        typer.echo(f"{sym}: {summary[key]:.1f} µm{tol}  {text}")
+    typer.echo(f"chipped teeth: {', '.join(map(str, report.inspection.chipped_teeth)) or 'none'}")
+    typer.echo(f"report: {report.files['markdown']}")
 
 
 def _register(module: str, names: list[str], target: typer.Typer = app) -> None:

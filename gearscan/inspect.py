@@ -1,0 +1,276 @@
+"""``gearscan inspect``: a recording of a revolution -> fused gear model -> ISO 1328-1 report.
+
+The recording is replayed through the measurement pipeline (:func:`gearscan.replay.replay`)
+with a :class:`~gearscan.recon.fuse.CloudFuser`; the fused model is inspected with
+:func:`gearscan.recon.inspect.inspect_gear` and written as ``report.json``, ``report.md``,
+``pitch.png``, ``runout.png``, ``profiles.png`` and ``fused.ply`` (sigma, deviation, bursts).
+With ``grade`` the ISO 1328-1:2013 tolerances of that class are stated next to each value.
+A twin recording with injected defects also gets its truth beside the measurement (labelled).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
+from gearscan.recon.inspect import Inspection, inspect_gear, iso1328_class, iso1328_tolerances
+from gearscan.recording import RecordingError, RecordingReader
+
+QUANTITIES = {  # key in Inspection.summary() -> (symbol, description)
+    "fp": ("fp", "single pitch deviation (largest |fp|)"),
+    "Fp": ("Fp", "total cumulative pitch deviation"),
+    "Fr": ("Fr", "runout (ball probe on the pitch circle, about the rotation axis)"),
+    "F_alpha": ("Fα", "total profile deviation (worst flank)"),
+    "ff_alpha": ("ffα", "profile form deviation (worst flank)"),
+    "fH_alpha": ("fHα", "profile slope deviation (largest |fHα|)"),
+}
+
+
+@dataclass(frozen=True)
+class InspectionReport:
+    """What ``gearscan inspect`` produced: the inspection, the fused model and the files written."""
+
+    inspection: Inspection
+    fused: FusedCloud
+    grade: int | None
+    tolerances: dict[str, float] | None
+    classes: dict[str, int | None]
+    revolution_deg: float
+    files: dict[str, Path]
+    truth: dict | None = None
+
+
+def revolution_deg(reader: RecordingReader) -> float:
+    """Turntable angle the recording's frames cover, degrees (360 or more: every tooth seen)."""
+    angles = np.array([r.encoder_angle for r in reader.records if r.encoder_angle is not None], dtype=float)
+    return float(np.degrees(angles.max() - angles.min())) if len(angles) else 0.0
+
+
+def truth_comparison(meta: dict, insp: Inspection) -> dict | None:
+    """The twin's injected answer next to the measurement (None for a recording without defects)."""
+    truth = meta.get("truth")
+    if not truth:
+        return None
+    ecc = 1e3 * float(np.hypot(*truth.get("eccentricity_mm", [0.0, 0.0])))
+    out = {
+        "eccentricity_um": {"truth": ecc, "measured": insp.eccentricity_um},
+        "runout_from_eccentricity_um": {"truth": truth.get("runout_from_eccentricity_um"),
+                                        "measured": insp.runout_from_eccentricity_um},
+        "chipped_teeth": {"truth": truth.get("chipped_teeth", []), "measured": list(insp.chipped_teeth)},
+    }
+    for side in ("left", "right"):
+        t_fp = np.asarray(truth["single_pitch_um"][side], dtype=float)
+        m_fp = np.asarray(insp.single_pitch_um[side], dtype=float)
+        out[f"Fp_um_{side}"] = {"truth": truth["total_cumulative_pitch_um"][side], "measured": insp.Fp_um[side]}
+        out[f"fp_um_{side}"] = {"truth": float(np.max(np.abs(t_fp))), "measured": insp.fp_um[side],
+                                "largest_per_tooth_error": float(np.nanmax(np.abs(m_fp - t_fp)))}
+    return out
+
+
+def run_inspection(
+    recording: str | Path,
+    out: str | Path,
+    *,
+    decoder: Callable | None = None,
+    grade: int | None = None,
+    voxel_mm: float = 0.1,
+    min_bursts: int = 3,
+    unwrap: str = "cad",
+    save: str | Path | None = None,
+    progress: Callable[[str], None] | None = None,
+    **inspect_options,
+) -> InspectionReport:
+    """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
+
+    ``decoder``: as for :func:`~gearscan.replay.replay` (default three-step PS); ``save``: also
+    write the rerun stream (bursts and the fused model) there. ``inspect_options`` go to
+    :func:`~gearscan.recon.inspect.inspect_gear`.
+    """
+    from gearscan.replay import replay
+
+    say = progress or (lambda s: None)
+    reader = RecordingReader(recording)
+    gear = reader.gear
+    if gear is None:
+        raise RecordingError(f"{reader.path}/recording.json: no 'gear' section: inspection needs the gear's nominal spec")
+    if grade is not None:
+        iso1328_tolerances(gear.module, 2 * gear.pitch_radius, grade)  # refuse a bad grade before the replay
+    span = revolution_deg(reader)
+    say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
+    fuser = CloudFuser(voxel_mm, min_bursts)
+    metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save)
+    if metrics.fused is None or not len(metrics.fused):
+        raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
+    fused = metrics.fused
+    say(f"fused {len(fused):,} points from {fused.bursts_added} bursts; inspecting")
+    insp = inspect_gear(fused.points, fused.sigma, gear, voxel_mm=voxel_mm, **inspect_options)
+    d = 2 * gear.pitch_radius
+    tolerances = iso1328_tolerances(gear.module, d, grade) if grade is not None else None
+    try:
+        classes = iso1328_class(insp.summary(), gear.module, d)
+    except ValueError:  # module or diameter outside ISO 1328-1's range: no class to state
+        classes = {}
+    truth = truth_comparison(reader.meta, insp)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"fused": save_fused(fused, out / "fused.ply")}
+    files.update(write_plots(insp, out, tolerances))
+    report = InspectionReport(insp, fused, grade, tolerances, classes, span, files, truth)
+    files["json"] = out / "report.json"
+    files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
+    files["markdown"] = out / "report.md"
+    files["markdown"].write_text(report_markdown(report, reader.path))
+    return report
+
+
+def report_json(report: InspectionReport, recording: Path) -> dict:
+    """The report as JSON (NaN as null)."""
+    insp = report.inspection
+    return {
+        "recording": str(recording),
+        "revolution_deg": report.revolution_deg,
+        "fused": {"points": len(report.fused), "bursts": report.fused.bursts_added, "voxel_mm": report.fused.voxel_mm,
+                  "median_sigma_um": 1e3 * float(np.median(report.fused.sigma)),
+                  "median_bursts_per_point": float(np.median(report.fused.bursts))},
+        "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
+        "grade": report.grade,
+        "tolerances_um": report.tolerances,
+        "iso1328_class": report.classes,
+        "inspection": insp.to_json(),
+        "twin_truth": report.truth,
+        "files": {k: str(v) for k, v in report.files.items()},
+    }
+
+
+def _num(v: float) -> float | None:
+    return float(v) if v is not None and np.isfinite(v) else None
+
+
+def _fmt(v: float | None, digits: int = 1) -> str:
+    return "–" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
+
+
+def report_markdown(report: InspectionReport, recording: Path) -> str:
+    """A human-readable report: summary with tolerances, per-tooth table, plots."""
+    insp, tol = report.inspection, report.tolerances
+    summary = insp.summary()
+    lines = [
+        f"# Gear inspection: {recording.name}",
+        "",
+        f"Gear: z = {insp.teeth}, m = {insp.module:g} mm, pitch diameter {insp.pitch_diameter_mm:.2f} mm. "
+        f"Fused model: {len(report.fused):,} points from {report.fused.bursts_added} bursts over "
+        f"{report.revolution_deg:.0f}° of the turntable (voxel {report.fused.voxel_mm:g} mm, median "
+        f"{np.median(report.fused.bursts):.0f} bursts and σ {1e3 * np.median(report.fused.sigma):.1f} µm per point).",
+        "",
+        f"Gear axis fitted from the flanks: {insp.eccentricity_um:.1f} µm from the turntable axis towards "
+        f"{insp.eccentricity_deg:.1f}°; transverse section z = {insp.section_mm[0]:.1f} to {insp.section_mm[1]:.1f} mm.",
+    ]
+    if report.revolution_deg < 360 - 360 / insp.teeth:
+        lines += ["", f"**Warning:** the recording covers {report.revolution_deg:.0f}° only: teeth never seen have no "
+                  "pitch or profile, and Fp covers the teeth that were."]
+    head = "| quantity | measured (µm) |" + (f" tolerance class {report.grade} (µm) | within |" if tol else "") + " ISO 1328-1 class |"
+    lines += ["", "## Summary", "", head, "|---|---|" + ("---|---|" if tol else "") + "---|"]
+    for key, (sym, text) in QUANTITIES.items():
+        v = summary.get(key, math.nan)
+        row = f"| {sym}: {text} | {_fmt(v)} |"
+        if tol:
+            row += f" {tol[key]:g} | {'yes' if np.isfinite(v) and abs(v) <= tol[key] else 'NO'} |"
+        cls = report.classes.get(key)
+        lines.append(row + f" {cls if cls is not None else '> 11' if report.classes else '–'} |")
+    lines += ["", f"Runout: {_fmt(insp.runout_from_eccentricity_um)} µm from the eccentricity (≈ 2e), "
+              f"{_fmt(insp.runout_about_gear_axis_um)} µm from the tooth spaces about the gear's own axis.", ""]
+    chipped = ", ".join(str(t) for t in insp.chipped_teeth) or "none"
+    lines += [f"**Chipped / damaged teeth:** {chipped}.", ""]
+    lines += ["## Per tooth", "",
+              "| tooth | fp left | fp right | Fp,k left | Fp,k right | runout (space k/k+1) | Fα left | Fα right | tip: missing mm² | flag |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    fl = {(f.tooth, f.side): f for f in insp.flanks}
+    for k in range(insp.teeth):
+        tip = insp.tips[k]
+        lines.append(
+            f"| {k} | {_fmt(insp.single_pitch_um['left'][k])} | {_fmt(insp.single_pitch_um['right'][k])} | "
+            f"{_fmt(insp.cumulative_pitch_um['left'][k])} | {_fmt(insp.cumulative_pitch_um['right'][k])} | "
+            f"{_fmt(insp.runout_curve_um[k])} | {_fmt(fl[(k, 'left')].F_alpha_um)} | {_fmt(fl[(k, 'right')].F_alpha_um)} | "
+            f"{tip.missing_mm2:.2f} | {'CHIPPED' if tip.chipped else ''} |")
+    if report.truth:
+        lines += ["", "## Twin truth (injected defects) vs measured", "", "| quantity | truth | measured |", "|---|---|---|"]
+        for key, val in report.truth.items():
+            t, m = val["truth"], val["measured"]
+            lines.append(f"| {key} | {t if isinstance(t, list) else _fmt(t)} | {m if isinstance(m, list) else _fmt(m)} |")
+    lines += ["", "## Plots", "", "![pitch](pitch.png)", "", "![runout](runout.png)", "", "![profiles](profiles.png)", "",
+              "Definitions: `gearscan.recon.inspect` (fp, Fp about the fitted gear axis on the pitch circle; Fr ball "
+              "probe; Fα, ffα, fHα over the evaluation range "
+              f"{insp.settings['evaluation_roll_mm'][0]:.2f}-{insp.settings['evaluation_roll_mm'][1]:.2f} mm of roll "
+              "length); tolerances ISO 1328-1:2013 eq. 5-9, F_rT = 0.9 F_pT.", ""]
+    return "\n".join(lines)
+
+
+def write_plots(insp: Inspection, out: Path, tolerances: dict[str, float] | None) -> dict[str, Path]:
+    """pitch.png, runout.png and profiles.png (matplotlib, Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    teeth = np.arange(insp.teeth)
+    files = {}
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    for i, side in enumerate(("left", "right")):
+        a1.bar(teeth + (i - 0.5) * 0.4, insp.single_pitch_um[side], width=0.4, label=f"{side} flanks")
+        a2.plot(teeth, insp.cumulative_pitch_um[side], "o-", label=f"{side} flanks")
+    if tolerances:
+        for a, key in ((a1, "fp"), (a2, "Fp")):
+            for sgn in (-1, 1):
+                a.axhline(sgn * tolerances[key], color="r", ls="--", lw=0.8)
+    a1.set_ylabel("single pitch fp (µm)")
+    a2.set_ylabel("cumulative pitch Fp,k (µm)")
+    a2.set_xlabel("tooth (pitch k: from tooth k-1 to k)")
+    a1.set_title(f"Pitch: Fp left {_fmt(insp.Fp_um['left'])} µm, right {_fmt(insp.Fp_um['right'])} µm")
+    a1.legend()
+    a2.set_xticks(teeth)
+    fig.tight_layout()
+    files["pitch"] = out / "pitch.png"
+    fig.savefig(files["pitch"], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    gaps = teeth + 0.5
+    ax.plot(gaps, insp.runout_curve_um, "o-", label="ball probe radial position")
+    fine = np.linspace(0, insp.teeth, 200)
+    ecc = insp.eccentricity_um * np.cos(np.radians(fine * 360 / insp.teeth + insp.rotation_deg - insp.eccentricity_deg))
+    ax.plot(fine, ecc, "--", label=f"eccentricity {insp.eccentricity_um:.1f} µm")
+    ax.set_xlabel("tooth space (between tooth k and k+1)")
+    ax.set_ylabel("radial position (µm)")
+    ax.set_title(f"Runout Fr = {_fmt(insp.Fr_um)} µm")
+    if tolerances:
+        ax.axhline(np.nanmin(insp.runout_curve_um) + tolerances["Fr"], color="r", ls="--", lw=0.8, label="F_rT")
+    ax.legend()
+    fig.tight_layout()
+    files["runout"] = out / "runout.png"
+    fig.savefig(files["runout"], dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), sharey=True)
+    for ax, side in zip(axes, ("left", "right"), strict=True):
+        for f in insp.flanks:
+            if f.side == side and f.measured:
+                chipped = f.tooth in insp.chipped_teeth
+                ax.plot(f.roll_mm, f.trace_um, lw=2 if chipped else 0.8, color="r" if chipped else None,
+                        label=f"tooth {f.tooth} (chipped)" if chipped else None)
+        ax.set_title(f"{side} flanks: profile deviation")
+        ax.set_xlabel("roll length (mm)")
+        ax.axhline(0, color="k", lw=0.5)
+    axes[0].set_ylabel("deviation along the normal (µm, + material)")
+    if insp.chipped_teeth:
+        axes[0].legend()
+    fig.tight_layout()
+    files["profiles"] = out / "profiles.png"
+    fig.savefig(files["profiles"], dpi=110)
+    plt.close(fig)
+    return files
