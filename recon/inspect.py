@@ -37,9 +37,11 @@ Steps and definitions (all in the transverse section band around mid-face):
    ``runout_from_eccentricity_um`` (the range of ``e cos(theta_k - phi)`` over the spaces, about
    ``2 e``) and ``runout_about_gear_axis_um`` (the spaces alone).
 6. **Chipped teeth**: in each tooth's tip zone (radius above ``r_a - tip_zone``, the whole
-   face) the points whose signed distance to the CAD moved onto the fitted axis is below
-   ``-chip_mm`` cover ``missing_mm2``; a tooth is flagged when that area exceeds
-   ``chip_area_mm2`` or its tip zone has under half the median tooth's points.
+   face) the signed distance to the CAD moved onto the fitted axis is averaged in tooth-local
+   cells and compared with the median tooth's in the same cell (errors that every tooth shares,
+   since all are seen through the same views, cancel); the cells more than ``chip_mm`` below
+   it cover ``missing_mm2``; a tooth is flagged when that area exceeds ``chip_area_mm2`` or its
+   tip zone has under half the median tooth's points.
 
 Tolerances: :func:`iso1328_tolerances` (ISO 1328-1:2013, eq. 5-9; runout annex).
 """
@@ -120,7 +122,8 @@ class Flank:
 
 @dataclass(frozen=True)
 class ToothTip:
-    """A tooth's tip zone: its points, the area deviating below ``-chip_mm`` and the deepest deviation."""
+    """A tooth's tip zone: its points, the area deviating below ``-chip_mm`` from the median tooth, and
+    the deepest such deviation (mm)."""
 
     tooth: int
     points: int
@@ -371,6 +374,8 @@ def _tips(points, gear, centre, theta0, cad_mesh, zone, chip_mm, area_mm2, voxel
     x, y = points[:, 0] - centre[0], points[:, 1] - centre[1]
     r = np.hypot(x, y)
     zone_pts = r > gear.tip_radius - zone
+    if not zone_pts.any():
+        raise ValueError(f"no point within {zone} mm of the tip circle: the cloud does not show the teeth's tips")
     c, s = math.cos(-theta0), math.sin(-theta0)
     aligned = np.stack([c * x - s * y, s * x + c * y, points[:, 2]], axis=1)[zone_pts]
     mesh = cad_mesh if cad_mesh is not None else gear.mesh()
@@ -378,12 +383,29 @@ def _tips(points, gear, centre, theta0, cad_mesh, zone, chip_mm, area_mm2, voxel
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(tmesh)
     dev = scene.compute_signed_distance(o3d.core.Tensor(aligned.astype(np.float32))).numpy().astype(np.float64)
-    tooth = np.round(np.arctan2(aligned[:, 1], aligned[:, 0]) / tau).astype(int) % z
+    ang = np.arctan2(aligned[:, 1], aligned[:, 0])
+    kk = np.round(ang / tau)
+    tooth = kk.astype(int) % z
     counts = np.bincount(tooth, minlength=z)
-    low = dev < -chip_mm
-    missing = np.bincount(tooth, low.astype(float), minlength=z) * voxel_mm**2
-    depth = np.full(z, 0.0)
-    np.minimum.at(depth, tooth, dev)
+    # tooth-local cells (arc across the tooth, radius, z): each tooth against the median tooth in
+    # the same cell, so errors every tooth shares (all are seen through the same views) cancel
+    cell = 0.1 if voxel_mm <= 0.1 else voxel_mm
+    arc = (ang - kk * tau) * gear.tip_radius
+    ia = np.floor((arc + gear.tip_radius * tau / 2) / cell).astype(int)
+    ir = np.floor((r[zone_pts] - (gear.tip_radius - zone)) / cell).astype(int)
+    iz = np.floor((aligned[:, 2] - aligned[:, 2].min()) / (4 * cell)).astype(int)
+    shape = (ia.max() + 1, ir.max() + 1, iz.max() + 1)
+    flat = np.ravel_multi_index((ia, ir, iz), shape)
+    n_cells = int(np.prod(shape))
+    idx = tooth * n_cells + flat
+    sums = np.bincount(idx, dev, minlength=z * n_cells).reshape(z, n_cells)
+    cnt = np.bincount(idx, minlength=z * n_cells).reshape(z, n_cells)
+    mean = np.where(cnt > 0, sums / np.maximum(cnt, 1), np.nan)
+    seen = np.isfinite(mean).sum(axis=0) >= max(3, z // 2)  # cells most teeth have
+    rel = mean[:, seen] - np.nanmedian(mean[:, seen], axis=0)
+    low = np.nan_to_num(rel, nan=0.0) < -chip_mm
+    missing = low.sum(axis=1) * cell * 4 * cell  # cell footprint across the tooth x along z
+    depth = np.nanmin(np.where(np.isfinite(rel), rel, 0.0), axis=1) if rel.size else np.zeros(z)
     typical = float(np.median(counts)) if counts.any() else 0.0
     return tuple(
         ToothTip(int(t), int(counts[t]), float(missing[t]), float(depth[t]),
