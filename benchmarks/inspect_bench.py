@@ -1,0 +1,168 @@
+"""Inspection benchmark (issue 14, item 5): a twin revolution with known defects, inspected.
+
+Twin: default rig, 512x512, 20-tooth module-2 gear, 0.6 deg/frame (200 three-frame bursts = one
+revolution), eccentric mounting 50 µm, tooth 3 turned +30 µm along the pitch circle, tooth 7's
+tip corner chipped 0.3 mm. ``gearscan inspect`` (shipped network, deterministic) fuses the
+revolution and reads fp, Fp, Fr; the fused cloud is scored against the TRUE (as-built) mesh,
+not the CAD. Writes ``benchmarks/inspect_report.md`` (+ ``.json``) with host and commit.
+
+    python benchmarks/inspect_bench.py [--recording DIR] [--classical]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+DEFECTS = {"eccentricity_um": 50.0, "pitch_errors": ["3:30"], "chips": ["7:0.3"]}
+
+
+def host() -> str:
+    cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                if ln.startswith("model name")), platform.processor())
+    flags = Path("/proc/cpuinfo").read_text()
+    isa = ", ".join(f for f in ("avx512f", "amx_tile") if f in flags) or "no AVX-512/AMX"
+    return f"{cpu}, {len(os.sched_getaffinity(0))} cores ({isa}), 1-min load {os.getloadavg()[0]:.2f} at start"
+
+
+def commit() -> str:
+    try:
+        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True).strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--recording", type=Path, default=Path("out/inspect_bench/rec"))
+    ap.add_argument("--out", type=Path, default=Path("out/inspect_bench/report"))
+    ap.add_argument("--classical", action="store_true", help="three-step PS instead of the network")
+    ap.add_argument("--voxel-mm", type=float, default=0.1)
+    ap.add_argument("--min-bursts", type=int, default=3)
+    args = ap.parse_args()
+
+    import open3d as o3d
+
+    from gearscan.inspect import run_inspection
+    from gearscan.measure import Decoder
+    from gearscan.recording import RecordingReader
+    from gearscan.twin.defects import GearDefects, true_mesh
+
+    started = host()
+    if not (args.recording / "recording.json").exists():
+        from gearscan.twin.recordings import render_recording
+
+        t = time.perf_counter()
+        render_recording(args.recording, defects=GearDefects.from_options(
+            eccentricity_um=DEFECTS["eccentricity_um"], pitch_errors=DEFECTS["pitch_errors"], chips=DEFECTS["chips"]),
+            motion="uniform:0.6", bursts=200)
+        print(f"rendered in {time.perf_counter() - t:.0f} s")
+    reader = RecordingReader(args.recording)
+    truth = reader.meta["truth"]
+    t = time.perf_counter()
+    report = run_inspection(args.recording, args.out, decoder=Decoder(classical=args.classical), grade=8,
+                            voxel_mm=args.voxel_mm, min_bursts=args.min_bursts, progress=print)
+    seconds = time.perf_counter() - t
+    insp, fused = report.inspection, report.fused
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
+    dist = np.abs(scene.compute_signed_distance(o3d.core.Tensor(fused.points.astype(np.float32))).numpy())
+    # coverage: share of the true surface (sampled uniformly) with a fused point within 2 voxels
+    o3d.utility.random.seed(0)
+    samples = np.asarray(true_mesh(reader.gear, GearDefects.from_meta(reader.meta)).sample_points_uniformly(200_000).points)
+    pcd = lambda pts: o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))  # noqa: E731
+    near = np.asarray(pcd(samples).compute_point_cloud_distance(pcd(fused.points))) <= 2 * args.voxel_mm
+    flank_side = np.abs(samples[:, 2]) < reader.gear.face_width / 2 - 1e-3  # not the two end faces
+    coverage = float(near[flank_side].mean())
+
+    strata = []
+    for lo, hi in ((args.min_bursts, 5), (5, 10), (10, 20), (20, 10**6)):
+        k = (fused.bursts >= lo) & (fused.bursts < hi)
+        if k.any():
+            strata.append((f"{lo}-{hi - 1}" if hi < 10**6 else f">= {lo}", int(k.sum()),
+                           float(np.sqrt(np.mean(dist[k] ** 2))), float(np.percentile(dist[k], 95))))
+    rms = float(np.sqrt(np.mean(dist**2)))
+    e_true = 1e3 * float(np.hypot(*truth["eccentricity_mm"]))
+    rows = [
+        ("eccentricity (µm)", e_true, insp.eccentricity_um),
+        ("runout from eccentricity (µm)", truth["runout_from_eccentricity_um"], insp.runout_from_eccentricity_um),
+        ("Fp left (µm)", truth["total_cumulative_pitch_um"]["left"], insp.Fp_um["left"]),
+        ("Fp right (µm)", truth["total_cumulative_pitch_um"]["right"], insp.Fp_um["right"]),
+        ("fp tooth 3 left (µm)", truth["single_pitch_um"]["left"][3], insp.single_pitch_um["left"][3]),
+        ("fp tooth 3 right (µm)", truth["single_pitch_um"]["right"][3], insp.single_pitch_um["right"][3]),
+    ]
+    fp_err = max(float(np.nanmax(np.abs(np.asarray(insp.single_pitch_um[s]) - np.asarray(truth["single_pitch_um"][s]))))
+                 for s in ("left", "right"))
+    ok = lambda t, m: abs(m - t) <= 5 + 0.05 * abs(t)  # noqa: E731
+    decoder = "three-step PS" if args.classical else "shipped network (deterministic)"
+    lines = [
+        "# Inspection benchmark (issue 14: fused revolution, ISO 1328-1 pitch and runout)",
+        "",
+        f"`python benchmarks/inspect_bench.py` — commit {commit()}, host: {started}.",
+        "",
+        f"Twin: default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, 200 bursts ({report.revolution_deg:.0f}° of encoder "
+        f"angle), eccentricity 50 µm, tooth 3 +30 µm pitch error, tooth 7 tip chipped 0.3 mm. Decoder: {decoder}. "
+        f"Replay + fusion + inspection: {seconds:.0f} s (the recording rendered beforehand by this script's "
+        "render step, or `gearscan twin render REC --bursts 200 --motion uniform:0.6 --eccentricity-um 50 "
+        "--pitch-error 3:30 --chip 7:0.3`).",
+        "",
+        "## Inspection vs the twin's truth (acceptance: within 5 µm + 5 %)",
+        "",
+        "| quantity | truth | measured | within |",
+        "|---|---|---|---|",
+        *[f"| {name} | {t:.1f} | {m:.1f} | {'yes' if ok(t, m) else 'NO'} |" for name, t, m in rows],
+        f"| largest per-tooth fp error, both sides (µm) | 0 | {fp_err:.1f} | {'yes' if fp_err <= 5 + 0.05 * 30 else 'NO'} |",
+        f"| chipped teeth | {truth['chipped_teeth']} | {list(insp.chipped_teeth)} | "
+        f"{'yes' if list(insp.chipped_teeth) == truth['chipped_teeth'] else 'NO'} |",
+        "",
+        f"Ball-probe runout Fr (about the turntable axis, spaces included): {insp.Fr_um:.1f} µm; the tooth "
+        f"spaces alone (about the gear axis): {insp.runout_about_gear_axis_um:.1f} µm (tooth 3's +30 µm narrows one "
+        "space and widens the next: ±41 µm of ball height at 20° pressure angle).",
+        "",
+        "Chipped-tooth check: tooth-local cells of each tip zone against the median tooth; the "
+        "largest missing area per tooth (mm²): " + ", ".join(f"{t.tooth}: {t.missing_mm2:.1f}" for t in
+                                                            sorted(insp.tips, key=lambda t: -t.missing_mm2)[:5])
+        + ". At this cloud's noise the chipped tooth is the worst but not alone above the 1 mm² threshold; "
+        "with still bursts (tests/test_inspect.py, three-step PS, 256 px) it is flagged alone.",
+        "",
+        "## Fused cloud vs the true (as-built) surface",
+        "",
+        f"{len(fused):,} fused points (voxel {args.voxel_mm} mm, kept when seen by >= {args.min_bursts} bursts; median "
+        f"{np.median(fused.bursts):.0f} bursts per point); coverage {100 * coverage:.1f} % of the true tooth surface "
+        f"(end faces excluded) has a fused point within {2 * args.voxel_mm:g} mm.",
+        "",
+        f"**RMS distance to the true surface: {rms * 1e3:.1f} µm** (p95 {1e3 * np.percentile(dist, 95):.1f} µm); "
+        f"target <= 10 µm: {'met' if rms <= 0.01 else 'NOT met'}.",
+        "",
+        "| bursts per fused point | points | RMS (µm) | p95 (µm) |",
+        "|---|---|---|---|",
+        *[f"| {name} | {n:,} | {1e3 * r:.1f} | {1e3 * p:.1f} |" for name, n, r, p in strata],
+        "",
+        "The fused error falls with the number of bursts that saw a point (their errors are largely "
+        "independent), but at 0.6°/frame a point of a flank is lit and seen in only a handful of bursts "
+        "per revolution, and each burst carries the network's motion-corrected error (about 0.1 mm RMS per "
+        "burst at 0.6°/frame on this rig): more revolutions, or a better per-burst result, are what "
+        "brings the fused cloud to 10 µm. Pitch and runout need far less: they average whole flanks, "
+        "and every tooth is seen through the same sequence of views, so errors common to all teeth cancel.",
+        "",
+    ]
+    (HERE / "inspect_report.md").write_text("\n".join(lines))
+    (HERE / "inspect_report.json").write_text(json.dumps({
+        "commit": commit(), "host": started, "seconds": seconds, "decoder": decoder,
+        "fused_rms_mm": rms, "fused_p95_mm": float(np.percentile(dist, 95)), "coverage": coverage,
+        "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "chipped": list(insp.chipped_teeth),
+        "truth_chipped": truth["chipped_teeth"], "Fr_um": insp.Fr_um}, indent=2))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
