@@ -422,10 +422,10 @@ def centred_unwrap(
 class RegionOrders:
     """Absolute phase from region-wise unwrapping, and why pixels have none (all ``(H, W)``).
 
-    ``phase_abs`` is NaN where unresolved; ``labels`` the connected region of each pixel
-    (0: not in a region); ``ambiguous`` marks candidate pixels left without an order (their
-    region's order could not be pinned down, the region is too small, or the pixel sits on a
-    phase step between regions); ``regions`` / ``resolved_regions`` count them.
+    ``phase_abs`` is NaN where unresolved; ``labels`` the region of each pixel (0: none):
+    regions of continuous phase (:func:`envelope_unwrap`) or the patches grown near the prior's
+    silhouettes (:func:`prior_unwrap`); ``ambiguous`` marks candidate pixels left without an
+    order; ``regions`` / ``resolved_regions`` count the regions and those that got an order.
     """
 
     phase_abs: np.ndarray
@@ -467,8 +467,7 @@ def spatial_regions(wrapped: np.ndarray, candidate: np.ndarray, *, max_step: flo
     return labels, int(n), np.asarray(spatial.filled(np.nan), dtype=np.float64)
 
 
-def _vote(labels: np.ndarray, n: int, k: np.ndarray, weight: np.ndarray | None = None
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _vote(labels: np.ndarray, n: int, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Most voted integer per region: ``(best_k, best_count, runner_up_count)``, each ``(n + 1,)``.
 
     ``labels`` (N,) region of each vote, ``k`` (N,) the voted integers (a few dozen distinct)."""
@@ -558,7 +557,10 @@ def prior_unwrap(
     surface: a real tooth larger than its CAD hides the tooth behind it, which the CAD still
     sees. There the order is carried in from the trusted pixels along continuous phase
     (:func:`grow_orders`, steps below ``grow_step`` rad); pixels it does not reach, or reaches
-    with disagreeing orders, get none and are counted (``ambiguous``).
+    with disagreeing orders, get none, and a grown patch that meets another patch or the interior
+    a fringe apart across continuous phase is dropped whole (one of the two came from the wrong
+    surface). All of them are counted (``ambiguous``). ``labels``/``regions`` of the result are
+    the grown patches, ``resolved_regions`` those kept.
     """
     from scipy import ndimage
 
