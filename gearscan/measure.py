@@ -1,9 +1,10 @@
 """The measurement stages between a burst and the viewer: decode, then reconstruct.
 
 ``Decoder`` turns a :class:`Burst` into a :class:`PhaseResult` (CD-DCU-Net, or three-step
-phase shifting as the classical fallback); ``Reconstructor`` unwraps it with the geometric
-constraint of the gear's tip and root cylinders, triangulates it with per-point depth
-uncertainty and moves the points into the turntable frame at the burst's encoder angle.
+phase shifting as the classical fallback); ``Reconstructor`` unwraps it within the rig's whole
+unambiguous range around the gear's CAD at the burst's encoder angle (or CAD-free from the
+gear's envelope), triangulates it with per-point depth uncertainty and moves the points into
+the turntable frame at that angle; ``CadScorer`` measures their deviation from the CAD.
 """
 
 from __future__ import annotations
