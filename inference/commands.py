@@ -5,6 +5,9 @@ Only light imports at module level; torch and friends load inside the functions.
 
 from __future__ import annotations
 
+import struct
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Annotated
 
@@ -34,31 +37,76 @@ def _read_images(paths: list[Path]):
     return np.stack(imgs)
 
 
-def load_frames(inputs: list[Path]):
-    """``(3, H, W)`` raw frames and full scale from an .npz (``frames``, optional ``full_scale``/``bit_depth``) or three images."""
+# what numpy and zipfile raise on a damaged .npz (bad zip, CRC, npy header, truncated data)
+_NPZ_ERRORS = (OSError, EOFError, ValueError, TypeError, KeyError, NotImplementedError, OverflowError,
+               MemoryError, RecursionError, SyntaxError, zipfile.BadZipFile, zlib.error, struct.error)
+_NPZ_EXPECTED = "an .npz from numpy.savez with 'frames' (3, H, W) uint8/uint16"
+
+
+def _read_npz(path: Path) -> dict:
+    """Every array of the .npz at ``path``, read whole, so damage fails here and names the file."""
     import numpy as np
 
+    try:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError(f"a {type(z).__name__}, not a zip of arrays")
+        with z:
+            return {k: z[k] for k in z.files}
+    except _NPZ_ERRORS as exc:
+        why = f"{type(exc).__name__}: {exc}"
+        raise typer.BadParameter(f"{path}: not a readable .npz ({why[:200]}); expected {_NPZ_EXPECTED}") from exc
+
+
+def _scalar(path: Path, arrays: dict, key: str, lo: float, hi: float, integer: bool = False) -> float | None:
+    """``arrays[key]`` as one finite number in ``[lo, hi]`` (None when absent)."""
+    import numpy as np
+
+    if key not in arrays:
+        return None
+    a = arrays[key]
+    kinds = "iu" if integer else "iuf"
+    if a.size != 1 or a.dtype.kind not in kinds or not np.isfinite(a).all() or not lo <= float(a.item()) <= hi:
+        what = "an integer" if integer else "a finite number"
+        raise typer.BadParameter(f"{path}: '{key}' expected {what} in [{lo:g}, {hi:g}], got {a.dtype} {a.shape} "
+                                 f"{np.array2string(a.ravel()[:3])}")
+    return float(a.item())
+
+
+def load_frames(inputs: list[Path]):
+    """``(3, H, W)`` raw frames, full scale and angles (rad, or None) from an .npz (``frames``,
+    optional ``full_scale``/``bit_depth``/``angles``) or three images; anything else, or a
+    damaged file, is a :class:`typer.BadParameter` naming the file and what was expected."""
+    import numpy as np
+
+    angles = None
     if len(inputs) == 1 and inputs[0].suffix == ".npz":
-        with np.load(inputs[0]) as z:
-            if "frames" not in z.files:
-                raise typer.BadParameter(f"{inputs[0]}: no array 'frames' (found {z.files})")
-            frames = z["frames"]
-            full_scale = None
-            if "full_scale" in z.files:
-                full_scale = float(z["full_scale"])
-            elif "bit_depth" in z.files:
-                full_scale = float((1 << int(z["bit_depth"])) - 1)
+        src = inputs[0]
+        arrays = _read_npz(src)
+        if "frames" not in arrays:
+            raise typer.BadParameter(f"{src}: no array 'frames' (found {sorted(arrays)}); expected {_NPZ_EXPECTED}")
+        frames = arrays["frames"]
+        full_scale = _scalar(src, arrays, "full_scale", 1e-12, 1e12)
+        bit_depth = _scalar(src, arrays, "bit_depth", 1, 16, integer=True)
+        if full_scale is None and bit_depth is not None:
+            full_scale = float((1 << int(bit_depth)) - 1)
+        if "angles" in arrays:
+            angles = arrays["angles"]
+            if angles.shape != (3,) or angles.dtype.kind not in "iuf" or not np.isfinite(angles).all():
+                raise typer.BadParameter(f"{src}: 'angles' expected three finite numbers (rad), "
+                                         f"got {angles.dtype} {angles.shape}")
+            angles = angles.astype(np.float64)
     elif len(inputs) == 3:
-        frames, full_scale = _read_images(inputs), None
+        src, frames, full_scale = "frames", _read_images(inputs), None
     else:
         raise typer.BadParameter(
             f"INPUT: expected one .npz with 'frames' or three image files, got {len(inputs)} path(s)"
         )
-    if frames.ndim != 3 or frames.shape[0] != 3:
-        raise typer.BadParameter(f"frames: expected (3, H, W), got shape {frames.shape}")
+    if frames.ndim != 3 or frames.shape[0] != 3 or 0 in frames.shape:
+        raise typer.BadParameter(f"{src}: 'frames' expected (3, H, W) with H, W > 0, got shape {frames.shape}")
     if frames.dtype not in (np.uint8, np.uint16):
-        raise typer.BadParameter(f"frames: expected uint8 or uint16, got {frames.dtype}")
-    return frames, full_scale
+        raise typer.BadParameter(f"{src}: 'frames' expected uint8 or uint16, got {frames.dtype}")
+    return frames, full_scale, angles
 
 
 def check_device(device: str, *, allow_auto: bool = False) -> str:
@@ -121,21 +169,18 @@ def predict(
     if precision not in PRECISIONS:
         raise typer.BadParameter(f"expected one of {', '.join(PRECISIONS)}, got {precision!r}", param_hint="--precision")
     check_device(device)
-    frames, full_scale = load_frames(inputs)
+    frames, full_scale, npz_angles = load_frames(inputs)
     try:
         predictor = Predictor.load(model, device=device, precision=precision)
     except ModelFileError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    angles = None
+    angles = npz_angles
     if angles_deg is not None:
         try:
             angles = np.radians([float(v) for v in angles_deg.split(",")])
         except ValueError as exc:
             raise typer.BadParameter(f"--angles-deg: expected three numbers 'A,B,C', got {angles_deg!r}") from exc
-    elif len(inputs) == 1 and inputs[0].suffix == ".npz":
-        with np.load(inputs[0]) as z:
-            angles = np.asarray(z["angles"], dtype=np.float64) if "angles" in z.files else None
     try:
         result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles)
     except ValueError as exc:  # a motion-input model without angles, or bad angles

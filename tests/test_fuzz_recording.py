@@ -18,7 +18,6 @@ import time
 import warnings
 from pathlib import Path
 
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -30,34 +29,25 @@ from gearscan.acquisition.encoder_protocol import (
     frame_line,
     parse_line,
 )
-from gearscan.projector.patterns import PatternSet
-from gearscan.recording import RecordingError, RecordingWriter
+from gearscan.fuzz import (
+    BAD_NUMBERS,
+    HOSTILE_BYTES,
+    INDEX_FILES,
+    OPS,
+    mutate,
+    write_small_recording,
+)
+from gearscan.recording import RecordingError
 from gearscan.replay import replay
-from gearscan.rig import default_rig
-from gearscan.twin.gear import GearSpec
-from gearscan.types import EncoderSample, Frame
 
 FUZZ = settings(max_examples=25, derandomize=True, deadline=None, database=None,
                 suppress_health_check=[HealthCheck.too_slow])
-FILES = ("recording.json", "frames.jsonl", "encoder.jsonl")
-BAD_NUMBERS = [b"NaN", b"Infinity", b"-Infinity", b"-1", str(2**70).encode(), b"1e999", b"-9223372036854775809"]
 
 
 @pytest.fixture(scope="module")
 def base(tmp_path_factory) -> Path:
     """3 bursts of 24x16 random 8-bit frames with 30 encoder samples: small enough to replay 100 times."""
-    out = tmp_path_factory.mktemp("fuzz") / "rec"
-    rig = default_rig(24, 16)
-    meta = {"rig": rig.to_json(), "patterns": PatternSet.three_step(40.0).to_json(), "gear": GearSpec().model_dump()}
-    rng = np.random.default_rng(0)
-    with RecordingWriter(out, meta) as w:
-        for i in range(30):
-            w.write_encoder(EncoderSample(seq=i, device_time_us=1000 * i, count=3 * i, index=i == 0,
-                                          angle=0.001 * i, host_time_ns=10**6 * i))
-        for i in range(9):
-            w.write_frame(Frame(rng.integers(0, 256, (16, 24), dtype=np.uint8), 100 + i, 3 * 10**6 * i, i % 3,
-                                1000.0, 8, 3 * 10**6 * i, 0.003 * i))
-    return out
+    return write_small_recording(tmp_path_factory.mktemp("fuzz") / "rec")
 
 
 def _outcome(rec: Path) -> tuple[str, object, list]:
@@ -132,30 +122,11 @@ def _invalid_lines(path: Path, ok) -> set[int]:
     return bad
 
 
-def _mutate(data: bytes, op: str, pos: int, payload: bytes) -> bytes:
-    pos = pos % (len(data) + 1)
-    if op == "flip":
-        pos = min(pos, len(data) - 1)
-        return data[:pos] + bytes([data[pos] ^ (1 << (payload[0] % 8 if payload else 0))]) + data[pos + 1:]
-    if op == "cut":
-        return data[:pos]
-    if op == "insert":
-        return data[:pos] + payload + data[pos:]
-    # "number": replace the digits run at or after pos by a hostile number
-    digits = [k for k in range(pos, len(data)) if data[k:k + 1].isdigit()]
-    if not digits:
-        return data
-    start = end = digits[0]
-    while end < len(data) and data[end:end + 1].isdigit():
-        end += 1
-    return data[:start] + (payload or b"NaN") + data[end:]
-
-
 mutation = st.tuples(
-    st.sampled_from(FILES),
-    st.sampled_from(["flip", "cut", "insert", "number"]),
+    st.sampled_from(INDEX_FILES),
+    st.sampled_from(OPS),
     st.integers(0, 10_000),
-    st.one_of(st.sampled_from([b"\xff\xfe", b"\xc3\x28", b"\x00", b"\n", b"{", b'"', b"[[[[[[[["]),
+    st.one_of(st.sampled_from(HOSTILE_BYTES),
               st.sampled_from(BAD_NUMBERS), st.binary(min_size=1, max_size=6)),
 )
 
@@ -167,7 +138,7 @@ def test_mutated_index_files_give_a_clean_error_or_named_damage(base, reference,
         rec = Path(shutil.copytree(base, Path(tmp) / "rec"))
         for name, op, pos, payload in mutations:
             path = rec / name
-            path.write_bytes(_mutate(path.read_bytes(), op, pos, payload))
+            path.write_bytes(mutate(path.read_bytes(), op, pos, payload))
         kind, result, rows = _outcome(rec)
         if kind == "error":
             assert "recording.json" in result or "a burst needs 3" in result, result
