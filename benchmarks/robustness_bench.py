@@ -4,7 +4,7 @@ Each case must end in a clean error or a counted skip, or give the unmutated res
 traceback, a hang or a changed result nobody reported is a failure (issue 15, item 4).
 
 * Recording: 200 cases per file (``recording.json``, ``frames.jsonl``, ``encoder.jsonl``),
-  each 1-3 edits from :mod:`gearscan.fuzz` (bit flips, cuts, invalid UTF-8, hostile
+  each 1-3 edits from :mod:`gearscan.mocks.fuzz` (bit flips, cuts, invalid UTF-8, hostile
   numbers), replayed with ``reconstruct=False``. Clean error: :class:`RecordingError`;
   skip: a replay whose ``metrics.damage`` counts what it dropped.
 * ``predict``: 200 cases of a 3x32x40 uint8 npz: byte edits of the file and rewritten arrays
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.fuzz import (
+from gearscan.mocks.fuzz import (
     BAD_NUMBERS,
     HOSTILE_BYTES,
     INDEX_FILES,

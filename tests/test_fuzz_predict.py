@@ -9,7 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from gearscan.cli import app
-from gearscan.fuzz import BAD_NUMBERS, HOSTILE_BYTES, OPS, mutate
+from gearscan.mocks.fuzz import BAD_NUMBERS, HOSTILE_BYTES, OPS, mutate
 
 FRAMES = np.random.default_rng(0).integers(0, 256, (3, 32, 40), dtype=np.uint8)
 

@@ -29,7 +29,7 @@ from gearscan.acquisition.encoder_protocol import (
     frame_line,
     parse_line,
 )
-from gearscan.fuzz import (
+from gearscan.mocks.fuzz import (
     BAD_NUMBERS,
     HOSTILE_BYTES,
     INDEX_FILES,
