@@ -248,6 +248,12 @@ def replay_cmd(
             web.close()
 
 
+def _serial_ports() -> list[str]:
+    from gearscan.acquisition.encoder import list_serial_ports
+
+    return list_serial_ports()
+
+
 def unambiguous_range_line(rig, period_px: float, gear, unwrap: str) -> str:
     """One line saying how far a surface may be off its CAD before its fringe order is lost."""
     from gearscan.measure import Reconstructor
@@ -347,8 +353,17 @@ def live_cmd(
     except ConfigError as exc:
         raise _fail(str(exc)) from exc
     if check:
+        if cfg.encoder is not None:  # open the port it names: a config that parses is not a device that answers
+            import serial
+
+            try:
+                serial.serial_for_url(cfg.encoder.port, baudrate=cfg.encoder.baudrate, timeout=0.1).close()
+            except (OSError, ValueError, serial.SerialException) as exc:
+                raise _fail(f"encoder.port: cannot open {cfg.encoder.port!r} ({exc}); serial ports found: "
+                            f"{_serial_ports()}") from exc
         typer.echo(f"{config}: OK (camera {cfg.camera.driver}, projector {cfg.projector.backend}, "
-                   f"rig {rig.camera.width}x{rig.camera.height}, gear z={cfg.gear.teeth})")
+                   f"rig {rig.camera.width}x{rig.camera.height}, gear z={cfg.gear.teeth}"
+                   + (f", encoder {cfg.encoder.port} opened" if cfg.encoder is not None else ", no encoder") + ")")
         typer.echo(unambiguous_range_line(rig, cfg.projector.period_px, cfg.gear, cfg.recon.unwrap))
         return
     decoder = _decoder(False, cfg.model.mc, cfg.model.path, precision=cfg.model.precision,

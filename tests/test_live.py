@@ -154,3 +154,22 @@ def test_killed_viewer_does_not_stop_the_measurement(twin, tmp_path, monkeypatch
     finally:
         web.close()
     assert report.bursts == 4 and len(done) == 4
+
+
+def test_check_opens_the_encoder_port_it_names(twin, tmp_path):
+    """`live --check` says OK only for a port that opens; a missing one is an error naming it."""
+    import tty
+
+    root, rec, rig_path = twin
+    missing = tmp_path / "no-such-port"
+    res = runner.invoke(app, ["live", "--config", str(_config(tmp_path, rec, rig_path, str(missing))), "--check"])
+    assert res.exit_code == 2 and f"encoder.port: cannot open '{missing}'" in res.output, res.output
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        port = os.ttyname(slave)
+        res = runner.invoke(app, ["live", "--config", str(_config(tmp_path, rec, rig_path, port)), "--check"])
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert res.exit_code == 0 and f"encoder {port} opened" in res.output, res.output
