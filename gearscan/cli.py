@@ -256,8 +256,8 @@ def _serial_ports() -> list[str]:
 
 def unambiguous_range_line(rig, period_px: float, gear, unwrap: str) -> str:
     """One line saying how far a surface may be off its CAD before its fringe order is lost."""
-    from gearscan.measure import Reconstructor
-    from gearscan.recon.unwrap import gear_depth_bounds, min_unambiguous_period
+    from gearscan.measure import Reconstructor, envelope_bounds
+    from gearscan.recon.unwrap import min_unambiguous_period
 
     rc = Reconstructor.for_gear(rig, period_px, gear)
     try:
@@ -269,8 +269,7 @@ def unambiguous_range_line(rig, period_px: float, gear, unwrap: str) -> str:
     line = (f"unambiguous depth range at {period_px:g} px fringes: -{r['minus_median_mm']:.2f}/+{r['plus_median_mm']:.2f} mm "
             f"around the CAD (median over the gear; at least -{r['minus_min_mm']:.2f}/+{r['plus_min_mm']:.2f} mm)")
     if unwrap == "envelope":
-        need = min_unambiguous_period(rig, gear_depth_bounds(rig, gear.tip_radius + 1.0, gear.root_radius - 1.0,
-                                                              gear.face_width + 2.0))
+        need = min_unambiguous_period(rig, envelope_bounds(rig, gear))
         line += (f"; CAD-free unwrapping resolves every pixel from {need:.0f} px fringes on"
                  + (" (finer fringes leave regions ambiguous: counted, not guessed)" if period_px < need else ""))
     return line

@@ -47,6 +47,15 @@ class Scene:
     period_px: float
     _renderer: TwinRenderer | None = field(default=None, repr=False)
     _cad: tuple | None = field(default=None, repr=False)
+    _rays: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def rays(self) -> np.ndarray:
+        """Camera rays scaled to z = 1 ``(H, W, 3)``, computed once per scene (undistortion is slow)."""
+        if self._rays is None:
+            rays = self.rig.camera.pixel_rays()
+            self._rays = rays / rays[..., 2:3]
+        return self._rays
 
     @property
     def renderer(self) -> TwinRenderer:
@@ -213,8 +222,8 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult) -> tuple[np.ndarray, in
     rows, cols = m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]
     depth = case.truth.depth[rows, cols]
     gear = np.isfinite(depth)
-    rays = case.scene.rig.camera.pixel_rays()[rows[gear], cols[gear]]
-    true_cam = rays / rays[:, 2:3] * depth[gear, None]
+    rays = case.scene.rays[rows[gear], cols[gear]]
+    true_cam = rays * depth[gear, None]
     dist = np.linalg.norm(m.cloud.points[gear] - to_turntable(true_cam, case.scene.rig, angles[0]), axis=1)
     return dist, int(case.truth.mask[rows, cols].sum())
 

@@ -107,6 +107,16 @@ class Decoder:
 
 
 UNWRAP_MODES = ("cad", "envelope")
+ENVELOPE_MM = 1.0  # CAD-free unwrapping: how far the gear may stand outside its tip/root cylinders
+
+
+def envelope_bounds(rig: Rig, gear, envelope_mm: float = ENVELOPE_MM):
+    """Depth bounds of the gear's envelope (tip and root cylinders and face slab, widened by
+    ``envelope_mm``): what CAD-free unwrapping knows of the gear."""
+    from gearscan.recon.unwrap import gear_depth_bounds
+
+    return gear_depth_bounds(rig, gear.tip_radius + envelope_mm, max(gear.root_radius - envelope_mm, 1e-3),
+                             gear.face_width + 2 * envelope_mm)
 
 
 @dataclass
@@ -155,10 +165,10 @@ class Reconstructor:
 
     def __init__(self, rig: Rig, period_px: float, gear, *, min_modulation: float = 0.05,
                  max_sigma: float = 0.3, margin: float = 0.3, unwrap: str = "cad",
-                 envelope_mm: float = 1.0, silhouette_mm: float = 0.4, threads: int | None = None) -> None:
+                 envelope_mm: float = ENVELOPE_MM, silhouette_mm: float = 0.4, threads: int | None = None) -> None:
         from gearscan.recon.reconstruct import SingleFrequencyReconstructor
         from gearscan.recon.triangulate import Triangulator
-        from gearscan.recon.unwrap import CadDepthBounds, gear_depth_bounds, phase_bounds
+        from gearscan.recon.unwrap import CadDepthBounds, phase_bounds
 
         if unwrap not in UNWRAP_MODES:
             raise ValueError(f"unwrap: expected one of {UNWRAP_MODES}, got {unwrap!r}")
@@ -173,15 +183,14 @@ class Reconstructor:
         if unwrap == "cad":  # walls extruded along z: one layer is exact, and 5x fewer triangles
             self.cad = CadDepthBounds(rig, gear.mesh(layer_mm=gear.face_width))
             # how far (px) a silhouette moves when the surface is silhouette_mm off its CAD
-            z = np.nanmedian(self.cad.depth(0.0)) if np.isfinite(self.cad.depth(0.0)).any() else np.nan
+            depth = self.cad.depth(0.0)
+            z = float(np.nanmedian(depth)) if np.isfinite(depth).any() else np.nan
             px_per_mm = rig.camera.K[0, 0] / z if np.isfinite(z) else 1.0
             self.silhouette_px = max(1.5, silhouette_mm * px_per_mm)
         else:
             if not envelope_mm >= 0:
                 raise ValueError(f"envelope_mm: expected >= 0, got {envelope_mm}")
-            env = gear_depth_bounds(rig, gear.tip_radius + envelope_mm, max(gear.root_radius - envelope_mm, 1e-3),
-                                    gear.face_width + 2 * envelope_mm)
-            self._envelope = phase_bounds(rig, env, period_px)
+            self._envelope = phase_bounds(rig, envelope_bounds(rig, gear, envelope_mm), period_px)
         self.fused = None
         if not np.any(rig.projector.dist != 0) and rig.projector.K[0, 1] == 0:
             self.fused = SingleFrequencyReconstructor(rig, period_px, margin=margin, threads=threads)
