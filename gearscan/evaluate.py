@@ -47,15 +47,6 @@ class Scene:
     period_px: float
     _renderer: TwinRenderer | None = field(default=None, repr=False)
     _cad: tuple | None = field(default=None, repr=False)
-    _rays: np.ndarray | None = field(default=None, repr=False)
-
-    @property
-    def rays(self) -> np.ndarray:
-        """Camera rays scaled to z = 1 ``(H, W, 3)``, computed once per scene (undistortion is slow)."""
-        if self._rays is None:
-            rays = self.rig.camera.pixel_rays()
-            self._rays = rays / rays[..., 2:3]
-        return self._rays
 
     @property
     def renderer(self) -> TwinRenderer:
@@ -202,29 +193,29 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
 
 
 def cloud_accuracy(case: BurstCase, result: PhaseResult) -> tuple[np.ndarray, int]:
-    """Distance (mm) of each point triangulated from ``result`` to the true surface point of its
-    pixel, and how many truth-mask pixels got a point (coverage numerator).
+    """Distance (mm) of each point triangulated from ``result`` to the true gear surface, and how
+    many truth-mask pixels got a point (coverage numerator).
 
-    Scored against the twin's truth, not the CAD that chose the fringe orders (DESIGN.md,
-    "Numbers we can trust"); every point whose pixel sees the gear counts, edge pixels included.
+    Scored against the twin's gear (the scene's gear is the one rendered), not the fringe orders'
+    prior (DESIGN.md, "Numbers we can trust"); every point counts, edge and spurious ones included.
+    Distance to the surface, not to the true point of the pixel's ray: a silhouette pixel whose blur
+    mixes two surfaces measures the one in front, which its own ray just misses.
     """
     from dataclasses import replace
 
-    from gearscan.recon.triangulate import to_turntable
+    import open3d as o3d
+
     from gearscan.types import Burst, Frame
 
-    rc, _ = case.scene.cad
+    rc, surface = case.scene.cad
     fr = tuple(Frame(f, i, 0, i) for i, f in enumerate(case.frames))
     angles = tuple(math.radians(a) for a in case.angles_deg)
     m = rc(Burst(fr, angles), replace(result, angle=angles[0]))
     if m.cloud is None or not len(m.cloud):
         return np.zeros(0), 0
     rows, cols = m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]
-    depth = case.truth.depth[rows, cols]
-    gear = np.isfinite(depth)
-    rays = case.scene.rays[rows[gear], cols[gear]]
-    true_cam = rays * depth[gear, None]
-    dist = np.linalg.norm(m.cloud.points[gear] - to_turntable(true_cam, case.scene.rig, angles[0]), axis=1)
+    pts = o3d.core.Tensor(np.ascontiguousarray(m.cloud.points, dtype=np.float32))
+    dist = surface.compute_distance(pts).numpy().astype(np.float64)
     return dist, int(case.truth.mask[rows, cols].sum())
 
 

@@ -125,7 +125,8 @@ class Measurement:
 
     ``unresolved`` marks pixels that passed the modulation and sigma tests but got no point
     (no prior there, or the surface outside the rig's unambiguous range); ``unwrap`` counts
-    them by cause, so nothing is dropped silently.
+    them by cause (``unresolved``; ``mixed``: points dropped because their pixel may blend two
+    surfaces, :func:`~gearscan.recon.edges.mixed_pixels`), so nothing is dropped silently.
     """
 
     burst: Burst
@@ -157,7 +158,10 @@ class Reconstructor:
     (:func:`~gearscan.recon.unwrap.prior_unwrap`, :func:`~gearscan.recon.unwrap.envelope_unwrap`).
     Pixels are candidates where the modulation is above ``min_modulation`` (2B/S) and the total
     phase sigma is below ``max_sigma`` rad; a candidate without a point is ``unresolved`` and
-    counted in ``Measurement.unwrap`` (no order could be trusted there), never dropped silently. An
+    counted in ``Measurement.unwrap`` (no order could be trusted there), never dropped silently.
+    Points whose pixel may blend two surfaces (at a silhouette or depth step, camera blur mixes
+    their fringes) are dropped and counted as ``mixed`` (:func:`~gearscan.recon.edges.mixed_pixels`,
+    ``mixed_border_px=None`` keeps them). An
     undistorted projector takes the fused unwrap + triangulate path
     (:mod:`gearscan.recon.reconstruct`); a distorted one the fixed-point
     :class:`~gearscan.recon.triangulate.Triangulator`.
@@ -165,7 +169,8 @@ class Reconstructor:
 
     def __init__(self, rig: Rig, period_px: float, gear, *, min_modulation: float = 0.05,
                  max_sigma: float = 0.3, margin: float = 0.3, unwrap: str = "cad",
-                 envelope_mm: float = ENVELOPE_MM, silhouette_mm: float = 0.4, threads: int | None = None) -> None:
+                 envelope_mm: float = ENVELOPE_MM, silhouette_mm: float = 0.4, mixed_border_px: int | None = 1,
+                 threads: int | None = None) -> None:
         from gearscan.recon.reconstruct import SingleFrequencyReconstructor
         from gearscan.recon.triangulate import Triangulator
         from gearscan.recon.unwrap import CadDepthBounds, phase_bounds
@@ -199,6 +204,7 @@ class Reconstructor:
         self.min_modulation = min_modulation
         self.max_sigma = max_sigma
         self.margin = margin
+        self.mixed_border_px = mixed_border_px
 
     @classmethod
     def for_gear(cls, rig: Rig, period_px: float, gear, **kw) -> Reconstructor:
@@ -264,25 +270,34 @@ class Reconstructor:
             keep = tri.valid
             phase_abs = np.where(keep, un.phase_abs, np.nan)
         unresolved = candidate & ~keep
+        mixed = np.zeros(keep.shape, bool)
+        if self.mixed_border_px is not None:
+            from gearscan.recon.edges import mixed_pixels
+
+            mixed = mixed_pixels(keep, tri.depth, tri.depth / self.rig.camera.K[0, 0], border_px=self.mixed_border_px)
+            keep = keep & ~mixed
+            phase_abs = np.where(keep, phase_abs, np.float32(np.nan))
+            tri = Triangulation(points=tri.points, depth=tri.depth, sigma_depth=tri.sigma_depth, valid=keep)
         stats = {
             "candidates": int(candidate.sum()),
             "points": int(keep.sum()),
             "regions": regions.regions,
             "regions_resolved": regions.resolved_regions,
             "unresolved": int(unresolved.sum()),
+            "mixed": int(mixed.sum()),
         }
         cloud = to_cloud(tri, self.rig, result.angle, burst_index=burst.index)
         return Measurement(burst, result, cloud, phase_abs, tri.valid, unresolved, stats)
 
 
-class CadScorer:
-    """Signed distance of each point to the gear's CAD mesh (the cloud's deviation map)."""
+class SurfaceDistance:
+    """Signed distance of gear-frame points to a surface mesh (the CAD, or a twin's true gear)."""
 
-    def __init__(self, gear) -> None:
+    def __init__(self, mesh) -> None:
         import open3d as o3d
 
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh()))
+        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
 
     def distances(self, points: np.ndarray) -> np.ndarray:
         """Signed distance (mm, positive outside the material) of gear-frame ``points`` ``(N, 3)``."""
@@ -290,6 +305,13 @@ class CadScorer:
 
         pts = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
         return self.scene.compute_signed_distance(pts).numpy().astype(np.float64)
+
+
+class CadScorer(SurfaceDistance):
+    """Signed distance of each point to the gear's CAD mesh (the cloud's deviation map)."""
+
+    def __init__(self, gear) -> None:
+        super().__init__(gear.mesh())
 
     def __call__(self, m: Measurement) -> dict[str, float]:
         if m.cloud is None or not len(m.cloud):

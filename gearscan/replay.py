@@ -15,7 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.measure import CadScorer, Decoder, Measurement, Reconstructor, classical_result
+from gearscan.measure import (
+    CadScorer,
+    Decoder,
+    Measurement,
+    Reconstructor,
+    SurfaceDistance,
+    classical_result,
+)
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.fuse import CloudFuser, FusedCloud
 from gearscan.recon.phase import phase_error
@@ -48,8 +55,10 @@ class ReplayMetrics:
                     out[key] = float(np.sqrt(np.nanmean(vals**2)))
                 elif key.endswith(("_sigma_rad", "_p95_mm", "coverage")):
                     out[key] = float(np.nanmean(vals))
-                elif key.startswith("unwrap_") or key in ("cloud_points", "points_off_gear"):
+                elif key.startswith("unwrap_") or key in ("cloud_points", "points_off_gear", "pixel_depth_mismatch"):
                     out[key] = float(np.nansum(vals))
+                elif key.endswith("_max_mm"):
+                    out[key] = float(np.nanmax(vals))
         return out
 
     def to_json(self) -> dict:
@@ -62,11 +71,14 @@ class TruthScorer:
 
     Two different questions, never mixed (DESIGN.md, "Numbers we can trust"):
 
-    * accuracy vs truth: each point's distance to the true surface point of its pixel (the
-      twin's depth along the same ray; ``accuracy_*_mm`` over every point whose pixel sees the
-      gear, shadow and edge pixels included), with coverage = share of the truth mask that got
-      a point, and ``points_off_gear`` (points where the ray meets no gear: spurious); these
-      do not depend on the CAD that guided the unwrapping.
+    * accuracy vs truth: each point's distance to the true gear surface (the twin's gear as
+      built, defects included; ``accuracy_*_mm`` over every point, edge and spurious points
+      included), with coverage = share of the truth mask that got a point. Beside it, against
+      the truth of the point's own pixel: ``pixel_depth_mismatch`` counts points more than 1 mm
+      from the true depth along their pixel's ray (a silhouette pixel whose blur mixes two
+      surfaces measures the one in front, a wrong fringe order lands anywhere) and
+      ``points_off_gear`` those whose ray meets no gear. None of these depends on the CAD that
+      guided the unwrapping.
     * deviation vs CAD: what a user measures (``cad_dev_*_mm``), next to the deviation the
       true surface has on the same pixels (``true_cad_dev_*_mm``), so a deviation that the
       reconstruction hides shows as a gap between the two.
@@ -76,6 +88,11 @@ class TruthScorer:
         self.reader = reader
         self.index = {fid: i for i, fid in enumerate(reader.extended_ids)}  # the ids ReplayCamera serves
         self.cad = CadScorer(reader.gear) if reader.gear is not None else None
+        self.true_surface = None
+        if reader.gear is not None:
+            from gearscan.twin.defects import GearDefects, true_mesh
+
+            self.true_surface = SurfaceDistance(true_mesh(reader.gear, GearDefects.from_meta(reader.meta)))
         rays = reader.rig.camera.pixel_rays()
         self._rays = rays / rays[..., 2:3]  # camera z = 1: true point = ray * true depth
 
@@ -101,13 +118,16 @@ class TruthScorer:
             gear = np.isfinite(depth)
             true_cam = self._rays[rows[gear], cols[gear]] * depth[gear, None]
             true_pts = to_turntable(true_cam, self.reader.rig, m.cloud.angle)
-            dist = np.linalg.norm(m.cloud.points[gear] - true_pts, axis=1)
+            ray_err = np.linalg.norm(m.cloud.points[gear] - true_pts, axis=1)
             row["cloud_points"] = len(m.cloud)
             row["coverage"] = float(mask[rows, cols].sum() / max(int(mask.sum()), 1))
             row["points_off_gear"] = int((~gear).sum())
-            if gear.any():
+            row["pixel_depth_mismatch"] = int((ray_err > 1.0).sum() + (~gear).sum())
+            if self.true_surface is not None and len(m.cloud):
+                dist = np.abs(self.true_surface.distances(m.cloud.points))
                 row["accuracy_rms_mm"] = float(np.sqrt(np.mean(dist**2)))
                 row["accuracy_p95_mm"] = float(np.percentile(dist, 95))
+                row["accuracy_max_mm"] = float(dist.max())
             for key, val in m.unwrap.items():
                 row[f"unwrap_{key}"] = val
             if self.cad is not None and len(m.cloud):
