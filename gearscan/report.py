@@ -45,6 +45,9 @@ from gearscan.rig import default_rig
 from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics
 
+POOLED = "both paper motions pooled"
+PEER_LABELS = {"cd-dcu-net": "cd-dcu-net (peer budget)"}  # how the networks table names a peer run
+
 
 @dataclass
 class EvalOptions:
@@ -75,22 +78,41 @@ def _plt():
     return plt
 
 
-def _error_maps(path: Path, rows: list[tuple[str, list[np.ndarray]]], cols: list[str], title: str) -> Path:
+def _save(fig, out: Path, name: str, **kwargs) -> str:
+    """Write ``fig`` to ``out/name`` and close it; the name goes into the part's ``figures``, the
+    only images the Markdown embeds (so it never points at a figure that was not written)."""
+    fig.savefig(out / name, **kwargs)
+    _plt().close(fig)
+    return name
+
+
+def _error_maps(out: Path, name: str, methods: dict, cases: list[BurstCase], scores: list) -> str:
+    """|phase error| of one burst per paper motion (columns) and method (rows). Each panel's title
+    carries the method's RMSE for that motion from the section's table (all its bursts), so the
+    figure and the table say the same number; the map shows the first of those bursts."""
+    motions = list(PAPER_MOTIONS)
+    one = {m: next(c for c in cases if c.motion == m) for m in motions}
+    table = {(s.method, s.motion): s for s in scores}
     plt = _plt()
-    fig, axes = plt.subplots(len(rows), len(cols), figsize=(2.6 * len(cols), 2.4 * len(rows)), dpi=100, squeeze=False)
-    for r, (name, maps) in enumerate(rows):
-        for c, m in enumerate(maps):
+    fig, axes = plt.subplots(len(methods), len(motions), figsize=(2.6 * len(motions), 2.4 * len(methods)), dpi=100,
+                             squeeze=False)
+    for r, (method, fn) in enumerate(methods.items()):
+        for c, motion in enumerate(motions):
             ax = axes[r][c]
-            im = ax.imshow(np.abs(m), cmap="magma", vmin=0, vmax=0.5)
-            valid = np.isfinite(m)
-            rmse = float(np.sqrt(np.nanmean(m[valid] ** 2))) if valid.any() else float("nan")
-            ax.set_title(f"{name}\n{cols[c]}: {rmse:.3f} rad", fontsize=8)
+            im = ax.imshow(np.abs(_masked_error(fn, one[motion])), cmap="magma", vmin=0, vmax=0.5)
+            ax.set_title(f"{method}\n{motion}: {table[(method, motion)].rmse_rad:.4f} rad", fontsize=8)
             ax.axis("off")
     fig.colorbar(im, ax=axes, shrink=0.6, label="|phase error| (rad)")
-    fig.suptitle(title)
-    fig.savefig(path, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    n = table[(next(iter(methods)), motions[0])].bursts
+    fig.suptitle(f"|phase error| of one burst ({one[motions[0]].scene.name});\n"
+                 f"titles: phase RMSE (rad) over the motion's {n} burst{'s' * (n != 1)}, as in the table", fontsize=9)
+    return _save(fig, out, name, bbox_inches="tight")
+
+
+def _budget_text(b: dict[str, int]) -> str:
+    """A training budget in words (the report's reader does not know the option names)."""
+    return (f"{b['epochs']} epochs of {b['steps']} steps, batches of {b['batch']} crops of {b['crop']} px "
+            f"from {b['size']} px scenes with {b['poses']} poses each")
 
 
 def _masked_error(method, case: BurstCase) -> np.ndarray:
@@ -174,13 +196,12 @@ def part_transfer(opt: EvalOptions, work: Path) -> dict:
     for label, c in curves.items():
         ax.plot(range(1, len(c) + 1), c, marker="o", label=label)
     ax.set_xlabel("fine-tuning epoch")
-    ax.set_ylabel("val wrapped RMSE (rad)")
+    ax.set_ylabel("validation RMSE (rad)")
+    ax.set_title("fine-tuning on the target domain (validation crops)", fontsize=9)
     ax.set_yscale("log")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(opt.out / "fig11_transfer.png")
-    plt.close(fig)
-    return {"per_gear_rmse": results, "curves": curves, "budget": b}
+    return {"per_gear_rmse": results, "curves": curves, "budget": b, "figures": [_save(fig, opt.out, "fig11_transfer.png")]}
 
 
 def _default_model() -> Path:
@@ -192,15 +213,13 @@ def _default_model() -> Path:
 def part_networks(opt: EvalOptions, methods: dict, cases: list[BurstCase]) -> dict:
     sel = [c for c in cases if c.motion in PAPER_MOTIONS]
     scores = score(methods, sel)
-    one = {m: next(c for c in sel if c.motion == m) for m in PAPER_MOTIONS}
-    rows = [(name, [_masked_error(fn, one[m]) for m in PAPER_MOTIONS]) for name, fn in methods.items()]
-    _error_maps(opt.out / "fig13_14_networks.png", rows, list(PAPER_MOTIONS), "wrapped-phase error by network")
+    figures = [_error_maps(opt.out, "fig13_14_networks.png", methods, sel, scores)]
     curves = {}
     if opt.peers:
         for name in ("cd-dcu-net", "unet", "ts-unet", "dr-unet"):
             f = Path(opt.peers) / name / "metrics.json"
-            if f.exists():
-                curves[name] = json.loads(f.read_text())
+            if f.exists():  # labelled as the table labels the peer's network
+                curves[PEER_LABELS.get(name, name)] = json.loads(f.read_text())
     if curves:
         plt = _plt()
         fig, (a, b2) = plt.subplots(1, 2, figsize=(9, 3.2), dpi=100)
@@ -209,15 +228,15 @@ def part_networks(opt: EvalOptions, methods: dict, cases: list[BurstCase]) -> di
             a.plot([x["train_mse"] for x in h], label=name)
             b2.plot([x["val_rmse"] for x in h], label=name)
         a.set_title("training MSE")
-        b2.set_title("validation wrapped RMSE (rad)")
+        b2.set_title("validation RMSE (rad)")
         for ax in (a, b2):
             ax.set_xlabel("epoch")
             ax.set_yscale("log")
             ax.legend(fontsize=7)
         fig.tight_layout()
-        fig.savefig(opt.out / "fig12_loss_curves.png")
-        plt.close(fig)
-    return {"scores": [asdict(s) for s in scores], "table": scores_table(scores, baseline="three-step PS")}
+        figures.insert(0, _save(fig, opt.out, "fig12_loss_curves.png"))
+    return {"scores": [asdict(s) for s in scores], "table": scores_table(scores, baseline="three-step PS"),
+            "figures": figures}
 
 
 def part_loss_ablation(opt: EvalOptions, work: Path, cases: list[BurstCase]) -> dict:
@@ -260,31 +279,37 @@ def part_loss_ablation(opt: EvalOptions, work: Path, cases: list[BurstCase]) -> 
     for label, c in curves.items():
         ax.plot(range(1, len(c) + 1), c, marker="o", label=label)
     ax.set_xlabel("epoch (from Kaiming init)")
-    ax.set_ylabel("val wrapped RMSE (rad)")
+    ax.set_ylabel("validation RMSE (rad)")
     ax.set_yscale("log")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(opt.out / "fig15_loss_ablation.png")
-    plt.close(fig)
-    return {"rmse": out, "curves": curves, "budget": b}
+    return {"rmse": out, "curves": curves, "budget": b, "figures": [_save(fig, opt.out, "fig15_loss_ablation.png")]}
 
 
 def part_uncertainty(opt: EvalOptions, predictor, cases: list[BurstCase]) -> dict:
     from gearscan.inference.uncertainty import plot_reliability, reliability
 
     sel = [c for c in cases if c.motion in PAPER_MOTIONS]
-    errs, sig, maps = [], [], None
+    errs, sig, maps = {m: [] for m in PAPER_MOTIONS}, {m: [] for m in PAPER_MOTIONS}, None
     for c in sel:
         res = predictor.predict(c.frames, opt.mc, full_scale=c.full_scale, angles=c.angles_rad)
         m = c.truth.mask
         e = phase_error(res.phase, c.truth.phase)
-        errs.append(e[m])
-        sig.append(res.sigma_total[m])
+        errs[c.motion].append(e[m])
+        sig[c.motion].append(res.sigma_total[m])
         if maps is None:
             maps = (c, res, e)
-    err, sigma = np.concatenate(errs), np.maximum(np.concatenate(sig), 1e-6)
-    rel = reliability(err, sigma)
-    plot_reliability(rel, opt.out / "fig18_reliability.png", title=f"MC T={opt.mc}, eps 0.03 rad, ECE {rel.ece:.3f}")
+    per_motion = {}
+    for motion in [*PAPER_MOTIONS, POOLED]:
+        keys = list(PAPER_MOTIONS) if motion == POOLED else [motion]
+        err = np.concatenate([x for k in keys for x in errs[k]])
+        sigma = np.maximum(np.concatenate([x for k in keys for x in sig[k]]), 1e-6)
+        rel = reliability(err, sigma)
+        per_motion[motion] = {"bursts": sum(len(errs[k]) for k in keys), "rmse_rad": float(np.sqrt(np.mean(err**2))),
+                              "mean_sigma_rad": float(sigma.mean()), "ece": rel.ece}
+    name = f"CD-DCU-Net MC T={opt.mc}"
+    plot_reliability(rel,  # the loop's last: the pooled one, as in the table's last row
+                     opt.out / "fig18_reliability.png", title=f"{name}, {POOLED}: ECE {rel.ece:.3f}")
     # sparsification: RMSE of the remaining pixels as the most uncertain are removed, vs the oracle
     fractions = np.linspace(0, 0.9, 19)
     by_sigma, by_err = np.argsort(-sigma), np.argsort(-np.abs(err))
@@ -297,10 +322,10 @@ def part_uncertainty(opt: EvalOptions, predictor, cases: list[BurstCase]) -> dic
     ax.plot(fractions, oracle, ls="--", label="oracle (remove by true error)")
     ax.set_xlabel("fraction of pixels removed")
     ax.set_ylabel("RMSE of the rest (rad)")
+    ax.set_title(f"{name}, {POOLED}", fontsize=9)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(opt.out / "fig19_sparsification.png")
-    plt.close(fig)
+    figures = ["fig18_reliability.png", _save(fig, opt.out, "fig19_sparsification.png")]
     c, res, e = maps
     panels = [("frame 1", c.frames[0], "gray", None), ("mean M", res.M, "coolwarm", None), ("mean D", res.D, "coolwarm", None),
               ("model sigma (rad)", res.sigma_model, "viridis", 0.2), ("data sigma (rad)", res.sigma_data, "viridis", 0.2),
@@ -310,20 +335,20 @@ def part_uncertainty(opt: EvalOptions, predictor, cases: list[BurstCase]) -> dic
         ax.imshow(np.where(c.truth.mask, img, np.nan) if img.dtype != np.uint8 else img, cmap=cmap, vmin=0 if vmax else None, vmax=vmax)
         ax.set_title(t, fontsize=8)
         ax.axis("off")
+    fig.suptitle(f"{name}, one burst: {c.motion} ({c.scene.name})", fontsize=9)
     fig.tight_layout()
-    fig.savefig(opt.out / "fig18_uncertainty_maps.png")
-    plt.close(fig)
-    return {"ece": rel.ece, "mc": opt.mc, "sparsification": {"fraction": fractions.tolist(), "model": spars, "oracle": oracle},
-            "mean_sigma_rad": float(sigma.mean()), "rmse_rad": float(np.sqrt(np.mean(err**2)))}
+    figures.insert(0, _save(fig, opt.out, "fig18_uncertainty_maps.png"))
+    pooled = per_motion[POOLED]
+    return {"ece": pooled["ece"], "mc": opt.mc, "sparsification": {"fraction": fractions.tolist(), "model": spars, "oracle": oracle},
+            "mean_sigma_rad": pooled["mean_sigma_rad"], "rmse_rad": pooled["rmse_rad"], "per_motion": per_motion,
+            "figures": figures}
 
 
 def part_classical(opt: EvalOptions, methods: dict, cases: list[BurstCase]) -> dict:
     sel = [c for c in cases if c.motion in {**PAPER_MOTIONS, **STATIC}]
     scores = score(methods, sel, clouds=True)
-    one = {m: next(c for c in sel if c.motion == m) for m in PAPER_MOTIONS}
-    rows = [(name, [_masked_error(fn, one[m]) for m in PAPER_MOTIONS]) for name, fn in methods.items()]
-    _error_maps(opt.out / "fig20_classical.png", rows, list(PAPER_MOTIONS), "wrapped-phase error: classical vs network")
-    return {"scores": [asdict(s) for s in scores], "table": scores_table(scores)}
+    figures = [_error_maps(opt.out, "fig20_classical.png", methods, sel, scores)]
+    return {"scores": [asdict(s) for s in scores], "table": scores_table(scores), "figures": figures}
 
 
 def part_generalisation(opt: EvalOptions, methods: dict, cases: list[BurstCase]) -> dict:
@@ -336,18 +361,22 @@ def part_generalisation(opt: EvalOptions, methods: dict, cases: list[BurstCase])
         pts = sorted((spans[s.motion], s.rmse_rad, s.cloud_rms_mm or np.nan) for s in scores if s.method == name)
         a.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=name)
         b.plot([p[0] for p in pts], [p[2] for p in pts], marker="o", label=name)
-    a.set_ylabel("phase RMSE (rad)")
-    b.set_ylabel("cloud RMS vs true surface (mm)")
-    for ax in (a, b):
-        ax.set_xlabel("span frame 1 to 3 (deg)")
-        ax.axvline(1.7, ls="--", color="grey")
+    a.set_ylabel("phase RMSE (rad)")  # the table's column names
+    b.set_ylabel("cloud RMS vs truth (mm)")
+    paper_span = max(d1 + d2 for d1, d2 in PAPER_MOTIONS.values())
+    ticks = sorted(spans.values())
+    for ax in (a, b):  # each point named by its motion, as the table's rows are
+        ax.set_xticks(ticks, [f"{next(k for k, v in spans.items() if v == t)} ({t:g})" for t in ticks], fontsize=7,
+                      rotation=35, ha="right")
+        ax.set_xlabel("span frame 1 to 3 (deg) and motion")
+        ax.axvline(paper_span, ls="--", color="grey", label=f"paper's largest span ({paper_span:g} deg)")
         ax.set_yscale("log")
+    b.axhline(0.05, ls=":", color="red", label="target 0.05 mm")
+    for ax in (a, b):
         ax.legend(fontsize=7)
-    b.axhline(0.05, ls=":", color="red")
     fig.tight_layout()
-    fig.savefig(opt.out / "fig22_generalisation.png")
-    plt.close(fig)
-    return {"scores": [asdict(s) for s in scores], "table": scores_table(scores), "spans_deg": spans}
+    return {"scores": [asdict(s) for s in scores], "table": scores_table(scores), "spans_deg": spans,
+            "figures": [_save(fig, opt.out, "fig22_generalisation.png")]}
 
 
 def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = None) -> dict:
@@ -371,9 +400,9 @@ def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = No
         scenes = builtin_scenes(160 if opt.quick else 256)[: 1 if opt.quick else None]
     motions = {**STATIC, **PAPER_MOTIONS, **GENERALISATION}
     per = 1 if opt.quick else opt.per_motion
+    mc = 4 if opt.quick else opt.mc
     say("rendering test bursts")
     cases = [c for i, s in enumerate(scenes) for c in render_cases(s, motions, per, seed=opt.seed + 100 + i)]
-    mc = 4 if opt.quick else opt.mc
     net = network_method(predictor)
     mc_net = network_method(predictor, mc)
 
@@ -383,7 +412,10 @@ def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = No
     def hilbert(frames, s, angles=None):
         return _compensated(hilbert_compensate, frames, s)
 
-    results: dict[str, object] = {"options": {k: str(v) for k, v in asdict(opt).items()}, "scenes": [s.name for s in scenes]}
+    options = {k: str(v) for k, v in asdict(opt).items()}
+    if opt.quick:  # what the run used, where --quick overrides the option
+        options.update(mc=f"{mc} (--quick; asked {opt.mc})", per_motion=f"{per} (--quick; asked {opt.per_motion})")
+    results: dict[str, object] = {"options": options, "scenes": [s.name for s in scenes]}
     say("part 5: classical methods")
     results["classical"] = part_classical(opt, {"three-step PS": classical_method, "AIA (per region)": aia, "Hilbert": hilbert,
                                                 "CD-DCU-Net": net, f"CD-DCU-Net MC T={mc}": mc_net}, cases)
@@ -398,7 +430,7 @@ def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = No
         for name in ("cd-dcu-net", "unet", "ts-unet", "dr-unet"):  # the peers' equal, smaller budget
             p = Path(opt.peers) / name / "best.safetensors"
             if p.exists():
-                nets[f"{name} (peer budget)" if name == "cd-dcu-net" else name] = network_method(Predictor.load(p))
+                nets[PEER_LABELS.get(name, name)] = network_method(Predictor.load(p))
     results["networks"] = part_networks(opt, nets, cases)
     say("part 1: transfer learning")
     results["transfer"] = part_transfer(opt, work)
@@ -451,14 +483,22 @@ def render_markdown(r: dict) -> str:
             lines.append(f"| {k} | " + " | ".join(f"{x:.4f}" for x in v.values()) + " |")
         return "\n".join(lines)
 
+    def figures(part: str) -> list[str]:  # only what the part wrote
+        return [f"![{Path(f).stem}]({f})" for f in r[part].get("figures", [])]
+
     tr = r["transfer"]["per_gear_rmse"]
     transfer_rows = {f"{label}, {gear}": v for label, g in tr.items() for gear, v in g.items()}
     u = r["uncertainty"]
+    options = ["| option | value |", "|---|---|"] + [f"| {k} | {'' if v in ('None', '[]') else v} |"
+                                                     for k, v in r["options"].items()]
+    peers = [] if "fig12_loss_curves.png" in r["networks"].get("figures", []) else [
+        "Loss curves (Fig. 12) need the peers' training runs (`gearscan evaluate --peers DIR`); none were given.", ""]
     return "\n".join([
         "# gearscan evaluation report",
         "",
-        f"Scenes: {', '.join(r['scenes'])} (tooth count never trained on). Options: `{r['options']}`.",
-        f"Total time {r['seconds']:.0f} s.",
+        f"Scenes: {', '.join(r['scenes'])} (tooth count never trained on). Total time {r['seconds']:.0f} s.",
+        "",
+        *options,
         "",
         "## Summary against the targets",
         "",
@@ -475,46 +515,57 @@ def render_markdown(r: dict) -> str:
         "## 1. Transfer learning (Fig. 11)",
         "",
         "Fine-tuning on a target domain (another rig, a dim, noisy, blurred camera; gears z=25 and z=18) with the same",
-        f"small budget {r['transfer']['budget']}: from the twin-pretrained model vs from Kaiming initialisation.",
-        "Phase RMSE (rad) on held-out target bursts:",
+        f"small budget ({_budget_text(r['transfer']['budget'])}): from the twin-pretrained model vs from Kaiming",
+        "initialisation. The figure shows the validation RMSE while fine-tuning; the table the phase RMSE (rad)",
+        "on held-out target bursts:",
         "",
         rows(transfer_rows),
         "",
-        "![transfer](fig11_transfer.png)",
+        *figures("transfer"),
         "",
         "## 2. Networks (Figs. 12-14)",
         "",
         r["networks"]["table"],
         "",
-        "![loss curves](fig12_loss_curves.png)",
-        "![error maps](fig13_14_networks.png)",
+        *peers,
+        *figures("networks"),
         "",
         "## 3. Loss ablation (Figs. 15-17)",
         "",
-        f"Both variants trained from Kaiming init with the same budget {r['loss_ablation']['budget']}. Phase RMSE (rad):",
+        f"Both variants trained from Kaiming init with the same budget ({_budget_text(r['loss_ablation']['budget'])}).",
+        "Phase RMSE (rad):",
         "",
         rows(r["loss_ablation"]["rmse"]),
         "",
-        "![loss ablation](fig15_loss_ablation.png)",
+        *figures("loss_ablation"),
         "",
         "## 4. Uncertainty (Figs. 18-19)",
         "",
-        f"MC T={u['mc']}: ECE {u['ece']:.3f} (30 bins, eps 0.03 rad); RMSE {u['rmse_rad']:.4f} rad, mean predicted sigma {u['mean_sigma_rad']:.4f} rad.",
+        f"CD-DCU-Net MC T={u['mc']}, ECE with 30 bins and eps 0.03 rad. The figures show the same predictions as this",
+        "table (the MC rows of section 5 are another draw of the dropout masks):",
         "",
-        "![maps](fig18_uncertainty_maps.png)",
-        "![reliability](fig18_reliability.png)",
-        "![sparsification](fig19_sparsification.png)",
+        *_uncertainty_table(u),
+        "",
+        *figures("uncertainty"),
         "",
         "## 5. Against classical phase shifting (Figs. 20-21)",
         "",
         r["classical"]["table"],
         "",
-        "![classical](fig20_classical.png)",
+        *figures("classical"),
         "",
         "## 6. Generalisation to unseen frame intervals (Fig. 22)",
         "",
         r["generalisation"]["table"],
         "",
-        "![generalisation](fig22_generalisation.png)",
+        *figures("generalisation"),
         "",
     ])
+
+
+def _uncertainty_table(u: dict) -> list[str]:
+    """Section 4's numbers per paper motion and pooled (older results: the pooled line only)."""
+    per = u.get("per_motion") or {POOLED: {"bursts": "", "rmse_rad": u["rmse_rad"], "mean_sigma_rad": u["mean_sigma_rad"],
+                                           "ece": u["ece"]}}
+    return ["| motion | bursts | phase RMSE (rad) | mean predicted sigma (rad) | ECE |", "|---|---|---|---|---|"] + [
+        f"| {m} | {v['bursts']} | {v['rmse_rad']:.4f} | {v['mean_sigma_rad']:.4f} | {v['ece']:.3f} |" for m, v in per.items()]

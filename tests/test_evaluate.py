@@ -59,3 +59,24 @@ def test_numbers_are_finite_and_ordered_by_physics(report):
     # transfer learning: both initialisations produced finite errors per target gear
     for per_gear in r["transfer"]["per_gear_rmse"].values():
         assert all(math.isfinite(v) for g in per_gear.values() for v in g.values())
+
+
+def test_markdown_embeds_only_figures_it_wrote_and_states_options_as_a_table(report):
+    import re
+
+    out, r = report
+    md = (out / "report.md").read_text()
+    images = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
+    assert len(images) >= 8
+    for name in images:  # every image the report shows exists
+        assert (out / name).stat().st_size > 5000, name
+    # no peer runs given: no loss-curve figure, and the report says why
+    assert "fig12_loss_curves.png" not in md and not (out / "fig12_loss_curves.png").exists()
+    assert "--peers" in md
+    # options and budgets in words and tables, not a Python dict; --quick's overrides are stated
+    assert "{'" not in md
+    assert "| option | value |" in md and "| mc | 4 (--quick; asked 20) |" in md
+    # section 4's table holds the ECE the reliability figure's title states (the pooled line)
+    u = r["uncertainty"]
+    assert u["per_motion"]["both paper motions pooled"]["ece"] == u["ece"]
+    assert f"| both paper motions pooled | 2 | {u['rmse_rad']:.4f} | {u['mean_sigma_rad']:.4f} | {u['ece']:.3f} |" in md
