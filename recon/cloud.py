@@ -2,7 +2,7 @@
 
 A :class:`gearscan.types.Cloud` crosses stage boundaries; this module converts it to an
 open3d tensor ``PointCloud`` (attribute ``sigma``, plus ``deviation`` when known), writes
-PLY/PCD, merges clouds of successive bursts (turntable frame) with an optional voxel
+PLY/PCD/CSV, merges clouds of successive bursts (turntable frame) with an optional voxel
 downsample, and measures the distance of every point to the gear's CAD mesh.
 """
 
@@ -16,7 +16,7 @@ import numpy as np
 
 from gearscan.types import Cloud
 
-EXPORT_SUFFIXES = (".ply", ".pcd")
+EXPORT_SUFFIXES = (".ply", ".pcd", ".csv")
 
 
 def _check_cloud(cloud: Cloud) -> None:
@@ -51,8 +51,13 @@ def from_open3d(pcd, frame: str = "world") -> Cloud:
     return Cloud(points=pts, sigma=sigma, pixels=np.full((n, 2), -1, np.int32), frame=frame, deviation=dev)
 
 
-def save_cloud(cloud: Cloud, path: str | Path) -> Path:
-    """Write ``.ply`` or ``.pcd`` with the ``sigma`` (and ``deviation``) attributes."""
+def save_cloud(cloud: Cloud, path: str | Path, extra: dict[str, np.ndarray] | None = None) -> Path:
+    """Write ``.ply``/``.pcd`` (open3d) or ``.csv`` with x, y, z (mm), ``sigma`` (mm), ``deviation``
+    (mm, when set) and each per-point array of ``extra`` (e.g. a fused cloud's burst counts).
+
+    The CSV has one header line (``x_mm,y_mm,z_mm,sigma_mm,...``) and one row per point, for
+    tools that read no PLY (spreadsheets, CMM software).
+    """
     import open3d as o3d
 
     path = Path(path)
@@ -60,20 +65,46 @@ def save_cloud(cloud: Cloud, path: str | Path) -> Path:
         raise ValueError(f"path: expected a suffix in {EXPORT_SUFFIXES}, got {path.suffix!r} ({path})")
     if len(cloud) == 0:
         raise ValueError("cloud is empty: nothing to write")
+    extra = extra or {}
+    for name, values in extra.items():
+        if np.shape(values) != (len(cloud),):
+            raise ValueError(f"extra[{name!r}]: expected ({len(cloud)},), got {np.shape(values)}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not o3d.t.io.write_point_cloud(str(path), to_open3d(cloud)):
+    if path.suffix.lower() == ".csv":
+        _check_cloud(cloud)
+        cols = {"x_mm": cloud.points[:, 0], "y_mm": cloud.points[:, 1], "z_mm": cloud.points[:, 2], "sigma_mm": cloud.sigma}
+        if cloud.deviation is not None:
+            cols["deviation_mm"] = cloud.deviation
+        # positions and deviation to the nanometre, sigma to 6 digits, counts as they are
+        fmt = ["%.6f", "%.6f", "%.6f", "%.6g"] + ["%.6f"] * (len(cols) - 4) + ["%.6g"] * len(extra)
+        cols.update(extra)
+        np.savetxt(path, np.column_stack(list(cols.values())), fmt=fmt, delimiter=",", header=",".join(cols), comments="")
+        return path
+    pcd = to_open3d(cloud)
+    for name, values in extra.items():
+        pcd.point[name] = o3d.core.Tensor(np.asarray(values, dtype=np.float32).reshape(-1, 1))
+    if not o3d.t.io.write_point_cloud(str(path), pcd):
         raise OSError(f"open3d could not write {path}: check the folder is writable")
     return path
 
 
 def load_cloud(path: str | Path, frame: str = "world") -> Cloud:
-    """Read a cloud written by :func:`save_cloud`."""
+    """Read a cloud written by :func:`save_cloud` (PLY, PCD or CSV)."""
     import open3d as o3d
 
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"point cloud not found: {path}")
-    return from_open3d(o3d.t.io.read_point_cloud(str(path)), frame)
+    if path.suffix.lower() != ".csv":
+        return from_open3d(o3d.t.io.read_point_cloud(str(path)), frame)
+    data = np.genfromtxt(path, delimiter=",", names=True, dtype=np.float64, ndmin=1)
+    names = data.dtype.names or ()
+    if not {"x_mm", "y_mm", "z_mm", "sigma_mm"} <= set(names):
+        raise ValueError(f"{path}: expected columns x_mm, y_mm, z_mm, sigma_mm, got {list(names)}")
+    n = len(data)
+    return Cloud(points=np.column_stack([data["x_mm"], data["y_mm"], data["z_mm"]]), sigma=np.asarray(data["sigma_mm"]),
+                 pixels=np.full((n, 2), -1, np.int32), frame=frame,
+                 deviation=np.asarray(data["deviation_mm"]) if "deviation_mm" in names else None)
 
 
 def merge_clouds(clouds: Sequence[Cloud], voxel_mm: float | None = None) -> Cloud:

@@ -165,19 +165,12 @@ def fuse(clouds, voxel_mm: float = 0.1, min_bursts: int = 1) -> FusedCloud:
 
 
 def save_fused(fused: FusedCloud, path: str | Path) -> Path:
-    """Write the fused cloud as PLY/PCD (open3d) with ``sigma``, ``bursts`` and, if set, ``deviation``."""
-    import open3d as o3d
-
-    from gearscan.recon.cloud import EXPORT_SUFFIXES, to_open3d
+    """Write the fused cloud as PLY/PCD (open3d) or CSV with ``sigma``, ``bursts`` and, if set, ``deviation``."""
+    from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 
     path = Path(path)
     if path.suffix.lower() not in EXPORT_SUFFIXES:
         raise ValueError(f"fused cloud path: expected a suffix in {EXPORT_SUFFIXES}, got {path.suffix!r} ({path})")
     if not len(fused):
         raise ValueError("the fused cloud is empty: nothing to write")
-    pcd = to_open3d(fused.to_cloud())  # positions, sigma, deviation
-    pcd.point["bursts"] = o3d.core.Tensor(fused.bursts.astype(np.float32).reshape(-1, 1))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not o3d.t.io.write_point_cloud(str(path), pcd):
-        raise OSError(f"open3d could not write {path}: check the folder is writable")
-    return path
+    return save_cloud(fused.to_cloud(), path, extra={"bursts": fused.bursts})

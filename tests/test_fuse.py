@@ -96,3 +96,26 @@ def test_save_fused_names_a_bad_suffix(tmp_path):
     f = fuse([_cloud([[0, 0, 0]], [0.01])])
     with pytest.raises(ValueError, match="suffix"):
         save_fused(f, tmp_path / "x.txt")
+
+
+def test_fused_cloud_exports_as_ply_and_csv_with_the_same_numbers(tmp_path):
+    """PLY (open3d) and CSV hold the same x, y, z (mm), sigma, deviation and burst count."""
+    import open3d as o3d
+
+    from gearscan.recon.cloud import load_cloud
+
+    rng = np.random.default_rng(0)
+    pts = (rng.choice(400, (50, 3), replace=False) - 199.5) * 0.1  # voxel centres, no two in one voxel
+    f = fuse([_cloud(pts, np.full(50, 0.01), 0), _cloud(pts + 0.001, np.full(50, 0.02), 1)], voxel_mm=0.1)
+    f = f.with_deviation(rng.normal(0, 0.05, len(f)))
+    ply, csv = save_fused(f, tmp_path / "f.ply"), save_fused(f, tmp_path / "f.csv")
+    assert csv.read_text().splitlines()[0] == "x_mm,y_mm,z_mm,sigma_mm,deviation_mm,bursts"
+    a, b = load_cloud(ply), load_cloud(csv)
+    np.testing.assert_allclose(b.points, f.points, atol=1e-6)
+    np.testing.assert_allclose(a.points, f.points, atol=1e-5)  # float32 in the PLY
+    np.testing.assert_allclose(b.sigma, f.sigma, rtol=1e-5)
+    assert f.sigma[0] == pytest.approx(1 / np.sqrt(1 / 0.01**2 + 1 / 0.02**2))  # both bursts in each voxel
+    np.testing.assert_allclose(b.deviation, f.deviation, atol=1e-6)
+    np.testing.assert_allclose(a.deviation, f.deviation, atol=1e-6)
+    counts = np.loadtxt(csv, delimiter=",", skiprows=1)[:, 5]
+    assert counts.tolist() == o3d.t.io.read_point_cloud(str(ply)).point["bursts"].numpy().ravel().tolist() == [2] * len(f)
