@@ -15,6 +15,26 @@ app = typer.Typer(
     pretty_exceptions_show_locals=False,
 )
 twin_app = typer.Typer(help="Digital twin: render recordings and training datasets.", no_args_is_help=True)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            typer.echo(f"gearscan {version('gearscan')}")
+        except PackageNotFoundError:  # run from a source tree that was never installed
+            typer.echo("gearscan (version unknown: not installed; run `pip install -e .`)")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True, help="print the version and exit")] = False,
+) -> None:
+    """Fringe-projection measurement of rotating gears with CD-DCU-Net motion correction."""
+
+
 app.add_typer(twin_app, name="twin")
 
 
@@ -178,9 +198,12 @@ def replay_cmd(
     still_span_deg: Annotated[float | None, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never; default 0.075)")] = None,
     strict: Annotated[bool, typer.Option(help="exit 1 when the recording has damage (default: skip it, measure the rest, exit 0)")] = False,
     unwrap: Annotated[str, typer.Option(help="fringe orders from the gear's CAD ('cad') or CAD-free from its envelope ('envelope')")] = "cad",
-    fuse: Annotated[Path | None, typer.Option(help="fuse every burst's cloud in the gear frame and write it here (.ply/.pcd: sigma, deviation from CAD, bursts)")] = None,
+    fuse: Annotated[Path | None, typer.Option(help="fuse every burst's cloud in the gear frame and write it here (.ply/.pcd/.csv: x y z mm, sigma, deviation from CAD, bursts)")] = None,
     voxel_mm: Annotated[float, typer.Option(min=0.001, help="with --fuse: voxel edge of the fused model, mm")] = 0.1,
     min_bursts: Annotated[int, typer.Option(min=1, help="with --fuse: keep fused points seen by at least this many bursts")] = 3,
+    ply: Annotated[Path | None, typer.Option(help="write every burst's cloud (gear frame: x y z mm, sigma) as DIR/burst_NNNNNN.ply")] = None,
+    csv: Annotated[Path | None, typer.Option(help="write every burst's cloud as DIR/burst_NNNNNN.csv (x_mm,y_mm,z_mm,sigma_mm[,deviation_mm])")] = None,
+    rig: Annotated[Path | None, typer.Option(help="rig calibration JSON for a recording made without one (replaces the recording's own)")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
 
@@ -205,15 +228,23 @@ def replay_cmd(
     try:
         if unwrap not in ("cad", "envelope"):
             raise typer.BadParameter(f"expected 'cad' or 'envelope', got {unwrap!r}", param_hint="--unwrap")
-        if fuse is not None and fuse.suffix.lower() not in (".ply", ".pcd"):
-            raise typer.BadParameter(f"expected a .ply or .pcd file, got {fuse}", param_hint="--fuse")
+        if fuse is not None and fuse.suffix.lower() not in (".ply", ".pcd", ".csv"):
+            raise typer.BadParameter(f"expected a .ply, .pcd or .csv file, got {fuse}", param_hint="--fuse")
+        export = None
+        if ply is not None or csv is not None:
+            from gearscan.replay import CloudExport
+
+            try:
+                export = CloudExport(ply=ply, csv=csv)
+            except ValueError as exc:
+                raise _fail(str(exc)) from exc
         fuser = None
         if fuse is not None:
             from gearscan.recon.fuse import CloudFuser
 
             fuser = CloudFuser(voxel_mm, min_bursts)
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
-                        truth=truth, unwrap=unwrap, fuse=fuser)
+                        truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export)
         if fuse is not None:
             from gearscan.recon.fuse import save_fused
 
@@ -221,6 +252,8 @@ def replay_cmd(
                 raise RecordingError(f"--fuse: no point was seen by {min_bursts} bursts; nothing written to {fuse}")
             save_fused(result.fused, fuse)
             typer.echo(f"fused model: {len(result.fused):,} points from {result.fused.bursts_added} bursts -> {fuse}")
+        if export is not None:
+            typer.echo(f"burst clouds: {export.written} -> " + ", ".join(str(d) for d in (ply, csv) if d is not None))
     except (RecordingError, PipelineError) as exc:
         raise _fail(str(exc)) from exc
     finally:

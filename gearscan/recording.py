@@ -646,10 +646,14 @@ class RecordingReader:
         from gearscan.rig import Rig
 
         rig = self._header("rig", lambda d: Rig.from_json(d, f"{self.path}/recording.json: rig"))
+        return self.check_rig(rig, str(self.path / "recording.json"))
+
+    def check_rig(self, rig, source: str):
+        """``rig`` if its camera has the frames' size, else a RecordingError naming ``source``."""
         fmt = self.format
         if fmt is not None and (rig.camera.width, rig.camera.height) != (fmt.width, fmt.height):
-            raise RecordingError(f"{self.path / 'recording.json'}: rig camera is {rig.camera.width}x{rig.camera.height}, "
-                                 f"the frames are {fmt.width}x{fmt.height}")
+            raise RecordingError(f"{source}: rig camera is {rig.camera.width}x{rig.camera.height}, the frames of "
+                                 f"{self.path} are {fmt.width}x{fmt.height}")
         return rig
 
     @property

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,10 +24,12 @@ from gearscan.measure import (
     classical_result,
 )
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
+from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 from gearscan.recon.fuse import CloudFuser, FusedCloud
 from gearscan.recon.phase import phase_error
 from gearscan.recording import RecordingError, RecordingReader
-from gearscan.types import Burst
+from gearscan.rig import Rig, RigError
+from gearscan.types import Burst, Cloud
 
 log = logging.getLogger(__name__)
 
@@ -140,6 +142,58 @@ class TruthScorer:
         return row, err, mask
 
 
+def recording_rig(reader: RecordingReader, rig: str | Path | Rig | None = None) -> Rig:
+    """The rig to measure ``reader``'s frames with: ``rig`` (a file or a Rig) when given, else the
+    recording's own; either must have the frames' size. A recording without one (made by
+    ``gearscan record`` before it stored the rig) and no ``rig`` is an error saying what to pass."""
+    if rig is None:
+        if "rig" not in reader.meta:
+            raise RecordingError(f"{reader.path / 'recording.json'} holds no rig calibration (recorded without one): "
+                                 "pass the rig it was recorded with, e.g. `gearscan replay "
+                                 f"{reader.path} --rig rig.json` (the file `gearscan calibrate` wrote)")
+        return reader.rig
+    if not isinstance(rig, Rig):
+        try:
+            rig = Rig.load(rig)
+        except RigError as exc:
+            raise RecordingError(f"--rig: {exc}") from exc
+    return reader.check_rig(rig, "--rig")
+
+
+@dataclass
+class CloudExport:
+    """Writes every burst's cloud (gear frame, mm) as ``burst_NNNNNN.ply`` and/or ``.csv`` into a folder.
+
+    Each file holds x, y, z (mm), sigma (mm) and, when the recording names its gear, the signed
+    deviation from the CAD (mm, + outside the material; :func:`~gearscan.recon.cloud.save_cloud`). A folder that already holds burst clouds is
+    refused, so that two runs never mix.
+    """
+
+    ply: Path | None = None
+    csv: Path | None = None
+    written: int = 0
+
+    def __post_init__(self) -> None:
+        for opt, folder in (("--ply", self.ply), ("--csv", self.csv)):
+            if folder is None:
+                continue
+            if folder.suffix.lower() in EXPORT_SUFFIXES:
+                raise ValueError(f"{opt}: expected a folder (one file per burst), got the file name {folder}; "
+                                 "the fused cloud goes to --fuse FILE.ply/.csv")
+            if folder.exists() and not folder.is_dir():
+                raise ValueError(f"{opt}: {folder} exists and is not a folder")
+            if folder.is_dir() and any(folder.glob("burst_*.*")):
+                raise ValueError(f"{opt}: {folder} already holds burst clouds; choose an empty folder")
+
+    def __call__(self, cloud: Cloud) -> None:
+        if not len(cloud):
+            return
+        for folder, suffix in ((self.ply, ".ply"), (self.csv, ".csv")):
+            if folder is not None:
+                save_cloud(cloud, folder / f"burst_{cloud.burst_index:06d}{suffix}")
+        self.written += 1
+
+
 def replay(
     recording: str | Path,
     *,
@@ -154,6 +208,8 @@ def replay(
     on_burst: Callable[[Measurement, dict], None] | None = None,
     unwrap: str = "cad",
     fuse: CloudFuser | None = None,
+    rig: str | Path | Rig | None = None,
+    export: CloudExport | None = None,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
@@ -167,6 +223,10 @@ def replay(
 
     ``fuse``: every burst's cloud goes into this fuser; at the end ``metrics.fused`` holds the
     fused model with its signed deviation from the CAD, also logged to the viewer.
+
+    ``rig``: the calibration (file or :class:`Rig`) for a recording made without one; it
+    replaces the recording's own when both exist. ``export``: every burst's cloud is also
+    written as files (:class:`CloudExport`).
     """
     from gearscan.acquisition.bursts import BurstAssembler
     from gearscan.acquisition.camera import GrabTimeout
@@ -177,12 +237,13 @@ def replay(
     if len(reader) < 3:
         raise RecordingError(f"{reader.path}: {len(reader)} complete frames, a burst needs 3")
     decoder = decoder or Decoder(classical=True)
-    rig = reader.rig
+    rig = recording_rig(reader, rig)
     patterns = reader.patterns
     period = patterns.periods[0]
     gear = reader.gear
     recon = Reconstructor.for_gear(rig, period, gear, unwrap=unwrap) if (reconstruct and gear is not None) else None
     scorer = TruthScorer(reader) if (truth and reader.has_truth()) else None
+    export_cad = CadScorer(gear) if (export is not None and gear is not None) else None  # deviation in every file
     logger = None
     if save or connect or spawn:
         from gearscan.viewer.log import RerunLogger
@@ -216,6 +277,11 @@ def replay(
                              stats={k: v for k, v in row.items() if k.endswith(("rmse_rad", "rms_mm"))})
         if fuse is not None and m.cloud is not None and len(m.cloud):
             fuse.add(m.cloud)
+        if export is not None and m.cloud is not None:
+            cloud = m.cloud
+            if cloud.deviation is None and export_cad is not None and len(cloud):
+                cloud = replace(cloud, deviation=export_cad.distances(cloud.points))
+            export(cloud)
         if on_burst:
             on_burst(m, row)
 
