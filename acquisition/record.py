@@ -85,6 +85,8 @@ class AcquisitionSession:
                 f"three patterns by itself), got {self.settings.pattern_cycle}"
             )
         self.out, self.overwrite, self.extra_meta = out, overwrite, extra_meta or {}
+        rig = self.extra_meta.get("rig")  # a recording's rig must fit its frames, or replay refuses it
+        self.rig_size = (rig["camera"]["width"], rig["camera"]["height"]) if isinstance(rig, dict) else None
         self._samples: queue.Queue[EncoderSample] = queue.Queue()
         self.encoder = None
         if cfg.encoder is not None:
@@ -185,6 +187,14 @@ class AcquisitionSession:
         else:
             yield from iter(lambda: self.camera.grab(2.0), None)
 
+    def _check_frame_size(self, frame: Frame) -> None:
+        height, width = frame.image.shape[:2]
+        if self.rig_size is not None and (width, height) != self.rig_size:
+            raise ConfigError(
+                f"rig.calibration: the rig is calibrated for a {self.rig_size[0]}x{self.rig_size[1]} camera image, the "
+                f"camera delivers {width}x{height} frames: set camera.roi to the calibrated area or calibrate this setting"
+            )
+
     def bursts(self, max_frames: int | None = None) -> Iterator[Burst]:
         """Valid bursts, recorded before they are yielded; raises if ``max_frames`` yield none."""
         assert self.assembler is not None, "use AcquisitionSession as a context manager"
@@ -201,6 +211,8 @@ class AcquisitionSession:
         for frame in self._frames():
             self.frames += 1
             since_burst += 1
+            if self.frames == 1:
+                self._check_frame_size(frame)
             self._drain_encoder()
             burst = self.assembler.push(frame)
             if burst is not None:
@@ -225,15 +237,17 @@ def record_bursts(
     overwrite: bool = False,
     on_burst: Callable[[int], None] | None = None,
     max_frames: int | None = None,
+    extra_meta: dict | None = None,
 ) -> RecordSummary:
-    """Record ``n_bursts`` valid bursts into ``out``."""
+    """Record ``n_bursts`` valid bursts into ``out``; ``extra_meta`` goes into its recording.json
+    (``gearscan record`` stores the rig, gear and config there, as ``gearscan live --record``)."""
     import time
 
     if n_bursts <= 0:
         raise ConfigError(f"bursts must be > 0, got {n_bursts}")
     t0 = time.monotonic()
     max_frames = max_frames or n_bursts * 3 * 10
-    session = AcquisitionSession(cfg, out, overwrite=overwrite)
+    session = AcquisitionSession(cfg, out, overwrite=overwrite, extra_meta=extra_meta)
     with session:
         for _ in session.bursts(max_frames=max_frames):
             if on_burst is not None:

@@ -142,6 +142,12 @@ class LiveConfig(AcquisitionConfig):
             raise ConfigError(f"config file {path} does not exist (write a template with `gearscan config init {path}`)")
         return cls.from_toml(path.read_text(), str(path), path.parent)
 
+    def recording_meta(self, rig, source: str) -> dict:
+        """What a recording made with this config stores besides the acquisition (rig, gear, the
+        config itself), so that ``gearscan replay`` measures it as the run that recorded it did."""
+        return {"source": source, "rig": rig.to_json(), "gear": self.gear.model_dump(),
+                "live_config": self.model_dump(mode="json")}
+
     def load_rig(self):
         from gearscan.rig import Rig, RigError
 

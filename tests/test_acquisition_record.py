@@ -56,13 +56,16 @@ def sim():
 def test_record_bursts_from_simulator_and_encoder(tmp_path, sim):
     from gearscan.acquisition.commands import record
     from gearscan.mocks.encoder_device import MockEncoderProcess
+    from gearscan.rig import default_rig
 
     link = str(tmp_path / "enc")
+    default_rig(64, 48).save(tmp_path / "rig.json")  # the config's default rig.calibration, next to it
     with MockEncoderProcess(link, rate=1000, cpr=10000, rpm=RPM, start_angle=-0.1, duration=30, linger=0) as dev:
         record(tmp_path / "rec", config=_toml(tmp_path, sim.serial, link), bursts=3, overwrite=False)
         dev.kill()
     rec = RecordingReader(tmp_path / "rec")
     assert rec.finished and len(rec) == 9
+    assert rec.rig.to_json() == default_rig(64, 48).to_json() and rec.meta["source"] == "record"
     assert [r.pattern_index for r in rec.records] == [0, 1, 2] * 3
     assert rec.meta["assembler"]["bursts"] == 3 and rec.meta["camera"]["serial"] == sim.serial
     assert rec.meta["encoder_reference"] == "index"  # the session waited for it (0.16 s in)

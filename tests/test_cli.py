@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -78,3 +79,95 @@ def test_replay_missing_recording_is_named(tmp_path):
     res = runner.invoke(app, ["replay", str(tmp_path / "nope"), "--classical"])
     assert res.exit_code == 2
     assert "recording.json is missing" in res.output
+
+
+def test_version_is_the_package_metadata():
+    from importlib.metadata import version
+
+    res = runner.invoke(app, ["--version"])
+    assert res.exit_code == 0 and res.output.strip() == f"gearscan {version('gearscan')}"
+
+
+def _ply_points(folder):
+    from gearscan.recon.cloud import load_cloud
+
+    return {p.name: load_cloud(p) for p in sorted(folder.glob("burst_*.ply"))}
+
+
+def test_record_with_the_config_init_file_then_replay(twin_recording, tmp_path):
+    """config init -> simulator devices (replay camera fed by a twin recording, mock projector)
+    -> record -> replay: the recording holds the rig, gear and patterns of the config and
+    replays into exactly the clouds the source recording gives; --rig serves one without a rig."""
+    from gearscan.measure import CadScorer
+    from gearscan.recon.cloud import load_cloud
+    from gearscan.recording import RecordingReader
+    from gearscan.rig import default_rig
+
+    cfg = tmp_path / "rig.toml"
+    assert runner.invoke(app, ["config", "init", str(cfg)]).exit_code == 0
+    text = cfg.read_text()
+    for old, new in (('driver = "aravis"', f'driver = "replay"\nid = "{twin_recording}"'),
+                     ('backend = "window"', 'backend = "mock"'), ("settle_ms = 20.0", "settle_ms = 1.0")):
+        assert old in text
+        text = text.replace(old, new)
+    cfg.write_text(text)
+    rec = tmp_path / "rec"
+    res = runner.invoke(app, ["record", str(rec), "-c", str(cfg), "-n", "2"])
+    assert res.exit_code == 2 and f"rig.calibration: rig file not found: {tmp_path / 'rig.json'}" in res.output
+    RecordingReader(twin_recording).rig.save(tmp_path / "rig.json")  # `calibration = "rig.json"`, next to the config
+    res = runner.invoke(app, ["record", str(rec), "-c", str(cfg), "-n", "2"])
+    assert res.exit_code == 0, res.output
+    reader = RecordingReader(rec)
+    assert reader.finished and len(reader) == 6 and reader.meta["source"] == "record"
+    assert reader.meta["rig"] == json.loads((tmp_path / "rig.json").read_text())
+    assert reader.meta["gear"]["teeth"] == 20 and reader.patterns.periods[0] == 40.0
+
+    res = runner.invoke(app, ["replay", str(rec), "--classical", "--ply", str(tmp_path / "ply"), "--csv", str(tmp_path / "csv"),
+                              "--save", str(tmp_path / "r.rrd")])
+    assert res.exit_code == 0, res.output
+    assert "bursts: 2" in res.output and "burst clouds: 2" in res.output
+    res = runner.invoke(app, ["replay", str(twin_recording), "--classical", "--no-truth", "--ply", str(tmp_path / "src"),
+                              "--save", str(tmp_path / "s.rrd")])
+    assert res.exit_code == 0, res.output
+    recorded, source = _ply_points(tmp_path / "ply"), _ply_points(tmp_path / "src")
+    assert sorted(recorded) == sorted(source) == ["burst_000000.ply", "burst_000001.ply"]
+    gear = reader.gear
+    for name, cloud in recorded.items():
+        # the recorded frames measure exactly what the source recording measures
+        assert len(cloud) > 500 and cloud.points.tobytes() == source[name].points.tobytes()
+        # on the gear, in the gear frame, mm: between root and tip radius and near its CAD surface
+        # (three-step PS of a turning gear: about 0.1 mm typical error)
+        r = np.hypot(cloud.points[:, 0], cloud.points[:, 1])
+        assert np.percentile(r, 5) > gear.root_radius - 0.2 and np.percentile(r, 95) < gear.tip_radius + 0.2
+        dev = CadScorer(gear).distances(cloud.points)
+        assert np.median(np.abs(dev)) < 0.2
+        np.testing.assert_allclose(cloud.deviation, dev, atol=1e-5)  # each file carries it (signed, mm)
+        csv = load_cloud(tmp_path / "csv" / name.replace(".ply", ".csv"))
+        np.testing.assert_allclose(csv.points, cloud.points, atol=1e-5)
+        np.testing.assert_allclose(csv.sigma, cloud.sigma, rtol=1e-5)
+        np.testing.assert_allclose(csv.deviation, cloud.deviation, atol=1e-5)
+        assert np.all(csv.sigma > 0)
+
+    # a recording without its rig (as `record` wrote them before): named error, then --rig
+    meta = json.loads((rec / "recording.json").read_text())
+    del meta["rig"]
+    (rec / "recording.json").write_text(json.dumps(meta))
+    res = runner.invoke(app, ["replay", str(rec), "--classical", "--save", str(tmp_path / "r.rrd")])
+    assert res.exit_code == 2 and "recording.json holds no rig calibration" in res.output and "--rig" in res.output
+    res = runner.invoke(app, ["replay", str(rec), "--classical", "--rig", str(tmp_path / "rig.json"),
+                              "--ply", str(tmp_path / "ply2"), "--save", str(tmp_path / "r.rrd")])
+    assert res.exit_code == 0, res.output
+    assert {k: v.points.tobytes() for k, v in _ply_points(tmp_path / "ply2").items()} == \
+        {k: v.points.tobytes() for k, v in recorded.items()}
+    default_rig(64, 64).save(tmp_path / "small.json")
+    res = runner.invoke(app, ["replay", str(rec), "--classical", "--rig", str(tmp_path / "small.json")])
+    assert res.exit_code == 2 and "64x64" in res.output and "128x128" in res.output
+    res = runner.invoke(app, ["replay", str(rec), "--classical", "--rig", str(tmp_path / "nope.json")])
+    assert res.exit_code == 2 and "nope.json" in res.output
+    # an export folder that already holds burst clouds is refused (two runs never mix)
+    res = runner.invoke(app, ["replay", str(rec), "--classical", "--rig", str(tmp_path / "rig.json"), "--ply", str(tmp_path / "ply2")])
+    assert res.exit_code == 2 and "already holds burst clouds" in res.output
+    # a rig of another size than the camera's frames: record refuses it at the first frame
+    default_rig(64, 64).save(tmp_path / "rig.json")
+    res = runner.invoke(app, ["record", str(tmp_path / "rec2"), "-c", str(cfg), "-n", "1"])
+    assert res.exit_code == 2 and "rig.calibration" in res.output and "64x64" in res.output and "128x128" in res.output
