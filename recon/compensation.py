@@ -64,7 +64,7 @@ def _masked_blur(values: np.ndarray, weight: np.ndarray, sigma: float) -> np.nda
     return num / np.maximum(den, 1e-12)
 
 
-def _solve_pixels(frames: np.ndarray, shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def solve_shifted(frames: np.ndarray, shifts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-pixel exact solve of ``I_n = a + C cos(d_n) - S sin(d_n)`` for three frames.
 
     ``shifts`` is (3, H, W) (per-pixel shifts, e.g. interpolated from tiles). Differences
@@ -211,7 +211,7 @@ def aia_compensate(
     weight = valid.astype(np.float64)
     min_pixels = int(min_fraction * region * region)
     for _ in range(iterations):
-        a, c, s = _solve_pixels(frames, _tiles_to_pixels(tile_shifts, shape, region))
+        a, c, s = solve_shifted(frames, _tiles_to_pixels(tile_shifts, shape, region))
         b = np.hypot(c, s)
         a_s, b_s = _masked_blur(a, weight, sigma), _masked_blur(b, weight, sigma)
         modulated = valid & (b_s > 1e-6 * float(full_scale))
@@ -228,7 +228,7 @@ def aia_compensate(
         tile_shifts = new
         if change < tol:
             break
-    a, c, s = _solve_pixels(frames, _tiles_to_pixels(tile_shifts, shape, region))
+    a, c, s = solve_shifted(frames, _tiles_to_pixels(tile_shifts, shape, region))
     scale = 2.0 / float(full_scale)
     return np.arctan2(s, c), s * scale, c * scale
 
