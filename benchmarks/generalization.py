@@ -53,6 +53,21 @@ HERE = Path(__file__).parent
 REPO = HERE.parent
 
 
+UNGATED = f"{NETWORK} without still gate"
+
+
+def gate_table(cells) -> str:
+    """Markdown: the shipped network (with its still gate) next to the same network without it."""
+    lines = [f"| family | motions | {NETWORK} RMSE (rad) | without gate | {BASELINE} | gated / three-step | ungated / three-step |",
+             "|---|---|---|---|---|---|---|"]
+    for c in cells:
+        if c.group not in ("moving", "still"):
+            continue
+        g, u, b = c.rmse[NETWORK], c.rmse[UNGATED], c.rmse[BASELINE]
+        lines.append(f"| {c.family} | {c.group} | {g:.4f} | {u:.4f} | {b:.4f} | {g / b:.2f}x | {u / b:.2f}x |")
+    return "\n".join(lines)
+
+
 def host() -> dict[str, object]:
     """CPU model, the bf16/AMX flags that decide the precision, cores and load."""
     cpu, flags = platform.processor() or "unknown", set()
@@ -96,9 +111,10 @@ def main() -> None:
     machine = host()
     t_start = time.perf_counter()
     predictor = Predictor.load(args.model)
-    methods = {BASELINE: classical_method, NETWORK: network_method(predictor)}
+    ungated = Predictor.load(args.model, still_gate_rad=0.0)
+    methods = {BASELINE: classical_method, NETWORK: network_method(predictor), UNGATED: network_method(ungated)}
     mc_name = f"{NETWORK} MC T={args.mc}"
-    det = GeneralizationScorer([BASELINE, NETWORK])
+    det = GeneralizationScorer([BASELINE, NETWORK, UNGATED])
     mc = GeneralizationScorer([BASELINE, NETWORK, mc_name])
     scenes_json, timing = [], {"render_s": 0.0, "decode_s": 0.0, "mc_s": 0.0, "bursts": 0, "mc_bursts": 0}
     for fam in families:
@@ -171,7 +187,7 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         f"{args.threads} torch threads.",
         f"- **Model**: `{weights.relative_to(REPO) if weights.is_relative_to(REPO) else weights}` "
         f"(the shipped one unless named), precision **{predictor.precision}** (Predictor's automatic choice: bf16 "
-        "on CPUs with native bf16).",
+        f"on CPUs with native bf16), still gate {predictor.still_gate_rad:g} rad (from the model's JSON, chosen on val).",
         f"- **Split**: every number below is from the **test** split ({describe('test')}), rendered on the fly "
         "from fixed seeds; nothing here chose anything. Families: `twin/families.py`; splits: `twin/splits.py`.",
         f"- **What the shipped model saw**: {SHIPPED_V5.summary()}. So every test gear and seed is unseen; the "
@@ -190,6 +206,14 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "## Per family (deterministic network, test split)",
         "",
         cells_table(cells),
+        "",
+        f"## The still gate (chosen on val: {predictor.still_gate_rad:g} rad, `scripts/choose_still_gate.py`), test split",
+        "",
+        "Per pixel, the shipped network's phase is replaced by three-step PS's where the two differ by less "
+        "than the gate (`inference.predictor.still_gate`). Same bursts, with and without it (RMSE ratios to "
+        "three-step PS: < 1 is better than three-step):",
+        "",
+        gate_table(cells),
         "",
         f"## MC dropout T={args.mc} (first {args.mc_scenes} scenes of each family: paper motions forwards and still, test split)",
         "",

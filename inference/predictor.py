@@ -125,6 +125,10 @@ class Predictor:
     channels_last : channels_last memory format (default: on CPU, where it was faster in fp32
         and bf16 alike)
     mc_chunk : passes per batched forward in MC mode
+    still_gate_rad : per pixel, a network phase within this of three-step PS's is replaced by
+        three-step PS's (0: off). A correction that small is what the network invents on a still
+        gear (where three-step has no motion error and beats it); a real motion correction is larger.
+        Chosen per model on the val split and stored in its JSON (``still_gate``); None: the model's.
     """
 
     def __init__(
@@ -138,6 +142,7 @@ class Predictor:
         meta: dict | None = None,
         channels_last: bool | None = None,
         calibration: dict[str, SigmaCalibration] | None = None,
+        still_gate_rad: float | None = None,
     ) -> None:
         self.device = torch.device(device)
         self.calibration = dict(calibration or {})
@@ -151,6 +156,11 @@ class Predictor:
         self.var_scale = float(var_scale)
         self.mc_chunk = int(mc_chunk)
         self.meta = meta or {}
+        if still_gate_rad is None:
+            still_gate_rad = float((self.meta.get("still_gate") or {}).get("rad", 0.0))
+        if not 0.0 <= still_gate_rad < math.pi:
+            raise ValueError(f"still_gate_rad: expected 0 <= rad < pi, got {still_gate_rad}")
+        self.still_gate_rad = float(still_gate_rad)
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
         if self.channels_last:
@@ -164,6 +174,7 @@ class Predictor:
         device: str = "cpu",
         precision: str = "auto",
         mc_chunk: int = 2,
+        still_gate_rad: float | None = None,
     ) -> Predictor:
         """Load ``path`` (.safetensors + .json); default: the shipped model."""
         path = model_path(path)
@@ -195,6 +206,7 @@ class Predictor:
             mc_chunk=mc_chunk,
             meta=meta,
             calibration=calibration,
+            still_gate_rad=still_gate_rad,
         )
 
     def replica(self) -> Predictor:
@@ -223,6 +235,7 @@ class Predictor:
                 f"mc={mc}: this model ({self.model.config.name}) has no Concrete Dropout layers; use mc=0"
             )
         x = x.to(self.device)
+        classical = classical_md(x[:, :3].float())[0].cpu().numpy() if self.still_gate_rad > 0 else None
         mirror = fringe_phase_decreases_along_columns(x)
         if mirror:  # the nets were trained on phase increasing along the columns: mirror in and out
             x = torch.flip(x, dims=[-1])
@@ -238,7 +251,8 @@ class Predictor:
             stats = MomentStats(*(torch.flip(getattr(stats, f.name), dims=[-1]) for f in dataclasses.fields(stats)))
         mode = f"mc{mc}" if mc > 0 else "deterministic"
         calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
-        return to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale, calibration=calibration)
+        result = to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale, calibration=calibration)
+        return result if classical is None else still_gate(result, classical, self.still_gate_rad)
 
     @property
     def needs_angles(self) -> bool:
@@ -275,3 +289,16 @@ class Predictor:
         result.burst_index = burst.index
         result.angle = float(burst.angles[0])
         return result
+
+
+def still_gate(result: PhaseResult, classical: np.ndarray, rad: float) -> PhaseResult:
+    """``result`` with three-step PS's phase, M and D wherever the two phases differ by less than
+    ``rad`` (sigma stays the network's). ``classical``: three-step M, D ``(2, H, W)`` of the burst."""
+    m3, d3 = classical
+    phase3 = np.arctan2(m3, d3)
+    small = np.abs(np.angle(np.exp(1j * (result.phase - phase3)))) < rad
+
+    def pick(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.where(small, b, a).astype(np.float32)
+
+    return dataclasses.replace(result, phase=pick(result.phase, phase3), M=pick(result.M, m3), D=pick(result.D, d3))

@@ -1,0 +1,58 @@
+"""The shipped model's still gate: a network phase within the gate of three-step PS's is three-step's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gearscan.inference.predictor import Predictor, still_gate
+from gearscan.projector.patterns import PatternSet
+from gearscan.recon.phase import phase_error, three_step
+from gearscan.rig import default_rig
+from gearscan.twin.gear import GearSpec
+from gearscan.twin.render import Optics, TwinRenderer
+from gearscan.types import PhaseResult
+
+
+def test_the_gate_takes_three_step_only_where_the_correction_is_small():
+    phase3 = np.linspace(-3.0, 3.0, 12, dtype=np.float32).reshape(3, 4)
+    classical = np.stack([np.sin(phase3), np.cos(phase3)])  # M, D of unit modulation
+    net = np.angle(np.exp(1j * (phase3 + np.where(np.arange(12).reshape(3, 4) % 2, 0.05, 0.4)))).astype(np.float32)
+    z = np.zeros_like(net)
+    res = PhaseResult(net, np.sin(net), np.cos(net), z, z + 0.1, z + 0.1)
+    out = still_gate(res, classical, 0.1)
+    small = np.arange(12).reshape(3, 4) % 2 == 1
+    np.testing.assert_allclose(out.phase[small], phase3[small], atol=1e-6)
+    np.testing.assert_array_equal(out.phase[~small], net[~small])
+    np.testing.assert_array_equal(out.sigma_total, res.sigma_total)  # sigma stays the network's
+
+
+@pytest.fixture(scope="module")
+def val_scene():
+    """The default rig with a validation gear (z = 25): the split the gate was chosen on."""
+    gear = GearSpec(teeth=25, module=2.0)
+    rig = default_rig(192, 192, working_radius=gear.pitch_radius)
+    return TwinRenderer(rig, gear, Optics())
+
+
+def _rmse(renderer, steps_deg, predictor):
+    angles = np.radians(np.cumsum([3.0, *steps_deg]))
+    frames, truths = renderer.render_sequence(list(angles), PatternSet.three_step(40.0), [0, 1, 2], 5)
+    t = truths[0]
+    def err(p):
+        return float(np.sqrt(np.mean(phase_error(p, t.phase)[t.mask] ** 2)))
+    return err(predictor.predict(frames).phase), err(three_step(frames, 255)[0])
+
+
+def test_the_shipped_gate_lowers_the_still_error_and_keeps_motion_corrections(val_scene):
+    """Still burst through the Predictor with no angles: the gate (chosen on val, stored in the
+    model's JSON) takes back much of the error the network invents; a 0.6 deg/frame burst keeps
+    its correction. The target (still <= 1.1x three-step) is not met by the gate alone."""
+    gated, plain = Predictor.load(None), Predictor.load(None, still_gate_rad=0.0)
+    assert gated.still_gate_rad == pytest.approx(0.1)
+    g_still, three_still = _rmse(val_scene, (0.0, 0.0), gated)
+    p_still, _ = _rmse(val_scene, (0.0, 0.0), plain)
+    assert g_still < 0.8 * p_still and g_still < 2.0 * three_still, (g_still, p_still, three_still)
+    g_move, three_move = _rmse(val_scene, (0.6, 0.6), gated)
+    p_move, _ = _rmse(val_scene, (0.6, 0.6), plain)
+    assert g_move < 1.05 * p_move and g_move < 0.2 * three_move, (g_move, p_move, three_move)
