@@ -3,10 +3,10 @@
     python scripts/choose_still_gate.py data/views_val [--model inference/weights/default.safetensors] [--write]
 
 The gate (:func:`gearscan.inference.predictor.still_gate`) replaces the network's phase by
-three-step PS's wherever the two differ by less than ``rad``. Rule, fixed before looking: the
-smallest ``rad`` of the grid whose val still-burst RMSE is within 5 % of three-step PS's; the
-moving-burst cost is reported next to it. Val only: the test split reports it
-(benchmarks/generalization.py).
+three-step PS's wherever the two differ by less than ``rad``. Rule: the smallest ``rad`` of the
+grid whose val still-burst RMSE is within 5 % of three-step PS's and whose calibration (ECE of the
+network's sigma, moving and still) is no worse than without a gate (+0.005); none: 0 (no gate),
+with the table that says why. Val only: the test split reports it (benchmarks/generalization.py).
 """
 
 from __future__ import annotations
@@ -18,11 +18,13 @@ import numpy as np
 import torch
 
 from gearscan.inference.predictor import Predictor, model_path
+from gearscan.inference.uncertainty import reliability
 from gearscan.recon.phase import phase_error, three_step
 from gearscan.twin.dataset import TwinBurstDataset
 
 GRID = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3)
 STILL_TOLERANCE = 1.05
+ECE_TOLERANCE = 0.005
 
 
 def main() -> None:
@@ -39,26 +41,33 @@ def main() -> None:
     }
     predictors = {rad: Predictor.load(args.model, still_gate_rad=rad) for rad in GRID}
     table: dict[str, dict[str, float]] = {}
+    ece: dict[str, dict[str, float]] = {}
     for seed, (name, ds) in enumerate(sets.items()):
         n = min(args.items // (1 + seed), len(ds))
         pick = sorted(np.random.default_rng(seed).choice(len(ds), n, replace=False))
         errs: dict[str, list[np.ndarray]] = {"three-step": [], **{f"{r:g}": [] for r in GRID}}
+        sigmas: dict[str, list[np.ndarray]] = {f"{r:g}": [] for r in GRID}
         for i in pick:
             it = ds[int(i)]
             x = torch.from_numpy(np.asarray(it["input"], np.float32))[None]
             m = it["mask"]
             errs["three-step"].append(phase_error(three_step(it["input"][:3], 1.0)[0], it["phase"])[m])
             for rad, pred in predictors.items():
-                errs[f"{rad:g}"].append(phase_error(pred.predict_tensor(x).phase, it["phase"])[m])
+                res = pred.predict_tensor(x)
+                errs[f"{rad:g}"].append(phase_error(res.phase, it["phase"])[m])
+                sigmas[f"{rad:g}"].append(res.sigma_total[m])
         table[name] = {k: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for k, v in errs.items()}
         table[name]["bursts"] = n
+        ece[name] = {k: float(reliability(np.concatenate(errs[k]), np.concatenate(v)).ece) for k, v in sigmas.items()}
     still, moving = table["still"], table["moving"]
-    ok = [r for r in GRID if still[f"{r:g}"] <= STILL_TOLERANCE * still["three-step"]]
-    chosen = min(ok) if ok else max(GRID)
+    ok = [r for r in GRID if r > 0 and still[f"{r:g}"] <= STILL_TOLERANCE * still["three-step"]
+          and all(ece[k][f"{r:g}"] <= ece[k]["0"] + ECE_TOLERANCE for k in ece)]
+    chosen = min(ok) if ok else 0.0
     choice = {
         "rad": chosen, "chosen_on": f"val split: {args.val}", "grid": list(GRID),
-        "rule": f"smallest rad with val still RMSE <= {STILL_TOLERANCE} x three-step PS",
-        "val_rmse_rad": table,
+        "rule": f"smallest rad with val still RMSE <= {STILL_TOLERANCE} x three-step PS and ECE (moving, still) "
+                f"<= the ungated network's + {ECE_TOLERANCE}; none: 0 (no gate)",
+        "val_rmse_rad": table, "val_ece": ece,
         "val_moving_cost": moving[f"{chosen:g}"] / moving["0"] - 1.0,
     }
     print(json.dumps(choice, indent=1))

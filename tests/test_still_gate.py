@@ -44,15 +44,24 @@ def _rmse(renderer, steps_deg, predictor):
     return err(predictor.predict(frames).phase), err(three_step(frames, 255)[0])
 
 
-def test_the_shipped_gate_lowers_the_still_error_and_keeps_motion_corrections(val_scene):
-    """Still burst through the Predictor with no angles: the gate (chosen on val, stored in the
-    model's JSON) takes back much of the error the network invents; a 0.6 deg/frame burst keeps
-    its correction. The target (still <= 1.1x three-step) is not met by the gate alone."""
-    gated, plain = Predictor.load(None), Predictor.load(None, still_gate_rad=0.0)
-    assert gated.still_gate_rad == pytest.approx(0.1)
+def test_a_gate_lowers_the_still_error_and_keeps_motion_corrections(val_scene):
+    """Still burst through the Predictor with no angles: a 0.1 rad gate takes back much of the error
+    the network invents; a 0.6 deg/frame burst keeps its correction. Not shipped (see below), and
+    no still-safety either: still stays well above 1.1x three-step here."""
+    gated, plain = Predictor.load(None, still_gate_rad=0.1), Predictor.load(None, still_gate_rad=0.0)
     g_still, three_still = _rmse(val_scene, (0.0, 0.0), gated)
     p_still, _ = _rmse(val_scene, (0.0, 0.0), plain)
     assert g_still < 0.8 * p_still and g_still < 2.0 * three_still, (g_still, p_still, three_still)
     g_move, three_move = _rmse(val_scene, (0.6, 0.6), gated)
     p_move, _ = _rmse(val_scene, (0.6, 0.6), plain)
     assert g_move < 1.05 * p_move and g_move < 0.2 * three_move, (g_move, p_move, three_move)
+
+
+def test_the_shipped_model_records_why_it_has_no_gate():
+    """The val choice is in the model's JSON: every gate that brought still bursts near three-step
+    made the network's sigma less calibrated on val, so the rule chose none."""
+    pred = Predictor.load(None)
+    choice = pred.meta["still_gate"]
+    assert pred.still_gate_rad == 0.0 == choice["rad"]
+    assert "val" in choice["chosen_on"] and set(choice["val_ece"]) == {"moving", "still"}
+    assert all(choice["val_ece"]["moving"][k] > choice["val_ece"]["moving"]["0"] for k in ("0.1", "0.2"))
