@@ -11,7 +11,8 @@ reading discards the partial burst and is reported in ``events`` and counted in 
     assembler.stats, assembler.events
 
 Frames that already carry ``encoder_angle`` (replayed recordings) use it as is, so the
-replay pipeline needs no history at all.
+replay pipeline needs no history at all. Without an encoder (``history`` None) and with
+``fixed_angle`` set, every frame gets that angle: the gear is taken as standing still there.
 """
 
 from __future__ import annotations
@@ -54,6 +55,8 @@ class BurstAssembler:
     max_encoder_gap_ns: bracketing encoder samples farther apart than this are a gap.
     encoder_wait_s: how long ``push`` may wait for encoder samples to cover the newest
     exposure (the serial link can lag the camera by a few ms).
+    fixed_angle: with no history, the angle of frames that carry none (a rig without encoder:
+    the gear stands still at this angle, rad); None: such frames cannot form a burst.
     frame_id_modulus, frame_id_skips_zero: wrap of the camera's frame counter (GigE v1: 65536,
     skipping 0; :attr:`BaseCamera.frame_id_wrap <gearscan.acquisition.camera.BaseCamera.frame_id_wrap>`).
     """
@@ -64,6 +67,7 @@ class BurstAssembler:
     encoder_wait_s: float = 0.05
     frame_id_modulus: int | None = None
     frame_id_skips_zero: bool = False
+    fixed_angle: float | None = None
     max_events: int = 10_000
     stats: AssemblerStats = field(default_factory=AssemblerStats)
     events: list[AssemblyEvent] = field(default_factory=list)
@@ -98,6 +102,8 @@ class BurstAssembler:
         if frame.encoder_angle is not None:
             return frame.encoder_angle, ""
         if self.history is None:
+            if self.fixed_angle is not None:
+                return self.fixed_angle, ""
             return None, "frame has no encoder_angle and the assembler has no encoder history"
         t = self.host_midpoint_ns(frame)
         deadline = time.monotonic() + self.encoder_wait_s

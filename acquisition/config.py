@@ -11,7 +11,7 @@ Example ``rig.toml``::
     trigger = "software"
 
     [encoder]
-    port = "/dev/ttyUSB0"        # or omit the table: frames then carry no angle
+    port = "/dev/ttyUSB0"        # or omit the table: the gear is taken as still at angle 0
     counts_per_rev = 10000
 
     [projector]

@@ -21,6 +21,12 @@ from gearscan.acquisition.encoder import EncoderError, EncoderReader
 from gearscan.projector.patterns import PatternSet
 from gearscan.types import Burst, EncoderSample, Frame
 
+# A rig without encoder: the gear is taken as standing still at its CAD zero (angle 0), so
+# every burst spans 0 deg (three-step PS, which has no motion error on a still gear) and the
+# CAD bounds sit at angle 0. A turning gear needs the encoder.
+NO_ENCODER_ANGLE = 0.0
+NO_ENCODER_REFERENCE = "none: no encoder, the gear taken as still at angle 0"
+
 
 @dataclass
 class RecordSummary:
@@ -117,8 +123,9 @@ class AcquisitionSession:
                 max_encoder_gap_ns=int((cfg.encoder.max_gap_ms if cfg.encoder else 20.0) * 1e6),
                 frame_id_modulus=self.camera.frame_id_modulus,
                 frame_id_skips_zero=self.camera.frame_id_skips_zero,
+                fixed_angle=None if self.encoder else NO_ENCODER_ANGLE,
             )
-            reference = None
+            reference = None if self.encoder else NO_ENCODER_REFERENCE
             if self.encoder is not None:  # before the recording exists: a missing index leaves no folder
                 self.encoder.start()
                 reference = self._settle_encoder_reference()
@@ -154,7 +161,8 @@ class AcquisitionSession:
                 self._drain_encoder()
                 if self.assembler is not None:
                     self.writer.update_meta(assembler=self.assembler.stats.as_dict(),
-                                            camera_stats=self.camera.stats.as_dict())
+                                            camera_stats=self.camera.stats.as_dict(),
+                                            **({"encoder_stats": self.encoder.stats.as_dict()} if self.encoder else {}))
                 self.writer.close()
             self.camera.__exit__(None, None, None)
 
@@ -214,6 +222,10 @@ class AcquisitionSession:
             if self.frames == 1:
                 self._check_frame_size(frame)
             self._drain_encoder()
+            if self.encoder is not None:
+                self.encoder.raise_if_failed()  # a dead reader thread: its cause, at once
+                if self.encoder.resyncing:  # a restarted encoder waits for its index: no abort meanwhile
+                    since_burst = 0
             burst = self.assembler.push(frame)
             if burst is not None:
                 since_burst = 0

@@ -32,14 +32,17 @@ trigger = "software"         # "software" (projector sequencing), "hardware" or 
 
 [projector]
 backend = "window"           # "window" (full-screen on a display), "lightcrafter" or "mock"
-display = 1                  # screen index for the window backend
+display = 0                  # screen for the window backend: 0 = the first; a projector on a
+                             # second output is usually 1 (`--check` says how many there are)
 width = 1280
 height = 800
 period_px = 40.0             # fringe period, projector pixels
 settle_ms = 20.0             # wait after showing a pattern before triggering the camera
 # gamma = 2.2                # display gamma to pre-compensate
 
-# [encoder]                  # omit for a turntable without encoder (angles then unknown)
+# [encoder]                  # omit without an encoder: the gear is then taken as standing still
+                             # at angle 0 (its CAD pose); every burst goes to three-step PS.
+                             # A turning gear needs the encoder.
 # port = "/dev/ttyUSB0"
 # counts_per_rev = 131072
 # baudrate = 115200

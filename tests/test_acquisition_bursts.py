@@ -104,3 +104,15 @@ def test_recorded_angles_are_used_and_gigE_ids_wrap():
     assert b is not None and b.angles == (0.1, 0.2, 0.3) and asm.stats.dropped_frames == 0
     with pytest.raises(ValueError, match="n_patterns must be 3"):
         BurstAssembler(n_patterns=4)
+
+
+def test_without_encoder_frames_get_the_fixed_angle_and_recorded_angles_still_win():
+    """A rig without encoder: without ``fixed_angle`` every burst is refused (issue 16); with it
+    the gear is taken as still at that angle, and a frame that carries an angle keeps it."""
+    refused = BurstAssembler(None)
+    assert [refused.push(_frame(i)) for i in range(3)][-1] is None and refused.stats.encoder_gaps == 1
+    asm = BurstAssembler(None, fixed_angle=0.0)
+    bursts = [b for b in (asm.push(_frame(i)) for i in range(9)) if b is not None]
+    assert [b.angles for b in bursts] == [(0.0, 0.0, 0.0)] * 3 and asm.stats.encoder_gaps == 0
+    b = [asm.push(_frame(i, angle=0.5)) for i in range(9, 12)][-1]
+    assert b is not None and b.angles == (0.5, 0.5, 0.5)

@@ -14,8 +14,10 @@ from gearscan.recording import RecordingReader
 RPM = 6.0
 
 
-def _toml(tmp_path, camera_id: str, port: str, extra_encoder: str = "") -> str:
+def _toml(tmp_path, camera_id: str, port: str | None, extra_encoder: str = "") -> str:
+    """The config file; ``port`` None leaves the [encoder] table out."""
     path = tmp_path / "rig.toml"
+    encoder = f'[encoder]\nport = "{port}"\ncounts_per_rev = 10000\n{extra_encoder}' if port else ""
     path.write_text(
         f"""
 [camera]
@@ -26,10 +28,7 @@ exposure_us = 10000
 roi = [0, 0, 64, 48]
 trigger = "software"
 
-[encoder]
-port = "{port}"
-counts_per_rev = 10000
-{extra_encoder}
+{encoder}
 
 [projector]
 backend = "mock"
@@ -132,3 +131,17 @@ def test_devices_lists_the_simulator_and_serial_ports(sim, capsys, monkeypatch):
     out = capsys.readouterr().out
     assert sim.serial in out and "Aravis" in out and "127.0.0.1" in out
     assert "Serial ports:" in out
+
+
+def test_without_encoder_the_gear_is_taken_as_still_at_angle_zero(tmp_path, sim):
+    """The template says [encoder] may be left out: then every burst is measured at angle 0
+    (it used to be discarded with "no encoder angle") and the recording says so."""
+    from gearscan.acquisition.record import NO_ENCODER_REFERENCE, record_bursts
+
+    cfg = AcquisitionConfig.load(_toml(tmp_path, sim.serial, None))
+    assert cfg.encoder is None
+    summary = record_bursts(cfg, tmp_path / "rec", 2)
+    rec = RecordingReader(tmp_path / "rec")
+    assert summary.bursts == 2 and summary.assembler["encoder_gaps"] == 0 and len(rec) == 6
+    assert [r.encoder_angle for r in rec.records] == [0.0] * 6
+    assert rec.meta["encoder_reference"] == NO_ENCODER_REFERENCE and rec.meta["encoder"] is None
