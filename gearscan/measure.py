@@ -106,7 +106,7 @@ class Decoder:
             self._pool.put(predictor)
 
 
-UNWRAP_MODES = ("cad", "envelope")
+UNWRAP_MODES = ("cad", "envelope", "coarse")
 ENVELOPE_MM = 1.0  # CAD-free unwrapping: how far the gear may stand outside its tip/root cylinders
 
 
@@ -153,6 +153,8 @@ class Reconstructor:
     * ``unwrap="envelope"`` (CAD-free): spatial unwrapping per connected region, each region's
       order fixed by the gear's envelope (tip and root cylinders widened by ``envelope_mm``);
       needs no CAD surface, only the radii and face width.
+    * ``unwrap="coarse"`` (CAD-free, any fringe period): as ``"cad"``, around the surface a coarse
+      burst measured (:meth:`set_prior`, :mod:`gearscan.recon.cloud_prior`).
 
     In both modes the order is made consistent over each connected region of continuous phase
     (:func:`~gearscan.recon.unwrap.prior_unwrap`, :func:`~gearscan.recon.unwrap.envelope_unwrap`).
@@ -185,12 +187,16 @@ class Reconstructor:
         self.cad = None
         self._envelope = None
         self.silhouette_px = 0.0
+        self.prior = None  # unwrap="coarse": the surface measured by the last coarse burst (set_prior)
         if unwrap == "cad":  # walls extruded along z: one layer is exact, and 5x fewer triangles
             self.cad = CadDepthBounds(rig, gear.mesh(layer_mm=gear.face_width))
-            # how far (px) a silhouette moves when the surface is silhouette_mm off its CAD
             depth = self.cad.depth(0.0)
             z = float(np.nanmedian(depth)) if np.isfinite(depth).any() else np.nan
-            px_per_mm = rig.camera.K[0, 0] / z if np.isfinite(z) else 1.0
+        elif unwrap == "coarse":  # the rim's distance from the camera sets the pixel scale
+            z = float(np.linalg.norm(rig.camera.center_world[:2])) - gear.tip_radius
+        if unwrap in ("cad", "coarse"):
+            # how far (px) a silhouette moves when the surface is silhouette_mm off its prior
+            px_per_mm = rig.camera.K[0, 0] / z if np.isfinite(z) and z > 0 else 1.0
             self.silhouette_px = max(1.5, silhouette_mm * px_per_mm)
         else:
             if not envelope_mm >= 0:
@@ -213,6 +219,14 @@ class Reconstructor:
     def close(self) -> None:
         if self.fused is not None:
             self.fused.close()
+
+    def set_prior(self, prior) -> None:
+        """``unwrap="coarse"``: unwrap the next bursts around this measured surface (an object with
+        ``depth(angle, mask)``, e.g. :class:`~gearscan.recon.cloud_prior.CloudDepthPrior` of a coarse
+        burst's cloud). Until one is set, every candidate pixel is unresolved."""
+        if self.mode != "coarse":
+            raise ValueError(f"set_prior: this reconstructor unwraps with {self.mode!r}, not 'coarse'")
+        self.prior = prior
 
     def depth_range_mm(self, angle: float = 0.0) -> dict[str, float]:
         """The rig's unambiguous depth range (camera z, mm) on the gear's CAD surface at ``angle``:
@@ -249,8 +263,10 @@ class Reconstructor:
                 f"{cam_shape}: wrong rig file for this camera/ROI?"
             )
         candidate = (result.modulation >= self.min_modulation) & (result.sigma_total <= self.max_sigma)
-        if self.cad is not None:
-            depth = self.cad.depth(burst.angles[0], candidate)
+        if self.mode in ("cad", "coarse"):
+            source = self.cad if self.mode == "cad" else self.prior
+            depth = (source.depth(burst.angles[0], candidate) if source is not None
+                     else np.full(cam_shape, np.nan, np.float32))
             prior = (self.fused.phase_of_depth(depth) if self.fused is not None
                      else phase_bounds(self.rig, DepthBounds(depth, depth), self.period_px)[0])
             regions = prior_unwrap(result.phase, candidate, prior, margin=self.margin,

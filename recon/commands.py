@@ -25,6 +25,7 @@ def calibrate(
     steps: Annotated[int, typer.Option(min=3, help="With --twin: phase steps per fringe period.")] = 12,
     camera_pixel_um: Annotated[float, typer.Option(help="Camera pixel pitch for the Unity export, micrometres.")] = 3.45,
     projector_pixel_um: Annotated[float, typer.Option(help="Projector pixel pitch for the Unity export, micrometres.")] = 7.6,
+    period: Annotated[float, typer.Option(min=1.0, help="Fringe period (projector px) the rig will measure with: states its unambiguous depth range.")] = 40.0,
 ) -> None:
     """Calibrate camera, projector and turntable axis from checkerboard captures.
 
@@ -99,7 +100,33 @@ def calibrate(
             f"vs twin truth: baseline error {cmp['baseline_rel_error'] * 100:.4f} %, "
             f"axis error {cmp['axis_error_deg']:.4f} deg"
         )
+    console.print(depth_range_line(result.rig, period))
     console.print(f"wrote {output}, {plot_path}, {unity_path}")
+
+
+def depth_range_line(rig, period_px: float) -> str:
+    """How far along the camera rays one fringe order reaches, at the turntable axis's depth:
+    the depth a surface may stray from its prior (CAD or coarse burst) and keep its fringe order."""
+    import numpy as np
+
+    from gearscan.recon.reconstruct import SingleFrequencyReconstructor
+
+    if np.any(rig.projector.dist != 0) or rig.projector.K[0, 1] != 0:
+        return "unambiguous depth range: not stated for a distorted projector (see `gearscan live --check` with a gear)"
+    z_axis = float((rig.camera.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
+    sf = SingleFrequencyReconstructor(rig, period_px, threads=1)
+    try:
+        depth = np.full((rig.camera.height, rig.camera.width), z_axis, np.float32)
+        lo, hi = sf.depth_window(depth)
+    finally:
+        sf.close()
+    ok = np.isfinite(lo) & np.isfinite(hi)
+    if not ok.any():
+        return f"unambiguous depth range: not stated (no projector fringe reaches the image at the axis depth {z_axis:.0f} mm)"
+    minus, plus = (depth - lo)[ok], (hi - depth)[ok]
+    return (f"unambiguous depth range at {period_px:g} px fringes, {z_axis:.0f} mm from the camera (the turntable axis): "
+            f"-{np.median(minus):.2f}/+{np.median(plus):.2f} mm (median over the image; at least "
+            f"-{minus.min():.2f}/+{plus.min():.2f} mm); wider fringes widen it in proportion")
 
 
 def compare_rigs(estimate, truth) -> dict[str, float]:

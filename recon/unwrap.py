@@ -625,7 +625,7 @@ def envelope_unwrap(
     margin: float = 0.3,
     min_pixels: int = 64,
     min_inside: float = 0.9,
-    max_runner_up: float = 0.8,
+    max_runner_up: float = 0.5,
     max_step: float = 2.0,
 ) -> RegionOrders:
     """CAD-free unwrapping: spatial unwrapping per connected region, one order per region.
@@ -635,7 +635,9 @@ def envelope_unwrap(
     the envelope's depth, but the pixels of a region (:func:`spatial_regions`) see different
     windows; the region's order is the one that puts the most of its pixels inside their
     windows. A region is trusted only if at least ``min_inside`` of its pixels fit that order
-    and no other order fits more than ``max_runner_up`` of them; otherwise (and for regions
+    and no other order fits more than ``max_runner_up`` of them (with 0.8, a region that joined
+    two teeth across a one-fringe step got one order for both: 12 869 pixels a fringe off in a
+    moving 40 px burst, ``benchmarks/coarse_prior_report.md``); otherwise (and for regions
     under ``min_pixels``) its pixels are reported ambiguous, except where the envelope alone
     admits one order (:func:`geometric_unwrap`).
     """

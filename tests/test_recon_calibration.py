@@ -141,3 +141,19 @@ def test_calibrate_command_twin_end_to_end(tmp_path):
     calibrate(captures=tmp_path / "caps", output=out, twin=__import__("pathlib").Path("default"), noise_free=True)
     cmp = compare_rigs(Rig.load(out), default_rig())
     assert cmp["baseline_rel_error"] < 1e-3 and cmp["axis_error_deg"] < 0.05
+
+
+def test_calibrate_states_the_unambiguous_depth_range():
+    """One fringe along the rays at the axis depth: about +-1.6 mm at 40 px on the default rig
+    (a surface 22 mm nearer, on the gear's rim, gets +-1.3 mm), four times that at 160 px."""
+    import re
+
+    from gearscan.recon.commands import depth_range_line
+    from gearscan.rig import default_rig
+
+    def numbers(line):
+        return [float(v) for v in re.findall(r"-(\d+\.\d+)/\+(\d+\.\d+) mm \(median", line)[0]]
+
+    fine, coarse = numbers(depth_range_line(default_rig(), 40.0)), numbers(depth_range_line(default_rig(), 160.0))
+    assert all(1.3 < v < 1.9 for v in fine)
+    assert all(3.5 < c / f < 4.5 for c, f in zip(coarse, fine, strict=True))
