@@ -68,6 +68,7 @@ class BurstAssembler:
     frame_id_modulus: int | None = None
     frame_id_skips_zero: bool = False
     fixed_angle: float | None = None
+    groups: int = 1  # three-step pattern groups: 2 when coarse bursts (patterns 3-5) are interleaved
     max_events: int = 10_000
     stats: AssemblerStats = field(default_factory=AssemblerStats)
     events: list[AssemblyEvent] = field(default_factory=list)
@@ -140,16 +141,18 @@ class BurstAssembler:
                 self._discard_pending()
         self._last_id = frame.frame_id
 
-        expected = len(self._pending)
-        if frame.pattern_index != expected:
+        starts = [3 * g for g in range(self.groups)]  # a burst starts at the first pattern of a group
+        expected = self._pending[0].pattern_index + len(self._pending) if self._pending else None
+        if frame.pattern_index != expected and not (expected is None and frame.pattern_index in starts):
             self.stats.pattern_errors += 1
             self._event(
                 "pattern_order",
                 frame.frame_id,
-                f"pattern {frame.pattern_index} where {expected} was expected; partial burst of {len(self._pending)} discarded",
+                f"pattern {frame.pattern_index} where {expected if expected is not None else ' or '.join(map(str, starts))} "
+                f"was expected; partial burst of {len(self._pending)} discarded",
             )
             self._discard_pending()
-            if frame.pattern_index != 0:
+            if frame.pattern_index not in starts:
                 self.stats.discarded_frames += 1
                 return None
         self._pending.append(frame)
@@ -167,7 +170,8 @@ class BurstAssembler:
                 self._event("encoder_gap", f.frame_id, f"no encoder angle for frame {f.frame_id}: {why}; burst discarded")
                 return None
             angles.append(angle)
-        burst = Burst(frames=frames, angles=(angles[0], angles[1], angles[2]), index=self._next_index)  # type: ignore[arg-type]
+        burst = Burst(frames=frames, angles=(angles[0], angles[1], angles[2]), index=self._next_index,  # type: ignore[arg-type]
+                      group=frames[0].pattern_index // 3)
         self._next_index += 1
         self.stats.bursts += 1
         return burst

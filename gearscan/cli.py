@@ -91,6 +91,8 @@ def twin_render(
     chip: Annotated[list[str] | None, typer.Option(help="defect TOOTH:MM[:SIDE[:ZMIN:ZMAX]]: tip corner chipped (repeat)")] = None,
     wear: Annotated[list[str] | None, typer.Option(help="defect TOOTH:UM[:SIDE]: flank worn this deep mid-flank (repeat)")] = None,
     true_module: Annotated[float | None, typer.Option(help="defect: as-built module, mm (the recording states --module as CAD)")] = None,
+    coarse_period: Annotated[float | None, typer.Option(help="also a coarse three-step burst at this period (projector px), first and then every --coarse-every bursts: CAD-free unwrapping (replay --unwrap coarse)")] = None,
+    coarse_every: Annotated[int, typer.Option(min=1, help="with --coarse-period: bursts between coarse bursts")] = 4,
 ) -> None:
     """Render a twin recording of a rotating gear (frames, encoder, ground truth), optionally with known defects."""
     from gearscan.recording import RecordingError
@@ -110,15 +112,17 @@ def twin_render(
             the_rig = the_rig.with_camera_resolution(width, height)
         optics = Optics() if noise else Optics().noise_free()
         with _progress("rendering") as prog:
-            task = prog.add_task("render", total=3 * bursts)
+            frames = 3 * (bursts + (-(-bursts // coarse_every) if coarse_period else 0))  # coarse bursts too
+            task = prog.add_task("render", total=frames)
             render_recording(
                 out, rig=the_rig, gear=gear, defects=as_built, optics=optics, motion=motion, bursts=bursts, period_px=period,
                 start_deg=start, motion_blur=motion_blur, seed=seed, overwrite=overwrite,
+                coarse_period_px=coarse_period, coarse_every=coarse_every,
                 progress=lambda i, n: prog.update(task, completed=i),
             )
     except (RigError, MotionError, RenderError, RecordingError, ValueError) as exc:
         raise _fail(str(exc)) from exc
-    typer.echo(f"wrote {3 * bursts} frames to {out}")
+    typer.echo(f"wrote {frames} frames to {out}")
 
 
 @twin_app.command("dataset")
@@ -197,7 +201,7 @@ def replay_cmd(
     workers: Annotated[int | None, typer.Option(min=1, help="bursts decoded at once (default: 2 on a CPU, 1 on a GPU)")] = None,
     still_span_deg: Annotated[float | None, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never; default 0.075)")] = None,
     strict: Annotated[bool, typer.Option(help="exit 1 when the recording has damage (default: skip it, measure the rest, exit 0)")] = False,
-    unwrap: Annotated[str, typer.Option(help="fringe orders from the gear's CAD ('cad') or CAD-free from its envelope ('envelope')")] = "cad",
+    unwrap: Annotated[str, typer.Option(help="fringe orders from the gear's CAD ('cad'), or CAD-free from its envelope ('envelope') or from the recording's coarse bursts ('coarse')")] = "cad",
     fuse: Annotated[Path | None, typer.Option(help="fuse every burst's cloud in the gear frame and write it here (.ply/.pcd/.csv: x y z mm, sigma, deviation from CAD, bursts)")] = None,
     voxel_mm: Annotated[float, typer.Option(min=0.001, help="with --fuse: voxel edge of the fused model, mm")] = 0.1,
     min_bursts: Annotated[int, typer.Option(min=1, help="with --fuse: keep fused points seen by at least this many bursts")] = 3,
@@ -226,8 +230,8 @@ def replay_cmd(
     if not (save or connect):
         save = Path("out") / f"{recording.name}.rrd"
     try:
-        if unwrap not in ("cad", "envelope"):
-            raise typer.BadParameter(f"expected 'cad' or 'envelope', got {unwrap!r}", param_hint="--unwrap")
+        if unwrap not in ("cad", "envelope", "coarse"):
+            raise typer.BadParameter(f"expected 'cad', 'envelope' or 'coarse', got {unwrap!r}", param_hint="--unwrap")
         if fuse is not None and fuse.suffix.lower() not in (".ply", ".pcd", ".csv"):
             raise typer.BadParameter(f"expected a .ply, .pcd or .csv file, got {fuse}", param_hint="--fuse")
         export = None

@@ -94,7 +94,7 @@ class Decoder:
         torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) // workers))
 
     def __call__(self, burst: Burst) -> PhaseResult:
-        if self.predictor is None:
+        if self.predictor is None or burst.group != 0:  # coarse bursts: three-step PS (the net knows fine fringes)
             return classical_result(burst)
         if abs(burst.angles[-1] - burst.angles[0]) < self.still_span:
             self.still_bursts += 1

@@ -545,12 +545,22 @@ class RecordingReader:
         which the assembler would otherwise turn into an unexplained lost burst."""
         unwrap, keep, prev = FrameIdUnwrapper(self.frame_id_wrap), [], None  # prev: (line, extended id)
         angles = any(r.encoder_angle is not None for r in self.records)
+        groups = cycle is not None and self.patterns.coarse_period_px is not None  # fine and coarse 3-frame bursts
+        if groups:
+            cycle = 3
+        group = 0  # the pattern group (fine 0, coarse 1) of the burst the line belongs to
         for rec, n in zip(self.records, self.lines, strict=True):
             ext = unwrap(rec.frame_id)
             why = ""
+            if groups and (n - 1) % 3 == 0:
+                group = rec.pattern_index // 3
             if angles and rec.encoder_angle is None:
                 why = "encoder_angle_rad is null where the recording's other frames have an angle"
-            elif cycle is not None and rec.pattern_index != (n - 1) % cycle:
+            elif groups and not (rec.pattern_index < 6 and rec.pattern_index // 3 == group
+                                 and rec.pattern_index % 3 == (n - 1) % 3):
+                why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole three-frame "
+                       f"fine (0-2) and coarse (3-5) bursts holds pattern {3 * group + (n - 1) % 3}")
+            elif not groups and cycle is not None and rec.pattern_index != (n - 1) % cycle:
                 why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole "
                        f"{cycle}-frame bursts holds pattern {(n - 1) % cycle}")
             elif prev is not None and ext <= prev[1]:

@@ -194,6 +194,29 @@ class CloudExport:
         self.written += 1
 
 
+class CoarseStage:
+    """Takes the coarse bursts out of the stream: with ``unwrap="coarse"`` each one is unwrapped by
+    the gear's envelope and its cloud becomes the prior of the fine bursts after it
+    (:mod:`gearscan.recon.cloud_prior`); otherwise it is only counted. It emits nothing."""
+
+    def __init__(self, rig: Rig, period_px: float | None, gear, fine: Reconstructor | None) -> None:
+        self.bursts = 0
+        self.rig = rig
+        self.fine = fine
+        self.recon = None
+        if fine is not None and period_px is not None:
+            # no mixed-pixel filter: a prior needs the surface to a fraction of the fine range, edges included
+            self.recon = Reconstructor.for_gear(rig, period_px, gear, unwrap="envelope", mixed_border_px=None)
+
+    def __call__(self, m: Measurement) -> None:
+        from gearscan.recon.cloud_prior import CloudDepthPrior
+
+        self.bursts += 1
+        if self.recon is not None:
+            measured = self.recon(m.burst, m.result)
+            self.fine.set_prior(CloudDepthPrior(self.rig, measured.cloud.points))
+
+
 def replay(
     recording: str | Path,
     *,
@@ -213,8 +236,8 @@ def replay(
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
-    ``unwrap`` picks how fringe orders are found (``"cad"`` or the CAD-free ``"envelope"``,
-    :class:`~gearscan.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
+    ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
+    ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
 
     Damage (a bad frame, index or encoder line) is skipped and logged once; the bursts it
@@ -240,8 +263,13 @@ def replay(
     rig = recording_rig(reader, rig)
     patterns = reader.patterns
     period = patterns.periods[0]
+    coarse_period = patterns.coarse_period_px
+    if unwrap == "coarse" and coarse_period is None:
+        raise RecordingError(f"{reader.path}: --unwrap coarse needs coarse bursts, and this recording's pattern set "
+                             f"({patterns.name}) has none; use --unwrap cad (with the gear's CAD) or envelope")
     gear = reader.gear
     recon = Reconstructor.for_gear(rig, period, gear, unwrap=unwrap) if (reconstruct and gear is not None) else None
+    coarse = CoarseStage(rig, coarse_period, gear, recon if unwrap == "coarse" else None)
     scorer = TruthScorer(reader) if (truth and reader.has_truth()) else None
     export_cad = CadScorer(gear) if (export is not None and gear is not None) else None  # deviation in every file
     logger = None
@@ -251,7 +279,7 @@ def replay(
         logger = RerunLogger(save=save, connect=connect, spawn=spawn)
         logger.log_rig(rig)
     metrics = ReplayMetrics()
-    assembler = BurstAssembler()
+    assembler = BurstAssembler(groups=1 if coarse_period is None else 2)
     camera = ReplayCamera(reader, realtime=speed is not None, speed=speed or 1.0)
 
     def frames():
@@ -302,7 +330,7 @@ def replay(
     stages = [
         StageSpec("assemble", assembler.push),
         StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2, workers=getattr(decoder, "workers", 1)),
-        StageSpec("reconstruct", (lambda m: recon(m.burst, m.result)) if recon else (lambda m: m),
+        StageSpec("reconstruct", lambda m: coarse(m) if m.burst.group else (recon(m.burst, m.result) if recon else m),
                   close=recon.close if recon else None),
         StageSpec("output", output, close=close_output, queue_size=8),
     ]
@@ -312,7 +340,7 @@ def replay(
     pipeline = Pipeline(frames, stages, source_name="camera", source_close=close_camera)
     report: PipelineReport = pipeline.run()
     metrics.pipeline = report.stages
-    metrics.assembler = assembler.stats.as_dict()
+    metrics.assembler = assembler.stats.as_dict() | {"coarse_bursts": coarse.bursts}
     metrics.damage = reader.damage_summary()
     if metrics_path:
         Path(metrics_path).write_text(json.dumps(metrics.to_json(), indent=2))

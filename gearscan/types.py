@@ -81,6 +81,7 @@ class Burst:
     frames: tuple[Frame, Frame, Frame]
     angles: tuple[float, float, float]
     index: int = 0
+    group: int = 0  # 0: the measuring fringes (patterns 0-2); 1: a coarse burst (3-5), the unwrapping prior
 
     @property
     def images(self) -> np.ndarray:

@@ -83,6 +83,24 @@ class PatternSet:
         return cls.n_step(3, period_px)
 
     @classmethod
+    def with_coarse(cls, period_px: float, coarse_period_px: float) -> PatternSet:
+        """The measuring three-step set (indices 0-2) plus a coarse one (3-5) that a burst every
+        N bursts shows, to unwrap the fine fringes without a CAD (:mod:`gearscan.recon.cloud_prior`)."""
+        if not coarse_period_px > period_px:
+            raise PatternError(f"coarse period {coarse_period_px:g} px must exceed the fringe period {period_px:g} px")
+        pats = cls.n_step(3, period_px).patterns + cls.n_step(3, coarse_period_px).patterns
+        return cls(pats, name=f"3-step@{period_px:g}px+coarse@{coarse_period_px:g}px")
+
+    @property
+    def coarse_period_px(self) -> float | None:
+        """The coarse bursts' period when this set is two three-step groups (fine, coarse), else None."""
+        if len(self.patterns) != 6:
+            return None
+        fine, coarse = self.patterns[0].period_px, self.patterns[3].period_px
+        groups_ok = all(p.period_px == fine for p in self.patterns[:3]) and all(p.period_px == coarse for p in self.patterns[3:])
+        return coarse if groups_ok and coarse > fine else None
+
+    @classmethod
     def multi_frequency(cls, periods_px: list[float], steps: int = 18) -> PatternSet:
         """Static reference: an N-step group per period, finest period first."""
         if len(periods_px) < 1:

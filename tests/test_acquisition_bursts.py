@@ -116,3 +116,21 @@ def test_without_encoder_frames_get_the_fixed_angle_and_recorded_angles_still_wi
     assert [b.angles for b in bursts] == [(0.0, 0.0, 0.0)] * 3 and asm.stats.encoder_gaps == 0
     b = [asm.push(_frame(i, angle=0.5)) for i in range(9, 12)][-1]
     assert b is not None and b.angles == (0.5, 0.5, 0.5)
+
+
+def test_coarse_bursts_are_assembled_in_their_own_group():
+    """With two pattern groups (fine 0-2, coarse 3-5) a burst starts at 0 or 3 and keeps its group;
+    a group switch inside a burst is a pattern error."""
+    import numpy as np
+
+    from gearscan.acquisition.bursts import BurstAssembler
+    from gearscan.types import Frame
+
+    img = np.zeros((4, 4), np.uint8)
+    asm = BurstAssembler(groups=2)
+    order = [3, 4, 5, 0, 1, 2, 0, 4, 5]
+    out = [asm.push(Frame(img, i, 1000 * i, p, encoder_angle=0.0)) for i, p in enumerate(order)]
+    bursts = [b for b in out if b is not None]
+    assert [b.group for b in bursts] == [1, 0]
+    assert asm.stats.pattern_errors == 2  # the 4 breaks the burst begun at 0; the 5 starts none
+    assert BurstAssembler().push(Frame(img, 0, 0, 3, encoder_angle=0.0)) is None  # one group: 3 never starts

@@ -42,17 +42,28 @@ def render_recording(
     seed: int = 0,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    coarse_period_px: float | None = None,
+    coarse_every: int = 4,
 ) -> Path:
     """Render ``bursts`` three-step bursts under ``motion`` into recording folder ``out``.
 
     ``gear`` is the nominal spec the recording states as its CAD; with ``defects`` the twin
-    renders the as-built gear and ``recording.json`` holds the answer under ``truth``.
+    renders the as-built gear and ``recording.json`` holds the answer under ``truth``. With
+    ``coarse_period_px`` a coarse three-step burst (patterns 3-5) comes first and then after every
+    ``coarse_every`` bursts, as a rig sequencing them would (:meth:`PatternSet.with_coarse`).
     """
     rig = rig or default_rig()
     gear = gear or GearSpec()
     optics = optics or Optics()
-    patterns = PatternSet.three_step(period_px)
-    angles = frame_angles(motion, bursts, start_deg)
+    if coarse_period_px is None:
+        patterns, sequence = PatternSet.three_step(period_px), [0] * bursts
+    else:
+        if coarse_every < 1:
+            raise ValueError(f"coarse_every: expected >= 1 burst between coarse bursts, got {coarse_every}")
+        patterns = PatternSet.with_coarse(period_px, coarse_period_px)
+        sequence = [g for k in range(bursts) for g in ([1, 0] if k % coarse_every == 0 else [0])]
+    pattern_index = [3 * g + n for g in sequence for n in range(3)]
+    angles = frame_angles(motion, len(sequence), start_deg)
     truth = defects.truth(gear) if defects is not None and not defects.empty else None  # validates first
     renderer = TwinRenderer(rig, gear, optics, defects=defects)
     rng = np.random.default_rng(seed)
@@ -86,7 +97,7 @@ def render_recording(
         next_enc = next(enc_iter, None)
         for i, angle in enumerate(angles):
             span = abs(steps[i]) * exposure_us * 1e3 / dt_ns if motion_blur else 0.0
-            img, truth = renderer.render(float(angle), patterns, rng, indices=[i % 3], motion_span=span)
+            img, truth = renderer.render(float(angle), patterns, rng, indices=[pattern_index[i]], motion_span=span)
             t0 = i * dt_ns
             while next_enc is not None and t_enc[next_enc] <= t0 + dt_ns:
                 k = next_enc
@@ -105,7 +116,7 @@ def render_recording(
                 image=img[0],
                 frame_id=i,
                 timestamp_ns=t0,
-                pattern_index=i % 3,
+                pattern_index=pattern_index[i],
                 exposure_us=exposure_us,
                 bit_depth=optics.bit_depth,
                 host_timestamp_ns=t0,
