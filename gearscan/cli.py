@@ -361,51 +361,82 @@ def config_init(
 
 @app.command("live")
 def live_cmd(
-    config: Annotated[Path, typer.Option(help="live configuration (TOML); see `gearscan config init`")],
+    config: Annotated[Path | None, typer.Option(help="live configuration (TOML); see `gearscan config init` (optional with --simulate)")] = None,
+    simulate: Annotated[bool, typer.Option(help="run on simulators: Aravis's GigE camera simulator (a test ramp, not a gear), the mock encoder (2.5 rpm) and a mock projector; a --config keeps its rig, gear and model")] = False,
     record: Annotated[Path | None, typer.Option(help="record every measured burst into this folder")] = None,
     overwrite: Annotated[bool, typer.Option(help="replace an existing recording")] = False,
     bursts: Annotated[int | None, typer.Option(min=1, help="stop after this many bursts")] = None,
     duration: Annotated[float | None, typer.Option(min=0.1, help="stop after this many seconds")] = None,
     save: Annotated[Path | None, typer.Option(help="write the rerun stream to this .rrd file")] = None,
+    max_save_mb: Annotated[float | None, typer.Option(min=0, help="the .rrd file stops growing at this size, MB; the measurement goes on (0: no cap; default from config: 2000)")] = None,
     connect: Annotated[str | None, typer.Option(help="stream to a rerun viewer at this gRPC URL")] = None,
     serve: Annotated[bool | None, typer.Option(help="serve the web viewer from this machine")] = None,
     bind: Annotated[str | None, typer.Option(help="address --serve binds to (default from config: 127.0.0.1)")] = None,
-    check: Annotated[bool, typer.Option(help="validate the configuration and rig file, then exit")] = False,
+    check: Annotated[bool, typer.Option(help="open the camera, encoder and projector the configuration names, check them and the rig file, then exit")] = False,
 ) -> None:
-    """Measure live: camera + projector + encoder -> network -> point cloud -> rerun viewer."""
+    """Measure live: camera + projector + encoder -> network -> point cloud -> rerun viewer.
+
+    A one-line status shows bursts/s, drops by cause, the encoder rate and the .rrd file; the
+    end summary says why the run stopped.
+    """
+    import contextlib
+
+    from gearscan.acquisition.config import ConfigError
+    from gearscan.config import LiveConfig
+    from gearscan.simulated import SimulationError, simulated_devices
+
+    if config is None and not simulate:
+        raise _fail("--config: a live configuration is needed (write one with `gearscan config init rig.toml`), "
+                    "or try the simulators with --simulate")
+    with contextlib.ExitStack() as devices:
+        try:
+            cfg = LiveConfig.load(config) if config is not None else None
+            if simulate:
+                cfg = devices.enter_context(simulated_devices(cfg))
+                typer.echo(f"simulated devices: camera {cfg.camera.id} (Aravis GigE simulator on 127.0.0.1, test ramp), "
+                           f"encoder {cfg.encoder.port} ({cfg.encoder.counts_per_rev} counts/rev), mock projector")
+            rig = cfg.load_rig()
+        except (ConfigError, SimulationError) as exc:
+            raise _fail(str(exc)) from exc
+        if check:
+            _live_check(cfg, rig, config or Path("--simulate"))
+            return
+        _live_run(cfg, record=record, overwrite=overwrite, bursts=bursts, duration=duration, save=save,
+                  max_save_mb=max_save_mb, connect=connect, serve=serve, bind=bind)
+
+
+def _live_check(cfg, rig, source: Path) -> None:
+    """``live --check``: open each device the configuration names and say what was verified."""
+    if cfg.encoder is not None:  # open the port it names: a config that parses is not a device that answers
+        import serial
+
+        try:
+            serial.serial_for_url(cfg.encoder.port, baudrate=cfg.encoder.baudrate, timeout=0.1).close()
+        except (OSError, ValueError, serial.SerialException) as exc:
+            raise _fail(f"encoder.port: cannot open {cfg.encoder.port!r} ({exc}); serial ports found: "
+                        f"{_serial_ports()}") from exc
+    typer.echo(f"{source}: OK (camera {cfg.camera.driver}, projector {cfg.projector.backend}, "
+               f"rig {rig.camera.width}x{rig.camera.height}, gear z={cfg.gear.teeth}"
+               + (f", encoder {cfg.encoder.port} opened" if cfg.encoder is not None else ", no encoder") + ")")
+    typer.echo(unambiguous_range_line(rig, cfg.projector.period_px, cfg.gear, cfg.recon.unwrap))
+
+
+def _live_run(cfg, *, record, overwrite, bursts, duration, save, max_save_mb, connect, serve, bind) -> None:
+    """``live`` proper: the sinks, the run with its status line, the end summary."""
     import os
 
     from gearscan.acquisition.camera import CameraError
     from gearscan.acquisition.config import ConfigError
     from gearscan.acquisition.encoder import EncoderError
-    from gearscan.config import LiveConfig
-    from gearscan.live import run_live
+    from gearscan.live import LiveError, StatusLine, run_live
     from gearscan.pipeline import PipelineError
     from gearscan.recording import RecordingError
 
-    try:
-        cfg = LiveConfig.load(config)
-        rig = cfg.load_rig()
-    except ConfigError as exc:
-        raise _fail(str(exc)) from exc
-    if check:
-        if cfg.encoder is not None:  # open the port it names: a config that parses is not a device that answers
-            import serial
-
-            try:
-                serial.serial_for_url(cfg.encoder.port, baudrate=cfg.encoder.baudrate, timeout=0.1).close()
-            except (OSError, ValueError, serial.SerialException) as exc:
-                raise _fail(f"encoder.port: cannot open {cfg.encoder.port!r} ({exc}); serial ports found: "
-                            f"{_serial_ports()}") from exc
-        typer.echo(f"{config}: OK (camera {cfg.camera.driver}, projector {cfg.projector.backend}, "
-                   f"rig {rig.camera.width}x{rig.camera.height}, gear z={cfg.gear.teeth}"
-                   + (f", encoder {cfg.encoder.port} opened" if cfg.encoder is not None else ", no encoder") + ")")
-        typer.echo(unambiguous_range_line(rig, cfg.projector.period_px, cfg.gear, cfg.recon.unwrap))
-        return
     decoder = _decoder(False, cfg.model.mc, cfg.model.path, precision=cfg.model.precision,
                        workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg)
     save = save or cfg.viewer.save
     connect = connect or cfg.viewer.connect
+    cap = cfg.viewer.max_save_mb if max_save_mb is None else max_save_mb
     web = None
     if serve if serve is not None else cfg.viewer.serve:
         from gearscan.viewer.serve import serve_web
@@ -417,15 +448,27 @@ def live_cmd(
     if not (save or connect):  # default: the local viewer when there is a screen, else a file
         spawn = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
         save = None if spawn else Path("out") / "live.rrd"
+        typer.echo("viewer: the local rerun viewer" if spawn else
+                   f"viewer: no screen and no --save/--connect/--serve, so the stream goes to {save}"
+                   + (f" (up to {cap:g} MB)" if cap else ""))
+    if cfg.encoder is None:
+        typer.secho("no [encoder]: the gear is taken as standing still at angle 0 (three-step PS on every burst)",
+                    fg=typer.colors.YELLOW)
     try:
-        report = run_live(cfg, record=record, overwrite=overwrite, bursts=bursts, duration=duration,
-                          decoder=decoder, save=save, connect=connect, spawn=spawn)
+        with StatusLine() as status:
+            report = run_live(cfg, record=record, overwrite=overwrite, bursts=bursts, duration=duration,
+                              decoder=decoder, save=save, connect=connect, spawn=spawn, on_status=status.update,
+                              max_save_mb=cap)
+    except LiveError as exc:
+        if exc.live_report is not None:
+            typer.echo(exc.live_report.summary())
+        raise _fail(str(exc)) from exc
     except (ConfigError, CameraError, EncoderError, RecordingError, PipelineError) as exc:
         raise _fail(str(exc)) from exc
     finally:
         if web is not None:
             web.close()
-    typer.echo(f"{report.bursts} bursts; {report.pipeline.summary()}")
+    typer.echo(report.summary())
     if record:
         typer.echo(f"recording: {record} (replay with: gearscan replay {record})")
 

@@ -76,6 +76,8 @@ cad_deviation = true         # colour the cloud by distance to the gear's CAD mo
 [viewer]
 # save = "measurement.rrd"   # write the stream to a file
 # connect = "rerun+http://192.168.0.10:9876/proxy"   # a viewer elsewhere on the shop floor
+max_save_mb = 2000.0         # the .rrd file (save, or out/live.rrd when no viewer is named) stops
+                             # growing at this size, about 4 min at 512x512; the measurement goes on (0: no cap)
 serve = false                # serve the web viewer from this machine
 bind = "127.0.0.1"           # address --serve binds to
 """
@@ -111,6 +113,7 @@ class ViewerSection(BaseModel):
 
     save: Path | None = None
     connect: str | None = None
+    max_save_mb: float = Field(2000.0, ge=0)  # cap of the .rrd file (0: none)
     serve: bool = False
     bind: str = "127.0.0.1"
 

@@ -32,6 +32,7 @@ class PipelineError(RuntimeError):
     def __init__(self, stage: str, error: BaseException):
         super().__init__(f"stage {stage!r} failed: {type(error).__name__}: {error}")
         self.stage = stage
+        self.report: PipelineReport | None = None  # the counters up to the failure (set by run())
 
 
 class DropOldestQueue:
@@ -313,6 +314,8 @@ class Pipeline:
                 signal.signal(sig, handler)
             if blas is not None:
                 blas.restore_original_limits()
+        report = PipelineReport({n: s.as_dict() for n, s in self.stats.items()}, time.perf_counter() - t_start, self.stopped_by)
         if self._error is not None:
+            self._error.report = report
             raise self._error
-        return PipelineReport({n: s.as_dict() for n, s in self.stats.items()}, time.perf_counter() - t_start, self.stopped_by)
+        return report

@@ -61,9 +61,14 @@ def test_failing_stage_is_named_and_closes_everything():
 
     p = Pipeline(forever, [StageSpec("infer", boom, close=lambda: closed.append("infer")),
                            StageSpec("record", lambda x: x, close=lambda: closed.append("record"))])
-    with pytest.raises(PipelineError, match=r"stage 'infer' failed: ValueError: bad burst"):
+    with pytest.raises(PipelineError, match=r"stage 'infer' failed: ValueError: bad burst") as err:
         p.run(handle_signals=False)
     assert sorted(closed) == ["infer", "record"]
+    # the counters up to the failure come with it (the live end summary prints them):
+    # items 0..4 passed the failing stage, item 5 did not
+    rep = err.value.report
+    assert rep is not None and rep.stopped_by == "error in infer"
+    assert rep.stages["record"]["processed"] == rep.stages["infer"]["processed"] == 5
 
 
 def test_sigint_drains_and_finalises():
