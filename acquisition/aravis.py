@@ -168,6 +168,26 @@ class AravisCamera(BaseCamera):
         s = self._require().get_sensor_size()
         return int(s.width), int(s.height)
 
+    def features(self) -> dict[str, str]:
+        """What the camera offers that the live config can set, in words (for `gearscan devices`)."""
+        _, GLib = aravis()
+        cam = self._require()
+        out: dict[str, str] = {}
+        for name, read in (
+            ("sensor", lambda: "{}x{}".format(*self.sensor_size())),
+            ("roi", lambda: "{}, {}, {}, {}".format(*cam.get_region())),
+            ("pixel formats", lambda: ", ".join(self.available_pixel_formats())),
+            ("exposure µs", lambda: "{:g} to {:g}".format(*cam.get_exposure_time_bounds())),
+            ("gain dB", lambda: "{:g} to {:g}".format(*cam.get_gain_bounds())),
+            ("frame rate Hz", lambda: "{:g} to {:g}".format(*cam.get_frame_rate_bounds())),
+            ("trigger sources", lambda: ", ".join(cam.dup_available_trigger_sources())),
+        ):
+            try:
+                out[name] = read()
+            except (GLib.Error, TypeError) as exc:  # a camera without the feature
+                out[name] = f"n/a ({getattr(exc, 'message', exc)})"
+        return out
+
     def _require(self) -> Any:
         if self._cam is None:
             raise CameraError(f"aravis camera {self.camera_id!r} is not open (use it as a context manager)")

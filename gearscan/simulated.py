@@ -21,6 +21,7 @@ from gearscan.config import LiveConfig, RigRef
 SIM_RPM = 2.5  # the mock turntable's speed: 15 deg/s
 SIM_COUNTS_PER_REV = 10_000
 SIM_ENCODER_HZ = 1000
+SIM_PERIOD_PX = 40.0  # the built-in rig's fringe period, projector px
 SIM_SENSOR = (2048, 2048)  # the simulator's sensor, px
 SIM_EXPOSURE_US = 10_000.0  # at 10 ms and gain 0 the simulator's ramp is unscaled
 
@@ -35,10 +36,13 @@ def simulated_config(base: LiveConfig | None, camera_id: str, encoder_port: str,
     from gearscan.rig import default_rig
 
     cfg = base or LiveConfig()
-    if base is None:
+    if base is None:  # the built-in rig, its projector and fringe period (as in `config init`'s template)
         default_rig().save(workdir / "rig.json")
         cfg = cfg.model_copy(update={"rig": RigRef(calibration=workdir / "rig.json")})
     rig = cfg.load_rig()
+    if base is None:
+        cfg = cfg.model_copy(update={"projector": cfg.projector.model_copy(update={
+            "width": rig.projector.width, "height": rig.projector.height, "period_px": SIM_PERIOD_PX})})
     w, h = rig.camera.width, rig.camera.height
     if w > SIM_SENSOR[0] or h > SIM_SENSOR[1]:
         raise SimulationError(f"rig.calibration: the rig's camera is {w}x{h} px, larger than the simulator's "
@@ -65,7 +69,7 @@ def simulated_devices(base: LiveConfig | None = None) -> Iterator[LiveConfig]:
             sim = stack.enter_context(GvSimulator())
             encoder = stack.enter_context(MockEncoderProcess(
                 str(workdir / "encoder"), rate=SIM_ENCODER_HZ, cpr=SIM_COUNTS_PER_REV, rpm=SIM_RPM,
-                duration=10_000_000, linger=0, hello_timeout=600))
+                duration=10_000_000, start_angle=-0.05, linger=0, hello_timeout=600))  # index 0.2 s in
         except RuntimeError as exc:  # SimulatorMissing, a simulator already running, a mock that did not start
             raise SimulationError(f"--simulate: {exc}") from exc
         yield simulated_config(base, sim.camera_id, encoder.link, workdir)

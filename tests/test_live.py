@@ -155,26 +155,44 @@ def test_killed_viewer_does_not_stop_the_measurement(twin, tmp_path, monkeypatch
                           handle_signals=False)
     finally:
         web.close()
-    assert report.bursts == 4 and len(done) == 4
+    # bursts after the kill are measured; one a busy stage skipped to stay live is counted as such
+    assert report.bursts == 4 and len(done) + report.skipped == 4 and len(done) >= 2, report.summary()
 
 
-def test_check_opens_the_encoder_port_it_names(twin, tmp_path):
-    """`live --check` says OK only for a port that opens; a missing one is an error naming it."""
+def test_check_verifies_what_it_claims(twin, tmp_path):
+    """`live --check` says OK only after a frame of the rig's size arrived and the encoder port
+    answered in the encoder protocol; each failure is an error naming the setting."""
     import tty
+
+    from gearscan.mocks.encoder_device import MockEncoderProcess
 
     root, rec, rig_path = twin
     missing = tmp_path / "no-such-port"
     res = runner.invoke(app, ["live", "--config", str(_config(tmp_path, rec, rig_path, str(missing))), "--check"])
     assert res.exit_code == 2 and f"encoder.port: cannot open '{missing}'" in res.output, res.output
-    master, slave = os.openpty()
+    master, slave = os.openpty()  # a port that opens but where nothing speaks the protocol
     tty.setraw(slave)
     try:
-        port = os.ttyname(slave)
-        res = runner.invoke(app, ["live", "--config", str(_config(tmp_path, rec, rig_path, port)), "--check"])
+        res = runner.invoke(app, ["live", "--config", str(_config(tmp_path, rec, rig_path, os.ttyname(slave))), "--check"])
     finally:
         os.close(master)
         os.close(slave)
-    assert res.exit_code == 0 and f"encoder {port} opened" in res.output, res.output
+    assert res.exit_code == 2 and "opened, but no gearscan encoder (silent" in res.output, res.output
+    link = str(tmp_path / "enc")
+    with MockEncoderProcess(link, rate=500, cpr=10000, duration=60, linger=0):
+        res = runner.invoke(app, ["live", "--config", str(_config(tmp_path, rec, rig_path, link)), "--check"])
+    assert res.exit_code == 0, res.output
+    assert f"encoder: {link} answered: gearscan encoder 'mockenc', protocol v1, 10000 counts/rev" in res.output
+    assert "camera: replay camera" in res.output and "one 128x128 Mono8 frame grabbed" in res.output
+    with MockEncoderProcess(link, rate=500, cpr=4096, duration=60, linger=0):
+        res = runner.invoke(app, ["live", "--config", str(_config(tmp_path, rec, rig_path, link)), "--check"])
+    assert res.exit_code == 2 and "encoder.counts_per_rev: 10000 in the config, but the encoder" in res.output
+    assert "reports 4096" in res.output
+    small = tmp_path / "rig64.json"
+    default_rig(64, 64).save(small)
+    res = runner.invoke(app, ["live", "--config", str(_config(tmp_path, rec, small, None)), "--check"])
+    assert res.exit_code == 2 and "camera: it delivers 128x128 px images" in res.output and "64x64" in res.output
+    assert "encoder: none" not in res.output
 
 
 def test_status_drops_stop_reasons_and_the_rrd_cap(twin, tmp_path):
