@@ -407,17 +407,32 @@ def live_cmd(
 
 def _live_check(cfg, rig, source: Path) -> None:
     """``live --check``: open each device the configuration names and say what was verified."""
-    if cfg.encoder is not None:  # open the port it names: a config that parses is not a device that answers
-        import serial
+    from gearscan.acquisition.camera import CameraError
+    from gearscan.acquisition.config import ConfigError
+    from gearscan.acquisition.probe import check_camera, check_projector, probe_encoder
 
-        try:
-            serial.serial_for_url(cfg.encoder.port, baudrate=cfg.encoder.baudrate, timeout=0.1).close()
-        except (OSError, ValueError, serial.SerialException) as exc:
-            raise _fail(f"encoder.port: cannot open {cfg.encoder.port!r} ({exc}); serial ports found: "
-                        f"{_serial_ports()}") from exc
-    typer.echo(f"{source}: OK (camera {cfg.camera.driver}, projector {cfg.projector.backend}, "
-               f"rig {rig.camera.width}x{rig.camera.height}, gear z={cfg.gear.teeth}"
-               + (f", encoder {cfg.encoder.port} opened" if cfg.encoder is not None else ", no encoder") + ")")
+    lines = []
+    try:
+        lines.append("camera: " + check_camera(cfg, (rig.camera.width, rig.camera.height)))
+        lines.append("projector: " + check_projector(cfg))
+    except (CameraError, ConfigError) as exc:
+        raise _fail(str(exc)) from exc
+    if cfg.encoder is None:
+        lines.append("encoder: none (the gear is taken as standing still at angle 0)")
+    else:  # a config that parses is not a device that answers
+        enc = cfg.encoder
+        found = probe_encoder(enc.port, enc.baudrate, timeout_s=2.0)
+        if found.error is not None:
+            raise _fail(f"encoder.port: cannot open {enc.port!r} ({found.error}); serial ports found: {_serial_ports()}")
+        if not found.is_encoder:
+            raise _fail(f"encoder.port: {enc.port!r} opened, but {found.describe()} within 2 s "
+                        f"(encoder.baudrate = {enc.baudrate}; `gearscan devices` probes every port)")
+        if found.banner is not None and found.banner.counts_per_rev != enc.counts_per_rev:
+            raise _fail(f"encoder.counts_per_rev: {enc.counts_per_rev} in the config, but the encoder on {enc.port} "
+                        f"reports {found.banner.counts_per_rev}")
+        lines.append(f"encoder: {enc.port} answered: {found.describe()}")
+    lines.append(f"rig: {rig.camera.width}x{rig.camera.height} px camera; gear z={cfg.gear.teeth}, m={cfg.gear.module:g}")
+    typer.echo(f"{source}: OK\n  " + "\n  ".join(lines))
     typer.echo(unambiguous_range_line(rig, cfg.projector.period_px, cfg.gear, cfg.recon.unwrap))
 
 
