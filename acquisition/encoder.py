@@ -7,10 +7,26 @@ the host clock (:class:`ClockSync`: offset and drift) and appends
 assembler interpolates in. It never dies on bad input: corrupt, partial and out-of-order
 lines are counted in :class:`EncoderStats` and skipped; a vanished port (unplugged adapter)
 is reported in ``events`` and reopened until it comes back.
+
+A device that restarts (power cycle, watchdog, re-plug of a bus-powered encoder) begins again
+at seq 0 with its clock and count at a new zero. The reader recognises it: lines behind the
+last one in sequence AND in device time, near seq 0, several in a row that follow each other
+(one late or repeated line is a glitch, counted as out of order). The counts after a restart
+are relative to wherever the table stood at power-up, so the run's angle reference is lost:
+the reader pauses the angles (frames in between get none and their bursts are discarded,
+counted as encoder gaps) until the index mark passes, which is a fixed place on the table and
+restores the reference exactly (whole turns continued in the direction of motion). Angles
+relative to a new zero would silently mix two references in one run, which a metrology user
+cannot see and cannot undo. Without a known index position, or without an index within
+``resync_wait_s``, the reader stops with an :class:`EncoderError` saying so.
+
+A reader thread that dies on anything unexpected sets :attr:`EncoderReader.error`;
+:meth:`EncoderReader.raise_if_failed` (called by the acquisition per frame) raises it.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import threading
@@ -32,6 +48,12 @@ from gearscan.acquisition.encoder_protocol import (
 from gearscan.types import EncoderSample
 
 MAX_LINE = 256
+#: a restart begins at seq 0; the reader may miss its first lines while it reopens the port
+RESTART_SEQ_MAX = 10_000
+#: consecutive lines behind the last one (seq and time) that follow each other: a restart, not a glitch
+RESTART_CONFIRM = 3
+
+log = logging.getLogger(__name__)
 
 
 class EncoderError(RuntimeError):
@@ -51,6 +73,8 @@ class EncoderStats:
     disconnects: int = 0
     reconnects: int = 0
     index_ignored: int = 0  # index marks after the reference was frozen at the first count
+    restarts: int = 0  # device restarts (seq and clock back near 0)
+    unreferenced: int = 0  # samples after a restart before the index restored the angle reference
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -59,7 +83,8 @@ class EncoderStats:
 @dataclass(frozen=True, slots=True)
 class LinkEvent:
     host_time_ns: int
-    kind: str  # "connected", "disconnected", "reconnected", "banner", "version", "index", "reference"
+    kind: str  # "connected", "disconnected", "reconnected", "banner", "version", "index", "reference",
+    # "restart", "resync", "error"
     detail: str
 
 
@@ -79,6 +104,8 @@ class EncoderHistory:
         self._a = np.zeros(self.capacity, dtype=np.float64)
         self._n = 0  # total ever appended
         self._lock = threading.Lock()
+        #: why no angle can be had past the stored samples (the encoder restarted), "" normally
+        self.unavailable = ""
 
     def __len__(self) -> int:
         return min(self._n, self.capacity)
@@ -88,11 +115,19 @@ class EncoderHistory:
             i = self._n % self.capacity
             self._t[i], self._a[i] = host_time_ns, angle
             self._n += 1
+            self.unavailable = ""
 
     def shift(self, delta: float) -> None:
         """Add ``delta`` rad to every stored angle (re-zeroing at the index mark)."""
         with self._lock:
             self._a[: len(self)] += delta
+
+    def clear(self, reason: str) -> None:
+        """Forget every sample (their device times belong to a clock that restarted); until the
+        next append, :meth:`interpolate` answers ``reason``."""
+        with self._lock:
+            self._n = 0
+            self.unavailable = reason
 
     def extend(self, samples: list[EncoderSample]) -> None:
         for s in samples:
@@ -115,7 +150,7 @@ class EncoderHistory:
         """
         t, a = self.arrays()
         if t.size < 2:
-            return None, "encoder history empty"
+            return None, self.unavailable or "encoder history empty"
         if self.clock is not None:
             t_ns = self.clock.to_device(t_ns)
         if t_ns < t[0]:
@@ -140,6 +175,8 @@ class EncoderReader:
     zero_on_index: angle 0 at the index mark; until the first index, angles are relative to
     the first count seen (``zeroed`` says which). :meth:`freeze_reference` fixes the reference
     when acquisition starts, so one recording never mixes the two (a late index is then ignored).
+    resync_wait_s: after a device restart, how long to wait for the index mark that restores
+    the angle reference before giving up with :attr:`error` set.
     """
 
     def __init__(
@@ -153,6 +190,7 @@ class EncoderReader:
         on_sample: Callable[[EncoderSample], None] | None = None,
         reconnect_poll_s: float = 0.1,
         clock_window: int = 4096,
+        resync_wait_s: float = 60.0,
     ):
         if counts_per_rev <= 0:
             raise EncoderError(f"encoder.counts_per_rev must be > 0, got {counts_per_rev}")
@@ -174,6 +212,12 @@ class EncoderReader:
         self.connected = threading.Event()
         self.last_sample: EncoderSample | None = None
         self._last_seq: int | None = None
+        self._last_t_us = 0
+        self._last_rel = 0  # last sample's count - zero_count
+        self._index_rel: int | None = None  # where the index mark is in the current reference (counts)
+        self._pending: list[tuple[RawSample, int]] = []  # lines behind the last one: a restart or a glitch
+        self.resync_wait_s = resync_wait_s
+        self._resync_since_ns: int | None = None  # a restart paused the angles at this host time
         self._after_reconnect = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -196,6 +240,16 @@ class EncoderReader:
         self._event("connected", self.port)
         self._thread = threading.Thread(target=self._run, name=f"encoder {self.port}", daemon=True)
         self._thread.start()
+
+    @property
+    def resyncing(self) -> bool:
+        """True from a device restart until the index mark restored the angle reference."""
+        return self._resync_since_ns is not None
+
+    def raise_if_failed(self) -> None:
+        """Raise :attr:`error` (the reader thread stopped: its cause, what it means) if set."""
+        if self.error is not None:
+            raise self.error
 
     def wait_for_index(self, timeout_s: float) -> bool:
         """Block until the index mark has zeroed the angles (True) or ``timeout_s`` passes (False)."""
@@ -240,6 +294,22 @@ class EncoderReader:
 
     # -- thread -----------------------------------------------------------------------------
     def _run(self) -> None:
+        """The thread: any exception it did not expect ends it with :attr:`error` set (the
+        acquisition raises it at the next frame) instead of a silent death."""
+        try:
+            self._loop()
+        except BaseException as exc:  # noqa: BLE001 - handed to the acquisition through self.error
+            self._fail(f"encoder reader on {self.port} died: {type(exc).__name__}: {exc}", exc)
+
+    def _fail(self, msg: str, cause: BaseException | None = None) -> None:
+        error = EncoderError(msg)
+        error.__cause__ = cause
+        self.error = error
+        self._event("error", msg)
+        self.history.clear(msg)
+        self._stop.set()
+
+    def _loop(self) -> None:
         import serial
 
         buf = b""
@@ -321,14 +391,98 @@ class EncoderReader:
         if self._last_seq is not None:
             step = (s.seq - self._last_seq) % SEQ_MODULUS
             if step == 0 or step > SEQ_MODULUS // 2:
-                self.stats.out_of_order += 1
+                self._behind(s, arrival_ns)
                 return
+            if self._pending:  # the stream went on: the lines behind it were late or repeated
+                self.stats.out_of_order += len(self._pending)
+                self._pending.clear()
             if self._after_reconnect:
                 self.stats.missed_disconnected += step - 1
             else:
                 self.stats.lost += step - 1
+        self._accept(s, arrival_ns)
+
+    def _behind(self, s: RawSample, arrival_ns: int) -> None:
+        """A line not after the last one: a glitch, or (RESTART_CONFIRM of them following each
+        other, near seq 0 and back in device time) the first lines of a restarted device."""
+        if self._pending:
+            prev = self._pending[-1][0]
+            follows = (s.seq - prev.seq) % SEQ_MODULUS == 1 and s.t_us > prev.t_us
+        else:
+            follows = s.seq <= RESTART_SEQ_MAX and s.t_us < self._last_t_us
+        if not follows:
+            self.stats.out_of_order += 1
+            return
+        self._pending.append((s, arrival_ns))
+        if len(self._pending) < RESTART_CONFIRM:
+            return
+        pending, self._pending = self._pending, []
+        self._restart(pending[0][0])
+        if self.error is not None:
+            return
+        for p, t in pending:
+            self._accept(p, t)
+
+    def _restart(self, first: RawSample) -> None:
+        """The device restarted: its clock and count are at a new zero. Pause the angles until
+        the index mark restores the run's reference (or start afresh before the run has one)."""
+        self.stats.restarts += 1
+        was = f"seq {self._last_seq} -> {first.seq}, device time {self._last_t_us} -> {first.t_us} us"
+        self.clock.reset()
+        self._last_seq = None
         self._after_reconnect = False
-        self._last_seq = s.seq
+        if not self.reference_frozen and self._index_rel is None:  # no run yet: a fresh start
+            self.zero_count, self.zeroed = None, False
+            self._zeroed_event.clear()
+            msg = f"encoder at {self.port} restarted ({was}): angles start afresh"
+            self.history.clear(msg)
+        elif self._index_rel is None:
+            self._fail(
+                f"encoder at {self.port} restarted ({was}): its count starts at a new zero and the run's angle "
+                "reference (the first count) cannot be restored, as no index mark was seen before the restart. "
+                "Angles after it would not be comparable with those before: start a new run (with "
+                "encoder.index_wait_s > 0 a run is referenced to the index mark and survives a restart)"
+            )
+            return
+        else:
+            msg = (f"encoder at {self.port} restarted ({was}): no angles until the index mark restores the "
+                   "angle reference (bursts in between are discarded)")
+            self._resync_since_ns = time.monotonic_ns()
+            self.history.clear(msg)
+        self._event("restart", msg)
+        log.warning("%s", msg)
+
+    def _resync(self, s: RawSample) -> None:
+        """At the first index after a restart: choose the zero that puts the index where the run's
+        reference has it, whole turns continuing the last angle in the direction of motion."""
+        assert s.index_count is not None and self._index_rel is not None
+        motion = s.count - s.index_count  # counts moved since the pulse: its sign is the direction
+        turns = (self._last_rel - self._index_rel) / self.counts_per_rev
+        m = math.ceil(turns) if motion > 0 else math.floor(turns) if motion < 0 else round(turns)
+        self.zero_count = s.index_count - self._index_rel - m * self.counts_per_rev
+        waited = (time.monotonic_ns() - (self._resync_since_ns or 0)) / 1e9
+        self._resync_since_ns = None
+        msg = (f"index mark at count {s.index_count} after the restart: angles restored in the run's reference "
+               f"({waited:.1f} s without angles, {self.stats.unreferenced} samples)")
+        self._event("resync", msg)
+        log.warning("%s", msg)
+
+    def _accept(self, s: RawSample, arrival_ns: int) -> None:
+        self._last_seq, self._last_t_us = s.seq, s.t_us
+        self._after_reconnect = False
+        self.clock.add(s.t_us * 1000, arrival_ns)  # also while resyncing: the new clock is fitted meanwhile
+        if self._resync_since_ns is not None:
+            if not s.index:
+                self.stats.unreferenced += 1
+                if (arrival_ns - self._resync_since_ns) / 1e9 > self.resync_wait_s:
+                    self._fail(
+                        f"encoder at {self.port} restarted and no index mark came within {self.resync_wait_s:g} s "
+                        "to restore the angle reference: is the turntable turning? Start a new run"
+                    )
+                return
+            self._resync(s)
+        elif s.index and self.zero_count is not None:
+            self._index_rel = s.index_count - self.zero_count  # where the index is in this reference
         if s.index and self.zero_on_index and not self.zeroed:
             if self.reference_frozen:
                 if not self.stats.index_ignored:
@@ -338,11 +492,13 @@ class EncoderReader:
                 if self.zero_count is not None:  # re-reference what was stored before the index
                     self.history.shift(-2 * math.pi * (s.index_count - self.zero_count) / self.counts_per_rev)
                 self.zero_count, self.zeroed = s.index_count, True
+                self._index_rel = 0
                 self._zeroed_event.set()
                 self._event("index", f"zeroed at count {s.index_count}")
         if self.zero_count is None:
             self.zero_count = s.count
-        self.clock.add(s.t_us * 1000, arrival_ns)
+            if s.index:
+                self._index_rel = s.index_count - self.zero_count
         sample = EncoderSample(
             seq=s.seq,
             device_time_us=s.t_us,
@@ -352,6 +508,7 @@ class EncoderReader:
             host_time_ns=self.clock.to_host(s.t_us * 1000),
         )
         self.stats.samples += 1
+        self._last_rel = s.count - self.zero_count
         self.last_sample = sample
         self.history.append(s.t_us * 1000 if self.history.clock is self.clock else sample.host_time_ns, sample.angle)
         if self.on_sample is not None:

@@ -18,6 +18,12 @@ host time of every device timestamp (both processes read the same CLOCK_MONOTONI
 the pty stays open ``--linger`` s. ``UNREAD_*`` count the written lines still unread in the pty
 when the cable was pulled: a real unplug loses them, so a reader can never see them.
 
+``--reboot-at T`` pulls the cable at device time T like ``--disconnect-at`` and the device
+restarts when it is plugged back: seq, clock and count begin again at 0 (the count at the
+position the table has then). It prints ``REBOOT <k0> <due0_s>``: sample k >= k0 has seq
+``k - k0``, device time ``offset_us + (k - k0) / rate * 1e6 * (1 + drift)`` and true angle
+``theta(due0_s + (k - k0) / rate)``.
+
 Motion (true angle theta(t), rad, t in seconds of device time):
 ``uniform``: ``w t``; ``nonuniform``: ``w t + (a w / 2 pi f)(1 - cos 2 pi f t)`` (speed
 swings by +-a); ``stop``: uniform until ``--stop-at``, then still. The count is
@@ -108,6 +114,7 @@ class MockEncoderProcess:
         self.offset_us = 0
         self.drift = 0.0
         self.summary: dict[str, int] = {}
+        self.reboot: tuple[int, float] | None = None  # (k0, due0_s) once the device restarted
 
     def start(self, timeout: float = 10.0) -> MockEncoderProcess:
         cmd = [sys.executable, "-m", "gearscan.mocks.encoder_device", "--link", self.link]
@@ -127,6 +134,8 @@ class MockEncoderProcess:
             line = self.proc.stdout.readline()
             if not line:
                 raise RuntimeError(f"mock encoder exited (code {self.proc.wait()}) before printing {word}")
+            if line.startswith("REBOOT"):
+                self.reboot = (int(line.split()[1]), float(line.split()[2]))
             if line.startswith(word):
                 return line.split()
 
@@ -198,6 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--drop-every", type=int, default=0, help="skip sending every Nth sample (seq advances)")
     p.add_argument("--disconnect-at", type=float, default=-1.0, help="device time (s) to pull the cable")
     p.add_argument("--disconnect-for", type=float, default=0.5)
+    p.add_argument("--reboot-at", type=float, default=-1.0, help="device time (s) to pull the cable; the device restarts")
     p.add_argument("--name", default="mockenc")
     p.add_argument("--linger", type=float, default=1.0, help="seconds to keep the pty open after the last line")
     p.add_argument("--hello-timeout", type=float, default=30.0)
@@ -216,6 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     recent: collections.deque[tuple[int, int]] = collections.deque(maxlen=256)  # (bytes, garbage bytes)
     last_turn = math.floor(theta(args, 0.0) / (2 * math.pi))
     disconnected = False
+    k0, count0 = 0, 0  # a reboot restarts seq at sample k0 and the count at count0
     inbuf = b""
     k = 0
     while k < n_total:
@@ -224,7 +235,8 @@ def main(argv: list[str] | None = None) -> int:
         if due > now:
             time.sleep(min(due - now, 0.002))
             continue
-        if args.disconnect_at >= 0 and not disconnected and due >= args.disconnect_at:
+        unplug_at = args.reboot_at if args.reboot_at >= 0 else args.disconnect_at
+        if unplug_at >= 0 and not disconnected and due >= unplug_at:
             disconnected = True
             time.sleep(0.005)  # the pty moves written bytes to the slave's queue asynchronously
             lost_s, lost_g = unread_lines(recent, port.unread_bytes())
@@ -237,16 +249,20 @@ def main(argv: list[str] | None = None) -> int:
             wait_hello(port, banner)
             # samples due while unplugged are lost, as on a real link
             k = int(math.ceil((time.monotonic_ns() - start) / 1e9 / period))
+            if args.reboot_at >= 0:  # powered up again: seq, clock and count start over
+                k0 = k
+                count0 = math.floor(args.cpr * theta(args, k0 * period) / (2 * math.pi)) + args.count_offset
+                print(f"REBOOT {k0} {k0 * period!r}", flush=True)
             continue
         th = theta(args, due)
         count = math.floor(args.cpr * th / (2 * math.pi)) + args.count_offset
         turn = math.floor(th / (2 * math.pi))
         index, index_count = False, None
         if turn != last_turn:
-            index, index_count = True, args.cpr * max(turn, last_turn) + args.count_offset
+            index, index_count = True, args.cpr * max(turn, last_turn) + args.count_offset - count0
             last_turn = turn
-        t_us = int(round(due * 1e6 * (1 + drift))) + args.clock_offset_us
-        line = RawSample(k % SEQ_MODULUS, t_us, count, index, index_count).encode()
+        t_us = int(round((k - k0) * period * 1e6 * (1 + drift))) + args.clock_offset_us
+        line = RawSample((k - k0) % SEQ_MODULUS, t_us, count - count0, index, index_count).encode()
         if args.drop_every and k % args.drop_every == args.drop_every - 1 and not index:
             dropped += 1
         else:

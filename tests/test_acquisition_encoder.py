@@ -183,3 +183,133 @@ def test_mock_counts_lines_left_unread_at_unplug(tmp_path):
         assert unread_lines(recent, 0) == (0, 0)
     finally:
         port.close()
+
+
+def _true_theta(dev, t_us, rpm, start):
+    """True angle of device times ``t_us`` (before or after a restart, from the mock's REBOOT line)."""
+    t_us = np.asarray(t_us, dtype=np.float64)
+    due = (t_us - dev.offset_us) / 1e6 / (1 + dev.drift)
+    if dev.reboot is not None:
+        due = due + dev.reboot[1]
+    return start + rpm * 2 * math.pi / 60 * due, dev.start_ns + due * 1e9
+
+
+def test_rebooted_encoder_is_resynchronised_at_the_index(tmp_path, caplog):
+    """A re-plugged encoder that restarts at seq 0 (clock and count at a new zero) is recognised,
+    its angles pause until the index mark and then continue in the run's reference: equal to the
+    true turntable angle (whole turns included) to one count."""
+    rpm, start = 60.0, -0.3  # one turn a second: the index passes at 0.05 s, 1.05 s, 2.05 s
+    link = str(tmp_path / "enc")
+    samples = []
+    with MockEncoderProcess(link, rate=1000, cpr=CPR, rpm=rpm, start_angle=start, duration=2.6,
+                            reboot_at=1.2, disconnect_for=0.3) as dev:
+        reader = EncoderReader(link, CPR, on_sample=samples.append)
+        with reader:
+            dev.wait_started()
+            assert reader.wait_for_index(2.0) and reader.freeze_reference() == "index"
+            dev.wait()
+            time.sleep(0.2)
+    assert dev.reboot is not None
+    st = reader.stats
+    assert st.restarts == 1 and st.out_of_order == 0 and reader.error is None, st
+    kinds = [e.kind for e in reader.events]
+    assert kinds.index("restart") < kinds.index("resync"), kinds
+    assert "restarted" in caplog.text and "angles restored" in caplog.text
+    seqs = np.array([s.seq for s in samples])
+    cut = int(np.argmax(np.diff(seqs) < 0)) + 1  # first sample after the restart
+    after = samples[cut:]
+    assert after[0].index and after[0].seq > 300  # nothing between the restart and the index
+    assert st.unreferenced == after[0].seq  # ... each of those samples counted
+    t_us = np.array([s.device_time_us for s in after])
+    theta, true_host = _true_theta(dev, t_us, rpm, start)
+    assert theta[0] > 2 * math.pi  # the third index: two whole turns, restored too
+    assert np.max(np.abs(np.array([s.angle for s in after]) - theta)) <= 2 * math.pi / CPR + 1e-9
+    assert np.percentile(np.abs(np.array([s.host_time_ns for s in after]) - true_host), 99) < 2e6
+    # the history answers for host times after the resync, with the true angle
+    t_mid = int(true_host[len(after) // 2])
+    a, why = reader.history.interpolate(t_mid, max_gap_ns=5_000_000)
+    assert why == "" and abs(a - theta[len(after) // 2]) < 1e-2
+
+
+def test_restart_that_loses_a_first_count_reference_is_an_error(tmp_path):
+    """A run referenced to the first count (no index seen) cannot be put back after a restart:
+    the reader stops with an error saying so, instead of angles from a new zero."""
+    link = str(tmp_path / "enc")
+    with MockEncoderProcess(link, rate=1000, cpr=CPR, rpm=RPM, start_angle=START, duration=1.2,
+                            reboot_at=0.3, disconnect_for=0.2) as dev:
+        reader = EncoderReader(link, CPR)
+        with reader:
+            dev.wait_started()
+            while reader.stats.samples < 50:
+                time.sleep(0.01)
+            assert reader.freeze_reference() == "first count"  # the index passes only at 0.48 s
+            dev.wait()
+    assert reader.stats.restarts == 1
+    with pytest.raises(EncoderError, match=r"restarted .* reference \(the first count\) cannot be restored"):
+        reader.raise_if_failed()
+    assert "cannot be restored" in reader.history.interpolate(time.monotonic_ns(), 10**9)[1]
+
+
+def _pty_reader(tmp_path, **options):
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = tmp_path / "enc"
+    link.symlink_to(os.ttyname(slave))
+    reader = EncoderReader(str(link), CPR, **options)
+    reader.start()
+    return master, slave, reader
+
+
+def _feed(master, reader, lines, lines_seen):
+    os.write(master, b"".join(lines))
+    deadline = time.monotonic() + 3
+    while reader.stats.lines < lines_seen and reader.error is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+def test_late_lines_are_glitches_and_a_restart_starts_afresh(tmp_path):
+    """A late or repeated line (even three, if the stream goes on after them) is out of order; lines
+    near seq 0 and back in time that go on are a restart. Before a run has a reference, the
+    angles then simply start from the new first count."""
+    master, slave, reader = _pty_reader(tmp_path)
+    try:
+        line = lambda seq, t_us, count: RawSample(seq, t_us, count, False, None).encode()  # noqa: E731
+        stream = [line(k, 1000 * k, 10 * k) for k in range(20)]
+        stream += [line(3, 3000, 30), line(4, 4000, 40)]  # two late lines (a retransmission)
+        stream += [line(k, 1000 * k, 10 * k) for k in range(20, 30)]
+        _feed(master, reader, stream, 32)
+        assert reader.stats.out_of_order == 2 and reader.stats.restarts == 0 and reader.stats.samples == 30
+        restarted = [line(k, 100 + 1000 * k, 5000 + 10 * k) for k in range(10)]  # new clock, new count
+        _feed(master, reader, restarted, 42)
+    finally:
+        reader.stop()
+        os.close(master)
+        os.close(slave)
+    st = reader.stats
+    assert st.restarts == 1 and st.out_of_order == 2 and st.samples == 40 and reader.error is None
+    assert reader.last_sample.seq == 9 and reader.last_sample.angle == pytest.approx(2 * math.pi * 90 / CPR)
+    assert [e.kind for e in reader.events].count("restart") == 1
+
+
+def test_a_dying_reader_thread_sets_its_error(tmp_path):
+    """Anything unexpected in the reader thread stops it with ``error`` set, naming the cause, and
+    the history says so instead of 'not yet received'."""
+    def broken(sample):
+        if sample.seq == 5:
+            raise ZeroDivisionError("consumer bug")
+
+    master, slave, reader = _pty_reader(tmp_path, on_sample=broken)
+    try:
+        _feed(master, reader, [RawSample(k, 1000 * k, k, False, None).encode() for k in range(10)], 10)
+        reader._thread.join(2.0)
+        assert not reader._thread.is_alive()
+    finally:
+        reader.stop()
+        os.close(master)
+        os.close(slave)
+    with pytest.raises(EncoderError, match=r"encoder reader on .* died: ZeroDivisionError: consumer bug") as err:
+        reader.raise_if_failed()
+    assert isinstance(err.value.__cause__, ZeroDivisionError)
+    assert "died: ZeroDivisionError" in reader.history.interpolate(10**9, 10**9)[1]
