@@ -185,6 +185,18 @@ def _decoder(classical: bool, mc: int, model: Path | None, **options):
         raise _fail(f"cannot load the model: {exc}") from exc
 
 
+def _serve(bind: str, grpc_port: int, web_port: int):
+    """``--serve``: start the web viewer on fixed ports and say where it is; a taken port is exit 2."""
+    from gearscan.viewer.serve import ViewerError, serve_web
+
+    try:
+        web = serve_web(bind, grpc_port=grpc_port, web_port=web_port)
+    except ViewerError as exc:
+        raise _fail(f"--serve: {exc}") from exc
+    typer.echo(f"web viewer: {web.web_url}  (gRPC for --connect: {web.grpc_url})")
+    return web
+
+
 @app.command("replay")
 def replay_cmd(
     recording: Annotated[Path, typer.Argument(help="recording folder")],
@@ -192,6 +204,8 @@ def replay_cmd(
     connect: Annotated[str | None, typer.Option(help="stream to a rerun viewer at this gRPC URL")] = None,
     serve: Annotated[bool, typer.Option(help="serve the web viewer (gRPC + web) from this machine")] = False,
     bind: Annotated[str, typer.Option(help="address --serve binds to")] = "127.0.0.1",
+    grpc_port: Annotated[int, typer.Option(help="--serve: gRPC port the logging stream and the viewer use (0: any free port)")] = 9876,
+    web_port: Annotated[int, typer.Option(help="--serve: port of the web viewer page (0: any free port)")] = 9090,
     metrics: Annotated[Path | None, typer.Option(help="write accuracy and pipeline metrics (JSON) here")] = None,
     speed: Annotated[str, typer.Option(help="replay speed: 1.0 = recorded timing, 'max' = as fast as possible")] = "max",
     classical: Annotated[bool, typer.Option(help="decode with three-step PS instead of the network")] = False,
@@ -222,11 +236,8 @@ def replay_cmd(
     decoder = _decoder(classical, mc, model, workers=workers, **span)
     web = None
     if serve:
-        from gearscan.viewer.serve import serve_web
-
-        web = serve_web(bind)
+        web = _serve(bind, grpc_port, web_port)
         connect = web.grpc_url
-        typer.echo(f"web viewer: {web.web_url}")
     if not (save or connect):
         save = Path("out") / f"{recording.name}.rrd"
     try:
@@ -372,6 +383,8 @@ def live_cmd(
     connect: Annotated[str | None, typer.Option(help="stream to a rerun viewer at this gRPC URL")] = None,
     serve: Annotated[bool | None, typer.Option(help="serve the web viewer from this machine")] = None,
     bind: Annotated[str | None, typer.Option(help="address --serve binds to (default from config: 127.0.0.1)")] = None,
+    grpc_port: Annotated[int | None, typer.Option(help="--serve: gRPC port (default from config: 9876; 0: any free port)")] = None,
+    web_port: Annotated[int | None, typer.Option(help="--serve: web viewer port (default from config: 9090; 0: any free port)")] = None,
     check: Annotated[bool, typer.Option(help="open the camera, encoder and projector the configuration names, check them and the rig file, then exit")] = False,
 ) -> None:
     """Measure live: camera + projector + encoder -> network -> point cloud -> rerun viewer.
@@ -402,7 +415,8 @@ def live_cmd(
             _live_check(cfg, rig, config or Path("--simulate"))
             return
         _live_run(cfg, record=record, overwrite=overwrite, bursts=bursts, duration=duration, save=save,
-                  max_save_mb=max_save_mb, connect=connect, serve=serve, bind=bind)
+                  max_save_mb=max_save_mb, connect=connect, serve=serve, bind=bind,
+                  ports=(grpc_port, web_port))
 
 
 def _live_check(cfg, rig, source: Path) -> None:
@@ -436,7 +450,8 @@ def _live_check(cfg, rig, source: Path) -> None:
     typer.echo(unambiguous_range_line(rig, cfg.projector.period_px, cfg.gear, cfg.recon.unwrap))
 
 
-def _live_run(cfg, *, record, overwrite, bursts, duration, save, max_save_mb, connect, serve, bind) -> None:
+def _live_run(cfg, *, record, overwrite, bursts, duration, save, max_save_mb, connect, serve, bind,
+              ports=(None, None)) -> None:
     """``live`` proper: the sinks, the run with its status line, the end summary."""
     import os
 
@@ -454,11 +469,10 @@ def _live_run(cfg, *, record, overwrite, bursts, duration, save, max_save_mb, co
     cap = cfg.viewer.max_save_mb if max_save_mb is None else max_save_mb
     web = None
     if serve if serve is not None else cfg.viewer.serve:
-        from gearscan.viewer.serve import serve_web
-
-        web = serve_web(bind or cfg.viewer.bind)
+        grpc_port, web_port = ports
+        web = _serve(bind or cfg.viewer.bind, cfg.viewer.grpc_port if grpc_port is None else grpc_port,
+                     cfg.viewer.web_port if web_port is None else web_port)
         connect = web.grpc_url
-        typer.echo(f"web viewer: {web.web_url}")
     spawn = False
     if not (save or connect):  # default: the local viewer when there is a screen, else a file
         spawn = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))

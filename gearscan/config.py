@@ -80,6 +80,8 @@ max_save_mb = 2000.0         # the .rrd file (save, or out/live.rrd when no view
                              # growing at this size, about 4 min at 512x512; the measurement goes on (0: no cap)
 serve = false                # serve the web viewer from this machine
 bind = "127.0.0.1"           # address --serve binds to
+grpc_port = 9876             # --serve: gRPC port (--connect rerun+http://HOST:9876/proxy; 0: any free port)
+web_port = 9090              # --serve: web viewer page, http://HOST:9090 (0: any free port)
 """
 
 
@@ -116,6 +118,8 @@ class ViewerSection(BaseModel):
     max_save_mb: float = Field(2000.0, ge=0)  # cap of the .rrd file (0: none)
     serve: bool = False
     bind: str = "127.0.0.1"
+    grpc_port: int = Field(9876, ge=0, le=65535)  # --serve ports; 0: any free one
+    web_port: int = Field(9090, ge=0, le=65535)
 
 
 class LiveConfig(AcquisitionConfig):
