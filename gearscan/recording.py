@@ -12,6 +12,10 @@ Writes are append-only and flushed per frame; the PNG is renamed into place befo
 appended, so every listed frame exists. A recording cut off mid-write (SIGKILL, cable pulled)
 replays up to its last complete line; it may leave a ``frames/NNNNNN.tmp.png`` that no line
 names: not data, ignored by the reader and listed by ``gearscan check`` as safe to delete.
+A write that fails (disk full, file size limit, I/O error) stops the writer with a
+:class:`RecordingError` naming the cause; it cuts the index files back to the last complete
+frame, removes the half-written file and, where the disk still takes the small header, marks
+the recording finished with ``stopped`` saying why: it replays up to its last complete frame.
 Angles are stored in radians (``*_rad`` keys), times in nanoseconds (``*_ns``).
 
 ``recording.json`` also says what every frame is (``frame_format``: dtype, width, height, bit
@@ -33,6 +37,7 @@ into another valid one (a calibration digit, an angle): the format has no checks
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
 import logging
 import math
@@ -372,6 +377,13 @@ class RecordingWriter:
         self.frame_count = 0
         self.encoder_count = 0
         self.format: FrameFormat | None = None
+        #: why writing stopped (a failed write), None while it works
+        self.stopped: str | None = None
+        # bytes of each index file and encoder lines known to be on disk (after the last good flush)
+        self._frames_end = (self.path / "frames.jsonl").stat().st_size
+        self._encoder_end = (self.path / "encoder.jsonl").stat().st_size
+        self._encoder_written = self._encoder_end  # bytes handed to the encoder file so far
+        self._encoder_flushed_count = 0
 
     def __enter__(self) -> RecordingWriter:
         return self
@@ -388,23 +400,46 @@ class RecordingWriter:
         if fmt is None or fmt.dtype not in ("uint8", "uint16"):
             raise RecordingError(f"{self.path}: frame {frame.frame_id}: expected an (H, W) uint8 or uint16 image, "
                                  f"got {frame.image.dtype} of shape {frame.image.shape}")
-        if self.format is None:
+        first = self.format is None
+        if first:
             self.format = fmt
-            self.update_meta(frame_format=fmt.to_json())
         elif fmt != self.format:
             raise RecordingError(f"{self.path}: frame {frame.frame_id} is {fmt.describe()}, the recording holds "
                                  f"{self.format.describe()}")
+        if self.stopped is not None:
+            raise RecordingError(f"{self.path}: writing stopped earlier ({self.stopped})")
         name = f"{self.frame_count:06d}"
         rel = f"frames/{name}.png"
-        tmp = self.path / "frames" / f"{name}.tmp.png"
-        if not cv2.imwrite(str(tmp), frame.image):
-            raise RecordingError(f"could not write {tmp} (dtype {frame.image.dtype}, shape {frame.image.shape})")
-        os.replace(tmp, self.path / rel)
-        if truth is not None:
-            (self.path / "truth").mkdir(exist_ok=True)
-            tmp_t = self.path / "truth" / f"{name}.tmp.npz"
-            np.savez_compressed(tmp_t, **truth)
-            os.replace(tmp_t, self.path / "truth" / f"{name}.npz")
+        ok, png = cv2.imencode(".png", frame.image)
+        if not ok:
+            raise RecordingError(f"could not encode frame {frame.frame_id} as PNG (dtype {frame.image.dtype}, "
+                                 f"shape {frame.image.shape})")
+        try:
+            if first:
+                self.update_meta(frame_format=fmt.to_json())
+            self._write_file(self.path / rel, png.tobytes())
+            if truth is not None:
+                (self.path / "truth").mkdir(exist_ok=True)
+                tmp_t = self.path / "truth" / f"{name}.tmp.npz"
+                np.savez_compressed(tmp_t, **truth)
+                os.replace(tmp_t, self.path / "truth" / f"{name}.npz")
+            rec = self._append_line(frame, rel)
+        except OSError as exc:
+            self._stop_writing(exc, f"frame {self.frame_count} ({rel})")
+        self.frame_count += 1
+        return rec
+
+    def _write_file(self, path: Path, data: bytes) -> None:
+        """``data`` into ``path`` through a temporary name, so a listed file is always whole."""
+        tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            if self._durable:
+                fh.flush()
+                os.fsync(fh.fileno())
+        os.replace(tmp, path)
+
+    def _append_line(self, frame: Frame, rel: str) -> FrameRecord:
         rec = FrameRecord(
             frame_id=frame.frame_id,
             timestamp_ns=frame.timestamp_ns,
@@ -415,35 +450,77 @@ class RecordingWriter:
             host_timestamp_ns=frame.host_timestamp_ns,
             file=rel,
         )
-        self._frames.write(json.dumps(rec.to_json()) + "\n")
+        line = json.dumps(rec.to_json()) + "\n"  # ASCII: characters are bytes
+        self._frames.write(line)
         self._frames.flush()
         self._encoder.flush()
         if self._durable:
             os.fsync(self._frames.fileno())
-        self.frame_count += 1
+        self._frames_end += len(line)
+        self._encoder_end, self._encoder_flushed_count = self._encoder_written, self.encoder_count
         return rec
+
+    def _stop_writing(self, exc: OSError, what: str) -> NoReturn:
+        """A write failed: cut the index files back to what is whole on disk, remove temporary
+        files, mark the recording finished if the disk still takes its header, and raise."""
+        cause = {errno.ENOSPC: "disk full", errno.EFBIG: "file size limit reached",
+                 errno.EDQUOT: "disk quota exceeded"}.get(exc.errno or 0, exc.strerror or type(exc).__name__)
+        self.stopped = f"{cause} ({exc.strerror or exc}) while writing {what}"
+        for fh in (self._frames, self._encoder):
+            try:
+                fh.close()  # may fail again flushing what is buffered: cut below
+            except OSError:
+                pass
+        for name, end in (("frames.jsonl", self._frames_end), ("encoder.jsonl", self._encoder_end)):
+            try:
+                os.truncate(self.path / name, end)
+            except OSError:
+                pass
+        for sub in ("frames", "truth"):
+            for tmp in (self.path / sub).glob("*.tmp.*") if (self.path / sub).is_dir() else ():
+                tmp.unlink(missing_ok=True)
+        self.encoder_count = self._encoder_flushed_count
+        try:
+            self.update_meta(finished=True, frame_count=self.frame_count, encoder_count=self.encoder_count,
+                             stopped=self.stopped)
+        except OSError:  # not even the header fits: it stays unfinished, which replays the same way
+            (self.path / "recording.json.tmp").unlink(missing_ok=True)
+        raise RecordingError(
+            f"{self.path}: recording stopped: {self.stopped}. It holds {self.frame_count} complete frames and "
+            f"replays up to the last of them; free space (or raise the limit) before recording again"
+        ) from exc
 
     def write_encoder(self, sample: EncoderSample) -> None:
         """Append one raw encoder sample (flushed with the next frame)."""
+        if self.stopped is not None:
+            return  # the frame that failed raised already; its samples have no frame to go with
         self.encoder_count += 1
-        self._encoder.write(
-            json.dumps(
-                {
-                    "seq": sample.seq,
-                    "device_time_us": sample.device_time_us,
-                    "count": sample.count,
-                    "index": sample.index,
-                    "angle_rad": sample.angle,
-                    "host_time_ns": sample.host_time_ns,
-                }
-            )
-            + "\n"
-        )
+        line = json.dumps(
+            {
+                "seq": sample.seq,
+                "device_time_us": sample.device_time_us,
+                "count": sample.count,
+                "index": sample.index,
+                "angle_rad": sample.angle,
+                "host_time_ns": sample.host_time_ns,
+            }
+        ) + "\n"
+        self._encoder_written += len(line)
+        try:
+            self._encoder.write(line)
+        except OSError as exc:
+            self._stop_writing(exc, "encoder.jsonl")
 
     def update_meta(self, **fields: Any) -> None:
-        """Atomically rewrite ``recording.json`` with extra fields."""
+        """Atomically rewrite ``recording.json`` with extra fields (after a stopped write: if the
+        disk takes it, else the header stays as the stop left it)."""
         self.meta.update(fields)
-        _atomic_write_text(self.path / "recording.json", json.dumps(self.meta, indent=2))
+        try:
+            _atomic_write_text(self.path / "recording.json", json.dumps(self.meta, indent=2))
+        except OSError:
+            (self.path / "recording.json.tmp").unlink(missing_ok=True)
+            if self.stopped is None:
+                raise
 
     def close(self) -> None:
         if self._frames.closed:
