@@ -89,7 +89,7 @@ class LiveReport:
 
     def summary(self) -> str:
         """The end summary: why it stopped, what was measured, what was dropped and why, where the stream is."""
-        measured = int(self.pipeline.stages.get("output", {}).get("processed", 0))
+        measured = self.status.measured if self.status else 0
         lines = [f"stopped by {self.stopped_by} after {self.pipeline.wall_s:.1f} s: {self.bursts} bursts acquired, "
                  f"{measured} measured ({measured / max(self.pipeline.wall_s, 1e-9):.1f}/s)"]
         drops = self.status.drops if self.status else {}
@@ -99,6 +99,11 @@ class LiveReport:
             lines.append(f"  ({QUEUE_DROP_NOTE})")
         lines.append("latency per burst (mean / p95): " + ", ".join(
             f"{n} {s['latency_ms_mean']:.0f} / {s['latency_ms_p95']:.0f} ms" for n, s in self.pipeline.stages.items()))
+        if self.encoder is not None:
+            e = self.encoder
+            lines.append(f"encoder: {e['samples']} samples, {e['lost']} lost, {e['corrupt']} corrupt, "
+                         f"{e['disconnects']} disconnects"
+                         + (f", last {self.status.encoder_hz:.0f} samples/s" if self.status and self.status.encoder_hz else ""))
         if self.status is not None and self.status.rrd is not None:
             full = "; size cap reached, the stream stops there" if self.status.rrd_full else ""
             lines.append(f"viewer stream: {self.status.rrd} ({self.status.rrd_mb or 0:.1f} MB{full}; "
@@ -183,7 +188,7 @@ def run_live(
                     "live_config": cfg.model_dump(mode="json")},
     )
     pipeline: Pipeline | None = None
-    rrd = {"full": False}
+    state = {"full": False, "measured": 0}  # .rrd full, bursts output; written by the output thread
     cap_bytes = max_save_mb * 1e6 if save is not None and max_save_mb else None
 
     def source() -> Iterator[Burst]:
@@ -195,11 +200,11 @@ def run_live(
                     return
 
     def stream_full() -> bool:
-        if cap_bytes is not None and not rrd["full"] and save.exists() and save.stat().st_size >= cap_bytes:
-            rrd["full"] = True
+        if cap_bytes is not None and not state["full"] and save.exists() and save.stat().st_size >= cap_bytes:
+            state["full"] = True
             log.warning("%s reached its size cap of %g MB: the viewer stream stops here, the measurement goes on "
                         "(viewer.max_save_mb / --max-save-mb; 0: no cap)", save, max_save_mb)
-        return rrd["full"]
+        return state["full"]
 
     def output(m: Measurement) -> None:
         row: dict[str, float] = {"burst": m.burst.index, "points": len(m.cloud) if m.cloud else 0}
@@ -213,6 +218,7 @@ def run_live(
             logger.log_burst(m.burst, m.result, cloud=m.cloud, stats=stats)
         if on_burst is not None:
             on_burst(m, row)
+        state["measured"] += 1  # only bursts that really came out (after a failure the rest drain undone)
 
     pipeline = Pipeline(
         source,
@@ -229,7 +235,7 @@ def run_live(
 
     def snapshot() -> LiveStatus:
         now = time.monotonic()
-        measured = pipeline.stats["output"].processed
+        measured = state["measured"]
         samples = session.encoder.stats.samples if session.encoder else 0
         window.append((now, measured, samples))
         while len(window) > 2 and now - window[0][0] > 5.0:
@@ -241,7 +247,7 @@ def run_live(
             drops=drops(), rrd=save,
             encoder_hz=None if session.encoder is None else ((samples - window[0][2]) / span if len(window) > 1 else 0.0),
             rrd_mb=save.stat().st_size / 1e6 if save is not None and save.exists() else None,
-            rrd_full=rrd["full"],
+            rrd_full=state["full"],
         )
 
     def drops() -> dict[str, int]:

@@ -229,3 +229,39 @@ def test_status_drops_stop_reasons_and_the_rrd_cap(twin, tmp_path):
     assert capped.status.rrd_full and capped.status.measured == 4 - capped.skipped >= 2
     assert "FULL" in capped.status.line() and "size cap reached" in capped.summary()
     assert (tmp_path / "capped.rrd").stat().st_size < 0.5 * (tmp_path / "full.rrd").stat().st_size
+
+
+def test_an_error_stops_with_what_was_measured_and_the_status_prints_without_a_terminal(twin, tmp_path):
+    import io
+
+    from rich.console import Console
+
+    from gearscan.live import LiveError, LiveStatus, StatusLine, run_live
+
+    root, rec, rig_path = twin
+    cfg = LiveConfig.load(_config(tmp_path, rec, rig_path, None))
+    classical = Decoder(classical=True)
+
+    def failing(burst):
+        if burst.index == 2:
+            raise RuntimeError("decoder fault")
+        return classical(burst)
+
+    done = []
+    with pytest.raises(LiveError, match="stage 'infer' failed: RuntimeError: decoder fault") as err:
+        run_live(cfg, decoder=failing, save=tmp_path / "e.rrd", handle_signals=False,
+                 on_burst=lambda m, row: done.append(m.burst.index))
+    partial = err.value.live_report  # what really came out before the failure (bursts in flight are not finished)
+    assert partial.stopped_by == "an error in stage 'infer'" and partial.bursts >= 3
+    assert partial.status.measured == len(done) and set(done) <= {0, 1}
+    assert partial.summary().startswith(f"stopped by an error in stage 'infer' after {partial.pipeline.wall_s:.1f} s: "
+                                        f"{partial.bursts} bursts acquired, {len(done)} measured")
+    # without a terminal (a log file, a service) the status comes as a plain line every every_s seconds
+    out = io.StringIO()
+    st = LiveStatus(elapsed_s=12.0, acquired=30, measured=28, rate_per_s=2.5, drops={"decoder busy": 2},
+                    encoder_hz=1000.0, rrd=Path("out/live.rrd"), rrd_mb=42.0)
+    with StatusLine(Console(file=out, width=200), every_s=0.0) as line:
+        line.update(st)
+    assert out.getvalue() == "  12 s 28 bursts 2.5/s | drops 2 decoder busy | encoder 1000 Hz | out/live.rrd 42 MB\n"
+    res = runner.invoke(app, ["live"])
+    assert res.exit_code == 2 and "--config: a live configuration is needed" in res.output and "--simulate" in res.output

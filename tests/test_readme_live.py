@@ -56,5 +56,6 @@ def test_the_section_runs_as_written(tmp_path):
     assert "stopped by --bursts 3 reached" in live and "3 bursts acquired" in live, live
     measured = int(re.search(r"(\d+) measured", live).group(1))
     assert 1 <= measured <= 3 and "no encoder" not in live
+    assert int(re.search(r"encoder: (\d+) samples, (\d+) lost", live).group(1)) > 100  # the mock's 1 kHz, read
     assert "1 file verified without error" in outputs[-1]
     assert (tmp_path / "out" / "sim.rrd").stat().st_size > 10_000
