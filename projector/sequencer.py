@@ -51,12 +51,15 @@ class Shown:
 
 @dataclass
 class MockProjector:
-    """Records every pattern it is asked to show (``log``), with its host time."""
+    """Records the patterns it is asked to show (``log``: the latest ``max_log`` to ``2 * max_log``,
+    so a long simulated run stays flat in memory), with their host time; ``shown`` counts them all."""
 
     width: int = 912
     height: int = 1140
     latency_s: float = 0.0
     log: list[Shown] = field(default_factory=list)
+    max_log: int = 10_000
+    shown: int = 0
     is_open: bool = False
     last_image: np.ndarray | None = None
 
@@ -76,6 +79,9 @@ class MockProjector:
         t = time.monotonic_ns()
         self.last_image = image
         self.log.append(Shown(index, t, int(image.sum(dtype=np.int64))))
+        self.shown += 1
+        if len(self.log) > 2 * self.max_log:
+            del self.log[: len(self.log) - self.max_log]
         return t
 
 

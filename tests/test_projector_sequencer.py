@@ -146,3 +146,17 @@ def test_window_projector_with_real_pygame_headless(monkeypatch):
         np.testing.assert_array_equal(shown[:, :, 0].T, img)
     finally:
         w.close()
+
+
+def test_the_mock_projector_log_stays_bounded():
+    """A long simulated run keeps only the latest patterns (it grew ~9 MB/h before); all are counted."""
+    import numpy as np
+
+    from gearscan.projector.sequencer import MockProjector
+
+    proj = MockProjector(width=4, height=2, max_log=5)
+    proj.open()
+    for i in range(23):
+        proj.show(np.full((2, 4), i, np.uint8), i % 3)
+    assert proj.shown == 23 and 5 <= len(proj.log) <= 10
+    assert proj.log[-1].checksum == 22 * 8  # the newest is kept
