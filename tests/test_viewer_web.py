@@ -2,7 +2,9 @@
 
 A twin recording is replayed into ``serve_web()``; Chromium opens the web viewer and the
 screenshot must show the wrapped phase in the cyclic ``twilight`` colours in the "wrapped
-phase" view and uncertainty-coloured (``viridis``) cloud points in the "point cloud" view.
+phase (rad)" view, uncertainty-coloured (``viridis``) cloud points in the "point cloud" view,
+and beside the phase, error and uncertainty panels their colour bars: the colormap running
+from high (top) to low, titled with the unit (rad or mm, found by template matching).
 Where each view sits on screen is computed from the default blueprint's shares, so a layout
 change moves the regions with it. The screenshot is kept as ``tests/artifacts/web_viewer.png``.
 
@@ -34,10 +36,16 @@ Rect = tuple[int, int, int, int]  # x0, y0, x1, y1 in screenshot pixels
 
 # -- where the views are ------------------------------------------------------------------------
 def blueprint_rects(container, rect: tuple[float, float, float, float]) -> dict[str, tuple[float, ...]]:
-    """View name -> ``(x0, y0, x1, y1)`` by splitting ``rect`` along the blueprint's containers."""
+    """View key -> ``(x0, y0, x1, y1)`` by splitting ``rect`` along the blueprint's containers.
+
+    A view's key is its name; a colour bar's is ``bar:`` + its origin + its place among bars of
+    that origin (``bar:legend/sigma_rad#1``), as several panels share one bar.
+    """
     from rerun.blueprint.containers import Horizontal, Vertical
 
     if not isinstance(container, (Horizontal, Vertical)):
+        if str(container.origin).startswith("legend/"):
+            return {f"bar:{container.origin}#0": rect}
         return {container.name: rect}
     horizontal = isinstance(container, Horizontal)
     n = len(container.contents)
@@ -48,7 +56,11 @@ def blueprint_rects(container, rect: tuple[float, float, float, float]) -> dict[
     for child, a, b in zip(container.contents, edges[:-1], edges[1:], strict=True):
         sub = (x0 + a * (x1 - x0), y0, x0 + b * (x1 - x0), y1) if horizontal else \
               (x0, y0 + a * (y1 - y0), x1, y0 + b * (y1 - y0))
-        out.update(blueprint_rects(child, sub))
+        for key, r in blueprint_rects(child, sub).items():
+            while key in out:  # another panel's copy of the same bar
+                base, n = key.rsplit("#", 1)
+                key = f"{base}#{int(n) + 1}"
+            out[key] = r
     return out
 
 
@@ -66,13 +78,18 @@ def viewport_rows(rgb: np.ndarray) -> tuple[int, int]:
     return (top[0] + 1 if top else TOP_BAR_PX), (bottom[-1] if bottom else h - TIME_PANEL_PX)
 
 
+# the layout a replay with truth ends up with: error panel, and plots of what TruthScorer rows give the logger
+REPLAY_LAYOUT = {"error": True, "plots": ("turntable_deg", "accuracy_rad", "cloud_mm")}
+
+
 def view_regions(rgb: np.ndarray) -> dict[str, Rect]:
-    """Content rectangle (title strip and separators removed) of each view in the default blueprint."""
+    """Content rectangle (title strip and separators removed) of each view in the replay's blueprint."""
     from gearscan.viewer.log import default_blueprint
 
     top, bottom = viewport_rows(rgb)
     width = rgb.shape[1]
-    rects = blueprint_rects(default_blueprint().root_container, (0.0, float(top), float(width), float(bottom)))
+    rects = blueprint_rects(default_blueprint(**REPLAY_LAYOUT).root_container,
+                            (0.0, float(top), float(width), float(bottom)))
     out = {}
     for name, (x0, y0, x1, y1) in rects.items():
         out[name] = (int(x0) + 4, int(y0) + TITLE_BAR_PX, int(x1) - 4, int(y1) - 4)
@@ -125,8 +142,11 @@ def colormap_failures(rgb: np.ndarray, region: Rect, cmap: str, *, min_pixels: i
     return failures
 
 
+PHASE_VIEW = "wrapped phase (rad)"
+
+
 def phase_failures(rgb: np.ndarray, regions: dict[str, Rect]) -> list[str]:
-    return colormap_failures(rgb, regions["wrapped phase"], "twilight", min_pixels=500, min_bins=6,
+    return colormap_failures(rgb, regions[PHASE_VIEW], "twilight", min_pixels=500, min_bins=6,
                              what="wrapped phase view")
 
 
@@ -135,9 +155,73 @@ def cloud_failures(rgb: np.ndarray, regions: dict[str, Rect]) -> list[str]:
                              need_upper=True, what="point cloud view")
 
 
+# -- colour bars ------------------------------------------------------------------------------
+def _unit_template(unit: str) -> np.ndarray:
+    """Grey crop of the unit title of a colour bar, as :func:`colorbar_image` draws it."""
+    import cv2
+
+    from gearscan.viewer.log import SCALES, colorbar_image
+
+    scale = next(s for s in SCALES.values() if s.unit == unit)
+    gray = cv2.cvtColor(colorbar_image(scale), cv2.COLOR_RGB2GRAY)
+    top = gray[: gray.shape[0] // 8]  # the title sits above the bar
+    rows, cols = np.nonzero(top < 128)
+    return top[max(rows.min() - 2, 0):rows.max() + 3, max(cols.min() - 2, 0):cols.max() + 3]
+
+
+def unit_score(rgb: np.ndarray, region: Rect, unit: str) -> float:
+    """Best normalised correlation of ``unit``'s title with the region, over the scales the
+    viewer may have drawn the bar at (it fits the bar image into the view)."""
+    import cv2
+
+    x0, y0, x1, y1 = region
+    screen = cv2.cvtColor(np.ascontiguousarray(rgb[y0:y1, x0:x1]), cv2.COLOR_RGB2GRAY)
+    template = _unit_template(unit)
+    best = -1.0
+    for s in np.arange(0.3, 1.6, 0.02):
+        t = cv2.resize(template, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+        if t.shape[0] < 6 or t.shape[0] > screen.shape[0] or t.shape[1] > screen.shape[1]:
+            continue
+        best = max(best, float(cv2.matchTemplate(screen, t, cv2.TM_CCOEFF_NORMED).max()))
+    return best
+
+
+def colorbar_failures(rgb: np.ndarray, region: Rect, cmap: str, unit: str, *, what: str) -> list[str]:
+    """Why ``region`` does not show a vertical ``cmap`` colour bar, high values on top, titled ``unit``."""
+    x0, y0, x1, y1 = region
+    failures = colormap_failures(rgb, region, cmap, min_pixels=100, min_bins=5, what=what)
+    bands = np.linspace(y0, y1, 9).astype(int)
+    medians = [np.median(p) for a, b in zip(bands[:-1], bands[1:], strict=True)
+               if len(p := colormap_hits(rgb[a:b, x0:x1], cmap)) >= 5]
+    if len(medians) < 4:
+        failures.append(f"{what}: {cmap} colours in only {len(medians)}/8 horizontal bands")
+    elif np.corrcoef(np.arange(len(medians)), medians)[0, 1] > -0.8:
+        failures.append(f"{what}: colours do not run from the top of the map down {np.round(medians, 2).tolist()}")
+    score = unit_score(rgb, region, unit)
+    other = max(unit_score(rgb, region, u) for u in UNITS if u != unit)
+    if score < 0.6 or score < other + 0.1:
+        failures.append(f"{what}: unit {unit!r} not found (match {score:.2f}, other units {other:.2f})")
+    return failures
+
+
+UNITS = ("rad", "mm")
+# colour bar key -> (colormap, unit, description)
+COLOR_BARS = {
+    "bar:legend/phase#0": ("twilight", "rad", "phase colour bar"),
+    "bar:legend/error#0": ("magma", "rad", "error colour bar"),
+    "bar:legend/sigma_rad#0": ("viridis", "rad", "phase uncertainty colour bar"),
+    "bar:legend/sigma_mm#0": ("viridis", "mm", "depth uncertainty colour bar"),
+}
+
+
+def colorbars_failures(rgb: np.ndarray, regions: dict[str, Rect]) -> list[str]:
+    return [f for key, (cmap, unit, what) in COLOR_BARS.items()
+            for f in colorbar_failures(rgb, regions[key], cmap, unit, what=what)]
+
+
 def viewer_failures(rgb: np.ndarray) -> list[str]:
     regions = view_regions(rgb)
-    return phase_failures(rgb, regions) + cloud_failures(rgb, regions)
+    return phase_failures(rgb, regions) + cloud_failures(rgb, regions) + colorbars_failures(rgb, regions)
 
 
 # -- the test -----------------------------------------------------------------------------------
@@ -151,7 +235,7 @@ def rerun_home(tmp_path, monkeypatch):
     return home
 
 
-def test_web_viewer_shows_phase_and_cloud(tmp_path, rerun_home):
+def test_web_viewer_shows_phase_cloud_and_colour_bars_with_units(tmp_path, rerun_home):
     from gearscan.measure import Decoder
     from gearscan.replay import replay
     from gearscan.rig import default_rig
@@ -178,10 +262,16 @@ def test_web_viewer_shows_phase_and_cloud(tmp_path, rerun_home):
     # the checks discriminate: the same tests on other views of the same screenshot fail
     regions = view_regions(rgb)
     assert rgb.shape == (HEIGHT, WIDTH, 3)
-    assert phase_failures(rgb, {"wrapped phase": regions["frame"]}), "grayscale frame view passed as phase"
-    assert phase_failures(rgb, {"wrapped phase": regions["turntable and accuracy"]})
-    assert cloud_failures(rgb, {"point cloud": regions["wrapped phase"]}), "twilight phase passed as cloud"
-    assert cloud_failures(rgb, {"point cloud": regions["total uncertainty"]})
-    # and a blank page fails both
+    assert phase_failures(rgb, {PHASE_VIEW: regions["frame"]}), "grayscale frame view passed as phase"
+    assert phase_failures(rgb, {PHASE_VIEW: regions["turntable (deg)"]})
+    assert cloud_failures(rgb, {"point cloud": regions[PHASE_VIEW]}), "twilight phase passed as cloud"
+    assert cloud_failures(rgb, {"point cloud": regions["total uncertainty (rad)"]})
+    mm_bar, rad_bar = regions["bar:legend/sigma_mm#0"], regions["bar:legend/sigma_rad#0"]
+    assert colorbar_failures(rgb, mm_bar, "viridis", "rad", what="mm bar"), "the mm bar passed as rad"
+    assert colorbar_failures(rgb, rad_bar, "viridis", "mm", what="rad bar"), "the rad bar passed as mm"
+    assert colorbar_failures(rgb, regions["bar:legend/phase#0"], "viridis", "rad", what="phase bar")
+    assert colorbar_failures(rgb, regions["total uncertainty (rad)"], "viridis", "rad", what="image")
+    # and a blank page fails them all
     blank = np.full_like(rgb, 255)
     assert phase_failures(blank, regions) and cloud_failures(blank, regions)
+    assert len(colorbars_failures(blank, regions)) >= 3 * len(COLOR_BARS)

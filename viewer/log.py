@@ -1,26 +1,38 @@
 """Rerun logging of bursts: raw frames, wrapped phase, uncertainty, error and point cloud.
 
-Entity layout (stable, the blueprint and the tests rely on it)::
+The phase, uncertainty and error panels are float images in their own unit, drawn by the
+viewer with a colormap over a fixed range (``rr.DepthImage``), so hovering a pixel reads its
+value ("Val:"; the "Depth:" line rerun adds to every depth image means nothing here).
+Each panel has a colour bar beside it with the range and the unit.
+
+Entity layout (stable, the blueprints and the tests rely on it)::
 
     world/camera                      Pinhole + Transform3D (static)
     world/camera/frames/{0,1,2}       raw frames of the burst
-    world/camera/phase                wrapped phase, cyclic colours (RGB)
-    world/camera/phase_rad            wrapped phase, float32 values (rad)
-    world/camera/sigma/{model,data,total}   uncertainty (rad), viridis 0..sigma_max (0.2 rad)
-    world/camera/sigma_rad/total      total uncertainty, float32 values (rad)
-    world/camera/error                |phase error| vs truth, magma 0..0.5 rad, when truth exists
+    world/camera/phase                wrapped phase, float32, rad, twilight -pi..pi
+    world/camera/sigma/{model,data,total}   phase uncertainty, float32, rad, viridis 0..0.2
+    world/camera/sigma_mm             depth uncertainty of each cloud point at its pixel, float32, mm
+    world/camera/error                |phase error| vs truth, float32, rad, magma 0..0.5 (truth only)
+    (each image entity also holds a static ``unit`` string, for tools reading the .rrd)
+    legend/{phase,sigma_rad,sigma_mm,error}   the colour bars (static RGB images with ticks and unit)
     world/cloud                       points (turntable frame), coloured by uncertainty
     world/fused                       the revolution's fused model (gear frame), coloured by
                                       signed deviation from CAD; legend in fused/legend (text)
                                       and fused/colorbar (image), logged once at the end
-    stats/*                           scalars (encoder angle, rmse, latency)
-Timelines: ``burst`` (sequence) and ``capture_time`` (device time since the camera's epoch);
-the turntable angle is a scalar plot (``stats/turntable_deg``).
+    stats/turntable_deg               turntable angle of the burst's first frame
+    stats/accuracy_rad/*              phase accuracy vs truth (keys ending in ``_rad``)
+    stats/cloud_mm/*                  cloud accuracy / deviation (keys ending in ``_mm``)
+    stats/latency_ms/*, stats/dropped/*   pipeline throughput (live)
+    log/warnings                      TextLog: bursts without fringes, and the like
+Timelines: ``burst`` (sequence) and ``capture_time`` (device time since the camera's epoch).
+The layout follows the data: the error panel, each plot and the warnings panel appear once
+something is logged to them (a live run without truth has no error panel).
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +76,97 @@ def colorize(values: np.ndarray, lo: float, hi: float, cmap: str, mask: np.ndarr
     return np.take(lut, idx, axis=0)
 
 
+@dataclass(frozen=True)
+class Scale:
+    """How one float image panel is drawn: colormap over ``lo..hi`` in ``unit``, with a colour bar."""
+
+    entity: str
+    title: str
+    unit: str
+    cmap: str  # a colormap both matplotlib and rerun have (rerun.components.Colormap)
+    lo: float
+    hi: float
+    legend: str  # entity of its colour bar
+    mask: str = "world/camera/masks/phase"  # the grey overlay on pixels without a value
+
+    def image(self, values: np.ndarray, valid: np.ndarray | None = None):
+        """A float32 ``rr.DepthImage`` of ``values`` (invalid pixels NaN) drawn with this scale."""
+        import rerun as rr
+
+        img = np.asarray(values, np.float32)
+        if valid is not None:  # NaN reads "no value" on hover; the viewer would colour it as the top end,
+            img = np.where(valid, img, np.float32(np.nan))  # so the mask overlay greys it out
+        return rr.DepthImage(img, meter=1.0, colormap=self.cmap, depth_range=(self.lo, self.hi))
+
+
+SIGMA_MAX_RAD = 0.2  # top of the phase-uncertainty scale
+SIGMA_MAX_MM = 0.03  # top of the depth-uncertainty scale (classical twin: median 0.005, 99 % 0.028)
+ERROR_MAX_RAD = 0.5  # top of the |phase error| scale
+SCALES: dict[str, Scale] = {s.entity: s for s in (
+    Scale("world/camera/phase", "wrapped phase", "rad", "twilight", -np.pi, np.pi, "legend/phase"),
+    Scale("world/camera/error", "|phase error| vs truth", "rad", "magma", 0.0, ERROR_MAX_RAD, "legend/error"),
+    Scale("world/camera/sigma/total", "total uncertainty", "rad", "viridis", 0.0, SIGMA_MAX_RAD, "legend/sigma_rad"),
+    Scale("world/camera/sigma/model", "model uncertainty", "rad", "viridis", 0.0, SIGMA_MAX_RAD, "legend/sigma_rad"),
+    Scale("world/camera/sigma/data", "data uncertainty", "rad", "viridis", 0.0, SIGMA_MAX_RAD, "legend/sigma_rad"),
+    Scale("world/camera/sigma_mm", "depth uncertainty", "mm", "viridis", 0.0, SIGMA_MAX_MM, "legend/sigma_mm",
+          mask="world/camera/masks/cloud"),
+)}
+
+# time-series plots, one per unit: stats subtree -> view title
+PLOTS: dict[str, str] = {
+    "turntable_deg": "turntable (deg)",
+    "accuracy_rad": "phase accuracy vs truth (rad)",
+    "cloud_mm": "cloud (mm)",
+    "latency_ms": "latency per stage (ms)",
+    "dropped": "dropped bursts (count)",
+    "other": "other",
+}
+
+
+def stat_path(key: str) -> tuple[str, str]:
+    """``(plot, entity)`` of a stats key: the plot is chosen by the key's unit suffix or prefix."""
+    for prefix in ("latency_ms/", "dropped/"):
+        if key.startswith(prefix):
+            plot = prefix[:-1]
+            return plot, f"stats/{plot}/{key[len(prefix):]}"
+    for suffix, plot in (("_rad", "accuracy_rad"), ("_mm", "cloud_mm"), ("_deg", "turntable_deg")):
+        if key.endswith(suffix):
+            return plot, f"stats/{plot}/{key}"
+    return "other", f"stats/other/{key}"
+
+
+def colorbar_image(scale: Scale, height: int = 360) -> np.ndarray:
+    """A vertical colour bar with ticks and the unit, rendered by matplotlib: ``(H, W, 3)`` uint8."""
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colorbar import ColorbarBase
+    from matplotlib.colors import Normalize
+    from matplotlib.figure import Figure
+
+    dpi = 100
+    fig = Figure(figsize=(1.1, height / dpi), dpi=dpi, facecolor="white")
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.08, 0.04, 0.28, 0.82))
+    bar = ColorbarBase(ax, cmap=matplotlib.colormaps[scale.cmap], norm=Normalize(scale.lo, scale.hi))
+    if scale.unit == "rad" and scale.lo < 0:
+        bar.set_ticks([-np.pi, -np.pi / 2, 0, np.pi / 2, np.pi], labels=["-π", "-π/2", "0", "π/2", "π"])
+    bar.ax.tick_params(labelsize=11)
+    fig.text(0.5, 0.93, scale.unit, ha="center", va="bottom", fontsize=16, fontweight="bold")
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+
+
+def _image_panel(rrb, scale: Scale):
+    """The float image (hover reads values) with its colour bar to the right."""
+    return rrb.Horizontal(
+        rrb.Spatial2DView(name=f"{scale.title} ({scale.unit})", origin="world/camera",
+                          contents=[scale.entity, scale.mask],
+                          overrides={scale.mask: rrb.EntityBehavior(interactive=False)}),  # hover the values below
+        rrb.Spatial2DView(name=scale.unit, origin=scale.legend),
+        column_shares=[5, 1],
+    )
+
+
 def _eye_for(rig: Rig):
     """A 3/4 view of the measured rim: from behind and above the camera, towards its target."""
     import rerun.blueprint as rrb
@@ -78,32 +181,67 @@ def _eye_for(rig: Rig):
     return rrb.EyeControls3D(position=eye, look_target=target, eye_up=[0.0, 0.0, 1.0])
 
 
-def default_blueprint(rig: Rig | None = None):
-    """Frames and phase on the left, uncertainty in the middle, cloud and plots on the right."""
+def default_blueprint(rig: Rig | None = None, *, error: bool = False, plots: tuple[str, ...] = ("turntable_deg",),
+                      warnings: bool = False):
+    """Frames, phase (and its error vs truth, when there is truth) on the left, uncertainty in
+    the middle, cloud and one plot per unit on the right; a warnings panel once one was logged.
+
+    ``plots``: keys of :data:`PLOTS` with data (live: cloud, latency, dropped; replay: accuracy, cloud).
+    """
     import rerun.blueprint as rrb
 
+    left = [rrb.Spatial2DView(name="frame", origin="world/camera", contents="world/camera/frames/0"),
+            _image_panel(rrb, SCALES["world/camera/phase"])]
+    if error:
+        left.append(_image_panel(rrb, SCALES["world/camera/error"]))
+    if warnings:
+        left.append(rrb.TextLogView(name="warnings", origin="log"))
+    middle = [_image_panel(rrb, SCALES[e]) for e in
+              ("world/camera/sigma/total", "world/camera/sigma_mm", "world/camera/sigma/model", "world/camera/sigma/data")]
+    # the float images are depth images under a pinhole: keep them out of the 3D view (rerun would back-project them)
+    cloud = rrb.Spatial3DView(name="point cloud", origin="world",
+                              contents=["+ world/**", "- world/camera/phase", "- world/camera/error",
+                                        "- world/camera/sigma/**", "- world/camera/sigma_mm",
+                                        "- world/camera/masks/**"],
+                              eye_controls=_eye_for(rig) if rig is not None else None)
+    series = [rrb.TimeSeriesView(name=PLOTS[p], origin=f"stats/{p}") for p in PLOTS if p in plots]
+    right = rrb.Vertical(cloud, *series, row_shares=[3 * max(len(series), 1), *([2] * len(series))]) \
+        if series else cloud
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Spatial2DView(name="frame", origin="world/camera", contents="world/camera/frames/0"),
-                rrb.Spatial2DView(name="wrapped phase", origin="world/camera", contents="world/camera/phase"),
-                rrb.Spatial2DView(name="phase error", origin="world/camera", contents="world/camera/error"),
-            ),
-            rrb.Vertical(
-                rrb.Spatial2DView(name="total uncertainty", origin="world/camera", contents="world/camera/sigma/total"),
-                rrb.Spatial2DView(name="model uncertainty", origin="world/camera", contents="world/camera/sigma/model"),
-                rrb.Spatial2DView(name="data uncertainty", origin="world/camera", contents="world/camera/sigma/data"),
-            ),
-            rrb.Vertical(
-                rrb.Spatial3DView(name="point cloud", origin="world",
-                                  eye_controls=_eye_for(rig) if rig is not None else None),
-                rrb.TimeSeriesView(name="turntable and accuracy", origin="stats"),
-                row_shares=[3, 2],
-            ),
+            rrb.Vertical(*left),
+            rrb.Vertical(*middle),
+            right,
             column_shares=[1, 1, 2],
         ),
         collapse_panels=True,
     )
+
+
+NO_FRINGE_MODULATION = 0.05  # normalised modulation 2B/S a fringe pixel reaches (recon.min_modulation's default)
+NO_FRINGE_MIN_SHARE = 0.02  # fewer modulated pixels than this share of the image: no fringes (twin: 65 %, test ramp: 0.8 %)
+NO_FRINGE_FLAT = 0.7  # modulated pixels whose phases agree this well (mean resultant length): no fringes (twin: 0.03, ramp: 0.86)
+
+
+def fringe_problem(result: PhaseResult) -> str | None:
+    """Why this burst shows no fringes (``None``: it does).
+
+    Fringes on a part give modulated pixels whose wrapped phase runs through every value; a
+    camera that does not see the projector (or the simulator's test ramp) gives almost no
+    modulated pixels, or a phase that is the same everywhere.
+    """
+    mod = result.modulation
+    ok = np.isfinite(mod) & (mod >= NO_FRINGE_MODULATION) & np.isfinite(result.phase)
+    share = float(ok.mean()) if ok.size else 0.0
+    if share < NO_FRINGE_MIN_SHARE:
+        return (f"no fringe modulation: {share:.2%} of the pixels reach 2B/S >= {NO_FRINGE_MODULATION:g} "
+                "(does the camera see the projected fringes?); the phase shown is noise")
+    z = np.exp(1j * result.phase[ok].astype(np.float64))
+    flat = float(np.abs(z.mean()))
+    if flat > NO_FRINGE_FLAT:
+        return (f"no fringes: the modulated pixels' phase is flat (mean resultant length {flat:.2f} > "
+                f"{NO_FRINGE_FLAT:g}; fringes run through every phase); the image is not a fringe pattern")
+    return None
 
 
 DEVIATION_RANGE_MM = 0.1  # fused cloud colours: -range (blue, material missing) .. +range (red)
@@ -155,6 +293,7 @@ class RerunLogger:
 
     ``connect`` takes a gRPC URL (``rerun+http://HOST:9876/proxy``) of a viewer elsewhere on
     the shop floor. If the viewer goes away, rerun drops data for it; measurement goes on.
+    The layout (:func:`default_blueprint`) follows what is logged and is sent again when it grows.
     """
 
     def __init__(
@@ -176,6 +315,11 @@ class RerunLogger:
         self.connect_url = connect
         self.errors = 0  # log calls lost to a broken viewer connection
         self._retry_at = 0.0
+        self._rig: Rig | None = None
+        self._layout: tuple[bool, tuple[str, ...], bool] = (False, ("turntable_deg",), False)
+        self._legends_logged = False
+        self.no_fringe_bursts = 0  # bursts that showed no fringes (warned about)
+        self._fringe_state: str | None = None  # the last burst's fringe problem
         blueprint = default_blueprint()
         self._blueprint = blueprint
         if save is not None:
@@ -187,7 +331,6 @@ class RerunLogger:
             self.stream.spawn(default_blueprint=blueprint)
         else:
             raise ValueError("RerunLogger needs a sink: save, connect or spawn")
-        self.sigma_max = 0.2  # rad, top of the uncertainty colour scale
         self.cloud_color = cloud_color
 
     def log_rig(self, rig: Rig) -> None:
@@ -196,8 +339,9 @@ class RerunLogger:
         Also sends the blueprint again with the 3D view aimed at what this rig measures.
         """
         rr = self.rr
+        self._rig = rig
         try:
-            self.stream.send_blueprint(default_blueprint(rig))
+            self._send_layout()
         except RuntimeError as exc:
             self._viewer_lost(exc)
         cam = rig.camera
@@ -215,6 +359,49 @@ class RerunLogger:
             rr.Pinhole(image_from_camera=rig.projector.K, width=rig.projector.width, height=rig.projector.height),
             static=True,
         )
+
+    def _send_layout(self) -> None:
+        error, plots, warnings = self._layout
+        self._blueprint = default_blueprint(self._rig, error=error, plots=plots, warnings=warnings)
+        self.stream.send_blueprint(self._blueprint)
+
+    def _grow_layout(self, *, error: bool = False, plots: set[str] = frozenset(), warnings: bool = False) -> None:
+        """Send the blueprint again when a panel gets its first data (panels are never removed)."""
+        old_error, old_plots, old_warnings = self._layout
+        layout = (old_error or error, tuple(p for p in PLOTS if p in set(old_plots) | set(plots)),
+                  old_warnings or warnings)
+        if layout != self._layout:
+            self._layout = layout
+            self._send_layout()
+
+    def _log_legends(self) -> None:
+        """The colour bars and each image entity's unit (static, once)."""
+        rr, s = self.rr, self.stream
+        s.log("world/camera/masks", rr.AnnotationContext([(0, "value", (0, 0, 0, 0)), (1, "no value", (48, 48, 48, 255))]), static=True)
+        done = set()
+        for scale in SCALES.values():
+            s.log(scale.entity, rr.AnyValues(unit=scale.unit), static=True)
+            if scale.legend not in done:
+                s.log(scale.legend, rr.Image(colorbar_image(scale)), static=True)
+                done.add(scale.legend)
+        self._legends_logged = True
+
+    def warn(self, text: str) -> None:
+        """A warning both in the viewer (``log/warnings``, a text log panel appears) and on the console."""
+        log.warning("%s", text)
+        self.stream.log("log/warnings", self.rr.TextLog(text, level=self.rr.TextLogLevel.WARN))
+        self._grow_layout(warnings=True)
+
+    def _check_fringes(self, burst: Burst, result: PhaseResult) -> None:
+        """Warn when a burst shows no fringes: on the first such burst, every 100th, and on recovery."""
+        problem = fringe_problem(result)
+        if problem is not None:
+            self.no_fringe_bursts += 1
+            if self._fringe_state is None or self.no_fringe_bursts % 100 == 0:
+                self.warn(f"burst {burst.index}: {problem} ({self.no_fringe_bursts} such burst(s) so far)")
+        elif self._fringe_state is not None:
+            self.warn(f"burst {burst.index}: fringes are back")
+        self._fringe_state = problem
 
     def _viewer_lost(self, exc: Exception) -> None:
         """A dead viewer must not stop the measurement: count, warn once, retry later."""
@@ -255,16 +442,26 @@ class RerunLogger:
         s.set_time("capture_time", duration=burst.timestamp_ns * 1e-9)
         for i, f in enumerate(burst.frames):
             s.log(f"world/camera/frames/{i}", rr.Image(f.image))
+        if not self._legends_logged:
+            self._log_legends()
+        plots = {"turntable_deg"} | {stat_path(k)[0] for k in (stats or {})}
+        self._grow_layout(error=error is not None, plots=plots)
         valid = mask if mask is not None else (result.modulation > 0.02) & np.isfinite(result.sigma_total)
-        # coloured views for people (fixed scales, invalid pixels black); raw float32 values for tools
-        s.log("world/camera/phase", rr.Image(colorize(result.phase, -np.pi, np.pi, "twilight", valid)))
-        s.log("world/camera/phase_rad", rr.Image(result.phase.astype(np.float32)))
+        # float images in their unit (invalid pixels NaN), coloured by the viewer over fixed ranges
+        s.log("world/camera/masks/phase", rr.SegmentationImage((~valid).astype(np.uint8), opacity=1.0))
+        s.log("world/camera/phase", SCALES["world/camera/phase"].image(result.phase, valid))
         for name in ("model", "data", "total"):
-            sigma = getattr(result, f"sigma_{name}")
-            s.log(f"world/camera/sigma/{name}", rr.Image(colorize(sigma, 0.0, self.sigma_max, "viridis", valid)))
-        s.log("world/camera/sigma_rad/total", rr.Image(result.sigma_total.astype(np.float32)))
+            s.log(f"world/camera/sigma/{name}",
+                  SCALES[f"world/camera/sigma/{name}"].image(getattr(result, f"sigma_{name}"), valid))
+        depth_sigma = np.full(result.phase.shape, np.nan, np.float32)
+        if cloud is not None and len(cloud):
+            rows, cols = np.asarray(cloud.pixels, np.int64).T
+            depth_sigma[rows, cols] = cloud.sigma
+        s.log("world/camera/masks/cloud", rr.SegmentationImage(np.isnan(depth_sigma).astype(np.uint8), opacity=1.0))
+        s.log("world/camera/sigma_mm", SCALES["world/camera/sigma_mm"].image(depth_sigma))
         if error is not None:
-            s.log("world/camera/error", rr.Image(colorize(np.abs(error), 0.0, 0.5, "magma", valid)))
+            s.log("world/camera/error", SCALES["world/camera/error"].image(np.abs(error), valid))
+        self._check_fringes(burst, result)
         if cloud is not None and len(cloud):
             if self.cloud_color == "deviation" and cloud.deviation is not None:
                 colors = colorize(cloud.deviation, -0.1, 0.1, "coolwarm")  # mm, signed distance to CAD
@@ -275,7 +472,7 @@ class RerunLogger:
             s.log("world/cloud", rr.Points3D(cloud.points, colors=colors, radii=rr.Radius.ui_points(1.5)))
         s.log("stats/turntable_deg", rr.Scalars(np.degrees(burst.angles[0])))
         for k, v in (stats or {}).items():
-            s.log(f"stats/{k}", rr.Scalars(float(v)))
+            s.log(stat_path(k)[1], rr.Scalars(float(v)))
 
     def log_fused(self, points: np.ndarray, deviation: np.ndarray, *, bursts: int,
                   sigma: np.ndarray | None = None, range_mm: float = DEVIATION_RANGE_MM) -> None:
