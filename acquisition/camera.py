@@ -72,7 +72,7 @@ class CameraSettings(BaseModel):
     size the path allows, 0 keeps the camera's value.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
 
     exposure_us: float = Field(10_000.0, gt=0)
     gain_db: float = Field(0.0, ge=0)

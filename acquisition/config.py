@@ -49,7 +49,7 @@ class CameraConfig(CameraSettings):
 
 
 class EncoderConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
 
     port: str
     counts_per_rev: int = Field(gt=0)
@@ -62,7 +62,7 @@ class EncoderConfig(BaseModel):
 
 
 class ProjectorConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
 
     backend: Literal["mock", "window", "lightcrafter"] = "mock"
     display: int = Field(0, ge=0)
@@ -74,7 +74,7 @@ class ProjectorConfig(BaseModel):
 
 
 class AcquisitionConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
 
     camera: CameraConfig = Field(default_factory=CameraConfig)
     encoder: EncoderConfig | None = None

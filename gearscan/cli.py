@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -168,7 +169,7 @@ def _speed(value: str) -> float | None:
         speed = float(value)
     except ValueError:
         raise _fail(f"--speed must be a positive number or 'max', got {value!r}") from None
-    if speed <= 0:
+    if not math.isfinite(speed) or speed <= 0:  # nan compares false with everything
         raise _fail(f"--speed must be a positive number or 'max', got {value!r}")
     return speed
 

@@ -86,13 +86,13 @@ web_port = 9090              # --serve: web viewer page, http://HOST:9090 (0: an
 
 
 class RigRef(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
 
     calibration: Path = Field(Path("rig.json"), description="rig calibration JSON")
 
 
 class ModelSection(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
 
     path: Path | None = None
     mc: int = Field(0, ge=0, le=200)
@@ -102,7 +102,7 @@ class ModelSection(BaseModel):
 
 
 class ReconSection(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
 
     min_modulation: float = Field(0.05, ge=0, le=1)
     max_sigma_rad: float = Field(0.3, gt=0)
@@ -111,7 +111,7 @@ class ReconSection(BaseModel):
 
 
 class ViewerSection(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
 
     save: Path | None = None
     connect: str | None = None

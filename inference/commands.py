@@ -170,6 +170,11 @@ def predict(
         raise typer.BadParameter(f"expected one of {', '.join(PRECISIONS)}, got {precision!r}", param_hint="--precision")
     check_device(device)
     frames, full_scale, npz_angles = load_frames(inputs)
+    if np.array_equal(frames.min(axis=0), frames.max(axis=0)):  # no pixel changes between the three steps
+        what = "all zero" if not frames.any() else "the same at every pixel"
+        typer.secho(f"warning: {', '.join(map(str, inputs))}: the three frames are {what}: no fringe modulation, "
+                    "so the phase is meaningless (projector off, lens cap on, or exposure far too short?)",
+                    fg=typer.colors.YELLOW, err=True)
     try:
         predictor = Predictor.load(model, device=device, precision=precision)
     except ModelFileError as exc:
@@ -186,17 +191,22 @@ def predict(
     except ValueError as exc:  # a motion-input model without angles, or bad angles
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    output.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
-        output,
-        phase=result.phase,
-        M=result.M,
-        D=result.D,
-        sigma_model=result.sigma_model,
-        sigma_data=result.sigma_data,
-        sigma_total=result.sigma_total,
-        mode=np.array(result.mode),
-    )
+    try:  # through a file object: numpy would append '.npz' to another name and write elsewhere
+        output.parent.mkdir(parents=True, exist_ok=True)
+        with open(output, "wb") as fh:
+            np.savez_compressed(
+                fh,
+                phase=result.phase,
+                M=result.M,
+                D=result.D,
+                sigma_model=result.sigma_model,
+                sigma_data=result.sigma_data,
+                sigma_total=result.sigma_total,
+                mode=np.array(result.mode),
+            )
+    except OSError as exc:
+        typer.echo(f"error: --output: cannot write {output} ({exc.strerror or exc})", err=True)
+        raise typer.Exit(2) from exc
     typer.echo(
         f"{output}: {frames.shape[2]}x{frames.shape[1]} phase, mode {result.mode}, median sigma_total {float(np.median(result.sigma_total)):.4f} rad"
     )

@@ -104,9 +104,15 @@ def load_state(path: str | Path) -> dict[str, torch.Tensor]:
     if not path.is_file():
         raise ModelFileError(f"model weights not found: {path}")
     try:
-        return load_file(str(path))
+        state = load_file(str(path))
     except (SafetensorError, OSError, ValueError) as exc:
         raise ModelFileError(f"{path}: not a readable safetensors file ({exc})") from exc
+    for name, tensor in state.items():  # one NaN weight makes every output pixel NaN
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            bad = int((~torch.isfinite(tensor)).sum())
+            raise ModelFileError(f"{path}: tensor {name!r} holds {bad} NaN or infinite value(s) of {tensor.numel()}: "
+                                 "damaged or diverged weights, refused")
+    return state
 
 
 def widen_inputs(state: dict[str, torch.Tensor], model: torch.nn.Module, after: int = 3) -> list[str]:

@@ -1,0 +1,88 @@
+"""Hostile inputs to the CLI: each a clear error (exit 2 naming the input and what was expected)
+or a warning, never a traceback or a silent wrong result."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+from typer.testing import CliRunner
+
+from gearscan.cli import app
+from gearscan.config import TEMPLATE
+
+runner = CliRunner()
+
+
+def _frames(tmp_path, frames: np.ndarray):
+    path = tmp_path / "burst.npz"
+    np.savez(path, frames=frames)
+    return path
+
+
+def _fringes(h: int = 32, w: int = 32) -> np.ndarray:
+    """A three-step burst of vertical fringes (period 8 px), 8-bit."""
+    x = np.arange(w)[None, :]
+    return np.stack([np.broadcast_to(128 + 100 * np.cos(2 * np.pi * x / 8 + k * 2 * np.pi / 3), (h, w))
+                     for k in range(3)]).astype(np.uint8)
+
+
+def test_bind_that_is_not_an_address_is_exit_2_naming_it(tmp_path):
+    res = runner.invoke(app, ["replay", str(tmp_path), "--classical", "--serve", "--bind", "not an address"])
+    assert res.exit_code == 2, res.output
+    assert "not an address" in res.output and "--bind" in res.output, res.output
+
+
+def test_infinite_exposure_in_the_config_is_exit_2_naming_the_key(tmp_path):
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(TEMPLATE.replace("exposure_us = 5000.0", "exposure_us = inf"))
+    res = runner.invoke(app, ["live", "--config", str(cfg), "--check"])
+    assert res.exit_code == 2, res.output
+    assert "camera.exposure_us: Input should be a finite number (got inf)" in res.output, res.output
+
+
+def test_speed_nan_or_inf_is_exit_2(tmp_path):
+    for value in ("nan", "inf", "-1"):
+        res = runner.invoke(app, ["replay", str(tmp_path), "--classical", "--speed", value])
+        assert res.exit_code == 2, res.output
+        assert f"--speed must be a positive number or 'max', got '{value}'" in res.output, res.output
+
+
+def test_nan_weights_are_refused_naming_the_tensor(tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    from gearscan.inference.predictor import model_path
+
+    shipped = model_path(None)
+    state = load_file(str(shipped))
+    name = sorted(k for k, v in state.items() if v.is_floating_point() and v.numel() > 1)[0]
+    state[name].view(-1)[1] = float("nan")
+    bad = tmp_path / "bad.safetensors"
+    save_file(state, str(bad))
+    shutil.copy(shipped.with_suffix(".json"), bad.with_suffix(".json"))
+    res = runner.invoke(app, ["predict", str(_frames(tmp_path, _fringes())), "--model", str(bad),
+                              "-o", str(tmp_path / "out.npz")])
+    assert res.exit_code == 2, res.output
+    assert f"tensor {name!r} holds 1 NaN or infinite value(s)" in res.output and str(bad) in res.output, res.output
+    assert not (tmp_path / "out.npz").exists()
+
+
+def test_all_zero_frames_warn_of_no_fringe_modulation(tmp_path):
+    path = _frames(tmp_path, np.zeros((3, 32, 32), np.uint8))
+    res = runner.invoke(app, ["predict", str(path), "-o", str(tmp_path / "out.npz")])
+    assert res.exit_code == 0, res.output
+    assert "the three frames are all zero: no fringe modulation" in res.output, res.output
+    res = runner.invoke(app, ["predict", str(_frames(tmp_path, _fringes())), "-o", str(tmp_path / "out.npz")])
+    assert res.exit_code == 0 and "no fringe modulation" not in res.output, res.output
+
+
+def test_output_is_written_under_exactly_the_name_given(tmp_path):
+    out = tmp_path / "result.txt"
+    res = runner.invoke(app, ["predict", str(_frames(tmp_path, _fringes())), "-o", str(out)])
+    assert res.exit_code == 0 and res.output.startswith(f"{out}:"), res.output
+    assert not (tmp_path / "result.txt.npz").exists()
+    with np.load(out) as z:  # an npz under the given name, with the phase of the fringes
+        phase = z["phase"]
+    assert phase.shape == (32, 32) and np.isfinite(phase).all()
+    res = runner.invoke(app, ["predict", str(_frames(tmp_path, _fringes())), "-o", "/proc/nope/out.npz"])
+    assert res.exit_code == 2 and "--output: cannot write /proc/nope/out.npz" in res.output, res.output
