@@ -194,16 +194,8 @@ def predict(
     try:  # through a file object: numpy would append '.npz' to another name and write elsewhere
         output.parent.mkdir(parents=True, exist_ok=True)
         with open(output, "wb") as fh:
-            np.savez_compressed(
-                fh,
-                phase=result.phase,
-                M=result.M,
-                D=result.D,
-                sigma_model=result.sigma_model,
-                sigma_data=result.sigma_data,
-                sigma_total=result.sigma_total,
-                mode=np.array(result.mode),
-            )
+            fields = ("phase", "M", "D", "sigma_model", "sigma_data", "sigma_total")
+            np.savez_compressed(fh, mode=np.array(result.mode), **{k: getattr(result, k) for k in fields})
     except OSError as exc:
         typer.echo(f"error: --output: cannot write {output} ({exc.strerror or exc})", err=True)
         raise typer.Exit(2) from exc
