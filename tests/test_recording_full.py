@@ -106,3 +106,42 @@ def test_disk_full_during_live_is_a_clear_stop_and_the_recording_replays(tmp_pat
     assert not reader.finished or "disk full" in reader.meta["stopped"]
     res = runner.invoke(app, ["replay", str(out), "--classical", "--save", str(tmp_path / "r.rrd")])
     assert res.exit_code == 0 and f"bursts: {len(reader) // 3}" in res.output, res.output
+
+
+KILLED = textwrap.dedent("""
+    import os, signal, sys
+    import numpy as np
+    from gearscan.recording import RecordingWriter
+    from gearscan.types import Frame
+
+    w = RecordingWriter(sys.argv[1], {"note": "killed"})
+    write_file = w._write_file
+
+    def killed_midway(path, data):  # the frame's temporary file is on disk, not yet renamed: SIGKILL
+        if w.frame_count == 4:
+            with open(path.with_name(path.stem + ".tmp" + path.suffix), "wb") as fh:
+                fh.write(data[: len(data) // 2])
+            os.kill(os.getpid(), signal.SIGKILL)
+        write_file(path, data)
+
+    w._write_file = killed_midway
+    for k in range(10):
+        w.write_frame(Frame(image=np.full((16, 16), k, np.uint8), frame_id=k + 1, timestamp_ns=k, pattern_index=k % 3,
+                            exposure_us=100.0, bit_depth=8, encoder_angle=0.01 * k))
+""")
+
+
+def test_kill_9_while_writing_a_frame_leaves_a_readable_recording_and_a_named_stray(tmp_path):
+    rec = tmp_path / "rec"
+    res = subprocess.run([sys.executable, "-c", KILLED, str(rec)], capture_output=True, text=True, timeout=60)
+    assert res.returncode == -9, res.stderr
+    assert (rec / "frames" / "000004.tmp.png").exists()  # the stray a SIGKILL leaves
+    reader = RecordingReader(rec)
+    assert len(reader) == 4 and reader.damage == []  # the stray is no frame of the recording
+    assert [int(f.image[0, 0]) for f in reader.frames()] == [0, 1, 2, 3]
+    res = runner.invoke(app, ["check", str(rec)])
+    assert res.exit_code == 0 and "frames/000004.tmp.png: temporary file of an interrupted write" in res.output
+    from gearscan.recording import RecordingWriter
+
+    RecordingWriter(rec, {}, overwrite=True).close()  # a new recording in its place starts clean
+    assert not (rec / "frames" / "000004.tmp.png").exists() and len(RecordingReader(rec)) == 0
