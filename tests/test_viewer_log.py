@@ -142,12 +142,11 @@ def test_layout_per_mode_live_has_no_error_panel(tmp_path, replayed):
 def test_bursts_without_fringes_warn_in_the_viewer_and_on_the_console(tmp_path, replayed, caplog):
     _, seen = replayed
     decoder = Decoder(classical=True)
-    ramp = decoder(ramp_burst(7))
-    assert "no fringe modulation" in fringe_problem(ramp)
-    assert all(fringe_problem(m.result) is None for m, _ in seen.values())  # real fringes pass
-    flat = decoder(ramp_burst(7))
-    flat.M[:] = 0.5  # modulated everywhere, but the same phase everywhere: still no fringes
-    flat.phase[:] = 0.3
+    assert "no fringe modulation" in fringe_problem(ramp_burst(7))
+    assert all(fringe_problem(m.burst) is None for m, _ in seen.values())  # real fringes pass
+    # modulated everywhere, but one phase everywhere (a lamp flickering with the patterns): no fringes either
+    level = [np.full((64, 64), 128 + 100 * np.cos(0.3 + 2 * np.pi * k / 3)).astype(np.uint8) for k in range(3)]
+    flat = Burst(tuple(Frame(img, k, k * 10**7, pattern_index=k) for k, img in enumerate(level)), (0.0, 0.0, 0.0))
     assert "phase is flat" in fringe_problem(flat)
 
     logger = RerunLogger(save=tmp_path / "sim.rrd")

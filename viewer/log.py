@@ -223,20 +223,24 @@ NO_FRINGE_MIN_SHARE = 0.02  # fewer modulated pixels than this share of the imag
 NO_FRINGE_FLAT = 0.7  # modulated pixels whose phases agree this well (mean resultant length): no fringes (twin: 0.03, ramp: 0.86)
 
 
-def fringe_problem(result: PhaseResult) -> str | None:
-    """Why this burst shows no fringes (``None``: it does).
+def fringe_problem(burst: Burst, step: int = 4) -> str | None:
+    """Why this burst's frames show no fringes (``None``: they do).
 
-    Fringes on a part give modulated pixels whose wrapped phase runs through every value; a
-    camera that does not see the projector (or the simulator's test ramp) gives almost no
-    modulated pixels, or a phase that is the same everywhere.
+    Judged on the frames themselves (three-step modulation and phase on every ``step``-th pixel),
+    not on a decoder's output: a network may invent modulation where there is none. Fringes on a
+    part give many modulated pixels whose phase runs through every value; a camera that does not
+    see the projector (or the simulator's test ramp) gives almost none, or one phase everywhere.
     """
-    mod = result.modulation
-    ok = np.isfinite(mod) & (mod >= NO_FRINGE_MODULATION) & np.isfinite(result.phase)
+    i0, i1, i2 = (f.image[::step, ::step].astype(np.float32) for f in burst.frames)
+    sin = np.float32(np.sqrt(3.0)) * (i1 - i2)
+    cos = 2 * i0 - i1 - i2
+    mod = (2.0 / 3.0) * np.hypot(sin, cos) / np.float32(burst.full_scale)  # 2B/S
+    ok = mod >= NO_FRINGE_MODULATION
     share = float(ok.mean()) if ok.size else 0.0
     if share < NO_FRINGE_MIN_SHARE:
         return (f"no fringe modulation: {share:.2%} of the pixels reach 2B/S >= {NO_FRINGE_MODULATION:g} "
                 "(does the camera see the projected fringes?); the phase shown is noise")
-    z = np.exp(1j * result.phase[ok].astype(np.float64))
+    z = (cos[ok] + 1j * sin[ok]) / np.hypot(sin[ok], cos[ok])
     flat = float(np.abs(z.mean()))
     if flat > NO_FRINGE_FLAT:
         return (f"no fringes: the modulated pixels' phase is flat (mean resultant length {flat:.2f} > "
@@ -392,9 +396,9 @@ class RerunLogger:
         self.stream.log("log/warnings", self.rr.TextLog(text, level=self.rr.TextLogLevel.WARN))
         self._grow_layout(warnings=True)
 
-    def _check_fringes(self, burst: Burst, result: PhaseResult) -> None:
+    def _check_fringes(self, burst: Burst) -> None:
         """Warn when a burst shows no fringes: on the first such burst, every 100th, and on recovery."""
-        problem = fringe_problem(result)
+        problem = fringe_problem(burst)
         if problem is not None:
             self.no_fringe_bursts += 1
             if self._fringe_state is None or self.no_fringe_bursts % 100 == 0:
@@ -461,7 +465,7 @@ class RerunLogger:
         s.log("world/camera/sigma_mm", SCALES["world/camera/sigma_mm"].image(depth_sigma))
         if error is not None:
             s.log("world/camera/error", SCALES["world/camera/error"].image(np.abs(error), valid))
-        self._check_fringes(burst, result)
+        self._check_fringes(burst)
         if cloud is not None and len(cloud):
             if self.cloud_color == "deviation" and cloud.deviation is not None:
                 colors = colorize(cloud.deviation, -0.1, 0.1, "coolwarm")  # mm, signed distance to CAD
