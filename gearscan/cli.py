@@ -556,7 +556,9 @@ def inspect_cmd(
     for key, (sym, text) in QUANTITIES.items():
         tol = f" (class {grade}: {report.tolerances[key]:g})" if report.tolerances else ""
         typer.echo(f"{sym}: {summary[key]:.1f} µm{tol}  {text}")
-    typer.echo(f"chipped teeth: {', '.join(map(str, report.inspection.chipped_teeth)) or 'none'}")
+    from gearscan.inspect import chip_verdict
+
+    typer.echo(f"chipped teeth: {chip_verdict(report.inspection)}")
     typer.echo(f"report: {report.files['markdown']}")
 
 

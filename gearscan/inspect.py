@@ -46,6 +46,14 @@ class InspectionReport:
     truth: dict | None = None
 
 
+def chip_verdict(insp) -> str:
+    """The chip check's answer in words: the flagged teeth, none, or why it cannot tell."""
+    if not insp.chip_check_conclusive:
+        chip_mm = insp.settings.get("chip_mm", 0.05)
+        return (f"inconclusive: the tip cells stray {insp.chip_noise_um:.0f} µm (95th percentile) from the median "
+                f"tooth, too close to the {1e3 * chip_mm:.0f} µm chip threshold to tell a chip from noise")
+    return ", ".join(str(t) for t in insp.chipped_teeth) or "none"
+
 def revolution_deg(reader: RecordingReader) -> float:
     """Turntable angle the recording's frames cover, degrees (360 or more: every tooth seen)."""
     angles = np.array([r.encoder_angle for r in reader.records if r.encoder_angle is not None], dtype=float)
@@ -185,8 +193,7 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         lines.append(row + f" {cls if cls is not None else '> 11' if report.classes else '–'} |")
     lines += ["", f"Runout: {_fmt(insp.runout_from_eccentricity_um)} µm from the eccentricity (≈ 2e), "
               f"{_fmt(insp.runout_about_gear_axis_um)} µm from the tooth spaces about the gear's own axis.", ""]
-    chipped = ", ".join(str(t) for t in insp.chipped_teeth) or "none"
-    lines += [f"**Chipped / damaged teeth:** {chipped}.", ""]
+    lines += [f"**Chipped / damaged teeth:** {chip_verdict(insp)}.", ""]
     lines += ["## Per tooth", "",
               "| tooth | fp left | fp right | Fp,k left | Fp,k right | runout (space k/k+1) | Fα left | Fα right | tip: missing mm² | flag |",
               "|---|---|---|---|---|---|---|---|---|---|"]

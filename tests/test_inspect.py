@@ -81,7 +81,30 @@ def test_pitch_deviations_match_the_truth(inspected):
 
 def test_chipped_tooth_is_flagged_and_no_other(inspected):
     report, truth, *_ = inspected
-    assert report["inspection"]["chipped_teeth"] == truth["chipped_teeth"] == [7]
+    insp = report["inspection"]
+    assert insp["chip_check_conclusive"] and insp["chip_noise_um"] < 20, insp["chip_noise_um"]
+    assert insp["chipped_teeth"] == truth["chipped_teeth"] == [7]
+
+
+def test_a_chip_check_too_noisy_to_tell_flags_nothing_and_says_so():
+    """Tip cells that stray from the median tooth as far as the chip threshold: no tooth is flagged
+    (a moving revolution with the network flagged four intact teeth and missed the chipped one)."""
+    from gearscan.recon.inspect import inspect_gear
+    from gearscan.twin.gear import GearSpec
+
+    gear = GearSpec(teeth=20, module=2.0)
+    import open3d as o3d
+
+    rng = np.random.default_rng(0)
+    o3d.utility.random.seed(1)
+    pts = np.asarray(gear.mesh().sample_points_uniformly(400_000).points)
+    pts = pts[np.abs(pts[:, 2]) < gear.face_width / 2 - 0.2]  # the tooth surfaces, not the end faces
+    normals = pts[:, :2] / np.linalg.norm(pts[:, :2], axis=1, keepdims=True)
+    noisy = pts.copy()
+    noisy[:, :2] += normals * rng.normal(0.0, 0.06, (len(pts), 1))  # 60 um of radial noise
+    insp = inspect_gear(noisy, np.full(len(pts), 0.06), gear)
+    assert not insp.chip_check_conclusive and insp.chipped_teeth == ()
+    assert insp.chip_noise_um > 50 / 1.5
 
 
 def test_profile_slope_is_read_on_every_flank(inspected):
