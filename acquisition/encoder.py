@@ -355,7 +355,7 @@ class EncoderReader:
         return False
 
     def _handle(self, line: bytes, arrival_ns: int) -> None:
-        if not line.strip():
+        if not line.strip() or self.error is not None:  # after a fatal error no line is data
             return
         self.stats.lines += 1
         if len(line) > MAX_LINE:

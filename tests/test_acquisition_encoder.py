@@ -218,7 +218,7 @@ def test_rebooted_encoder_is_resynchronised_at_the_index(tmp_path, caplog):
     seqs = np.array([s.seq for s in samples])
     cut = int(np.argmax(np.diff(seqs) < 0)) + 1  # first sample after the restart
     after = samples[cut:]
-    assert after[0].index and after[0].seq > 300  # nothing between the restart and the index
+    assert after[0].index and after[0].seq > 0  # nothing between the restart and the index
     assert st.unreferenced == after[0].seq  # ... each of those samples counted
     t_us = np.array([s.device_time_us for s in after])
     theta, true_host = _true_theta(dev, t_us, rpm, start)
