@@ -129,37 +129,81 @@ def twin_render(
 @twin_app.command("dataset")
 def twin_dataset(
     out: Annotated[Path, typer.Argument(help="dataset folder (resumes if it exists)")],
-    teeth: Annotated[str, typer.Option(help="comma-separated tooth counts, one gear each")] = "12,20,30",
+    teeth: Annotated[str, typer.Option(help="comma-separated tooth counts, one gear each (with --rig: your gear's one)")] = "12,20,30",
     module: Annotated[float, typer.Option(help="module, mm")] = 2.0,
-    width: Annotated[int, typer.Option(help="image width, px")] = 512,
-    height: Annotated[int, typer.Option(help="image height, px")] = 512,
+    width: Annotated[int | None, typer.Option(help="image width, px (default 512; with --rig: the camera's)")] = None,
+    height: Annotated[int | None, typer.Option(help="image height, px (default 512; with --rig: the camera's)")] = None,
     period: Annotated[float, typer.Option(help="fringe period, projector px (ignored with --randomize)")] = 40.0,
     randomize: Annotated[bool, typer.Option(help="randomise rig, optics, period and gear size per gear")] = False,
     views: Annotated[bool, typer.Option(help="with --randomize: any view (radial/side/oblique/face), module 0.5-5 mm, camera fringe period 5-60 px")] = False,
     repeats: Annotated[int, typer.Option(min=1, help="randomised scenes per tooth count")] = 1,
     max_start_points: Annotated[int | None, typer.Option(help="cap on start points per gear")] = None,
+    start_step_deg: Annotated[float, typer.Option(help="start points every this many degrees within one tooth pitch")] = 2.0,
     seed: Annotated[int, typer.Option()] = 0,
+    rig: Annotated[Path | None, typer.Option(help="your rig (rig.json from `gearscan calibrate`): an adaptation dataset of your rig and gear, for `gearscan train --init`")] = None,
+    optics: Annotated[Path | None, typer.Option(help="with --rig: the twin's optics as JSON (fields of twin.render.Optics); default: the twin's defaults, projector power balanced for the rig")] = None,
+    pressure_angle: Annotated[float, typer.Option(help="pressure angle, degrees")] = 20.0,
+    face_width: Annotated[float, typer.Option(help="face width, mm")] = 20.0,
+    bore: Annotated[float, typer.Option(help="bore diameter, mm")] = 10.0,
 ) -> None:
-    """Render the paper's dataset protocol (start points x 18 poses x 18-step patterns)."""
+    """Render the paper's dataset protocol (start points x 18 poses x 18-step patterns).
+
+    With --rig: your own rig and gear (an adaptation dataset, index.json purpose "adaptation"),
+    which may have any tooth count; without it, the project's protocol datasets, which refuse the
+    test split's tooth counts and seeds (twin/splits.py).
+    """
+    import json
+
     from pydantic import ValidationError
 
     from gearscan.twin.dataset import DatasetError, DatasetSpec, generate_dataset, start_points
 
     try:
         counts = [int(t) for t in teeth.split(",") if t.strip()]
-        gears = [_gear_from_options(t, module, 20.0, 20.0, 10.0) for t in counts for _ in range(repeats)]
-        spec = DatasetSpec(gears=gears, width=width, height=height, period_px=period, randomize=randomize,
-                           views=views, seed=seed, max_start_points=max_start_points)
+    except ValueError as exc:
+        raise _fail(f"--teeth: expected comma-separated integers, got {teeth!r}") from exc
+    gears = [_gear_from_options(t, module, pressure_angle, face_width, bore) for t in counts for _ in range(repeats)]
+    scene = None
+    if rig is not None:
+        from gearscan.rig import Rig, RigError
+        from gearscan.twin.randomize import balance_projector_power
+        from gearscan.twin.render import Optics
+
+        if randomize or views or len(gears) != 1:
+            raise _fail("--rig renders your one rig and gear: give one --teeth, without --randomize/--views/--repeats")
+        try:
+            user_rig = Rig.load(rig)
+        except RigError as exc:
+            raise _fail(str(exc)) from exc
+        size = (user_rig.camera.width, user_rig.camera.height)
+        if (width or size[0], height or size[1]) != size:
+            raise _fail(f"--width/--height {width}x{height} differ from the rig's camera {size[0]}x{size[1]}; "
+                        "leave them out with --rig")
+        width, height = size
+        try:
+            twin_optics = (Optics(**json.loads(optics.read_text())) if optics is not None
+                           else balance_projector_power(user_rig, Optics()))
+        except (OSError, ValueError, TypeError) as exc:  # pydantic's ValidationError is a ValueError
+            raise _fail(f"--optics {optics}: expected a JSON object of twin.render.Optics fields ({exc})") from exc
+        scene = (user_rig, twin_optics, gears[0], period)
+    elif optics is not None:
+        raise _fail("--optics needs --rig")
+    try:
+        spec = DatasetSpec(gears=gears, width=width or 512, height=height or 512, period_px=period,
+                           randomize=randomize, views=views, seed=seed, max_start_points=max_start_points,
+                           start_step_deg=start_step_deg)
     except (ValueError, ValidationError) as exc:
         raise _fail(f"invalid dataset options: {exc}") from exc
     n = sum(len(start_points(g, spec.start_step_deg)[:max_start_points]) for g in gears)
     try:
         with _progress("start points") as prog:
             task = prog.add_task("dataset", total=n)
-            generate_dataset(out, spec, progress=lambda i, total: prog.update(task, completed=i))
+            generate_dataset(out, spec, progress=lambda i, total: prog.update(task, completed=i), scene=scene,
+                             purpose="protocol" if scene is None else "adaptation")
     except DatasetError as exc:
         raise _fail(str(exc)) from exc
-    typer.echo(f"dataset ready in {out}: {n} start points x 816 three-step inputs")
+    kind = f"adaptation dataset of {rig} ({width}x{height})" if scene is not None else "dataset"
+    typer.echo(f"{kind} ready in {out}: {n} start points x 816 three-step inputs")
 
 
 def _speed(value: str) -> float | None:

@@ -249,8 +249,8 @@ def train(
             help="separate validation data (same forms as --data); default: split --data by group"
         ),
     ] = None,
-    model: Annotated[str, typer.Option(help="cd-dcu-net, unet, ts-unet or dr-unet")] = "cd-dcu-net",
-    width: Annotated[int, typer.Option(min=1, help="base width w (paper 64)")] = 16,
+    model: Annotated[str, typer.Option(help="cd-dcu-net, unet, ts-unet or dr-unet (with --init: the init's)")] = "cd-dcu-net",
+    width: Annotated[int, typer.Option(min=1, help="base width w (paper 64; with --init: the init's)")] = 16,
     classical_input: Annotated[
         bool, typer.Option(help="feed the classical three-step M, D as two extra input channels")
     ] = False,
@@ -287,8 +287,8 @@ def train(
     alpha: Annotated[float, typer.Option(help="temperature of the Gaussian NLL term")] = 1e-4,
     mse_weight: Annotated[float, typer.Option(help="weight of the MSE term")] = 1.0,
     mse_weighting: Annotated[
-        str, typer.Option(help="uniform or modulation (1/m^2, phase-like)")
-    ] = "uniform",
+        str | None, typer.Option(help="uniform or modulation (1/m^2, phase-like); default: the --init model's, else uniform")
+    ] = None,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
     precision: Annotated[
         str, typer.Option(help="autocast: auto (bf16 on CUDA and on CPUs with native bf16, else fp32), fp32 or bf16")
@@ -297,7 +297,18 @@ def train(
     seed: Annotated[int, typer.Option()] = 0,
     init: Annotated[
         Path | None,
-        typer.Option("--init", help="start from these weights (.safetensors): fine-tuning"),
+        typer.Option("--init", help="start from these weights (.safetensors): fine-tuning; the network "
+                     "(name, width, inputs, dropout) is the one in their JSON"),
+    ] = None,
+    budget_cpu_min: Annotated[
+        float | None,
+        typer.Option(min=0.01, help="stop at this many CPU minutes of this process (all threads; other load on "
+                     "shared cores does not count), keeping the best-on-val weights"),
+    ] = None,
+    checkpoints_cpu_min: Annotated[
+        str | None,
+        typer.Option(help="'5,10,20': also save the best-on-val weights so far as OUT/cpu_<m>min.safetensors "
+                     "at these CPU minutes"),
     ] = None,
     resume: Annotated[bool, typer.Option(help="resume from OUT/last.* if present")] = False,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
@@ -305,24 +316,58 @@ def train(
         int, typer.Option(min=0, help="MC passes for the MC-mode sigma calibration at the end (0: skip)")
     ] = 20,
 ) -> None:
-    """Train a phase network (two stages: deterministic, then Concrete Dropout); DDP via torchrun."""
+    """Train a phase network (two stages: deterministic, then Concrete Dropout); DDP via torchrun.
+
+    Fine-tuning the shipped model on your rig (the paper's digital-twin workflow)::
+
+        gearscan twin dataset adapt --rig rig.json --teeth 35 --module 2 --seed 1
+        gearscan twin dataset adapt_val --rig rig.json --teeth 35 --module 2 --seed 2 --start-step-deg 3.1
+        gearscan train --init inference/weights/default.safetensors --data adapt --val-data adapt_val \
+            --budget-cpu-min 30 --epochs-dropout 0 --schedule constant --lr 3e-4 --crop 128 --batch-size 8 \
+            --steps-per-epoch 25 --epochs-deterministic 100000 --out runs/my-rig
+    """
+    import dataclasses
+
     from gearscan.inference.losses import LossConfig
+    from gearscan.inference.model_io import ModelFileError, read_config
     from gearscan.inference.models import ModelConfig
     from gearscan.inference.train import TrainConfig
     from gearscan.inference.train import train as run_training
 
     check_device(device, allow_auto=True)
-    config = TrainConfig(
-        out_dir=str(out),
-        model=ModelConfig(
+    marks: tuple[float, ...] = ()
+    if checkpoints_cpu_min:
+        try:
+            marks = tuple(float(v) for v in checkpoints_cpu_min.split(",") if v.strip())
+        except ValueError as exc:
+            raise typer.BadParameter(f"expected CPU minutes 'A,B,...', got {checkpoints_cpu_min!r}",
+                                     param_hint="--checkpoints-cpu-min") from exc
+    init_loss: dict = {}
+    if init is not None:  # fine-tuning: the network is the init's own
+        try:
+            meta = read_config(init)
+            net_config = ModelConfig.from_json(meta["model"], str(init))
+        except (ModelFileError, ValueError, TypeError) as exc:
+            typer.echo(f"error: --init: {exc}", err=True)
+            raise typer.Exit(2) from exc
+        if motion_input and not net_config.motion_input:
+            net_config = dataclasses.replace(net_config, in_channels=net_config.in_channels + 2, motion_input=True)
+        motion_input = net_config.motion_input
+        init_loss = (meta.get("training") or {}).get("loss") or {}
+    else:
+        net_config = ModelConfig(
             name=model,
             width=width,
             classical_input=classical_input,
             residual=residual,
             in_channels=3 + 2 * motion_input,
             motion_input=motion_input,
-        ),
-        loss=LossConfig(alpha=alpha, mse_weight=mse_weight, mse_weighting=mse_weighting),
+        )
+    weighting = mse_weighting or init_loss.get("mse_weighting", "uniform")
+    config = TrainConfig(
+        out_dir=str(out),
+        model=net_config,
+        loss=LossConfig(alpha=alpha, mse_weight=mse_weight, mse_weighting=weighting),
         epochs_deterministic=epochs_deterministic,
         epochs_dropout=epochs_dropout,
         batch_size=batch_size,
@@ -338,10 +383,12 @@ def train(
         num_workers=workers,
         seed=seed,
         init=str(init) if init else None,
-        widen_inputs=motion_input,
+        widen_inputs=motion_input and init is not None and not read_config(init)["model"].get("motion_input", False),
         resume=resume,
         progress=progress,
         calibrate_mc=calibrate_mc,
+        budget_cpu_min=budget_cpu_min,
+        checkpoints_cpu_min=marks,
     )
     train_set = _load_dataset(data, motion_input=motion_input, reverse=reverse)
     val_set = (_load_dataset(val_data, max_items=64, motion_input=motion_input, reverse=reverse)
@@ -350,8 +397,10 @@ def train(
         train_set, val_set = train_set
     result = run_training(config, train_set, val_set)
     if result.best_path is not None:
+        budget = f", CPU budget {budget_cpu_min:g} min reached" if result.budget_hit else ""
         typer.echo(
-            f"best model: {result.best_path} (val loss {result.best_val:.4g}, var scale {result.var_scale:.3g}, {result.seconds:.0f} s)"
+            f"best model: {result.best_path} (val loss {result.best_val:.4g}, var scale {result.var_scale:.3g}, "
+            f"{result.seconds:.0f} s, {result.cpu_seconds / 60:.1f} CPU min{budget})"
         )
 
 

@@ -13,6 +13,14 @@
   scale and the per-mode sigma calibration of :mod:`gearscan.inference.uncertainty`), ``last.*`` + ``last_optim.pt`` (resume), ``metrics.csv``, ``metrics.json``,
   ``loss_curve.png``, ``reliability.png``.
 - ``init``: start from pre-trained weights (transfer learning: pre-train on twin, fine-tune).
+  The initial weights are validated first (row ``epoch 0``), so the best-on-val weights are
+  never worse on val than the ones fine-tuning started from.
+- ``budget_cpu_min``: stop cleanly when this process has used that many CPU minutes
+  (``time.process_time()``: all its threads, so other load on shared cores does not eat the
+  budget; training steps stop early enough to leave room for the last validation), keeping
+  the best-on-val weights. ``checkpoints_cpu_min``: at the first validation past each mark,
+  the best-on-val weights so far are saved as ``cpu_<m>min.safetensors`` (a 10-minute budget's
+  result, read off a longer run with a constant schedule). Every metrics row has ``cpu_min``.
 - DDP: launched with ``torchrun`` (env ``WORLD_SIZE`` > 1), gloo on CPU, nccl on CUDA; rank 0
   writes files; validation sums are all-reduced so every rank takes the same decisions.
 
@@ -77,6 +85,8 @@ class TrainConfig:
     progress: bool = True
     calibrate: bool = True
     calibrate_mc: int = 20  # MC passes for the MC-mode sigma calibration (0: deterministic only)
+    budget_cpu_min: float | None = None  # stop at this many CPU minutes of this process (all threads)
+    checkpoints_cpu_min: tuple[float, ...] = ()  # save the best-on-val weights so far at these CPU minutes
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):
@@ -94,6 +104,11 @@ class TrainConfig:
             )
         if self.lr <= 0:
             raise ValueError(f"lr: expected > 0, got {self.lr}")
+        if self.budget_cpu_min is not None and not self.budget_cpu_min > 0:
+            raise ValueError(f"budget_cpu_min: expected > 0 CPU minutes, got {self.budget_cpu_min}")
+        self.checkpoints_cpu_min = tuple(sorted(float(m) for m in self.checkpoints_cpu_min))
+        if any(not m > 0 for m in self.checkpoints_cpu_min):
+            raise ValueError(f"checkpoints_cpu_min: expected CPU minutes > 0, got {self.checkpoints_cpu_min}")
         from gearscan.inference.predictor import PRECISIONS
 
         if self.precision not in PRECISIONS:
@@ -159,6 +174,8 @@ class TrainResult:
     best_val: float
     var_scale: float
     seconds: float
+    cpu_seconds: float = 0.0  # CPU time of this process over the whole fit (all threads)
+    budget_hit: bool = False
 
 
 def _resolve_device(name: str, d: Dist) -> torch.device:
@@ -224,7 +241,10 @@ class Trainer:
         self.criterion = PhaseLoss(config.loss)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
         self.has_dropout = bool(concrete_layers(self.model))
-        self.state = {"stage": 1, "epoch": 0, "best": math.inf, "bad": 0, "stage_best": math.inf}
+        self.state = {"stage": 1, "epoch": 0, "best": math.inf, "bad": 0, "stage_best": math.inf, "cpu_s": 0.0,
+                      "checkpoints": []}
+        self._cpu0 = time.process_time()
+        self._val_cpu = 0.0  # CPU seconds of the last validation: kept free at the end of a budget
         self.history: list[dict] = []
         self._last_plot = -math.inf
         if config.resume and (self.out / "last.safetensors").is_file():
@@ -237,6 +257,8 @@ class Trainer:
         )
         st = json.loads((self.out / "last_state.json").read_text())
         self.state, self.history = st["state"], st["history"]
+        self.state.setdefault("cpu_s", 0.0)
+        self.state.setdefault("checkpoints", [])
         opt = self.out / "last_optim.pt"
         if opt.is_file():
             self.optimizer.load_state_dict(
@@ -244,6 +266,7 @@ class Trainer:
             )
 
     def _save_last(self) -> None:
+        self.state["cpu_s"], self._cpu0 = self.cpu_seconds(), time.process_time()
         save_model(
             self.model, self.out / "last.safetensors", extra={"training": self.config.to_json()}
         )
@@ -296,6 +319,33 @@ class Trainer:
             drop_last=False,
         )
 
+    # CPU budget ------------------------------------------------------------------------------
+    def cpu_seconds(self) -> float:
+        """CPU seconds this fit has used (this process, all threads; carried over on resume)."""
+        return self.state["cpu_s"] + time.process_time() - self._cpu0
+
+    def budget_spent(self, reserve: float = 0.0) -> bool:
+        """True when the CPU budget (if any) leaves less than ``reserve`` seconds."""
+        b = self.config.budget_cpu_min
+        return b is not None and self.cpu_seconds() + reserve >= 60.0 * b
+
+    def _save_checkpoints(self, stage: int) -> None:
+        """Copy the best-on-val weights so far to ``cpu_<m>min.*`` for every mark just passed."""
+        cpu_min = self.cpu_seconds() / 60.0
+        for m in self.config.checkpoints_cpu_min:
+            if m in self.state["checkpoints"] or cpu_min < m:
+                continue
+            self.state["checkpoints"].append(m)
+            src = self.out / f"stage{stage}_best.safetensors"
+            if self.dist.main and src.is_file():
+                save_model(self._best_copy(src), self.out / f"cpu_{m:g}min.safetensors",
+                           extra={"cpu_min": cpu_min, "mark_cpu_min": m, "metrics": self.history[-1]})
+
+    def _best_copy(self, src: Path) -> PhaseNet:
+        net = build_model(self.config.model)
+        load_into(net, load_state(src), src)
+        return net
+
     def _train_epoch(self, net: torch.nn.Module, stage: int, epoch: int, lr: float) -> dict:
         for g in self.optimizer.param_groups:
             g["lr"] = lr
@@ -335,14 +385,23 @@ class Trainer:
             n += 1
             if bar is not None:
                 bar.update(task, advance=1, loss=f"loss {float(losses['total'].detach()):.4g}")
+            if self.budget_spent(reserve=self._val_cpu):  # leave room for the closing validation
+                break
         if bar is not None:
             bar.stop()
         set_stochastic(self.model, False)
         vals = _all_reduce([sums[k] for k in sums] + [n], self.dist, self.device)
-        return {f"train_{k}": vals[j] / max(vals[-1], 1) for j, k in enumerate(sums)}
+        return {f"train_{k}": vals[j] / max(vals[-1], 1) for j, k in enumerate(sums)} | {"steps": n}
 
     @torch.no_grad()
     def _validate(self) -> dict:
+        c0 = time.process_time()
+        try:
+            return self._validate_once()
+        finally:
+            self._val_cpu = time.process_time() - c0
+
+    def _validate_once(self) -> dict:
         self.model.eval()
         set_stochastic(self.model, False)
         c = self.config.loss
@@ -369,6 +428,14 @@ class Trainer:
         stages = [(1, cfg.epochs_deterministic)] + (
             [(2, cfg.epochs_dropout)] if self.has_dropout else []
         )
+        if cfg.init and not self.history and self.state["stage"] == 1:  # the starting point is a candidate too
+            row = {"stage": 1, "epoch": 0, "lr": 0.0, **{f"train_{k}": math.nan for k in ("total", "nll", "mse", "reg")},
+                   "steps": 0, **self._validate(), "seconds": time.perf_counter() - t0}
+            row["cpu_min"] = self.cpu_seconds() / 60.0
+            self.history.append(row)
+            self.state["stage_best"] = row["val_loss"]
+            if self.dist.main:
+                save_model(self.model, self.out / "stage1_best.safetensors", extra={"metrics": row})
         for stage, n_epochs in stages:
             if stage < self.state["stage"]:
                 continue
@@ -382,7 +449,7 @@ class Trainer:
                     self.model,
                     device_ids=[self.device.index] if self.device.type == "cuda" else None,
                 )
-            while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience:
+            while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience and not self.budget_spent():
                 epoch = self.state["epoch"]
                 lr = learning_rate(cfg, epoch, n_epochs, stage)
                 te = time.perf_counter()
@@ -390,6 +457,7 @@ class Trainer:
                 row.update(self._train_epoch(net, stage, epoch, lr))
                 row.update(self._validate())
                 row["seconds"] = time.perf_counter() - te
+                row["cpu_min"] = self.cpu_seconds() / 60.0
                 for j, p in enumerate(dropout_rates(self.model)):
                     row[f"p{j}"] = p
                 improved = row["val_loss"] < self.state["stage_best"]
@@ -407,6 +475,7 @@ class Trainer:
                             self.out / f"stage{stage}_best.safetensors",
                             extra={"metrics": row},
                         )
+                    self._save_checkpoints(stage)
                     self._save_last()
                     self._write_metrics()
             # stage done: continue from this stage's best weights
@@ -419,13 +488,15 @@ class Trainer:
                     "stage": stage + 1,
                     "epoch": 0,
                     "bad": 0,
-                    "best": self.state["stage_best"],
+                    "best": self.state["stage_best"] if math.isfinite(self.state["stage_best"]) else self.state["best"],
                     "stage_best": math.inf,
                 }
             )
             if self.dist.main:
                 self._save_last()
                 self._write_metrics(plot=True)
+        budget_hit = self.budget_spent()
+        fit_cpu = self.cpu_seconds()
         var_scale, calib, sigma_cal = 1.0, {}, {}
         if cfg.calibrate:
             var_scale, calib, sigma_cal = self._calibrate()
@@ -442,11 +513,15 @@ class Trainer:
                     "calibration": calib,
                     **({"sigma_calibration": sigma_cal} if sigma_cal else {}),
                     "train_seconds": time.perf_counter() - t0,
+                    "train_cpu_min": fit_cpu / 60.0,
+                    "budget_cpu_min": cfg.budget_cpu_min,
+                    "budget_hit": budget_hit,
                 },
             )
         self._barrier()
         return TrainResult(
-            best_path, self.history, float(self.state["best"]), var_scale, time.perf_counter() - t0
+            best_path, self.history, float(self.state["best"]), var_scale, time.perf_counter() - t0,
+            fit_cpu, budget_hit,
         )
 
     def _barrier(self) -> None:

@@ -173,6 +173,33 @@ def test_resume_and_init(tmp_path, monkeypatch):
         assert k.endswith("p_logit") or torch.equal(a, b), k
 
 
+def test_cpu_budget_stops_cleanly_and_keeps_the_best_on_val(tmp_path):
+    ds = TensorBurstDataset(list(twin_items()))
+    start = train(_cfg(tmp_path, out_dir=str(tmp_path / "start"), epochs_deterministic=3, epochs_dropout=0,
+                       lr=3e-3, calibrate=False), ds, ds)
+    # an absurd learning rate wrecks the weights: best-on-val must stay the starting point
+    cfg = _cfg(tmp_path, out_dir=str(tmp_path / "ft"), init=str(start.best_path), epochs_deterministic=100_000,
+               epochs_dropout=1, steps_per_epoch=1, lr=5.0, schedule="constant", patience=100_000,
+               budget_cpu_min=0.02, checkpoints_cpu_min=(0.01,), calibrate=False)
+    t0 = time.process_time()
+    result = train(cfg, ds, ds)
+    used = time.process_time() - t0
+    assert result.budget_hit and 1.2 <= result.cpu_seconds <= used
+    assert result.cpu_seconds <= 1.2 + 2.0  # at most one step and one validation past the budget
+    hist = result.history
+    assert hist[0]["epoch"] == 0 and hist[0]["steps"] == 0  # the init, validated before any step
+    assert len(hist) > 2 and all(h["stage"] == 1 for h in hist)  # the budget ended stage 1, stage 2 never ran
+    assert [h["cpu_min"] for h in hist] == sorted(h["cpu_min"] for h in hist)
+    assert not any(h["val_loss"] <= hist[0]["val_loss"] for h in hist[1:])  # worse (or NaN) every time
+    ref, _ = load_model(start.best_path)
+    best, meta = load_model(result.best_path)
+    for (k, a), b in zip(ref.state_dict().items(), best.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
+    assert meta["budget_hit"] and meta["train_cpu_min"] == pytest.approx(result.cpu_seconds / 60)
+    mark = Path(cfg.out_dir) / "cpu_0.01min.safetensors"
+    assert mark.is_file() and json.loads(mark.with_suffix(".json").read_text())["cpu_min"] >= 0.01
+
+
 def test_split_by_group_never_mixes():
     groups = [g for g in range(10) for _ in range(5)]
     tr, va = split_by_group(groups, 0.3, seed=3)

@@ -16,6 +16,11 @@ On-disk layout (``root/``), all plain numpy so it memory-maps::
 
 Generation is resumable: a start point is listed as done in ``index.json`` only after all its
 files were renamed into place.
+
+``index.json`` records the dataset's ``purpose``: ``protocol`` (the project's model-development
+data: the split rules of :mod:`gearscan.twin.splits` refuse test gears and test seeds) or
+``adaptation`` (a user's own rig and gear, ``gearscan twin dataset --rig``: any tooth count, since
+the gear is the user's; test seeds are still refused; the scene is recorded as ``scene``).
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from gearscan.twin.render import Optics, TwinRenderer
 
 INDEX = "index.json"
 FORMAT = "gearscan-twin-dataset"
+PURPOSES = ("protocol", "adaptation")
 
 
 class DatasetError(ValueError):
@@ -107,17 +113,28 @@ def generate_dataset(
     *,
     progress: Callable[[int, int], None] | None = None,
     scene: tuple[Rig, Optics, GearSpec, float] | None = None,
+    purpose: str = "protocol",
 ) -> Path:
     """Render (or resume rendering) the dataset described by ``spec`` into ``root``.
 
     ``scene`` (rig, optics, gear, period) replaces the spec's default/randomised scene, for
-    target domains with their own rig and camera.
+    target domains with their own rig and camera. ``purpose="adaptation"`` (needs ``scene``) is a
+    user's fine-tuning data for their own rig and gear: the test split's tooth counts are allowed
+    there (the split rule is for the project's own datasets), its test seeds are not.
     """
     from gearscan.twin.splits import SplitError, refuse_test
 
+    if purpose not in PURPOSES:
+        raise DatasetError(f"purpose: expected one of {PURPOSES}, got {purpose!r}")
+    if purpose == "adaptation" and (scene is None or spec.randomize):
+        raise DatasetError("an adaptation dataset renders one given scene (the user's rig and gear), "
+                           "not the spec's default or randomised ones")
+    if scene is not None and (scene[0].camera.width, scene[0].camera.height) != (spec.width, spec.height):
+        raise DatasetError(f"spec size {spec.width}x{spec.height} differs from the rig's camera "
+                           f"{scene[0].camera.width}x{scene[0].camera.height}")
+    teeth = [] if purpose == "adaptation" else [g.teeth for g in ([scene[2]] if scene is not None else spec.gears)]
     try:  # test scenes are rendered on the fly by the report, never stored (twin/splits.py)
-        refuse_test(teeth=[g.teeth for g in ([scene[2]] if scene is not None else spec.gears)], seed=spec.seed,
-                    what=f"dataset {root}")
+        refuse_test(teeth=teeth, seed=spec.seed, what=f"dataset {root}")
     except SplitError as exc:
         raise DatasetError(str(exc)) from exc
     root = Path(root)
@@ -127,8 +144,16 @@ def generate_dataset(
         index = json.loads(index_path.read_text())
         if index.get("spec") != json.loads(spec.model_dump_json()):
             raise DatasetError(f"{index_path} was written for another spec; use a new folder or the same spec")
+        if index.get("purpose", "protocol") != purpose:
+            raise DatasetError(f"{index_path} is a {index.get('purpose', 'protocol')} dataset, not {purpose}; "
+                               "use a new folder")
     else:
-        index = {"format": FORMAT, "version": 1, "spec": json.loads(spec.model_dump_json()), "entries": []}
+        index = {"format": FORMAT, "version": 1, "purpose": purpose, "spec": json.loads(spec.model_dump_json()),
+                 "entries": []}
+        if purpose == "adaptation":
+            rig, optics, gear, period = scene
+            index["scene"] = {"rig": rig.to_json(), "optics": optics.model_dump(), "gear": gear.model_dump(),
+                              "period_px": period}
     done = {e["id"] for e in index["entries"]}
     jobs = []
     for g in range(len(spec.gears)):

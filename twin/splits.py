@@ -18,6 +18,12 @@ belongs to exactly one split:
 - **seed**: the scene seed (rig, optics, start angles and noise of a test scene derive from it).
   Train 1 and 3-9999, val 0, 2 and 10000-19999, test 20000-29999.
 
+The split rules govern the project's model-development datasets (``purpose: protocol`` in a
+dataset's ``index.json``). A user's adaptation dataset (``gearscan twin dataset --rig``, ``purpose:
+adaptation``) renders their own rig and gear, whatever its tooth count: :func:`refuse_test` is
+called there with the seed only. A benchmark that fine-tunes on a test scene's rig keeps its test
+bursts untouched by other means (non-test seeds, other start angles: ``benchmarks/adaptation.py``).
+
 The shipped model predates this module; what it saw is :data:`SHIPPED_V5` (from
 ``scripts/train_default.py`` and its model card). One exception is stated there: its
 validation used the default rig (gear 25), which the test split now owns.
@@ -151,7 +157,8 @@ def refuse_test(*, teeth: list[int] | tuple[int, ...] = (), seed: int | None = N
     """Raise :class:`SplitError` if a stored ``what`` would hold test gears or a test seed.
 
     Test scenes are rendered on the fly by the report (``benchmarks/generalization.py``); a
-    training or validation dataset never holds them.
+    training or validation dataset never holds them. Adaptation datasets (a user's own gear) pass
+    no ``teeth``: only their seed is checked.
     """
     test = SPLITS["test"]
     bad = sorted({t for t in teeth if t in test.teeth})
