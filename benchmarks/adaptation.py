@@ -35,13 +35,13 @@ import numpy as np
 import torch
 from torch.utils.data import Subset
 
-from gearscan.evaluate import classical_method, network_method
-from gearscan.generalization import MOVING, STILL, render_family_cases, scene_motions
+from gearscan.evaluate import Scene, classical_method, network_method, render_cases
+from gearscan.generalization import MOVING, STILL, scene_motions
 from gearscan.inference.losses import LossConfig
 from gearscan.inference.model_io import read_config
 from gearscan.inference.models import ModelConfig
 from gearscan.inference.predictor import DEFAULT_MODEL, Predictor
-from gearscan.inference.train import TrainConfig, train
+from gearscan.inference.train import TrainConfig, TrainResult, train
 from gearscan.recon.phase import phase_error
 from gearscan.twin.dataset import DatasetSpec, TwinBurstDataset, generate_dataset
 from gearscan.twin.families import family_scenes
@@ -109,11 +109,13 @@ def run_family(args) -> None:
     data = out / "data"
     t0 = time.perf_counter()
     generate_dataset(data, spec, scene=(scene.rig, scene.optics, gear, scene.period_px), purpose="adaptation")
-    render_s = time.perf_counter() - t0
+    render_s = None if args.score_only else time.perf_counter() - t0  # a resumed render says nothing
     # test bursts: the scene's test seed, rendered on the fly (never stored)
     rng = np.random.default_rng([scene.seed, 1])
-    motions = [m for m in scene_motions(rng, sweeps=0, stills=2) for _ in range(args.reps)]
-    cases = render_family_cases(scene, motions)
+    base = scene_motions(rng, sweeps=0, stills=2)
+    motions = [m for m in base for _ in range(args.reps)]  # render_cases' order: per motion, reps bursts
+    sc = Scene(scene.name, scene.rig, scene.optics, scene.gear, scene.period_px, _renderer=scene.renderer)
+    cases = render_cases(sc, {m.name: m.steps_deg for m in base}, args.reps, seed=scene.seed)
     test_angles = np.array([a for c in cases for a in c.angles_deg])
     gap = angle_gap_deg(test_angles, pose_angles(spec, starts), pitch)
     if gap < 1e-4:  # the same angle: a test frame's pose would be in the adaptation data (noise aside)
@@ -129,7 +131,7 @@ def run_family(args) -> None:
     budget = args.budget
     marks = tuple(m for m in args.marks if m < budget)
     run = out / "run"
-    if run.exists() and not args.resume:
+    if run.exists() and not args.resume and not args.score_only:
         shutil.rmtree(run)
     config = TrainConfig(
         out_dir=str(run), model=ModelConfig.from_json(meta["model"]), loss=LossConfig(**meta["training"]["loss"]),
@@ -139,8 +141,15 @@ def run_family(args) -> None:
         resume=args.resume, precision=args.precision,
     )
     t0 = time.perf_counter()
-    result = train(config, train_set, val_set)
-    train_wall = time.perf_counter() - t0
+    if args.score_only:  # a finished run (e.g. one whose scoring failed): read what it wrote
+        best = read_config(run / "best.safetensors")
+        history = json.loads((run / "metrics.json").read_text())
+        result = TrainResult(run / "best.safetensors", history, math.nan, best["var_scale"], math.nan,
+                             60.0 * best["train_cpu_min"], best["budget_hit"])
+        train_wall = float(sum(h["seconds"] for h in history))
+    else:
+        result = train(config, train_set, val_set)
+        train_wall = time.perf_counter() - t0
     # score every checkpoint on the test bursts
     points = [("0", DEFAULT_MODEL, 0.0)]
     for m in marks:
@@ -187,10 +196,64 @@ def _f(v: float) -> str:
     return f"{v:.4f}"
 
 
+def power_fit(curve: list[dict], kind: str = MOVING) -> tuple[float, float] | None:
+    """``rmse = a * cpu_min**b`` fitted (log-log least squares) to the fine-tuned points (cpu_min > 0)."""
+    pts = [(c["cpu_min"], c["rmse"][kind]) for c in curve if c["cpu_min"] > 0 and c["mark_cpu_min"] > 0]
+    if len(pts) < 2:
+        return None
+    x, y = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
+    b, log_a = np.polyfit(x, y, 1)
+    return float(math.exp(log_a)), float(b)
+
+
+def steps_at(r: dict, cpu_min: float) -> int:
+    """Training steps taken by the time the run had used ``cpu_min`` CPU minutes."""
+    return int(sum(h["steps"] for h in r["training"]["history"] if h["cpu_min"] <= cpu_min + 1e-9))
+
+
+def label_floor(data: Path, groups: list[int]) -> float | None:
+    """RMSE (rad) of the 18-step PS training label against the analytic phase on the val start points:
+    what a network trained on these labels is taught, so roughly the floor fine-tuning can reach."""
+    index = json.loads((data / "index.json").read_text()) if (data / "index.json").is_file() else None
+    if index is None:
+        return None
+    se = n = 0.0
+    for g in groups:
+        d = data / index["entries"][g]["id"]
+        lab, ph, m = (np.load(d / f"{k}.npy", mmap_mode="r") for k in ("label", "phase", "mask"))
+        for p in range(0, lab.shape[0], 3):
+            e = phase_error(np.arctan2(lab[p, 0], lab[p, 1]), ph[p])[m[p]].astype(np.float64)
+            se, n = se + float(np.sum(e**2)), n + e.size
+    return math.sqrt(se / n) if n else None
+
+
+def _extrapolation(r: dict) -> str:
+    fit = power_fit(r["curve"])
+    if fit is None:
+        return f"- {r['scene']}: too few points to fit."
+    a, b = fit
+    cpu = r["training"]["cpu_min"]
+    step_cpu_s = 60.0 * cpu / max(r["training"]["steps"], 1)
+    floors = (f" Floors on this scene: the 18-step training label is {r['label_floor']:.4f} rad from the truth "
+              f"(val start points), three-step PS on still bursts {r['three_step'][STILL]:.4f} rad."
+              if r.get("label_floor") else "")
+    if b >= 0:
+        return (f"- {r['scene']}: rmse = {a:.3f} t^{b:.3f}: no longer falling with CPU time; more of the same will "
+                f"not reach it.{floors}")
+    need = (TARGET_RAD / a) ** (1 / b)
+    verdict = ("out of reach of more CPU time with this network and data" if need > 100 * cpu
+               else "if the trend held")
+    return (f"- {r['scene']}: rmse = {a:.3f} t^{b:.3f}; {TARGET_RAD} rad at about {need:.3g} CPU min "
+            f"(~{need * 60 / step_cpu_s:.3g} steps of batch {r['training']['batch']} at {step_cpu_s:.2f} CPU s per step "
+            f"on this host, {r['training']['precision']}): {verdict}.{floors}")
+
+
 def write_report(prefix: Path, runs: Path = RUNS) -> None:
     results = [json.loads(p.read_text()) for p in sorted(runs.glob("*/result.json"))]
     if not results:
         raise SystemExit(f"no results under {runs}: run with --family first")
+    for r in results:
+        r["label_floor"] = label_floor(runs / r["family"] / "data", r["adaptation"]["val_start_points"])
     gen = json.loads((HERE / "generalization_report.json").read_text())
     fam_zero = {(c["family"], c["group"]): c for c in gen["cells"]}
     import matplotlib
@@ -205,6 +268,9 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         ax.plot(xs, [c["rmse"][MOVING] for c in r["curve"]], "-o", color=col, label=f"{r['scene']} moving")
         ax.plot(xs, [c["rmse"][STILL] for c in r["curve"]], "--s", color=col, ms=4, label=f"{r['scene']} still")
         ax.axhline(r["three_step"][MOVING], color=col, lw=0.7, ls=":")
+        hist = [x for x in r["training"]["history"] if math.isfinite(x["val_rmse"])]
+        ax.plot([x["cpu_min"] for x in hist], [x["val_rmse"] for x in hist], color=col, lw=0.6, alpha=0.5,
+                label=f"{r['scene']} val (adaptation data, per epoch)")
     ax.axhline(TARGET_RAD, color="k", lw=1, ls="-.", label=f"target {TARGET_RAD} rad (moving)")
     ax.set_yscale("log")
     ax.set_xlabel("fine-tuning, CPU minutes of the training process")
@@ -229,8 +295,9 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         f"AVX512-BF16 {'yes' if h['avx512_bf16'] else 'no'}, AMX-BF16 {'yes' if h['amx_bf16'] else 'no'}; load average "
         + "; ".join(f"{r['family']} {r['host']['loadavg_start'][0]:.1f} at start, {r['host']['loadavg_end'][0]:.1f} at the end"
                     for r in results)
-        + f"; {r0['torch_threads']} torch threads; precision {r0['precision']} (the Predictor's and the trainer's "
-        "automatic choice: bf16 where the CPU has native bf16).",
+        + f"; {r0['torch_threads']} torch threads. Training autocast **{r0['training']['precision']}** (measured "
+        "before the runs on this host, w8, 8x128^2: 1.2 CPU s per step in fp32, 1.7 in bf16: no AMX); the test "
+        f"scoring in **{r0['precision']}**, the Predictor's automatic choice, as in `generalization_report.md`.",
         "- **CPU minutes** are `time.process_time()` of the training process (all its threads), counted from the "
         "start of fine-tuning: validation included, rendering and the closing sigma calibration not. Other load on "
         "the shared cores does not eat the budget; wall time does depend on it (stated per run).",
@@ -250,18 +317,18 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         "",
         "## Zero-shot vs fine-tuned (test bursts)",
         "",
-        "| scene | CPU min (mark / actual) | moving RMSE (rad) | still RMSE (rad) | moving / three-step | still / three-step | val RMSE at that point |",
-        "|---|---|---|---|---|---|---|",
+        "| scene | CPU min (mark / actual) | steps | moving RMSE (rad) | still RMSE (rad) | moving / three-step | still / three-step | val RMSE of the kept weights |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         hist = r["training"]["history"]
         for c in r["curve"]:
             val = min((x for x in hist if x["cpu_min"] <= c["cpu_min"] + 1e-9), key=lambda x: x["val_loss"], default=None)
             lines.append(
-                f"| {r['scene']} | {c['mark_cpu_min']:g} / {c['cpu_min']:.1f} | {_f(c['rmse'][MOVING])} | "
+                f"| {r['scene']} | {c['mark_cpu_min']:g} / {c['cpu_min']:.1f} | {steps_at(r, c['cpu_min'])} | {_f(c['rmse'][MOVING])} | "
                 f"{_f(c['rmse'][STILL])} | {c['ratio_to_three_step'][MOVING]:.2f}x | {c['ratio_to_three_step'][STILL]:.2f}x | "
                 f"{_f(val['val_rmse']) if val else ''} |")
-        lines.append(f"| {r['scene']} | three-step PS | {_f(r['three_step'][MOVING])} | {_f(r['three_step'][STILL])} | 1 | 1 | |")
+        lines.append(f"| {r['scene']} | three-step PS | | {_f(r['three_step'][MOVING])} | {_f(r['three_step'][STILL])} | 1 | 1 | |")
     lines += ["", f"Figure: `{png.name}` (test RMSE vs CPU minutes; the dashed-dotted line is the {TARGET_RAD} rad target).", ""]
     met = [r for r in results if r["curve"][-1]["rmse"][MOVING] <= TARGET_RAD]
     lines += [
@@ -271,6 +338,11 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         + "Moving bursts after the full budget: "
         + "; ".join(f"{r['scene']} {_f(r['curve'][-1]['rmse'][MOVING])} rad (zero-shot {_f(r['curve'][0]['rmse'][MOVING])})"
                     for r in results) + ".",
+        "",
+        "What would meet it, read off the curve (a power law `rmse = a * (CPU min)^b` fitted to the fine-tuned "
+        "moving-burst points; an extrapolation, not a measurement):",
+        "",
+        *[_extrapolation(r) for r in results],
         "",
         "## Runs",
         "",
@@ -282,7 +354,8 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         lines.append(
             f"| {r['scene']} | {r['resolution']} | {r['period_px']:.1f} | seed {a['seed']} ({a['seed_split']} split), "
             f"{a['start_points']} start points {a['start_step_deg']:.3f} deg apart x {a['poses']} poses x {a['steps']} steps, "
-            f"val start points {a['val_start_points']} | {a['train_items']} / {a['val_items']} | {a['render_s']:.0f} | "
+            f"val start points {a['val_start_points']} | {a['train_items']} / {a['val_items']} | "
+            f"{'n/a' if a['render_s'] is None else format(a['render_s'], '.0f')} | "
             f"{t['steps']} x batch {t['batch']} crop {t['crop']} | {t['cpu_min']:.1f} | {t['wall_s'] / 60:.1f} | "
             f"{'yes' if t['budget_hit'] else 'no'} | {a['min_gap_to_test_angles_deg']:.4f} |")
     lines += ["", "Zero-shot numbers of the whole family (16 scenes, `generalization_report.md`, same model) for scale:", "",
@@ -319,6 +392,7 @@ def main() -> None:
                     help="training autocast (fp32: on this AVX512-BF16 host without AMX a bf16 step cost 1.7 CPU s "
                          "vs 1.2 in fp32, w8 8x128^2)")
     ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--score-only", action="store_true", help="score a finished run's checkpoints (no training)")
     ap.add_argument("--report", action="store_true", help="gather runs/adaptation/*/result.json into the report")
     ap.add_argument("--out", type=Path, default=HERE / "adaptation_report")
     ap.add_argument("--runs", type=Path, default=RUNS, help="folder of the per-family runs (data, weights, result.json)")
