@@ -265,3 +265,22 @@ def test_an_error_stops_with_what_was_measured_and_the_status_prints_without_a_t
     assert out.getvalue() == "  12 s 28 bursts 2.5/s | drops 2 decoder busy | encoder 1000 Hz | out/live.rrd 42 MB\n"
     res = runner.invoke(app, ["live"])
     assert res.exit_code == 2 and "--config: a live configuration is needed" in res.output and "--simulate" in res.output
+
+
+def test_a_second_live_on_the_same_encoder_runs(twin, tmp_path):
+    """The encoder keeps streaming between two runs (as a real one does): the second run opens the
+    port again and measures; it once failed on the previous run's stale input."""
+    from gearscan.live import run_live
+    from gearscan.mocks.encoder_device import MockEncoderProcess
+
+    root, rec, rig_path = twin
+    link = str(tmp_path / "enc")
+    with MockEncoderProcess(link, rate=1000, cpr=10000, rpm=6.0, duration=120, linger=0) as dev:
+        cfg = LiveConfig.load(_config(tmp_path, rec, rig_path, link))
+        reports = []
+        for k in range(2):
+            reports.append(run_live(cfg, bursts=3, decoder=Decoder(classical=True), save=tmp_path / f"l{k}.rrd",
+                                    handle_signals=False))
+            time.sleep(1.0)  # the device streams into the closed port meanwhile
+        dev.kill()
+    assert [r.bursts for r in reports] == [3, 3], [r.summary() for r in reports]
