@@ -300,7 +300,12 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         f"scoring in **{r0['precision']}**, the Predictor's automatic choice, as in `generalization_report.md`.",
         "- **CPU minutes** are `time.process_time()` of the training process (all its threads), counted from the "
         "start of fine-tuning: validation included, rendering and the closing sigma calibration not. Other load on "
-        "the shared cores does not eat the budget; wall time does depend on it (stated per run).",
+        "the shared cores does not eat the budget directly, but it is not neutral either: the same step (w8, batch 8, "
+        "128^2 crops) cost "
+        + ", ".join(f"{60 * r['training']['cpu_min'] / max(r['training']['steps'], 1):.2f} CPU s in the {r['family']} run"
+                    for r in results)
+        + " (load averages under Host; torch's threads burn CPU time waiting for a descheduled peer), so a busy host "
+        "buys fewer steps per CPU minute. Wall time is stated per run.",
         "- **What chose what**: the adaptation data's own held-out start points (val) chose the weights at every "
         "mark (best-on-val so far, the shipped weights included: the 0-minute row); nothing was chosen on the test "
         "bursts. Learning rate, batch, crop and the mix (static bursts x20, both rotation senses) are the shipped "
@@ -317,7 +322,7 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         "",
         "## Zero-shot vs fine-tuned (test bursts)",
         "",
-        "| scene | CPU min (mark / actual) | steps | moving RMSE (rad) | still RMSE (rad) | moving / three-step | still / three-step | val RMSE of the kept weights |",
+        "| scene | CPU min (mark / actual) | steps | moving RMSE (rad) | still RMSE (rad) | moving / three-step | still / three-step | val RMSE of the kept weights (chosen by val loss) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
