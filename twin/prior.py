@@ -75,7 +75,7 @@ class TwinPrior:
         for k, s in enumerate(surfs):
             change = 2 * np.pi * (s.u_proj - u0) / self.period_px
             clean &= np.isfinite(change)
-            clean &= self.renderer._clean_mask(s.lit & (s.cos_incidence >= MIN_INCIDENCE_COS), s)
+            clean &= self.renderer.clean_mask(s.lit & (s.cos_incidence >= MIN_INCIDENCE_COS), s)
             shifts[k] = THREE_STEP_SHIFTS[k] + np.nan_to_num(change)
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio[k] = np.where((irr0 > 0) & (s.irradiance > 0), s.irradiance / irr0, 1.0)

@@ -277,7 +277,7 @@ class TwinRenderer:
         phase_abs = 2 * np.pi * surf.u_proj / period_px
         mod = surf.irradiance * self._contrast(period_px)  # 2B/S of the linear model
         mask = surf.lit & (mod >= o.min_modulation) & (surf.cos_incidence >= o.min_incidence_cos)
-        mask = self._clean_mask(mask, surf)
+        mask = self.clean_mask(mask, surf)
         phi = np.where(mask, np.nan_to_num(phase_abs), 0.0)
         wrapped = np.angle(np.exp(1j * phi)).astype(np.float32)
         points = np.where(mask[..., None], surf.points_cam, np.nan).astype(np.float32)
@@ -293,7 +293,7 @@ class TwinRenderer:
             points=points,
         )
 
-    def _clean_mask(self, mask: np.ndarray, surf: Surface) -> np.ndarray:
+    def clean_mask(self, mask: np.ndarray, surf: Surface) -> np.ndarray:
         """Drop pixels whose blur footprint reaches unlit pixels or a depth jump."""
         rad = int(math.ceil(3 * self.optics.camera_defocus_px)) + 1
         k = np.ones((2 * rad + 1, 2 * rad + 1), np.uint8)
