@@ -14,6 +14,7 @@ is in software-trigger mode and each frame is stamped with the pattern it saw.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import time
 from collections.abc import Iterator
@@ -141,7 +142,7 @@ class SequencerStats:
     patterns_shown: int = 0
     frames: int = 0
     timeouts: int = 0
-    show_to_frame_ms: list[float] = field(default_factory=list)
+    show_to_frame_ms: collections.deque[float] = field(default_factory=lambda: collections.deque(maxlen=10_000))  # latest
 
 
 class SoftwareSequencer:
