@@ -1,4 +1,4 @@
-"""Burst assembly: frames in pattern order 0, 1, 2 -> :class:`~gearscan.types.Burst`.
+"""Burst assembly: frames in pattern order 0, 1, 2 -> :class:`~gearscan.core.types.Burst`.
 
 Each frame gets the turntable angle at its exposure midpoint, linearly interpolated in the
 encoder history (host clock). The assembler never emits a wrong burst: a frame-id gap
@@ -21,8 +21,8 @@ import time
 from dataclasses import asdict, dataclass, field
 
 from gearscan.acquisition.encoder import EncoderHistory
-from gearscan.frame_ids import FrameIdWrap
-from gearscan.types import Burst, Frame
+from gearscan.core.frame_ids import FrameIdWrap
+from gearscan.core.types import Burst, Frame
 
 
 @dataclass(frozen=True, slots=True)

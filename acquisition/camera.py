@@ -27,8 +27,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gearscan.acquisition.clock import ClockSync
-from gearscan.frame_ids import FrameIdUnwrapper, FrameIdWrap
-from gearscan.types import Frame
+from gearscan.core.frame_ids import FrameIdUnwrapper, FrameIdWrap
+from gearscan.core.types import Frame
 
 TriggerMode = Literal["free-run", "software", "hardware"]
 
@@ -162,7 +162,7 @@ class BaseCamera:
 
     ``frame_id_modulus`` handles counters that wrap (GigE Vision v1 block ids are 16-bit and
     skip 0, so 65535 is followed by 1); :attr:`frame_id_wrap` is the rule every consumer of
-    this camera's ids uses (:mod:`gearscan.frame_ids`).
+    this camera's ids uses (:mod:`gearscan.core.frame_ids`).
     """
 
     driver = "base"

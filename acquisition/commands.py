@@ -83,7 +83,7 @@ def record(
     from gearscan.acquisition.encoder import EncoderError
     from gearscan.acquisition.record import record_bursts
     from gearscan.config import LiveConfig
-    from gearscan.recording import RecordingError
+    from gearscan.core.recording import RecordingError
 
     console = Console()
     try:

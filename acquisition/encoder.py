@@ -3,7 +3,7 @@
 The thread reads bytes, splits lines, checks checksums and sequence numbers, converts
 counts to radians (counts-per-rev, zeroed at the index mark), maps the device clock onto
 the host clock (:class:`ClockSync`: offset and drift) and appends
-:class:`~gearscan.types.EncoderSample` to a bounded :class:`EncoderHistory` that the burst
+:class:`~gearscan.core.types.EncoderSample` to a bounded :class:`EncoderHistory` that the burst
 assembler interpolates in. It never dies on bad input: corrupt, partial and out-of-order
 lines are counted in :class:`EncoderStats` and skipped; a vanished port (unplugged adapter)
 is reported in ``events`` and reopened until it comes back.
@@ -45,7 +45,7 @@ from gearscan.acquisition.encoder_protocol import (
     RawSample,
     parse_line,
 )
-from gearscan.types import EncoderSample
+from gearscan.core.types import EncoderSample
 
 MAX_LINE = 256
 #: a restart begins at seq 0; the reader may miss its first lines while it reopens the port

@@ -31,7 +31,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from gearscan.types import ENCODER_COUNT_MAX, ENCODER_SEQ_MODULUS, ENCODER_TIME_US_MAX
+from gearscan.core.types import ENCODER_COUNT_MAX, ENCODER_SEQ_MODULUS, ENCODER_TIME_US_MAX
 
 PROTOCOL_VERSION = 1
 SEQ_MODULUS = ENCODER_SEQ_MODULUS

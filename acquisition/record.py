@@ -18,8 +18,8 @@ from gearscan.acquisition.bursts import BurstAssembler
 from gearscan.acquisition.camera import BaseCamera, CameraError, GrabTimeout
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError
 from gearscan.acquisition.encoder import EncoderError, EncoderReader
-from gearscan.projector.patterns import PatternSet
-from gearscan.types import Burst, EncoderSample, Frame
+from gearscan.core.patterns import PatternSet
+from gearscan.core.types import Burst, EncoderSample, Frame
 
 # A rig without encoder: the gear is taken as standing still at its CAD zero (angle 0), so
 # every burst spans 0 deg (three-step PS, which has no motion error on a still gear) and the
@@ -110,7 +110,7 @@ class AcquisitionSession:
         self.frames = self.encoder_samples = self.burst_count = 0
 
     def __enter__(self) -> AcquisitionSession:
-        from gearscan.recording import RecordingWriter
+        from gearscan.core.recording import RecordingWriter
 
         cfg = self.cfg
         if self.out is not None:  # before any device wait

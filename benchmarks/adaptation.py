@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from torch.utils.data import Subset
 
+from gearscan.core.phase import phase_error
 from gearscan.evaluate import Scene, classical_method, network_method, render_cases
 from gearscan.generalization import MOVING, STILL, scene_motions
 from gearscan.inference.losses import LossConfig
@@ -42,7 +43,6 @@ from gearscan.inference.model_io import read_config
 from gearscan.inference.models import ModelConfig
 from gearscan.inference.predictor import DEFAULT_MODEL, Predictor
 from gearscan.inference.train import TrainConfig, TrainResult, train
-from gearscan.recon.phase import phase_error
 from gearscan.twin.dataset import DatasetSpec, TwinBurstDataset, generate_dataset
 from gearscan.twin.families import family_scenes
 from gearscan.twin.splits import SPLITS, describe, refuse_test

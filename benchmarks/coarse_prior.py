@@ -25,14 +25,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.rig import default_rig
+from gearscan.core.types import Burst, Frame
 from gearscan.measure import CadScorer, Decoder, Reconstructor, SurfaceDistance, classical_result
-from gearscan.projector.patterns import PatternSet
 from gearscan.recon.cloud_prior import CloudDepthPrior
 from gearscan.recon.triangulate import to_turntable
-from gearscan.rig import default_rig
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
-from gearscan.types import Burst, Frame
 
 HERE = Path(__file__).resolve().parent
 FINE, COARSE = 40.0, 160.0

@@ -51,9 +51,9 @@ def main() -> None:
 
     import open3d as o3d
 
+    from gearscan.core.recording import RecordingReader
     from gearscan.inspect import chip_verdict, run_inspection
     from gearscan.measure import Decoder
-    from gearscan.recording import RecordingReader
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()

@@ -16,9 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from gearscan.core.rig import default_rig
 from gearscan.measure import Decoder
 from gearscan.replay import replay
-from gearscan.rig import default_rig
 from gearscan.twin.recordings import render_recording
 
 HERE = Path(__file__).parent

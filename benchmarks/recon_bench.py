@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
+from gearscan.core.gear import GearSpec
+from gearscan.core.rig import default_rig
 from gearscan.recon.reconstruct import SingleFrequencyReconstructor
 from gearscan.recon.triangulate import Triangulator
 from gearscan.recon.unwrap import gear_depth_bounds, geometric_unwrap, phase_bounds, temporal_unwrap
-from gearscan.rig import default_rig
-from gearscan.twin.gear import GearSpec
 
 WIDTH, HEIGHT = 2448, 2048
 PERIOD = 110.0

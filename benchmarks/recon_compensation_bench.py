@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.projector.patterns import PatternSet
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import three_step, wrapped_rmse
+from gearscan.core.rig import default_rig
 from gearscan.recon.compensation import aia_compensate, hilbert_compensate
-from gearscan.recon.phase import three_step, wrapped_rmse
-from gearscan.rig import default_rig
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
 
 CASES = {"static": (0.0, 0.0), "uniform 0.6/0.6 deg": (0.6, 0.6), "non-uniform 0.1/1.6 deg": (0.1, 1.6)}

@@ -106,7 +106,7 @@ def _replay_rows(rec: Path) -> tuple[object, list[tuple]]:
 def fuzz_recording(work: Path, name: str, cases: int, rng: np.random.Generator, limit: float,
                    reference: list[tuple]) -> tuple[Counter, list[dict]]:
     """Outcome counts of ``cases`` mutated copies of ``name`` in the small recording, and the failures."""
-    from gearscan.recording import RecordingError
+    from gearscan.core.recording import RecordingError
 
     base = work / "base"
     counts: Counter = Counter()

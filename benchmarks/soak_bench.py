@@ -112,10 +112,10 @@ def soak(minutes: float, work: Path, *, size: int = 96, settle_ms: float = 100.0
     """Run live for ``minutes`` in ``work``; return the figures (see the module docstring).
     ``viewer=False``: no rerun stream (tells the viewer's memory from the pipeline's)."""
     from gearscan.config import LiveConfig
+    from gearscan.core.recording import RecordingReader
+    from gearscan.core.rig import default_rig
     from gearscan.live import run_live
     from gearscan.mocks.encoder_device import MockEncoderProcess
-    from gearscan.recording import RecordingReader
-    from gearscan.rig import default_rig
     from gearscan.twin.recordings import render_recording
 
     rig = default_rig(size, size)

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.projector.patterns import DEFAULT_PERIOD_PX, PatternSet
-from gearscan.rig import default_rig
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import DEFAULT_PERIOD_PX, PatternSet
+from gearscan.core.rig import default_rig
 from gearscan.twin.dataset import DatasetSpec, generate_dataset
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
 
 HERE = Path(__file__).parent

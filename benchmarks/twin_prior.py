@@ -29,19 +29,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gearscan.core.gear import GearSpec
+from gearscan.core.phase import phase_error
+from gearscan.core.rig import default_rig
+from gearscan.core.types import Burst, Frame
 from gearscan.evaluate import Scene, render_cases
 from gearscan.generalization import PAPER, PAPER_REVERSED, scene_motions
 from gearscan.inference.predictor import Predictor
 from gearscan.measure import CadScorer, Reconstructor, classical_result
-from gearscan.recon.phase import phase_error
 from gearscan.recon.triangulate import to_turntable
-from gearscan.rig import default_rig
 from gearscan.twin.defects import Chip, GearDefects
 from gearscan.twin.families import FAMILIES, draw_gear, family_scenes, family_seed
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.prior import TwinPrior, blend
 from gearscan.twin.render import Optics, TwinRenderer
-from gearscan.types import Burst, Frame
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent

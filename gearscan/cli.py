@@ -59,7 +59,7 @@ def _progress(description: str):
 def _gear_from_options(teeth: int, module: float, pressure_angle: float, face_width: float, bore: float):
     from pydantic import ValidationError
 
-    from gearscan.twin.gear import GearSpec
+    from gearscan.core.gear import GearSpec
 
     try:
         return GearSpec(teeth=teeth, module=module, pressure_angle_deg=pressure_angle, face_width=face_width, bore=bore)
@@ -96,8 +96,8 @@ def twin_render(
     coarse_every: Annotated[int, typer.Option(min=1, help="with --coarse-period: bursts between coarse bursts")] = 4,
 ) -> None:
     """Render a twin recording of a rotating gear (frames, encoder, ground truth), optionally with known defects."""
-    from gearscan.recording import RecordingError
-    from gearscan.rig import Rig, RigError, default_rig
+    from gearscan.core.recording import RecordingError
+    from gearscan.core.rig import Rig, RigError, default_rig
     from gearscan.twin.defects import GearDefects
     from gearscan.twin.motion import MotionError
     from gearscan.twin.recordings import render_recording
@@ -165,7 +165,7 @@ def twin_dataset(
     gears = [_gear_from_options(t, module, pressure_angle, face_width, bore) for t in counts for _ in range(repeats)]
     scene = None
     if rig is not None:
-        from gearscan.rig import Rig, RigError
+        from gearscan.core.rig import Rig, RigError
         from gearscan.twin.randomize import balance_projector_power
         from gearscan.twin.render import Optics
 
@@ -273,8 +273,8 @@ def replay_cmd(
     Damaged frames and lines are skipped (each named once in a warning, all listed in the
     metrics' "damage" section); see also `gearscan check`.
     """
+    from gearscan.core.recording import RecordingError
     from gearscan.pipeline import PipelineError
-    from gearscan.recording import RecordingError
     from gearscan.replay import replay
 
     span = {} if still_span_deg is None else {"still_span_deg": still_span_deg}
@@ -377,7 +377,7 @@ def check_cmd(
     readable recording (recording.json missing or damaged)."""
     import warnings
 
-    from gearscan.recording import RecordingError, RecordingReader
+    from gearscan.core.recording import RecordingError, RecordingReader
 
     with warnings.catch_warnings(record=True) as caught:  # an interrupted tail is a note, not damage
         warnings.simplefilter("always")
@@ -503,9 +503,9 @@ def _live_run(cfg, *, record, overwrite, bursts, duration, save, max_save_mb, co
     from gearscan.acquisition.camera import CameraError
     from gearscan.acquisition.config import ConfigError
     from gearscan.acquisition.encoder import EncoderError
+    from gearscan.core.recording import RecordingError
     from gearscan.live import LiveError, StatusLine, run_live
     from gearscan.pipeline import PipelineError
-    from gearscan.recording import RecordingError
 
     decoder = _decoder(False, cfg.model.mc, cfg.model.path, precision=cfg.model.precision,
                        workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg)
@@ -584,9 +584,9 @@ def inspect_cmd(
     save: Annotated[Path | None, typer.Option(help="also write the rerun stream (bursts + fused model) to this .rrd")] = None,
 ) -> None:
     """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
+    from gearscan.core.recording import RecordingError
     from gearscan.inspect import QUANTITIES, run_inspection
     from gearscan.pipeline import PipelineError
-    from gearscan.recording import RecordingError
 
     if unwrap not in ("cad", "envelope"):
         raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")

@@ -14,8 +14,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError, format_errors
+from gearscan.core.gear import GearSpec
 from gearscan.measure import STILL_SPAN_DEG
-from gearscan.twin.gear import GearSpec
 
 TEMPLATE = """\
 # gearscan live configuration. Lengths in mm, angles in degrees, times as named.
@@ -159,7 +159,7 @@ class LiveConfig(AcquisitionConfig):
                 "live_config": self.model_dump(mode="json")}
 
     def load_rig(self):
-        from gearscan.rig import Rig, RigError
+        from gearscan.core.rig import Rig, RigError
 
         try:
             return Rig.load(self.rig.calibration)

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.projector.patterns import PatternSet
-from gearscan.recon.phase import phase_error
-from gearscan.rig import Rig
-from gearscan.twin.gear import GearSpec
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import phase_error
+from gearscan.core.rig import Rig
+from gearscan.core.types import PhaseResult
 from gearscan.twin.render import Optics, Truth, TwinRenderer
-from gearscan.types import PhaseResult
 
 # frame-to-frame steps (deg): the paper's motions, a static reference and the §3.7 intervals
 PAPER_MOTIONS = {"uniform 0.6/0.6": (0.6, 0.6), "non-uniform 0.1/1.6": (0.1, 1.6)}
@@ -86,7 +86,7 @@ def scenes_from_dataset(root: str | Path, limit: int | None = None) -> list[Scen
 
 def builtin_scenes(size: int = 256, seed: int = 25) -> list[Scene]:
     """Scenes needing no rendered dataset: the default rig and a randomised rig, gear z=25."""
-    from gearscan.rig import default_rig
+    from gearscan.core.rig import default_rig
     from gearscan.twin.randomize import random_scene
 
     gear = GearSpec(teeth=25)
@@ -132,8 +132,8 @@ def render_cases(scene: Scene, motions: dict[str, tuple[float, float]], per_moti
 
 
 def classical_method(frames: np.ndarray, full_scale: float, angles: np.ndarray | None = None) -> PhaseResult:
+    from gearscan.core.types import Burst, Frame
     from gearscan.measure import classical_result
-    from gearscan.types import Burst, Frame
 
     fr = tuple(Frame(f, i, 0, i, bit_depth=8 if full_scale <= 255 else 16) for i, f in enumerate(frames))
     return classical_result(Burst(fr, (0.0, 0.0, 0.0)))
@@ -205,7 +205,7 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult) -> tuple[np.ndarray, in
 
     import open3d as o3d
 
-    from gearscan.types import Burst, Frame
+    from gearscan.core.types import Burst, Frame
 
     rc, surface = case.scene.cad
     fr = tuple(Frame(f, i, 0, i) for i, f in enumerate(case.frames))

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
+from gearscan.core.phase import phase_error
+from gearscan.core.types import PhaseResult
 from gearscan.evaluate import (
     GENERALISATION,
     PAPER_MOTIONS,
@@ -35,9 +37,7 @@ from gearscan.evaluate import (
     Scene,
     render_cases,
 )
-from gearscan.recon.phase import phase_error
 from gearscan.twin.families import FamilyScene
-from gearscan.types import PhaseResult
 
 BASELINE = "three-step PS"
 NETWORK = "CD-DCU-Net"
@@ -138,7 +138,7 @@ def image_motion_px(case: BurstCase) -> np.ndarray:
     projected again: the motion the three-step decode suffers, in the camera's own units
     (degrees say little alone: the same span moves a large gear's rim further).
     """
-    from gearscan.rig import rot_z
+    from gearscan.core.rig import rot_z
 
     cam = case.scene.rig.camera
     p_cam = case.truth.points[case.truth.mask].astype(np.float64)

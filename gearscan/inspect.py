@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gearscan.core.recording import RecordingError, RecordingReader
 from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
 from gearscan.recon.inspect import Inspection, inspect_gear, iso1328_class, iso1328_tolerances
-from gearscan.recording import RecordingError, RecordingReader
 
 QUANTITIES = {  # key in Inspection.summary() -> (symbol, description)
     "fp": ("fp", "single pitch deviation (largest |fp|)"),

@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gearscan.config import LiveConfig
+from gearscan.core.types import Burst
 from gearscan.measure import CadScorer, Decoder, Measurement, Reconstructor
 from gearscan.pipeline import Pipeline, PipelineError, PipelineReport, StageSpec
-from gearscan.types import Burst
 
 log = logging.getLogger(__name__)
 

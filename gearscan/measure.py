@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.recon.phase import three_step
-from gearscan.rig import Rig
-from gearscan.types import Burst, Cloud, PhaseResult
+from gearscan.core.phase import three_step
+from gearscan.core.rig import Rig
+from gearscan.core.types import Burst, Cloud, PhaseResult
 
 log = logging.getLogger(__name__)
 

@@ -15,6 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
+from gearscan.core.phase import phase_error
+from gearscan.core.recording import RecordingError, RecordingReader
+from gearscan.core.rig import Rig, RigError
+from gearscan.core.types import Burst, Cloud
 from gearscan.measure import (
     CadScorer,
     Decoder,
@@ -26,10 +30,6 @@ from gearscan.measure import (
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 from gearscan.recon.fuse import CloudFuser, FusedCloud
-from gearscan.recon.phase import phase_error
-from gearscan.recording import RecordingError, RecordingReader
-from gearscan.rig import Rig, RigError
-from gearscan.types import Burst, Cloud
 
 log = logging.getLogger(__name__)
 

@@ -26,6 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gearscan.core.gear import GearSpec
+from gearscan.core.phase import phase_error
+from gearscan.core.rig import default_rig
 from gearscan.evaluate import (
     GENERALISATION,
     PAPER_MOTIONS,
@@ -40,9 +43,6 @@ from gearscan.evaluate import (
     score,
     scores_table,
 )
-from gearscan.recon.phase import phase_error
-from gearscan.rig import default_rig
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics
 
 POOLED = "both paper motions pooled"
@@ -445,7 +445,7 @@ def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = No
 
 
 def _compensated(fn, frames: np.ndarray, full_scale: float):
-    from gearscan.types import PhaseResult
+    from gearscan.core.types import PhaseResult
 
     phase, m, d = fn(frames, full_scale)
     z = np.zeros_like(phase, dtype=np.float32)

@@ -33,7 +33,7 @@ class SimulationError(RuntimeError):
 def simulated_config(base: LiveConfig | None, camera_id: str, encoder_port: str, workdir: Path) -> LiveConfig:
     """``base`` (or the defaults with the built-in rig) with camera, encoder and projector
     replaced by the simulators; the camera's ROI is the rig's image size."""
-    from gearscan.rig import default_rig
+    from gearscan.core.rig import default_rig
 
     cfg = base or LiveConfig()
     if base is None:  # the built-in rig, its projector and fringe period (as in `config init`'s template)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gearscan.core.phase import phase_error
 from gearscan.inference.model_io import read_config, write_config
 from gearscan.inference.predictor import Predictor, model_path
 from gearscan.inference.uncertainty import (
@@ -24,7 +25,6 @@ from gearscan.inference.uncertainty import (
     gaussian_nll,
     reliability,
 )
-from gearscan.recon.phase import phase_error
 
 
 def collect_errors(

@@ -139,9 +139,9 @@ def render_twin_bursts(
     random frame steps in ``[0, max_step_deg]``. The label is the analytic truth at the first
     frame's pose (M, D normalised; DESIGN.md). ``group`` is the start-point index.
     """
-    from gearscan.projector.patterns import PatternSet
-    from gearscan.rig import default_rig
-    from gearscan.twin.gear import GearSpec
+    from gearscan.core.gear import GearSpec
+    from gearscan.core.patterns import PatternSet
+    from gearscan.core.rig import default_rig
     from gearscan.twin.render import TwinRenderer
 
     rng = np.random.default_rng(seed)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gearscan.core.types import Burst, PhaseResult
 from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
 from gearscan.inference.models import classical_md, motion_channels
@@ -30,7 +31,6 @@ from gearscan.inference.uncertainty import (
     mc_moments,
     to_phase_result,
 )
-from gearscan.types import Burst, PhaseResult
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_MODEL = WEIGHTS_DIR / "default.safetensors"

@@ -539,6 +539,7 @@ class Trainer:
         ``calibrate_mc`` passes when the model has Concrete Dropout), as
         ``gearscan calibrate-uncertainty`` fits it.
         """
+        from gearscan.core.phase import phase_error
         from gearscan.inference.uncertainty import (
             fit_sigma_calibration,
             fit_variance_scale,
@@ -547,7 +548,6 @@ class Trainer:
             plot_reliability,
             reliability,
         )
-        from gearscan.recon.phase import phase_error
 
         def collect(mc: int) -> tuple[np.ndarray, np.ndarray]:
             errs, sigs = [], []

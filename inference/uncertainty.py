@@ -33,8 +33,8 @@ import numpy as np
 import torch
 from scipy.special import erf
 
+from gearscan.core.types import PhaseResult
 from gearscan.inference.concrete_dropout import set_stochastic
-from gearscan.types import PhaseResult
 
 
 @dataclass(frozen=True, slots=True)

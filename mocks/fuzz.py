@@ -19,11 +19,11 @@ HOSTILE_BYTES = [b"\xff\xfe", b"\xc3\x28", b"\x00", b"\n", b"{", b'"', b"[[[[[[[
 
 def write_small_recording(out: Path) -> Path:
     """3 bursts of 24x16 random 8-bit frames with 30 encoder samples, written to ``out``."""
-    from gearscan.projector.patterns import PatternSet
-    from gearscan.recording import RecordingWriter
-    from gearscan.rig import default_rig
-    from gearscan.twin.gear import GearSpec
-    from gearscan.types import EncoderSample, Frame
+    from gearscan.core.gear import GearSpec
+    from gearscan.core.patterns import PatternSet
+    from gearscan.core.recording import RecordingWriter
+    from gearscan.core.rig import default_rig
+    from gearscan.core.types import EncoderSample, Frame
 
     rig = default_rig(24, 16)
     meta = {"rig": rig.to_json(), "patterns": PatternSet.three_step(40.0).to_json(), "gear": GearSpec().model_dump()}

@@ -31,8 +31,8 @@ from gearscan.acquisition.camera import (
     CameraSettings,
     RawFrame,
 )
-from gearscan.recording import FrameDamaged, RecordingReader
-from gearscan.types import Frame
+from gearscan.core.recording import FrameDamaged, RecordingReader
+from gearscan.core.types import Frame
 
 
 class ReplayCamera(BaseCamera):

@@ -23,9 +23,9 @@ from typing import Protocol
 
 import numpy as np
 
+from gearscan.core.patterns import PatternSet
+from gearscan.core.types import Frame
 from gearscan.projector.gamma import GammaCorrection
-from gearscan.projector.patterns import PatternSet
-from gearscan.types import Frame
 
 
 class ProjectorError(RuntimeError):

@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gearscan.recon.phase import decode_phase
+from gearscan.core.phase import decode_phase
+from gearscan.core.rig import PinholeDevice, Rig
 from gearscan.recon.unwrap import temporal_unwrap
-from gearscan.rig import PinholeDevice, Rig
 
 
 class CalibrationError(RuntimeError):

@@ -1,6 +1,6 @@
 """Point clouds with per-point uncertainty (open3d), export, merging and CAD deviation.
 
-A :class:`gearscan.types.Cloud` crosses stage boundaries; this module converts it to an
+A :class:`gearscan.core.types.Cloud` crosses stage boundaries; this module converts it to an
 open3d tensor ``PointCloud`` (attribute ``sigma``, plus ``deviation`` when known), writes
 PLY/PCD/CSV, merges clouds of successive bursts (turntable frame) with an optional voxel
 downsample, and measures the distance of every point to the gear's CAD mesh.
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.types import Cloud
+from gearscan.core.types import Cloud
 
 EXPORT_SUFFIXES = (".ply", ".pcd", ".csv")
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from gearscan.rig import Rig, rot_z
+from gearscan.core.rig import Rig, rot_z
 
 
 class CloudDepthPrior:

@@ -39,6 +39,7 @@ def calibrate(
 
     from rich.console import Console
 
+    from gearscan.core.rig import Rig, RigError, default_rig
     from gearscan.recon.board_io import load_captures, save_captures
     from gearscan.recon.calibration import (
         CalibrationError,
@@ -48,7 +49,6 @@ def calibrate(
         save_calibration,
     )
     from gearscan.recon.unity import unity_parameters
-    from gearscan.rig import Rig, RigError, default_rig
 
     console = Console()
     truth = None

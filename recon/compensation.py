@@ -16,7 +16,7 @@ frame-0 phase RMSE from 0.49 to 0.26 rad (uniform 0.6/0.6 deg steps) and from 0.
 ripple yet leaves the phase at the middle pose (0.07 rad vs the middle-pose truth), so against
 the frame-0 truth it barely helps (0.49 -> 0.47 rad).
 
-Both return ``(phase, M, D)`` like :func:`gearscan.recon.phase.decode_phase`: wrapped phase in
+Both return ``(phase, M, D)`` like :func:`gearscan.core.phase.decode_phase`: wrapped phase in
 (-pi, pi] at the pose of the first frame and M, D normalised by ``N S / 4`` (so
 ``hypot(M, D) = 2B/S``).
 
@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 from scipy.signal import hilbert
 
-from gearscan.recon.phase import THREE_STEP_SHIFTS, three_step
+from gearscan.core.phase import THREE_STEP_SHIFTS, three_step
 
 _N = 3
 
@@ -270,7 +270,7 @@ def hilbert_compensate(frames: np.ndarray, full_scale: float, *, axis: int = 1) 
     Returns
     -------
     phase : (H, W) float64 wrapped to (-pi, pi]
-    M, D : (H, W) float64, normalised like :func:`gearscan.recon.phase.decode_md`
+    M, D : (H, W) float64, normalised like :func:`gearscan.core.phase.decode_md`
     """
     frames, _ = _check_burst(frames, full_scale, None)
     if axis not in (0, 1):

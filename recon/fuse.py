@@ -1,6 +1,6 @@
 """Fuse the clouds of a revolution into one gear-frame model, weighted by each point's sigma.
 
-Every burst's :class:`~gearscan.types.Cloud` is already in the gear (turntable) frame at its
+Every burst's :class:`~gearscan.core.types.Cloud` is already in the gear (turntable) frame at its
 encoder angle (:func:`~gearscan.recon.triangulate.to_turntable`), so the clouds of successive
 bursts overlap where they saw the same surface. :class:`CloudFuser` bins the points into
 cubic voxels and keeps, per voxel, the inverse-variance weighted mean position
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.types import Cloud
+from gearscan.core.types import Cloud
 
 _BITS = 21  # voxel index bits per axis: +-2**20 voxels (+-105 m at 0.1 mm)
 _OFFSET = 1 << (_BITS - 1)

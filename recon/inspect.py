@@ -3,7 +3,7 @@
 Input: a fused cloud of a whole revolution (:mod:`gearscan.recon.fuse`) in the turntable
 frame and the gear's nominal spec (``teeth``, ``module``, ``pitch_radius``, ``base_radius``,
 ``tip_radius``, ``root_radius``, ``pitch_angle``, ``pressure_angle``, ``face_width``,
-``half_angle(r)``: a :class:`~gearscan.twin.gear.GearSpec`; recon does not import twin).
+``half_angle(r)``: a :class:`~gearscan.core.gear.GearSpec`; recon does not import twin).
 
 Steps and definitions (all in the transverse section band around mid-face):
 

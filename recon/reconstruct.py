@@ -30,9 +30,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from gearscan.core.rig import Rig
 from gearscan.recon.triangulate import Triangulation
 from gearscan.recon.unwrap import DepthBounds, phase_bounds
-from gearscan.rig import Rig
 
 TWO_PI = 2.0 * math.pi
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gearscan.rig import Rig, rot_z
-from gearscan.types import Cloud
+from gearscan.core.rig import Rig, rot_z
+from gearscan.core.types import Cloud
 
 
 @dataclass(frozen=True, slots=True)
@@ -165,7 +165,7 @@ def to_turntable(points_cam: np.ndarray, rig: Rig, angle: float) -> np.ndarray:
 
 
 def to_cloud(tri: Triangulation, rig: Rig | None = None, angle: float = 0.0, *, burst_index: int = 0) -> Cloud:
-    """Valid points of a triangulation as a :class:`gearscan.types.Cloud`.
+    """Valid points of a triangulation as a :class:`gearscan.core.types.Cloud`.
 
     With ``rig`` the points go to the turntable frame at ``angle`` (``frame="world"``);
     without, they stay in the camera frame. ``sigma`` is the depth sigma (mm).

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from gearscan.rig import PinholeDevice, Rig
+from gearscan.core.rig import PinholeDevice, Rig
 
 
 def euler_zxy(r_t: np.ndarray) -> tuple[float, float, float]:

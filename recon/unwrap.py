@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gearscan.rig import PinholeDevice, Rig
+from gearscan.core.rig import PinholeDevice, Rig
 
 TWO_PI = 2.0 * math.pi
 
@@ -299,7 +299,7 @@ class CadDepthBounds:
 
     def _hit(self, angle: float, mask: np.ndarray | None) -> np.ndarray:
         """Ray parameter of the first CAD hit per pixel ``(H, W)``, NaN on a miss or off ``mask``."""
-        from gearscan.rig import rot_z
+        from gearscan.core.rig import rot_z
 
         cam = self.rig.camera
         shape = (cam.height, cam.width)

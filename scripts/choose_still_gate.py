@@ -17,9 +17,9 @@ import json
 import numpy as np
 import torch
 
+from gearscan.core.phase import phase_error, three_step
 from gearscan.inference.predictor import Predictor, model_path
 from gearscan.inference.uncertainty import reliability
-from gearscan.recon.phase import phase_error, three_step
 from gearscan.twin.dataset import TwinBurstDataset
 
 GRID = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3)

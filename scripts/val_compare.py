@@ -16,8 +16,8 @@ import json
 import numpy as np
 import torch
 
+from gearscan.core.phase import phase_error, three_step
 from gearscan.inference.predictor import Predictor
-from gearscan.recon.phase import phase_error, three_step
 from gearscan.twin.dataset import TwinBurstDataset
 
 

@@ -11,7 +11,7 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 @pytest.fixture(scope="session")
 def gear():
-    from gearscan.twin.gear import GearSpec
+    from gearscan.core.gear import GearSpec
 
     return GearSpec()
 
@@ -23,7 +23,7 @@ def gear_mesh(gear):
 
 @pytest.fixture(scope="session")
 def rig256():
-    from gearscan.rig import default_rig
+    from gearscan.core.rig import default_rig
 
     return default_rig(256, 256)
 

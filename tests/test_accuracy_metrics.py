@@ -27,8 +27,8 @@ def test_accuracy_is_the_distance_to_the_true_gear_and_can_fail(oversize_recordi
     """Points of the oversize gear lie on its true surface (not on the CAD that picked their orders),
     its deviation from the CAD is the true one, and the same cloud moved one fringe along the rays
     (what a wrong fringe order does) is scored as millimetres off."""
+    from gearscan.core.recording import RecordingReader
     from gearscan.measure import classical_result
-    from gearscan.recording import RecordingReader
     from gearscan.replay import TruthScorer, replay
 
     seen = []

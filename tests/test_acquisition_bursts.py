@@ -11,7 +11,7 @@ import pytest
 
 from gearscan.acquisition.bursts import BurstAssembler
 from gearscan.acquisition.encoder import EncoderHistory
-from gearscan.types import Frame
+from gearscan.core.types import Frame
 
 W = 0.5  # rad/s
 PERIOD_NS = 10_000_000  # 100 fps
@@ -124,7 +124,7 @@ def test_coarse_bursts_are_assembled_in_their_own_group():
     import numpy as np
 
     from gearscan.acquisition.bursts import BurstAssembler
-    from gearscan.types import Frame
+    from gearscan.core.types import Frame
 
     img = np.zeros((4, 4), np.uint8)
     asm = BurstAssembler(groups=2)

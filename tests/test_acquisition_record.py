@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError
-from gearscan.recording import RecordingReader
+from gearscan.core.recording import RecordingReader
 
 RPM = 6.0
 
@@ -54,8 +54,8 @@ def sim():
 
 def test_record_bursts_from_simulator_and_encoder(tmp_path, sim):
     from gearscan.acquisition.commands import record
+    from gearscan.core.rig import default_rig
     from gearscan.mocks.encoder_device import MockEncoderProcess
-    from gearscan.rig import default_rig
 
     link = str(tmp_path / "enc")
     default_rig(64, 48).save(tmp_path / "rig.json")  # the config's default rig.calibration, next to it

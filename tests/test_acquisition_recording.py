@@ -1,4 +1,4 @@
-"""The recorder (gearscan.recording.RecordingWriter) under abuse: SIGKILL mid-write, a
+"""The recorder (gearscan.core.recording.RecordingWriter) under abuse: SIGKILL mid-write, a
 missing frame file, a damaged metadata line (both skipped and named, the rest read). Every image encodes its own index, so what
 is replayed is checked pixel for pixel."""
 
@@ -15,8 +15,8 @@ import warnings
 import numpy as np
 import pytest
 
-from gearscan.recording import RecordingReader, RecordingWriter
-from gearscan.types import Frame
+from gearscan.core.recording import RecordingReader, RecordingWriter
+from gearscan.core.types import Frame
 
 
 def _image(i: int) -> np.ndarray:
@@ -41,7 +41,7 @@ def test_sigkill_mid_write_replays_to_last_complete_frame(tmp_path):
         import numpy as np, sys
         sys.path.insert(0, {os.path.dirname(__file__)!r})
         from test_acquisition_recording import _frame
-        from gearscan.recording import RecordingWriter
+        from gearscan.core.recording import RecordingWriter
         w = RecordingWriter({str(out)!r}, {{}})
         i = 0
         while True:

@@ -12,6 +12,9 @@ import torch
 from typer.testing import CliRunner
 
 from gearscan.cli import app
+from gearscan.core.gear import GearSpec
+from gearscan.core.phase import phase_error
+from gearscan.core.rig import Rig
 from gearscan.evaluate import Scene, network_method, render_cases
 from gearscan.generalization import PAPER, PAPER_REVERSED
 from gearscan.inference.losses import LossConfig
@@ -19,10 +22,7 @@ from gearscan.inference.model_io import read_config
 from gearscan.inference.models import ModelConfig
 from gearscan.inference.predictor import DEFAULT_MODEL, Predictor
 from gearscan.inference.train import TrainConfig, train
-from gearscan.recon.phase import phase_error
-from gearscan.rig import Rig
 from gearscan.twin.dataset import DatasetError, DatasetSpec, TwinBurstDataset, generate_dataset
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.randomize import balance_projector_power, projector_period_for_surface, view_rig
 from gearscan.twin.render import Optics, TwinRenderer
 from gearscan.twin.splits import SPLITS

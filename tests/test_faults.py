@@ -12,7 +12,7 @@ import pytest
 from test_acquisition_record import _toml, sim  # noqa: F401 - sim is a fixture
 
 from gearscan.acquisition.config import AcquisitionConfig
-from gearscan.recording import RecordingReader
+from gearscan.core.recording import RecordingReader
 
 
 def test_a_rebooted_encoder_is_resynchronised_with_angles_in_one_reference(tmp_path, sim, caplog):  # noqa: F811

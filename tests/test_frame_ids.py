@@ -1,4 +1,4 @@
-"""Frame ids that wrap (gearscan.frame_ids) and replays of recordings whose ids cross a wrap."""
+"""Frame ids that wrap (gearscan.core.frame_ids) and replays of recordings whose ids cross a wrap."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from gearscan.acquisition.bursts import BurstAssembler
-from gearscan.frame_ids import FrameIdUnwrapper, FrameIdWrap
-from gearscan.recording import RecordingReader
+from gearscan.core.frame_ids import FrameIdUnwrapper, FrameIdWrap
+from gearscan.core.recording import RecordingReader
+from gearscan.core.rig import default_rig
+from gearscan.core.types import Frame
 from gearscan.replay import replay
-from gearscan.rig import default_rig
 from gearscan.twin.recordings import render_recording
-from gearscan.types import Frame
 
 GIGE = FrameIdWrap.bits(16, skips_zero=True)
 

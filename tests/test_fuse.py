@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from gearscan.core.types import Cloud
 from gearscan.recon.fuse import CloudFuser, fuse, save_fused
-from gearscan.types import Cloud
 
 
 def _cloud(points, sigma, burst=0, frame="world") -> Cloud:
@@ -55,7 +55,7 @@ def test_bad_points_are_skipped_and_bad_input_named():
 @pytest.fixture(scope="module")
 def revolution(tmp_path_factory):
     """A twin gear (eccentric, one tooth off) in 24 still bursts 15 deg apart, 160 px."""
-    from gearscan.rig import default_rig
+    from gearscan.core.rig import default_rig
     from gearscan.twin.defects import GearDefects
     from gearscan.twin.recordings import render_recording
 
@@ -69,8 +69,8 @@ def test_replay_fuse_writes_a_cloud_on_the_true_surface(revolution, tmp_path):
     import open3d as o3d
 
     from gearscan.cli import app
+    from gearscan.core.recording import RecordingReader
     from gearscan.recon.cloud import load_cloud
-    from gearscan.recording import RecordingReader
     from gearscan.twin.defects import GearDefects, true_mesh
 
     ply = tmp_path / "fused.ply"

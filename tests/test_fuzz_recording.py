@@ -29,6 +29,7 @@ from gearscan.acquisition.encoder_protocol import (
     frame_line,
     parse_line,
 )
+from gearscan.core.recording import RecordingError
 from gearscan.mocks.fuzz import (
     BAD_NUMBERS,
     HOSTILE_BYTES,
@@ -37,7 +38,6 @@ from gearscan.mocks.fuzz import (
     mutate,
     write_small_recording,
 )
-from gearscan.recording import RecordingError
 from gearscan.replay import replay
 
 FUZZ = settings(max_examples=25, derandomize=True, deadline=None, database=None,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from gearscan.twin.gear import GearSpec, involute
+from gearscan.core.gear import GearSpec, involute
 
 
 @pytest.mark.parametrize("teeth,module,alpha", [(12, 2.0, 20.0), (20, 2.0, 20.0), (30, 1.5, 25.0)])

@@ -7,6 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from gearscan.core.gear import GearSpec
+from gearscan.core.rig import default_rig
+from gearscan.core.types import PhaseResult
 from gearscan.evaluate import Method, classical_method
 from gearscan.generalization import (
     ALL,
@@ -26,13 +29,10 @@ from gearscan.generalization import (
     strata_tables,
     weak_strata_table,
 )
-from gearscan.rig import default_rig
 from gearscan.twin.families import FamilyScene
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.randomize import balance_projector_power
 from gearscan.twin.render import Optics, TwinRenderer
 from gearscan.twin.splits import SPLITS
-from gearscan.types import PhaseResult
 
 STILL_M = Motion("still 0", "still", (0.0, 0.0))
 ONE_DEG = Motion("sweep 1 deg", "sweep", (0.5, 0.5))
@@ -65,7 +65,7 @@ def cases(scene: FamilyScene):
 
 
 def _rmse(case, result: PhaseResult) -> float:
-    from gearscan.recon.phase import wrapped_rmse
+    from gearscan.core.phase import wrapped_rmse
 
     return wrapped_rmse(result.phase, case.truth.phase, case.truth.mask)
 

@@ -10,13 +10,13 @@ import torch
 from typer.testing import CliRunner
 
 from gearscan.cli import app
+from gearscan.core.gear import GearSpec
 from gearscan.inference.calibrate import calibrate_model, collect_errors
 from gearscan.inference.model_io import save_model
 from gearscan.inference.models import build_model
 from gearscan.inference.predictor import Predictor
 from gearscan.inference.uncertainty import gaussian_nll
 from gearscan.twin.dataset import DatasetSpec, TwinBurstDataset, generate_dataset
-from gearscan.twin.gear import GearSpec
 
 torch.set_num_threads(1)
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from gearscan.core.phase import three_step
 from gearscan.inference.blocks import DoubleConv
 from gearscan.inference.concrete_dropout import ConcreteDropout2d, concrete_layers
 from gearscan.inference.model_io import load_model, save_model
@@ -19,7 +20,6 @@ from gearscan.inference.models import (
     classical_md,
     pad_to_multiple,
 )
-from gearscan.recon.phase import three_step
 
 torch.set_num_threads(1)
 WIDTH = 4

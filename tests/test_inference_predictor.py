@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from gearscan.core.types import Burst, Frame
 from gearscan.inference.commands import predict
 from gearscan.inference.model_io import ModelFileError, load_model, save_model
 from gearscan.inference.models import build_model
@@ -18,7 +19,6 @@ from gearscan.inference.predictor import (
     frames_to_tensor,
     resolve_precision,
 )
-from gearscan.types import Burst, Frame
 
 torch.set_num_threads(1)
 

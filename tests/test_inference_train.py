@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from gearscan.core.phase import three_step, wrapped_rmse
 from gearscan.inference.data import (
     NpzBurstDataset,
     TensorBurstDataset,
@@ -25,7 +26,6 @@ from gearscan.inference.model_io import load_model
 from gearscan.inference.models import ModelConfig
 from gearscan.inference.predictor import Predictor
 from gearscan.inference.train import TrainConfig, Trainer, learning_rate, train
-from gearscan.recon.phase import three_step, wrapped_rmse
 
 torch.set_num_threads(1)
 

@@ -24,7 +24,7 @@ def tol(truth: float) -> float:
 def inspected(tmp_path_factory):
     """A whole revolution of still bursts 9 deg apart (256 px, three-step PS), inspected by the CLI."""
     from gearscan.cli import app
-    from gearscan.rig import default_rig
+    from gearscan.core.rig import default_rig
     from gearscan.twin.defects import GearDefects
     from gearscan.twin.recordings import render_recording
 
@@ -89,8 +89,8 @@ def test_chipped_tooth_is_flagged_and_no_other(inspected):
 def test_a_chip_check_too_noisy_to_tell_flags_nothing_and_says_so():
     """Tip cells that stray from the median tooth as far as the chip threshold: no tooth is flagged
     (a moving revolution with the network flagged four intact teeth and missed the chipped one)."""
+    from gearscan.core.gear import GearSpec
     from gearscan.recon.inspect import inspect_gear
-    from gearscan.twin.gear import GearSpec
 
     gear = GearSpec(teeth=20, module=2.0)
     import open3d as o3d

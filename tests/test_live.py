@@ -16,9 +16,9 @@ from typer.testing import CliRunner
 
 from gearscan.cli import app
 from gearscan.config import TEMPLATE, LiveConfig
+from gearscan.core.recording import RecordingReader
+from gearscan.core.rig import default_rig
 from gearscan.measure import Decoder
-from gearscan.recording import RecordingReader
-from gearscan.rig import default_rig
 from gearscan.twin.recordings import render_recording
 
 runner = CliRunner()

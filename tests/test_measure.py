@@ -8,9 +8,9 @@ import os
 import numpy as np
 import pytest
 
+from gearscan.core.patterns import PatternSet
+from gearscan.core.types import Burst, Frame, PhaseResult
 from gearscan.measure import Reconstructor, classical_result
-from gearscan.projector.patterns import PatternSet
-from gearscan.types import Burst, Frame, PhaseResult
 
 PERIOD = 40.0
 
@@ -51,7 +51,7 @@ def test_cad_constrained_unwrapping_recovers_every_fringe_order(clean_renderer, 
 @pytest.fixture(scope="module")
 def oversize(rig256):
     """A still burst of a gear cut at module 2.06 whose CAD says 2.0 (0.66 mm p95 off its CAD)."""
-    from gearscan.twin.gear import GearSpec
+    from gearscan.core.gear import GearSpec
     from gearscan.twin.render import Optics, TwinRenderer
 
     renderer = TwinRenderer(rig256, GearSpec(module=2.06), Optics().noise_free())
@@ -118,7 +118,7 @@ def test_cad_free_unwrapping_keeps_only_what_the_envelope_decides(clean_renderer
     ok = np.isfinite(m.phase_abs) & truth.mask
     assert (np.abs(m.phase_abs[ok] - truth.phase_abs[ok]) < 0.5).all()
     assert m.unwrap["unresolved"] > 0.2 * m.unwrap["candidates"]
-    from gearscan.twin.gear import GearSpec
+    from gearscan.core.gear import GearSpec
     from gearscan.twin.render import Optics, TwinRenderer
 
     wide = 120.0  # wider than the envelope's depth on this rig (min_unambiguous_period ~96 px)

@@ -9,9 +9,9 @@ import pytest
 
 from gearscan.acquisition.bursts import BurstAssembler
 from gearscan.acquisition.camera import Camera, CameraError, CameraSettings, GrabTimeout
+from gearscan.core.recording import RecordingWriter
+from gearscan.core.types import Frame
 from gearscan.mocks.replay_camera import ReplayCamera
-from gearscan.recording import RecordingWriter
-from gearscan.types import Frame
 
 PERIOD_NS = 20_000_000  # recorded at 50 fps
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gearscan.recon.phase import (
+from gearscan.core.phase import (
     decode_md,
     decode_phase,
     phase_error,

@@ -11,6 +11,9 @@ import numpy as np
 import pytest
 
 from gearscan.acquisition.camera import CameraSettings
+from gearscan.core.patterns import PatternSet
+from gearscan.core.recording import RecordingWriter
+from gearscan.core.types import Frame
 from gearscan.mocks.replay_camera import ReplayCamera
 from gearscan.projector.gamma import GammaCorrection, GammaError
 from gearscan.projector.lightcrafter import (
@@ -18,15 +21,12 @@ from gearscan.projector.lightcrafter import (
     MockPatternTransport,
     PatternSequenceConfig,
 )
-from gearscan.projector.patterns import PatternSet
 from gearscan.projector.sequencer import (
     MockProjector,
     ProjectorError,
     SoftwareSequencer,
     WindowProjector,
 )
-from gearscan.recording import RecordingWriter
-from gearscan.types import Frame
 
 
 @pytest.fixture()

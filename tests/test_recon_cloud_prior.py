@@ -7,14 +7,14 @@ import math
 import numpy as np
 import pytest
 
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.rig import default_rig
+from gearscan.core.types import Burst, Frame
 from gearscan.measure import Reconstructor, classical_result
-from gearscan.projector.patterns import PatternSet
 from gearscan.recon.cloud_prior import CloudDepthPrior
 from gearscan.recon.triangulate import to_turntable
-from gearscan.rig import default_rig
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
-from gearscan.types import Burst, Frame
 
 CAD = GearSpec(teeth=20, module=2.0)
 ANGLE = math.radians(11.0)

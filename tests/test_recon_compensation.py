@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from gearscan.core.phase import phase_error, three_step, wrapped_rmse
 from gearscan.recon.compensation import aia_compensate, hilbert_compensate
-from gearscan.recon.phase import phase_error, three_step, wrapped_rmse
 
 NOMINAL = np.array([0.0, 2 * math.pi / 3, 4 * math.pi / 3])
 
@@ -96,8 +96,8 @@ def test_input_checks_name_the_problem():
 @pytest.fixture(scope="module")
 def rotating_burst(gear, gear_mesh):
     """Noise-free 128x128 twin burst at 0, 0.6, 1.2 deg, with the truths of all three poses."""
-    from gearscan.projector.patterns import PatternSet
-    from gearscan.rig import default_rig
+    from gearscan.core.patterns import PatternSet
+    from gearscan.core.rig import default_rig
     from gearscan.twin.render import Optics, TwinRenderer
 
     renderer = TwinRenderer(default_rig(128, 128), gear, Optics().noise_free(), mesh=gear_mesh)

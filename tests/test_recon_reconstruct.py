@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gearscan.projector.patterns import PatternSet
-from gearscan.recon.phase import decode_phase
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import decode_phase
+from gearscan.core.rig import PinholeDevice, Rig, default_rig
 from gearscan.recon.reconstruct import SingleFrequencyReconstructor
 from gearscan.recon.triangulate import Triangulator
 from gearscan.recon.unwrap import gear_depth_bounds, geometric_unwrap, phase_bounds
-from gearscan.rig import PinholeDevice, Rig, default_rig
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
 
 PERIOD = 110.0
@@ -96,8 +96,8 @@ def test_per_call_cad_bounds_match_reference_and_truth():
 def test_reconstructor_with_a_distorted_projector_takes_the_fixed_point_path():
     """The pipeline's Reconstructor falls back to geometric_unwrap + Triangulator when the
     projector has lens distortion (the fused path cannot model it) and still gets the orders."""
+    from gearscan.core.types import Burst, Frame
     from gearscan.measure import Reconstructor, classical_result
-    from gearscan.types import Burst, Frame
 
     period = 40.0
     base = default_rig(160, 160)

@@ -7,7 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from gearscan.projector.patterns import PatternSet
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import decode_phase
+from gearscan.core.rig import PinholeDevice, Rig, default_rig, rot_z
 from gearscan.recon.cloud import (
     cad_deviation,
     deviation_stats,
@@ -15,11 +18,8 @@ from gearscan.recon.cloud import (
     merge_clouds,
     save_cloud,
 )
-from gearscan.recon.phase import decode_phase
 from gearscan.recon.triangulate import Triangulator, to_cloud, to_turntable
 from gearscan.recon.unwrap import TWO_PI, temporal_unwrap
-from gearscan.rig import PinholeDevice, Rig, default_rig, rot_z
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
 
 PERIODS = [20.0, 160.0, 1400.0]

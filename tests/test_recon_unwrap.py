@@ -7,8 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from gearscan.projector.patterns import PatternSet
-from gearscan.recon.phase import decode_phase, wrap
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import decode_phase, wrap
+from gearscan.core.rig import default_rig
 from gearscan.recon.unwrap import (
     TWO_PI,
     DepthBounds,
@@ -19,8 +21,6 @@ from gearscan.recon.unwrap import (
     phase_bounds,
     temporal_unwrap,
 )
-from gearscan.rig import default_rig
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
 
 PROJ_W = 1280

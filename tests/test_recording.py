@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from gearscan.recording import RecordingError, RecordingReader, RecordingWriter
-from gearscan.rig import default_rig
+from gearscan.core.recording import RecordingError, RecordingReader, RecordingWriter
+from gearscan.core.rig import default_rig
+from gearscan.core.types import EncoderSample, Frame
 from gearscan.twin.recordings import render_recording
-from gearscan.types import EncoderSample, Frame
 
 
 def _frames(n, dtype=np.uint16, bits=12):

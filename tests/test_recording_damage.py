@@ -18,11 +18,11 @@ import pytest
 from typer.testing import CliRunner
 
 from gearscan.cli import app
-from gearscan.recording import RecordingError, RecordingReader, RecordingWriter
+from gearscan.core.recording import RecordingError, RecordingReader, RecordingWriter
+from gearscan.core.rig import default_rig
+from gearscan.core.types import Frame
 from gearscan.replay import replay
-from gearscan.rig import default_rig
 from gearscan.twin.recordings import render_recording
-from gearscan.types import Frame
 
 runner = CliRunner()
 
@@ -53,7 +53,7 @@ def _edit_line(path, n: int, fn) -> None:
 
 def _replay(rec, caplog):
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="gearscan.recording"):
+    with caplog.at_level(logging.WARNING, logger="gearscan.core.recording"):
         t0 = time.monotonic()
         m = replay(rec, reconstruct=False, metrics_path=rec.parent / "m.json")
         seconds = time.monotonic() - t0

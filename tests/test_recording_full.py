@@ -16,15 +16,15 @@ import pytest
 from typer.testing import CliRunner
 
 from gearscan.cli import app
-from gearscan.recording import RecordingReader
+from gearscan.core.recording import RecordingReader
 
 runner = CliRunner()
 
 WRITER = textwrap.dedent("""
     import resource, signal, sys
     import numpy as np
-    from gearscan.recording import RecordingError, RecordingWriter
-    from gearscan.types import EncoderSample, Frame
+    from gearscan.core.recording import RecordingError, RecordingWriter
+    from gearscan.core.types import EncoderSample, Frame
 
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
     resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[2]), int(sys.argv[2])))
@@ -80,7 +80,7 @@ def test_disk_full_during_live_is_a_clear_stop_and_the_recording_replays(tmp_pat
         pytest.skip(why)
     from test_live import _config
 
-    from gearscan.rig import default_rig
+    from gearscan.core.rig import default_rig
     from gearscan.twin.recordings import render_recording
 
     rig = default_rig(64, 64)
@@ -111,8 +111,8 @@ def test_disk_full_during_live_is_a_clear_stop_and_the_recording_replays(tmp_pat
 KILLED = textwrap.dedent("""
     import os, signal, sys
     import numpy as np
-    from gearscan.recording import RecordingWriter
-    from gearscan.types import Frame
+    from gearscan.core.recording import RecordingWriter
+    from gearscan.core.types import Frame
 
     w = RecordingWriter(sys.argv[1], {"note": "killed"})
     write_file = w._write_file
@@ -141,7 +141,7 @@ def test_kill_9_while_writing_a_frame_leaves_a_readable_recording_and_a_named_st
     assert [int(f.image[0, 0]) for f in reader.frames()] == [0, 1, 2, 3]
     res = runner.invoke(app, ["check", str(rec)])
     assert res.exit_code == 0 and "frames/000004.tmp.png: temporary file of an interrupted write" in res.output
-    from gearscan.recording import RecordingWriter
+    from gearscan.core.recording import RecordingWriter
 
     RecordingWriter(rec, {}, overwrite=True).close()  # a new recording in its place starts clean
     assert not (rec / "frames" / "000004.tmp.png").exists() and len(RecordingReader(rec)) == 0

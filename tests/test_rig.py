@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from gearscan.rig import Rig, RigError, default_rig
+from gearscan.core.rig import Rig, RigError, default_rig
 
 
 def test_rays_and_projection_are_inverse():

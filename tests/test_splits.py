@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gearscan.rig import default_rig
+from gearscan.core.gear import GearSpec
+from gearscan.core.rig import default_rig
 from gearscan.twin.families import FAMILIES, SEED_BLOCK, draw_gear, family_seed
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.randomize import aim_point, view_rig
 from gearscan.twin.splits import (
     SHIPPED_V5,

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import phase_error, three_step
+from gearscan.core.rig import default_rig
+from gearscan.core.types import PhaseResult
 from gearscan.inference.predictor import Predictor, still_gate
-from gearscan.projector.patterns import PatternSet
-from gearscan.recon.phase import phase_error, three_step
-from gearscan.rig import default_rig
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
-from gearscan.types import PhaseResult
 
 
 def test_the_gate_takes_three_step_only_where_the_correction_is_small():

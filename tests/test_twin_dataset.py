@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from gearscan.recon.phase import wrapped_rmse
+from gearscan.core.gear import GearSpec
+from gearscan.core.phase import wrapped_rmse
 from gearscan.twin.dataset import (
     DatasetError,
     DatasetSpec,
@@ -16,7 +17,6 @@ from gearscan.twin.dataset import (
     generate_dataset,
     start_points,
 )
-from gearscan.twin.gear import GearSpec
 
 
 def test_protocol_counts():
@@ -116,7 +116,7 @@ def test_view_randomised_scenes_span_views_modules_and_fringe_periods():
     the lit pixels, measured here on the rendered surface), keeping the gear's tooth count."""
     import numpy as np
 
-    from gearscan.twin.gear import GearSpec
+    from gearscan.core.gear import GearSpec
     from gearscan.twin.randomize import VIEW_RANGES, random_view_scene
     from gearscan.twin.render import TwinRenderer
 

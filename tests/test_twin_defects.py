@@ -16,9 +16,9 @@ import pytest
 from pydantic import ValidationError
 from typer.testing import CliRunner
 
-from gearscan.rig import rot_z
+from gearscan.core.gear import GearSpec, involute
+from gearscan.core.rig import rot_z
 from gearscan.twin.defects import Chip, DefectError, GearDefects, Wear, true_mesh
-from gearscan.twin.gear import GearSpec, involute
 from gearscan.twin.render import Optics, TwinRenderer
 
 UM = 1e-3  # mm
@@ -27,7 +27,7 @@ TOL = 1 * UM  # chords of the involute polygon and float32 ray hits stay below t
 
 @pytest.fixture(scope="module")
 def rig128():
-    from gearscan.rig import default_rig
+    from gearscan.core.rig import default_rig
 
     return default_rig(128, 128)
 
@@ -272,7 +272,7 @@ def test_truth_states_pitch_and_runout(gear, all_defects):
 
 
 def test_recording_states_the_cad_and_holds_the_as_built_truth(tmp_path, rig128, gear):
-    from gearscan.recording import RecordingReader
+    from gearscan.core.recording import RecordingReader
     from gearscan.twin.recordings import render_recording
 
     d = GearDefects(module=2.03, eccentricity_um=50, pitch_errors_um={1: 30})

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from gearscan.projector.patterns import PatternSet
-from gearscan.recon.phase import phase_error, three_step
-from gearscan.rig import default_rig
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import phase_error, three_step
+from gearscan.core.rig import default_rig
 from gearscan.twin.defects import GearDefects
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.prior import TwinPrior, blend
 from gearscan.twin.render import Optics, TwinRenderer
 
@@ -65,7 +65,7 @@ def test_a_moving_burst_is_solved_where_the_cad_sees_one_surface(rig, prior):
     assert e_three > 0.3 and e_prior < 0.06, (e_three, e_prior)
     assert np.isfinite(res.sigma_total[on]).all() and np.isinf(res.sigma_total[~usable]).all()
     # the blend takes the prior where usable and the other result elsewhere, pixel for pixel
-    from gearscan.types import PhaseResult
+    from gearscan.core.types import PhaseResult
 
     z = np.zeros_like(res.phase)
     other = PhaseResult(z + 1.0, z, z, z, z, z, mode="deterministic")

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from gearscan.projector.patterns import PatternError, PatternSet
-from gearscan.recon.phase import decode_phase, phase_error, three_step, wrapped_rmse
-from gearscan.rig import rot_z
+from gearscan.core.patterns import PatternError, PatternSet
+from gearscan.core.phase import decode_phase, phase_error, three_step, wrapped_rmse
+from gearscan.core.rig import rot_z
 from gearscan.twin.render import Optics, RenderError, TwinRenderer
 
 PERIOD = 40.0
@@ -159,7 +159,7 @@ def test_motion_blur_reduces_modulation(clean_renderer):
 
 
 def test_bad_inputs_are_named(gear, gear_mesh):
-    from gearscan.rig import default_rig
+    from gearscan.core.rig import default_rig
 
     away = default_rig(64, 64, working_radius=200.0)  # looks at empty space beyond the gear
     with pytest.raises(RenderError, match="sees the lit gear on 0.00%"):

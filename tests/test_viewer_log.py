@@ -9,8 +9,8 @@ import logging
 import numpy as np
 import pytest
 
+from gearscan.core.types import Burst, Frame
 from gearscan.measure import Decoder
-from gearscan.types import Burst, Frame
 from gearscan.viewer.log import (
     PLOTS,
     SCALES,
@@ -60,8 +60,8 @@ def ramp_burst(index: int, size: int = 128) -> Burst:
 @pytest.fixture(scope="module")
 def replayed(tmp_path_factory):
     """A 3-burst twin recording replayed into an .rrd, with what each burst measured."""
+    from gearscan.core.rig import default_rig
     from gearscan.replay import replay
-    from gearscan.rig import default_rig
     from gearscan.twin.recordings import render_recording
 
     tmp = tmp_path_factory.mktemp("rrd")
@@ -117,7 +117,7 @@ def test_stats_are_split_by_unit():
 
 
 def test_layout_per_mode_live_has_no_error_panel(tmp_path, replayed):
-    from gearscan.rig import default_rig
+    from gearscan.core.rig import default_rig
 
     _, seen = replayed
     m, _ = seen[0]

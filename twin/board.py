@@ -17,8 +17,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from gearscan.core.rig import PinholeDevice, Rig, look_at, rot_z
 from gearscan.recon.calibration import BoardCapture, Checkerboard
-from gearscan.rig import PinholeDevice, Rig, look_at, rot_z
 from gearscan.twin.render import Optics, TwinRenderer
 
 BLACK_ALBEDO = 0.12  # printed black relative to the optics' albedo (white)

@@ -36,10 +36,10 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from gearscan.projector.patterns import DEFAULT_PERIOD_PX, PatternSet
-from gearscan.recon.phase import decode_md
-from gearscan.rig import Rig, default_rig
-from gearscan.twin.gear import GearSpec
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import DEFAULT_PERIOD_PX, PatternSet
+from gearscan.core.phase import decode_md
+from gearscan.core.rig import Rig, default_rig
 from gearscan.twin.render import Optics, TwinRenderer
 
 INDEX = "index.json"

@@ -33,7 +33,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeInt, ValidationError
 
-from gearscan.twin.gear import GearSpec, bore_loop, extrude
+from gearscan.core.gear import GearSpec, bore_loop, extrude
 
 Side = Literal["left", "right"]
 SIDE_SIGN: dict[str, int] = {"right": -1, "left": 1}

@@ -4,7 +4,7 @@ Each family turns a seed of the test split (:mod:`gearscan.twin.splits`) into a 
 optics, gear, fringe period) that the twin renders on the fly, so the test data never sits on
 disk and cannot leak into training:
 
-- ``default``: the product's default rig (:func:`gearscan.rig.default_rig`, default optics,
+- ``default``: the product's default rig (:func:`gearscan.core.rig.default_rig`, default optics,
   projector period 40 px) with test gears (module 2, the module it was designed for).
 
 All families set the projector power for the target
@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gearscan.rig import Rig, default_rig
-from gearscan.twin.gear import GearSpec
+from gearscan.core.gear import GearSpec
+from gearscan.core.rig import Rig, default_rig
 from gearscan.twin.randomize import (
     View,
     balance_projector_power,

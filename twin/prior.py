@@ -21,12 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gearscan.core.gear import GearSpec
+from gearscan.core.phase import THREE_STEP_SHIFTS
+from gearscan.core.rig import Rig
+from gearscan.core.types import PhaseResult
 from gearscan.recon.compensation import solve_shifted
-from gearscan.recon.phase import THREE_STEP_SHIFTS
-from gearscan.rig import Rig
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.render import Optics, TwinRenderer
-from gearscan.types import PhaseResult
 
 _GAIN_THREE_STEP = math.sqrt(4.0 / 3.0)  # |rows C, S of the three-step solve's inverse|
 MIN_INCIDENCE_COS = 0.08  # the twin's own mask threshold (Optics.min_incidence_cos)

@@ -12,8 +12,8 @@ from typing import Literal
 
 import numpy as np
 
-from gearscan.rig import Rig, default_rig, look_at, rotation_about
-from gearscan.twin.gear import GearSpec
+from gearscan.core.gear import GearSpec
+from gearscan.core.rig import Rig, default_rig, look_at, rotation_about
 from gearscan.twin.render import Optics, Surface
 
 RANGES = {
@@ -110,7 +110,7 @@ def view_rig(
     circle, tilted ``angle_deg`` towards the rim; only the tooth outline moves as the gear turns.
     The projector sits ``triangulation_deg`` around the target about the camera's up axis (so the
     phase varies along camera columns), both at ``standoff`` mm; intrinsics and distortion are
-    the default rig's (:func:`gearscan.rig.default_rig` with the same field and stand-off).
+    the default rig's (:func:`gearscan.core.rig.default_rig` with the same field and stand-off).
     """
     if view not in VIEWS:
         raise ValueError(f"view: expected one of {VIEWS}, got {view!r}")

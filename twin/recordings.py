@@ -1,6 +1,6 @@
 """Render a twin recording: three-step bursts of a rotating gear, with truth per frame.
 
-The result is an ordinary recording (gearscan.recording) that the replay camera and
+The result is an ordinary recording (gearscan.core.recording) that the replay camera and
 ``gearscan replay`` read like a captured one; it also holds ``truth/NNNNNN.npz``.
 """
 
@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.projector.patterns import DEFAULT_PERIOD_PX, PatternSet
-from gearscan.recording import RecordingWriter
-from gearscan.rig import Rig, default_rig
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import DEFAULT_PERIOD_PX, PatternSet
+from gearscan.core.recording import RecordingWriter
+from gearscan.core.rig import Rig, default_rig
+from gearscan.core.types import EncoderSample, Frame
 from gearscan.twin.defects import GearDefects
-from gearscan.twin.gear import GearSpec
 from gearscan.twin.motion import frame_angles
 from gearscan.twin.render import Optics, TwinRenderer
-from gearscan.types import EncoderSample, Frame
 
 ENCODER_COUNTS_PER_REV = 1 << 17
 ENCODER_RATE_HZ = 1000

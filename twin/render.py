@@ -19,10 +19,10 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from gearscan.projector.patterns import PatternSet
-from gearscan.rig import Rig, rot_z
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.rig import Rig, rot_z
 from gearscan.twin.defects import GearDefects, true_mesh
-from gearscan.twin.gear import GearSpec
 
 
 class RenderError(ValueError):

@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.rig import Rig
-from gearscan.types import Burst, Cloud, PhaseResult
+from gearscan.core.rig import Rig
+from gearscan.core.types import Burst, Cloud, PhaseResult
 
 APP_ID = "gearscan"
 log = logging.getLogger(__name__)

@@ -57,8 +57,8 @@ from typing import Any, NoReturn, TypeVar
 import cv2
 import numpy as np
 
-from gearscan.frame_ids import FrameIdUnwrapper, FrameIdWrap
-from gearscan.types import (
+from gearscan.core.frame_ids import FrameIdUnwrapper, FrameIdWrap
+from gearscan.core.types import (
     ENCODER_COUNT_MAX,
     ENCODER_SEQ_MODULUS,
     ENCODER_TIME_US_MAX,
@@ -730,7 +730,7 @@ class RecordingReader:
     @property
     def rig(self):
         """The rig calibration; its camera must have the frames' size (else triangulation is wrong)."""
-        from gearscan.rig import Rig
+        from gearscan.core.rig import Rig
 
         rig = self._header("rig", lambda d: Rig.from_json(d, f"{self.path}/recording.json: rig"))
         return self.check_rig(rig, str(self.path / "recording.json"))
@@ -745,13 +745,13 @@ class RecordingReader:
 
     @property
     def gear(self):
-        from gearscan.twin.gear import GearSpec
+        from gearscan.core.gear import GearSpec
 
         return self._header("gear", lambda d: GearSpec(**d)) if self.meta.get("gear") else None
 
     @property
     def patterns(self):
-        from gearscan.projector.patterns import PatternSet
+        from gearscan.core.patterns import PatternSet
 
         return self._header("patterns", PatternSet.from_json)
 
