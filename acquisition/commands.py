@@ -5,8 +5,6 @@ Only light imports at module level; drivers are imported inside the functions.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import typer
 
 
@@ -63,44 +61,3 @@ def devices(
     for p in ports:
         st.add_row(p, probe_encoder(p, timeout_s=timeout).describe() if probe else "")
     console.print(st)
-
-
-def record(
-    out: Path = typer.Argument(..., help="Recording folder to create."),
-    config: Path = typer.Option(..., "--config", "-c", help="Live configuration TOML (`gearscan config init`): devices, rig, gear."),
-    bursts: int = typer.Option(10, "--bursts", "-n", help="Number of valid three-frame bursts to record."),
-    overwrite: bool = typer.Option(False, help="Replace an existing recording in OUT."),
-) -> None:
-    """Record BURSTS bursts from the configured camera, projector and encoder into OUT.
-
-    Takes the configuration `gearscan live` takes and stores its rig, gear and pattern set in OUT as `live --record` does.
-    """
-    from rich.console import Console
-    from rich.progress import Progress
-
-    from gearscan.acquisition.camera import CameraError
-    from gearscan.acquisition.config import ConfigError
-    from gearscan.acquisition.encoder import EncoderError
-    from gearscan.acquisition.record import record_bursts
-    from gearscan.config import LiveConfig
-    from gearscan.core.recording import RecordingError
-
-    console = Console()
-    try:
-        cfg = LiveConfig.load(config)
-        meta = cfg.recording_meta(cfg.load_rig(), source="record")
-        with Progress(console=console) as progress:
-            task = progress.add_task("recording bursts", total=bursts)
-            summary = record_bursts(cfg, out, bursts, overwrite=overwrite, extra_meta=meta,
-                                    on_burst=lambda n: progress.update(task, completed=n))
-    except (ConfigError, CameraError, EncoderError, RecordingError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from exc
-    console.print(
-        f"{summary.bursts} bursts ({summary.frames} frames, {summary.encoder_samples} encoder samples) "
-        f"in {summary.seconds:.1f} s -> {summary.out} (replay with: gearscan replay {summary.out})"
-    )
-    console.print(f"assembler: {summary.assembler}")
-    console.print(f"camera: {summary.camera}")
-    if summary.encoder is not None:
-        console.print(f"encoder: {summary.encoder}")

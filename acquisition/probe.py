@@ -1,10 +1,9 @@
 """Ask devices what they are: `gearscan devices` and `gearscan live --check` use these.
 
 :func:`probe_encoder` opens a serial port, sends the protocol's ``HELLO`` and reads for a
-moment: a gearscan encoder answers with its banner and streams sample lines. :func:`check_camera`
-opens the configured camera, applies the settings and grabs one frame, so "OK" means a frame
-of the size the rig expects arrived. :func:`check_projector` counts the displays a window
-projector can use.
+moment: a gearscan encoder answers with its banner and streams sample lines. :func:`check_projector`
+counts the displays a window projector can use. (The camera check, which opens any configured
+camera including the replay mock, is :func:`gearscan.acquire.check_camera`.)
 """
 
 from __future__ import annotations
@@ -78,35 +77,6 @@ def probe_encoder(port: str, baudrate: int = 115_200, timeout_s: float = 1.0) ->
     span_us = samples[-1] - samples[0] if len(samples) > 1 else 0
     rate = (len(samples) - 1) / (span_us / 1e6) if span_us > 0 else None
     return EncoderProbe(port, banner, len(samples), invalid, nbytes, rate)
-
-
-def check_camera(cfg: AcquisitionConfig, size: tuple[int, int] | None = None) -> str:
-    """Open the configured camera, apply its settings, grab one frame; what was verified, in words.
-
-    ``size`` (width, height): the image size the rig was calibrated for; another size is a
-    :class:`ConfigError`. Raises CameraError when the camera is missing or refuses a setting.
-    """
-    from gearscan.acquisition.record import open_camera
-
-    camera = open_camera(cfg)
-    settings = cfg.camera.settings()
-    with camera:
-        camera.configure(settings)
-        who = " ".join(x for x in (camera.info.vendor, camera.info.model, camera.info.serial) if x) or str(cfg.camera.id)
-        if settings.trigger == "hardware":
-            return f"{cfg.camera.driver} camera {who} found and configured (hardware trigger: no frame grabbed)"
-        camera.start()
-        try:
-            if settings.trigger == "software":
-                camera.software_trigger()
-            frame = camera.grab(5.0)
-        finally:
-            camera.stop()
-    h, w = frame.image.shape[:2]
-    if size is not None and (w, h) != tuple(size):
-        raise ConfigError(f"camera: it delivers {w}x{h} px images, the rig (rig.calibration) is calibrated for "
-                          f"{size[0]}x{size[1]}: set camera.roi = [x, y, {size[0]}, {size[1]}] or calibrate this camera")
-    return f"{cfg.camera.driver} camera {who}: configured, one {w}x{h} {settings.pixel_format} frame grabbed"
 
 
 def check_projector(cfg: AcquisitionConfig) -> str:

@@ -27,10 +27,13 @@ import torch
 
 from gearscan.core.gear import GearSpec
 from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import classical_result
 from gearscan.core.rig import default_rig
 from gearscan.core.types import Burst, Frame
-from gearscan.measure import CadScorer, Decoder, Reconstructor, SurfaceDistance, classical_result
+from gearscan.inference.decoder import Decoder
 from gearscan.recon.cloud_prior import CloudDepthPrior
+from gearscan.recon.deviation import CadScorer, SurfaceDistance
+from gearscan.recon.measure import Reconstructor
 from gearscan.recon.triangulate import to_turntable
 from gearscan.twin.render import Optics, TwinRenderer
 

@@ -52,8 +52,8 @@ def main() -> None:
     import open3d as o3d
 
     from gearscan.core.recording import RecordingReader
+    from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
-    from gearscan.measure import Decoder
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from gearscan.core.rig import default_rig
-from gearscan.measure import Decoder
+from gearscan.inference.decoder import Decoder
 from gearscan.replay import replay
 from gearscan.twin.recordings import render_recording
 

@@ -24,8 +24,8 @@ from gearscan.evaluate import (
     scenes_from_dataset,
     score,
 )
+from gearscan.inference.decoder import STILL_SPAN_DEG
 from gearscan.inference.predictor import Predictor
-from gearscan.measure import STILL_SPAN_DEG
 
 HERE = Path(__file__).parent
 STEPS_DEG = (0.0, 0.0125, 0.025, 0.05, 0.1, 0.2)

@@ -30,13 +30,14 @@ import numpy as np
 import torch
 
 from gearscan.core.gear import GearSpec
-from gearscan.core.phase import phase_error
+from gearscan.core.phase import classical_result, phase_error
 from gearscan.core.rig import default_rig
 from gearscan.core.types import Burst, Frame
 from gearscan.evaluate import Scene, render_cases
 from gearscan.generalization import PAPER, PAPER_REVERSED, scene_motions
 from gearscan.inference.predictor import Predictor
-from gearscan.measure import CadScorer, Reconstructor, classical_result
+from gearscan.recon.deviation import CadScorer
+from gearscan.recon.measure import Reconstructor
 from gearscan.recon.triangulate import to_turntable
 from gearscan.twin.defects import Chip, GearDefects
 from gearscan.twin.families import FAMILIES, draw_gear, family_scenes, family_seed

@@ -220,7 +220,7 @@ def _speed(value: str) -> float | None:
 
 def _decoder(classical: bool, mc: int, model: Path | None, **options):
     """The decoder, or a clear CLI error when the model cannot be loaded; ``options`` go to Decoder."""
-    from gearscan.measure import Decoder
+    from gearscan.inference.decoder import Decoder
 
     if classical:
         return Decoder(classical=True)
@@ -349,7 +349,7 @@ def _serial_ports() -> list[str]:
 
 def unambiguous_range_line(rig, period_px: float, gear, unwrap: str) -> str:
     """One line saying how far a surface may be off its CAD before its fringe order is lost."""
-    from gearscan.measure import Reconstructor, envelope_bounds
+    from gearscan.recon.measure import Reconstructor, envelope_bounds
     from gearscan.recon.unwrap import min_unambiguous_period
 
     rc = Reconstructor.for_gear(rig, period_px, gear)
@@ -466,9 +466,10 @@ def live_cmd(
 
 def _live_check(cfg, rig, source: Path) -> None:
     """``live --check``: open each device the configuration names and say what was verified."""
+    from gearscan.acquire import check_camera
     from gearscan.acquisition.camera import CameraError
     from gearscan.acquisition.config import ConfigError
-    from gearscan.acquisition.probe import check_camera, check_projector, probe_encoder
+    from gearscan.acquisition.probe import check_projector, probe_encoder
 
     lines = []
     try:
@@ -606,6 +607,48 @@ def inspect_cmd(
     typer.echo(f"report: {report.files['markdown']}")
 
 
+@app.command("record")
+def record(
+    out: Path = typer.Argument(..., help="Recording folder to create."),
+    config: Path = typer.Option(..., "--config", "-c", help="Live configuration TOML (`gearscan config init`): devices, rig, gear."),
+    bursts: int = typer.Option(10, "--bursts", "-n", help="Number of valid three-frame bursts to record."),
+    overwrite: bool = typer.Option(False, help="Replace an existing recording in OUT."),
+) -> None:
+    """Record BURSTS bursts from the configured camera, projector and encoder into OUT.
+
+    Takes the configuration `gearscan live` takes and stores its rig, gear and pattern set in OUT as `live --record` does.
+    """
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from gearscan.acquire import record_bursts
+    from gearscan.acquisition.camera import CameraError
+    from gearscan.acquisition.config import ConfigError
+    from gearscan.acquisition.encoder import EncoderError
+    from gearscan.config import LiveConfig
+    from gearscan.core.recording import RecordingError
+
+    console = Console()
+    try:
+        cfg = LiveConfig.load(config)
+        meta = cfg.recording_meta(cfg.load_rig(), source="record")
+        with Progress(console=console) as progress:
+            task = progress.add_task("recording bursts", total=bursts)
+            summary = record_bursts(cfg, out, bursts, overwrite=overwrite, extra_meta=meta,
+                                    on_burst=lambda n: progress.update(task, completed=n))
+    except (ConfigError, CameraError, EncoderError, RecordingError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    console.print(
+        f"{summary.bursts} bursts ({summary.frames} frames, {summary.encoder_samples} encoder samples) "
+        f"in {summary.seconds:.1f} s -> {summary.out} (replay with: gearscan replay {summary.out})"
+    )
+    console.print(f"assembler: {summary.assembler}")
+    console.print(f"camera: {summary.camera}")
+    if summary.encoder is not None:
+        console.print(f"encoder: {summary.encoder}")
+
+
 def _register(module: str, names: list[str], target: typer.Typer = app) -> None:
     """Register command functions that live in stage packages (light modules, lazy heavy imports)."""
     try:
@@ -621,8 +664,8 @@ def _register(module: str, names: list[str], target: typer.Typer = app) -> None:
 
 
 _register("gearscan.inference.commands", ["predict", "train", "calibrate_uncertainty"])
-_register("gearscan.recon.commands", ["calibrate"])
-_register("gearscan.acquisition.commands", ["devices", "record"])
+_register("gearscan.calibrate", ["calibrate"])
+_register("gearscan.acquisition.commands", ["devices"])
 
 
 def main() -> None:  # pragma: no cover - console entry

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError, format_errors
 from gearscan.core.gear import GearSpec
-from gearscan.measure import STILL_SPAN_DEG
+from gearscan.inference.decoder import STILL_SPAN_DEG
 
 TEMPLATE = """\
 # gearscan live configuration. Lengths in mm, angles in degrees, times as named.

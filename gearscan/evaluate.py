@@ -60,7 +60,7 @@ class Scene:
         if self._cad is None:
             import open3d as o3d
 
-            from gearscan.measure import Reconstructor
+            from gearscan.recon.measure import Reconstructor
 
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(self.gear.mesh()))
@@ -132,8 +132,8 @@ def render_cases(scene: Scene, motions: dict[str, tuple[float, float]], per_moti
 
 
 def classical_method(frames: np.ndarray, full_scale: float, angles: np.ndarray | None = None) -> PhaseResult:
+    from gearscan.core.phase import classical_result
     from gearscan.core.types import Burst, Frame
-    from gearscan.measure import classical_result
 
     fr = tuple(Frame(f, i, 0, i, bit_depth=8 if full_scale <= 255 else 16) for i, f in enumerate(frames))
     return classical_result(Burst(fr, (0.0, 0.0, 0.0)))

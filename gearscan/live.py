@@ -16,9 +16,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gearscan.config import LiveConfig
-from gearscan.core.types import Burst
-from gearscan.measure import CadScorer, Decoder, Measurement, Reconstructor
+from gearscan.core.types import Burst, Measurement
+from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineError, PipelineReport, StageSpec
+from gearscan.recon.deviation import CadScorer
+from gearscan.recon.measure import Reconstructor
 
 log = logging.getLogger(__name__)
 
@@ -167,7 +169,7 @@ def run_live(
     ``on_status`` gets a :class:`LiveStatus` about five times a second. ``max_save_mb`` caps
     the ``save`` file: past it the viewer stream stops (the measurement and any recording go on).
     """
-    from gearscan.acquisition.record import AcquisitionSession
+    from gearscan.acquire import AcquisitionSession
 
     rig = cfg.load_rig()
     decoder = decoder or Decoder(cfg.model.path, mc=cfg.model.mc, precision=cfg.model.precision,
@@ -209,7 +211,8 @@ def run_live(
     def output(m: Measurement) -> None:
         row: dict[str, float] = {"burst": m.burst.index, "points": len(m.cloud) if m.cloud else 0}
         if cad is not None:
-            row.update(cad(m))
+            m, deviation = cad(m)  # the cloud with each point's deviation, for the viewer
+            row.update(deviation)
         if logger is not None and not stream_full():
             stats = {k: v for k, v in row.items() if k.startswith("cad_")}
             for name, st in (pipeline.stats.items() if pipeline else []):

@@ -15,21 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.core.phase import phase_error
+from gearscan.core.phase import classical_result, phase_error
 from gearscan.core.recording import RecordingError, RecordingReader
 from gearscan.core.rig import Rig, RigError
-from gearscan.core.types import Burst, Cloud
-from gearscan.measure import (
-    CadScorer,
-    Decoder,
-    Measurement,
-    Reconstructor,
-    SurfaceDistance,
-    classical_result,
-)
+from gearscan.core.types import Burst, Cloud, Measurement
+from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
+from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
+from gearscan.recon.measure import Reconstructor
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +93,7 @@ class TruthScorer:
         rays = reader.rig.camera.pixel_rays()
         self._rays = rays / rays[..., 2:3]  # camera z = 1: true point = ray * true depth
 
-    def __call__(self, m: Measurement) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+    def __call__(self, m: Measurement) -> tuple[Measurement, dict[str, float], np.ndarray, np.ndarray]:
         from gearscan.recon.triangulate import to_turntable
 
         truth = self.reader.truth(self.index[m.burst.frames[0].frame_id])
@@ -133,13 +128,13 @@ class TruthScorer:
             for key, val in m.unwrap.items():
                 row[f"unwrap_{key}"] = val
             if self.cad is not None and len(m.cloud):
-                dev = self.cad(m)  # also stores each point's deviation on the cloud
+                m, dev = self.cad(m)  # the cloud with each point's deviation
                 row["cad_dev_rms_mm"] = dev["cad_rms_mm"]
                 row["cad_dev_p95_mm"] = dev["cad_p95_mm"]
                 true_dev = self.cad.distances(to_turntable(truth["points"][mask], self.reader.rig, m.cloud.angle))
                 row["true_cad_dev_rms_mm"] = float(np.sqrt(np.mean(true_dev**2)))
                 row["true_cad_dev_p95_mm"] = float(np.percentile(np.abs(true_dev), 95))
-        return row, err, mask
+        return m, row, err, mask
 
 
 def recording_rig(reader: RecordingReader, rig: str | Path | Rig | None = None) -> Rig:
@@ -237,7 +232,7 @@ def replay(
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
     ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
-    ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
+    ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.recon.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
 
     Damage (a bad frame, index or encoder line) is skipped and logged once; the bursts it
@@ -298,7 +293,7 @@ def replay(
         camera.close()
 
     def output(m: Measurement) -> None:
-        row, err, mask = scorer(m) if scorer else ({"burst": m.burst.index}, None, None)
+        m, row, err, mask = scorer(m) if scorer else (m, {"burst": m.burst.index}, None, None)
         metrics.per_burst.append(row)
         if logger:
             logger.log_burst(m.burst, m.result, mask=mask, cloud=m.cloud, error=err,

@@ -286,9 +286,7 @@ class Predictor:
     def predict_burst(self, burst: Burst, mc: int = 0) -> PhaseResult:
         """Predict a :class:`Burst` (full scale from its bit depth; angle = first frame's)."""
         result = self.predict(burst.images, mc, full_scale=burst.full_scale, angles=np.asarray(burst.angles))
-        result.burst_index = burst.index
-        result.angle = float(burst.angles[0])
-        return result
+        return dataclasses.replace(result, burst_index=burst.index, angle=float(burst.angles[0]))
 
 
 def still_gate(result: PhaseResult, classical: np.ndarray, rad: float) -> PhaseResult:

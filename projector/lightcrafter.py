@@ -8,8 +8,8 @@ rate is the projector's and the pattern of camera frame ``n`` is
 
 The contract a real device driver implements is :class:`PatternTransport`:
 ``upload`` images, ``configure`` the sequence, ``start``/``stop``. The mock transport
-plays the sequence in a thread and calls ``on_trigger_out(pattern_index, host_ns)``, which
-is what a camera's trigger line would see.
+(:class:`gearscan.mocks.projector.MockPatternTransport`) plays the sequence in a thread and calls
+``on_trigger_out(pattern_index, host_ns)``, which is what a camera's trigger line would see.
 
 Minimum exposures per bit depth are those of the DLP LightCrafter 4500 (DLPC350) pattern
 mode (DLPU010, table "pattern exposure"); override ``min_exposure_us`` for other devices.
@@ -17,10 +17,6 @@ mode (DLPU010, table "pattern exposure"); override ``min_exposure_us`` for other
 
 from __future__ import annotations
 
-import threading
-import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -95,71 +91,6 @@ class PatternTransport(Protocol):
     def configure(self, config: PatternSequenceConfig) -> None: ...
     def start(self) -> None: ...
     def stop(self) -> None: ...
-
-
-@dataclass
-class MockPatternTransport:
-    """Plays the sequence in real time; each trigger-out calls ``on_trigger_out``."""
-
-    on_trigger_out: Callable[[int, int], None] | None = None
-    max_cycles: int | None = None
-    commands: list[str] = field(default_factory=list)
-    triggers: list[tuple[int, int]] = field(default_factory=list)  # (pattern, host ns)
-    images: list[np.ndarray] = field(default_factory=list)
-    config: PatternSequenceConfig | None = None
-
-    def __post_init__(self) -> None:
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def upload(self, images: list[np.ndarray]) -> None:
-        self.commands.append(f"upload {len(images)}")
-        self.images = list(images)
-
-    def configure(self, config: PatternSequenceConfig) -> None:
-        missing = [e.pattern for e in config.entries if e.pattern >= len(self.images)]
-        if missing:
-            raise ValueError(f"projector.sequence: patterns {missing} not uploaded ({len(self.images)} images)")
-        self.commands.append(f"configure {len(config.entries)} entries")
-        self.config = config
-
-    def start(self) -> None:
-        if self.config is None:
-            raise RuntimeError("start() before configure()")
-        self.commands.append("start")
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._play, daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        self.commands.append("stop")
-
-    def wait(self, timeout: float = 10.0) -> None:
-        if self._thread is not None:
-            self._thread.join(timeout)
-
-    def _play(self) -> None:
-        cfg = self.config
-        assert cfg is not None
-        t = time.monotonic_ns()
-        cycle = 0
-        while not self._stop.is_set() and (self.max_cycles is None or cycle < self.max_cycles):
-            for e in cfg.entries:
-                delay = (t - time.monotonic_ns()) / 1e9
-                if delay > 0 and self._stop.wait(delay):
-                    return
-                if e.trigger_out:
-                    now = time.monotonic_ns()
-                    self.triggers.append((e.pattern, now))
-                    if self.on_trigger_out is not None:
-                        self.on_trigger_out(e.pattern, now)
-                t += (e.exposure_us + e.dark_us) * 1000
-            cycle += 1
-            if not cfg.repeat:
-                return
 
 
 class HardwareTriggeredProjector:

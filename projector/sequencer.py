@@ -2,7 +2,7 @@
 
 Backends implement :class:`ProjectorBackend` (``open/close/show``):
 
-- :class:`MockProjector` records what it showed and when (tests, twin runs);
+- :class:`gearscan.mocks.projector.MockProjector` records what it showed and when (tests, simulators);
 - :class:`WindowProjector` draws full-screen on a chosen display with pygame/SDL2
   (lazy import; headless with ``SDL_VIDEODRIVER=dummy``);
 - :mod:`gearscan.projector.lightcrafter` drives a hardware-triggered pattern sequence,
@@ -48,42 +48,6 @@ class Shown:
     index: int
     host_time_ns: int
     checksum: int  # sum of pixel values, to check WHAT was shown
-
-
-@dataclass
-class MockProjector:
-    """Records the patterns it is asked to show (``log``: the latest ``max_log`` to ``2 * max_log``,
-    so a long simulated run stays flat in memory), with their host time; ``shown`` counts them all."""
-
-    width: int = 912
-    height: int = 1140
-    latency_s: float = 0.0
-    log: list[Shown] = field(default_factory=list)
-    max_log: int = 10_000
-    shown: int = 0
-    is_open: bool = False
-    last_image: np.ndarray | None = None
-
-    def open(self) -> None:
-        self.is_open = True
-
-    def close(self) -> None:
-        self.is_open = False
-
-    def show(self, image: np.ndarray, index: int) -> int:
-        if not self.is_open:
-            raise ProjectorError("mock projector: show() before open()")
-        if image.shape != (self.height, self.width):
-            raise ProjectorError(f"pattern image must be ({self.height}, {self.width}), got {image.shape}")
-        if self.latency_s:
-            time.sleep(self.latency_s)
-        t = time.monotonic_ns()
-        self.last_image = image
-        self.log.append(Shown(index, t, int(image.sum(dtype=np.int64))))
-        self.shown += 1
-        if len(self.log) > 2 * self.max_log:
-            del self.log[: len(self.log) - self.max_log]
-        return t
 
 
 class WindowProjector:

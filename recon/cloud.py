@@ -9,7 +9,7 @@ downsample, and measures the distance of every point to the gear's CAD mesh.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -133,9 +133,7 @@ def merge_clouds(clouds: Sequence[Cloud], voxel_mm: float | None = None) -> Clou
     if not voxel_mm > 0:
         raise ValueError(f"voxel_mm must be positive, got {voxel_mm}")
     down = to_open3d(merged).voxel_down_sample(float(voxel_mm))
-    out = from_open3d(down, merged.frame)
-    out.burst_index, out.angle = merged.burst_index, merged.angle
-    return out
+    return replace(from_open3d(down, merged.frame), burst_index=merged.burst_index, angle=merged.angle)
 
 
 @dataclass(frozen=True, slots=True)

@@ -27,8 +27,8 @@ def test_accuracy_is_the_distance_to_the_true_gear_and_can_fail(oversize_recordi
     """Points of the oversize gear lie on its true surface (not on the CAD that picked their orders),
     its deviation from the CAD is the true one, and the same cloud moved one fringe along the rays
     (what a wrong fringe order does) is scored as millimetres off."""
+    from gearscan.core.phase import classical_result
     from gearscan.core.recording import RecordingReader
-    from gearscan.measure import classical_result
     from gearscan.replay import TruthScorer, replay
 
     seen = []
@@ -46,5 +46,5 @@ def test_accuracy_is_the_distance_to_the_true_gear_and_can_fail(oversize_recordi
     rays = m.cloud.points - m.cloud.points.mean(axis=0)  # any consistent displacement of ~2.8 mm
     moved = m.cloud.points + 2.8 * rays / np.linalg.norm(rays, axis=1, keepdims=True)
     bad = dataclasses.replace(m, cloud=dataclasses.replace(m.cloud, points=moved))
-    row, _, _ = scorer(bad)
+    _, row, _, _ = scorer(bad)
     assert row["accuracy_rms_mm"] > 0.5 and row["pixel_depth_mismatch"] > 0.5 * row["cloud_points"]

@@ -53,7 +53,7 @@ def sim():
 
 
 def test_record_bursts_from_simulator_and_encoder(tmp_path, sim):
-    from gearscan.acquisition.commands import record
+    from gearscan.cli import record
     from gearscan.core.rig import default_rig
     from gearscan.mocks.encoder_device import MockEncoderProcess
 
@@ -81,8 +81,8 @@ def test_record_bursts_from_simulator_and_encoder(tmp_path, sim):
 
 
 def test_no_index_mark_in_time_is_a_clear_error_and_zero_wait_measures_from_the_first_count(tmp_path, sim):
+    from gearscan.acquire import record_bursts
     from gearscan.acquisition.encoder import EncoderError
-    from gearscan.acquisition.record import record_bursts
     from gearscan.mocks.encoder_device import MockEncoderProcess
 
     link = str(tmp_path / "enc")
@@ -100,7 +100,7 @@ def test_no_index_mark_in_time_is_a_clear_error_and_zero_wait_measures_from_the_
 
 
 def test_bad_configs_name_the_setting(tmp_path, sim):
-    from gearscan.acquisition.record import record_bursts
+    from gearscan.acquire import record_bursts
 
     with pytest.raises(ConfigError, match=r"encoder.counts_per_rev: Input should be greater than 0 \(got 0\)"):
         AcquisitionConfig.from_dict({"encoder": {"port": "/dev/ttyUSB0", "counts_per_rev": 0}})
@@ -136,7 +136,7 @@ def test_devices_lists_the_simulator_and_serial_ports(sim, capsys, monkeypatch):
 def test_without_encoder_the_gear_is_taken_as_still_at_angle_zero(tmp_path, sim):
     """The template says [encoder] may be left out: then every burst is measured at angle 0
     (it used to be discarded with "no encoder angle") and the recording says so."""
-    from gearscan.acquisition.record import NO_ENCODER_REFERENCE, record_bursts
+    from gearscan.acquire import NO_ENCODER_REFERENCE, record_bursts
 
     cfg = AcquisitionConfig.load(_toml(tmp_path, sim.serial, None))
     assert cfg.encoder is None

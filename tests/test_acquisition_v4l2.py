@@ -13,7 +13,8 @@ from gearscan.acquisition.camera import (
     CameraSettings,
     GrabTimeout,
 )
-from gearscan.acquisition.v4l2 import FakeV4L2Backend, V4L2Camera
+from gearscan.acquisition.v4l2 import V4L2Camera
+from gearscan.mocks.v4l2_backend import FakeV4L2Backend
 
 
 def test_format_negotiation_strided_buffers_and_sequence_numbers():

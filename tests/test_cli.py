@@ -100,8 +100,8 @@ def test_record_with_the_config_init_file_then_replay(twin_recording, tmp_path):
     replays into exactly the clouds the source recording gives; --rig serves one without a rig."""
     from gearscan.core.recording import RecordingReader
     from gearscan.core.rig import default_rig
-    from gearscan.measure import CadScorer
     from gearscan.recon.cloud import load_cloud
+    from gearscan.recon.deviation import CadScorer
 
     cfg = tmp_path / "rig.toml"
     assert runner.invoke(app, ["config", "init", str(cfg)]).exit_code == 0

@@ -19,7 +19,7 @@ def test_a_rebooted_encoder_is_resynchronised_with_angles_in_one_reference(tmp_p
     """The encoder restarts mid-run (seq, clock and count back at 0): acquisition goes on, discards
     the bursts without an angle until the index mark passes, and every recorded frame's angle is
     the true turntable angle at its exposure, before and after the restart."""
-    from gearscan.acquisition.record import AcquisitionSession
+    from gearscan.acquire import AcquisitionSession
     from gearscan.mocks.encoder_device import MockEncoderProcess
 
     rpm, start = 30.0, -0.3  # a turn in 2 s: the index at 0.1 s, 2.1 s, 4.1 s
@@ -58,8 +58,8 @@ def test_a_dead_encoder_reader_stops_acquisition_at_once_with_its_cause(tmp_path
     import time
 
     import gearscan.acquisition.encoder as encoder
+    from gearscan.acquire import AcquisitionSession
     from gearscan.acquisition.encoder import EncoderError
-    from gearscan.acquisition.record import AcquisitionSession
     from gearscan.mocks.encoder_device import MockEncoderProcess
 
     parse, died = encoder.parse_line, []

@@ -18,7 +18,7 @@ from gearscan.cli import app
 from gearscan.config import TEMPLATE, LiveConfig
 from gearscan.core.recording import RecordingReader
 from gearscan.core.rig import default_rig
-from gearscan.measure import Decoder
+from gearscan.inference.decoder import Decoder
 from gearscan.twin.recordings import render_recording
 
 runner = CliRunner()

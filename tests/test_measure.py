@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import classical_result
 from gearscan.core.types import Burst, Frame, PhaseResult
-from gearscan.measure import Reconstructor, classical_result
+from gearscan.recon.measure import Reconstructor
 
 PERIOD = 40.0
 
@@ -62,7 +63,7 @@ def oversize(rig256):
 
 
 def _true_deviation(gear, rig, truth, angle):
-    from gearscan.measure import CadScorer
+    from gearscan.recon.deviation import CadScorer
     from gearscan.recon.triangulate import to_turntable
 
     return CadScorer(gear).distances(to_turntable(truth.points[truth.mask], rig, angle))
@@ -72,7 +73,7 @@ def test_a_gear_off_its_cad_keeps_its_points_and_its_true_deviation(rig256, gear
     """The fringe order window is the rig's whole unambiguous range around the CAD (one fringe,
     +-1.3 mm of depth here), not a fixed band: a gear 0.6 mm off its CAD is measured whole and
     its deviation vs CAD is the true one (it used to lose half its points and report half)."""
-    from gearscan.measure import CadScorer
+    from gearscan.recon.deviation import CadScorer
     from gearscan.recon.triangulate import to_turntable
 
     burst, truth = oversize
@@ -145,7 +146,7 @@ def test_parallel_decoder_matches_one_worker_and_keeps_its_own_networks(noisy_re
 
     import torch
 
-    from gearscan.measure import Decoder
+    from gearscan.inference.decoder import Decoder
 
     threads = torch.get_num_threads()
     try:
@@ -185,7 +186,7 @@ def test_parallel_decoder_matches_one_worker_and_keeps_its_own_networks(noisy_re
 
 def test_still_bursts_go_to_three_step_and_moving_ones_to_the_network(noisy_renderer):
     """The encoder span routes a still gear to three-step PS, which has no motion error."""
-    from gearscan.measure import Decoder
+    from gearscan.inference.decoder import Decoder
 
     ps = PatternSet.three_step(PERIOD)
 

@@ -14,15 +14,11 @@ from gearscan.acquisition.camera import CameraSettings
 from gearscan.core.patterns import PatternSet
 from gearscan.core.recording import RecordingWriter
 from gearscan.core.types import Frame
+from gearscan.mocks.projector import MockPatternTransport, MockProjector
 from gearscan.mocks.replay_camera import ReplayCamera
 from gearscan.projector.gamma import GammaCorrection, GammaError
-from gearscan.projector.lightcrafter import (
-    HardwareTriggeredProjector,
-    MockPatternTransport,
-    PatternSequenceConfig,
-)
+from gearscan.projector.lightcrafter import HardwareTriggeredProjector, PatternSequenceConfig
 from gearscan.projector.sequencer import (
-    MockProjector,
     ProjectorError,
     SoftwareSequencer,
     WindowProjector,
@@ -152,7 +148,6 @@ def test_the_mock_projector_log_stays_bounded():
     """A long simulated run keeps only the latest patterns (it grew ~9 MB/h before); all are counted."""
     import numpy as np
 
-    from gearscan.projector.sequencer import MockProjector
 
     proj = MockProjector(width=4, height=2, max_log=5)
     proj.open()

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from gearscan.calibrate import calibrate, compare_rigs
 from gearscan.core.rig import Rig, default_rig, rot_z
 from gearscan.recon.board_io import load_captures, save_captures
 from gearscan.recon.calibration import (
@@ -18,7 +19,6 @@ from gearscan.recon.calibration import (
     fit_turntable_axis,
     sample_projector_coords,
 )
-from gearscan.recon.commands import calibrate, compare_rigs
 from gearscan.recon.unity import compose_zxy, euler_zxy, unity_parameters
 from gearscan.twin.board import BoardRenderer, calibration_poses, render_calibration_set
 from gearscan.twin.render import Optics
@@ -148,8 +148,8 @@ def test_calibrate_states_the_unambiguous_depth_range():
     (a surface 22 mm nearer, on the gear's rim, gets +-1.3 mm), four times that at 160 px."""
     import re
 
+    from gearscan.calibrate import depth_range_line
     from gearscan.core.rig import default_rig
-    from gearscan.recon.commands import depth_range_line
 
     def numbers(line):
         return [float(v) for v in re.findall(r"-(\d+\.\d+)/\+(\d+\.\d+) mm \(median", line)[0]]

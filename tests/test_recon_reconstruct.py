@@ -96,8 +96,9 @@ def test_per_call_cad_bounds_match_reference_and_truth():
 def test_reconstructor_with_a_distorted_projector_takes_the_fixed_point_path():
     """The pipeline's Reconstructor falls back to geometric_unwrap + Triangulator when the
     projector has lens distortion (the fused path cannot model it) and still gets the orders."""
+    from gearscan.core.phase import classical_result
     from gearscan.core.types import Burst, Frame
-    from gearscan.measure import Reconstructor, classical_result
+    from gearscan.recon.measure import Reconstructor
 
     period = 40.0
     base = default_rig(160, 160)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gearscan.core.types import Burst, Frame
-from gearscan.measure import Decoder
+from gearscan.inference.decoder import Decoder
 from gearscan.viewer.log import (
     PLOTS,
     SCALES,

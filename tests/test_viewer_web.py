@@ -237,7 +237,7 @@ def rerun_home(tmp_path, monkeypatch):
 
 def test_web_viewer_shows_phase_cloud_and_colour_bars_with_units(tmp_path, rerun_home):
     from gearscan.core.rig import default_rig
-    from gearscan.measure import Decoder
+    from gearscan.inference.decoder import Decoder
     from gearscan.replay import replay
     from gearscan.twin.recordings import render_recording
     from gearscan.viewer.serve import serve_web

@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 
+from gearscan.core.types import Burst, PhaseResult
+
 THREE_STEP_SHIFTS = np.array([0.0, 2 * math.pi / 3, 4 * math.pi / 3])
 
 
@@ -79,3 +81,20 @@ def wrapped_rmse(estimate: np.ndarray, truth: np.ndarray, mask: np.ndarray | Non
     if err.size == 0:
         raise ValueError("wrapped_rmse: mask selects no pixels")
     return float(np.sqrt(np.mean(err**2)))
+
+
+def classical_result(burst: Burst, read_noise_dn: float = 1.0) -> PhaseResult:
+    """Three-step phase shifting of a burst.
+
+    Its data uncertainty is the noise-only phase sigma ``s_I sqrt(2/N) / B`` for a read noise
+    of ``read_noise_dn``; three-step PS has no estimate of its (dominant) motion error.
+    """
+    phase, m, d = three_step(burst.images, burst.full_scale)
+    mod = np.hypot(m, d)  # 2B/S
+    with np.errstate(divide="ignore"):
+        sigma = np.where(mod > 0, (2.0 * read_noise_dn / burst.full_scale) * np.sqrt(2 / 3) / mod, np.inf)
+    sigma = sigma.astype(np.float32)
+    return PhaseResult(
+        phase=phase, M=m, D=d, sigma_model=np.zeros_like(sigma), sigma_data=sigma, sigma_total=sigma,
+        mode="three-step", burst_index=burst.index, angle=float(burst.angles[0]),
+    )

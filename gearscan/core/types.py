@@ -1,4 +1,4 @@
-"""Dataclasses that travel between pipeline stages.
+"""Dataclasses that travel between pipeline stages, frozen once made (``dataclasses.replace`` derives).
 
 Every stage package may import this module; it depends on numpy only, so importing it
 never pulls in torch, open3d, rerun or hardware libraries.
@@ -102,7 +102,7 @@ class Burst:
         return f"Burst(index={self.index}, frames={ids}, angles_deg=[{deg}])"
 
 
-@dataclass(slots=True)
+@dataclass(frozen=True, slots=True)
 class PhaseResult:
     """Wrapped phase of one burst with its per-pixel uncertainty (all ``(H, W)`` float32).
 
@@ -129,7 +129,7 @@ class PhaseResult:
         return np.hypot(self.M, self.D)
 
 
-@dataclass(slots=True)
+@dataclass(frozen=True, slots=True)
 class Cloud:
     """Measured 3D points with per-point uncertainty.
 
@@ -149,3 +149,22 @@ class Cloud:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
+
+
+@dataclass(frozen=True, slots=True)
+class Measurement:
+    """Everything one burst produced, as it travels to the viewer and the metrics.
+
+    ``unresolved`` marks pixels that passed the modulation and sigma tests but got no point
+    (no prior there, or the surface outside the rig's unambiguous range); ``unwrap`` counts
+    them by cause (``unresolved``; ``mixed``: points dropped because their pixel may blend two
+    surfaces, :func:`gearscan.recon.edges.mixed_pixels`), so nothing is dropped silently.
+    """
+
+    burst: Burst
+    result: PhaseResult
+    cloud: Cloud | None = None
+    phase_abs: np.ndarray | None = None
+    valid: np.ndarray | None = None
+    unresolved: np.ndarray | None = None
+    unwrap: dict[str, int] = field(default_factory=dict)

@@ -1,4 +1,7 @@
-"""Record bursts from the configured camera, projector and encoder into a recording folder.
+"""The devices of a live configuration (camera, projector, encoder) as one session: bursts, optionally recorded.
+
+This is where the stages meet (acquisition, projector sequencing, the recording format, the replay
+camera of mocks/), so it lives in the app.
 
 Frames go through the :class:`BurstAssembler`; only frames of complete, valid bursts are
 written, each with its encoder angle at the exposure midpoint, so the recording replays
@@ -58,7 +61,8 @@ def open_camera(cfg: AcquisitionConfig) -> BaseCamera:
 
 
 def make_projector(cfg: AcquisitionConfig):
-    from gearscan.projector.sequencer import MockProjector, WindowProjector
+    from gearscan.mocks.projector import MockProjector
+    from gearscan.projector.sequencer import WindowProjector
 
     p = cfg.projector
     if p.backend == "mock":
@@ -276,3 +280,30 @@ def record_bursts(
         encoder=None if session.encoder is None else session.encoder.stats.as_dict(),
         seconds=time.monotonic() - t0,
     )
+
+
+def check_camera(cfg: AcquisitionConfig, size: tuple[int, int] | None = None) -> str:
+    """Open the configured camera, apply its settings, grab one frame; what was verified, in words.
+
+    ``size`` (width, height): the image size the rig was calibrated for; another size is a
+    :class:`ConfigError`. Raises CameraError when the camera is missing or refuses a setting.
+    """
+    camera = open_camera(cfg)
+    settings = cfg.camera.settings()
+    with camera:
+        camera.configure(settings)
+        who = " ".join(x for x in (camera.info.vendor, camera.info.model, camera.info.serial) if x) or str(cfg.camera.id)
+        if settings.trigger == "hardware":
+            return f"{cfg.camera.driver} camera {who} found and configured (hardware trigger: no frame grabbed)"
+        camera.start()
+        try:
+            if settings.trigger == "software":
+                camera.software_trigger()
+            frame = camera.grab(5.0)
+        finally:
+            camera.stop()
+    h, w = frame.image.shape[:2]
+    if size is not None and (w, h) != tuple(size):
+        raise ConfigError(f"camera: it delivers {w}x{h} px images, the rig (rig.calibration) is calibrated for "
+                          f"{size[0]}x{size[1]}: set camera.roi = [x, y, {size[0]}, {size[1]}] or calibrate this camera")
+    return f"{cfg.camera.driver} camera {who}: configured, one {w}x{h} {settings.pixel_format} frame grabbed"

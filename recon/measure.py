@@ -1,110 +1,19 @@
-"""The measurement stages between a burst and the viewer: decode, then reconstruct.
+"""The reconstruct stage: PhaseResult -> fringe orders -> points in the turntable frame with depth sigma.
 
-``Decoder`` turns a :class:`Burst` into a :class:`PhaseResult` (CD-DCU-Net, or three-step
-phase shifting as the classical fallback); ``Reconstructor`` unwraps it within the rig's whole
-unambiguous range around the gear's CAD at the burst's encoder angle (or CAD-free from the
-gear's envelope), triangulates it with per-point depth uncertainty and moves the points into
-the turntable frame at that angle; ``CadScorer`` measures their deviation from the CAD.
+``Reconstructor`` unwraps a burst's phase within the rig's whole unambiguous range around the gear's
+CAD at the burst's encoder angle (or CAD-free from the gear's envelope, or around a coarse burst's
+surface), triangulates it with per-point depth uncertainty and moves the points into the turntable
+frame at that angle.
 """
 
 from __future__ import annotations
 
-import logging
 import math
-import os
-import queue
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from gearscan.core.phase import three_step
 from gearscan.core.rig import Rig
-from gearscan.core.types import Burst, Cloud, PhaseResult
-
-log = logging.getLogger(__name__)
-
-STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beats the network (Decoder)
-
-
-def classical_result(burst: Burst, read_noise_dn: float = 1.0) -> PhaseResult:
-    """Three-step phase shifting of a burst.
-
-    Its data uncertainty is the noise-only phase sigma ``s_I sqrt(2/N) / B`` for a read noise
-    of ``read_noise_dn``; three-step PS has no estimate of its (dominant) motion error.
-    """
-    phase, m, d = three_step(burst.images, burst.full_scale)
-    mod = np.hypot(m, d)  # 2B/S
-    with np.errstate(divide="ignore"):
-        sigma = np.where(mod > 0, (2.0 * read_noise_dn / burst.full_scale) * np.sqrt(2 / 3) / mod, np.inf)
-    sigma = sigma.astype(np.float32)
-    return PhaseResult(
-        phase=phase, M=m, D=d, sigma_model=np.zeros_like(sigma), sigma_data=sigma, sigma_total=sigma,
-        mode="three-step", burst_index=burst.index, angle=float(burst.angles[0]),
-    )
-
-
-class Decoder:
-    """Burst -> PhaseResult with the network (``mc`` passes, 0 = deterministic) or three-step PS.
-
-    ``workers`` > 1 decodes that many bursts at once, each on its own copy of the network
-    with ``cores // workers`` torch threads (a process-wide torch setting): on a few CPU cores
-    this beats one pass spread over all of them, whose threads stall whenever another stage
-    takes a core (2 cores, 512x512: 3.6-4.8 -> 5.2-6.3 bursts/s, benchmarks/pipeline_report.md). The
-    pipeline runs the infer stage with this many workers. None: 2 on a CPU with >= 2 cores, else 1.
-
-    Bursts whose encoder angles span less than ``still_span_deg`` (frame 1 to 3) go to
-    three-step PS instead of the network: without motion it has no motion error, and below
-    about 0.075 deg it beat the shipped network on twin validation gears (static: 0.018 vs
-    0.053 rad on the default rig, 0.064 vs 0.070 on randomised rigs; the network wins from
-    0.1 deg on; benchmarks/still_crossover_report.md). 0 sends every burst to the network.
-    """
-
-    def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
-                 precision: str = "auto", workers: int | None = None,
-                 still_span_deg: float = STILL_SPAN_DEG) -> None:
-        if workers is not None and workers < 1:
-            raise ValueError(f"model.workers: expected >= 1, got {workers}")
-        if not still_span_deg >= 0:
-            raise ValueError(f"model.still_span_deg: expected >= 0 degrees, got {still_span_deg}")
-        self.still_span = math.radians(still_span_deg)
-        self.still_bursts = 0
-        self.mc = mc
-        self.workers = 1
-        self.predictor = None
-        self._pool: queue.SimpleQueue = queue.SimpleQueue()
-        if not classical:
-            from gearscan.inference.predictor import Predictor
-
-            self.predictor = Predictor.load(model, precision=precision)
-            cpu, cores = self.predictor.device.type == "cpu", len(os.sched_getaffinity(0))
-            self.workers = workers if workers is not None else (2 if cpu and cores >= 2 else 1)
-            for _ in range(self.workers - 1):  # own copies: MC switches the dropout masks per call
-                self._pool.put(self.predictor.replica())
-            self._pool.put(self.predictor)
-            if cpu:
-                self.use_threads(self.workers)
-        self.mode = "three-step" if classical else (f"mc{mc}" if mc else "deterministic")
-
-    @staticmethod
-    def use_threads(workers: int) -> None:
-        """Give each of ``workers`` concurrent CPU passes an equal share of the cores (torch is process-wide)."""
-        import torch
-
-        torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) // workers))
-
-    def __call__(self, burst: Burst) -> PhaseResult:
-        if self.predictor is None or burst.group != 0:  # coarse bursts: three-step PS (the net knows fine fringes)
-            return classical_result(burst)
-        if abs(burst.angles[-1] - burst.angles[0]) < self.still_span:
-            self.still_bursts += 1
-            return classical_result(burst)
-        predictor = self._pool.get()
-        try:
-            return predictor.predict_burst(burst, mc=self.mc)
-        finally:
-            self._pool.put(predictor)
-
+from gearscan.core.types import Burst, Measurement, PhaseResult
 
 UNWRAP_MODES = ("cad", "envelope", "coarse")
 ENVELOPE_MM = 1.0  # CAD-free unwrapping: how far the gear may stand outside its tip/root cylinders
@@ -117,25 +26,6 @@ def envelope_bounds(rig: Rig, gear, envelope_mm: float = ENVELOPE_MM):
 
     return gear_depth_bounds(rig, gear.tip_radius + envelope_mm, max(gear.root_radius - envelope_mm, 1e-3),
                              gear.face_width + 2 * envelope_mm)
-
-
-@dataclass
-class Measurement:
-    """Everything one burst produced, as it travels to the viewer and the metrics.
-
-    ``unresolved`` marks pixels that passed the modulation and sigma tests but got no point
-    (no prior there, or the surface outside the rig's unambiguous range); ``unwrap`` counts
-    them by cause (``unresolved``; ``mixed``: points dropped because their pixel may blend two
-    surfaces, :func:`~gearscan.recon.edges.mixed_pixels`), so nothing is dropped silently.
-    """
-
-    burst: Burst
-    result: PhaseResult
-    cloud: Cloud | None = None
-    phase_abs: np.ndarray | None = None
-    valid: np.ndarray | None = None
-    unresolved: np.ndarray | None = None
-    unwrap: dict[str, int] = field(default_factory=dict)
 
 
 class Reconstructor:
@@ -304,34 +194,3 @@ class Reconstructor:
         }
         cloud = to_cloud(tri, self.rig, result.angle, burst_index=burst.index)
         return Measurement(burst, result, cloud, phase_abs, tri.valid, unresolved, stats)
-
-
-class SurfaceDistance:
-    """Signed distance of gear-frame points to a surface mesh (the CAD, or a twin's true gear)."""
-
-    def __init__(self, mesh) -> None:
-        import open3d as o3d
-
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-
-    def distances(self, points: np.ndarray) -> np.ndarray:
-        """Signed distance (mm, positive outside the material) of gear-frame ``points`` ``(N, 3)``."""
-        import open3d as o3d
-
-        pts = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
-        return self.scene.compute_signed_distance(pts).numpy().astype(np.float64)
-
-
-class CadScorer(SurfaceDistance):
-    """Signed distance of each point to the gear's CAD mesh (the cloud's deviation map)."""
-
-    def __init__(self, gear) -> None:
-        super().__init__(gear.mesh())
-
-    def __call__(self, m: Measurement) -> dict[str, float]:
-        if m.cloud is None or not len(m.cloud):
-            return {}
-        d = self.distances(m.cloud.points)
-        m.cloud.deviation = d
-        return {"cad_rms_mm": float(np.sqrt(np.mean(d**2))), "cad_p95_mm": float(np.percentile(np.abs(d), 95))}

@@ -1,5 +1,6 @@
-"""CLI command functions of the reconstruction package (registered by gearscan/cli.py).
+"""`gearscan calibrate`: camera-projector-turntable calibration from captures, or from the twin's rendering of a rig.
 
+An app command because ``--twin`` joins two stages (the twin renders the board, recon calibrates it).
 Only light imports at module level; numpy, OpenCV, open3d and the twin load inside.
 """
 

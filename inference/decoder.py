@@ -1,0 +1,79 @@
+"""The infer stage: Burst -> PhaseResult with CD-DCU-Net, or three-step PS where the gear stands still.
+
+Three-step PS is the classical fallback (:func:`gearscan.core.phase.classical_result`): it has no motion
+error on a still gear, and it decodes the coarse bursts the network was not trained on.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import queue
+from pathlib import Path
+
+from gearscan.core.phase import classical_result
+from gearscan.core.types import Burst, PhaseResult
+
+STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beats the network (Decoder)
+
+
+class Decoder:
+    """Burst -> PhaseResult with the network (``mc`` passes, 0 = deterministic) or three-step PS.
+
+    ``workers`` > 1 decodes that many bursts at once, each on its own copy of the network
+    with ``cores // workers`` torch threads (a process-wide torch setting): on a few CPU cores
+    this beats one pass spread over all of them, whose threads stall whenever another stage
+    takes a core (2 cores, 512x512: 3.6-4.8 -> 5.2-6.3 bursts/s, benchmarks/pipeline_report.md). The
+    pipeline runs the infer stage with this many workers. None: 2 on a CPU with >= 2 cores, else 1.
+
+    Bursts whose encoder angles span less than ``still_span_deg`` (frame 1 to 3) go to
+    three-step PS instead of the network: without motion it has no motion error, and below
+    about 0.075 deg it beat the shipped network on twin validation gears (static: 0.018 vs
+    0.053 rad on the default rig, 0.064 vs 0.070 on randomised rigs; the network wins from
+    0.1 deg on; benchmarks/still_crossover_report.md). 0 sends every burst to the network.
+    """
+
+    def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
+                 precision: str = "auto", workers: int | None = None,
+                 still_span_deg: float = STILL_SPAN_DEG) -> None:
+        if workers is not None and workers < 1:
+            raise ValueError(f"model.workers: expected >= 1, got {workers}")
+        if not still_span_deg >= 0:
+            raise ValueError(f"model.still_span_deg: expected >= 0 degrees, got {still_span_deg}")
+        self.still_span = math.radians(still_span_deg)
+        self.still_bursts = 0
+        self.mc = mc
+        self.workers = 1
+        self.predictor = None
+        self._pool: queue.SimpleQueue = queue.SimpleQueue()
+        if not classical:
+            from gearscan.inference.predictor import Predictor
+
+            self.predictor = Predictor.load(model, precision=precision)
+            cpu, cores = self.predictor.device.type == "cpu", len(os.sched_getaffinity(0))
+            self.workers = workers if workers is not None else (2 if cpu and cores >= 2 else 1)
+            for _ in range(self.workers - 1):  # own copies: MC switches the dropout masks per call
+                self._pool.put(self.predictor.replica())
+            self._pool.put(self.predictor)
+            if cpu:
+                self.use_threads(self.workers)
+        self.mode = "three-step" if classical else (f"mc{mc}" if mc else "deterministic")
+
+    @staticmethod
+    def use_threads(workers: int) -> None:
+        """Give each of ``workers`` concurrent CPU passes an equal share of the cores (torch is process-wide)."""
+        import torch
+
+        torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) // workers))
+
+    def __call__(self, burst: Burst) -> PhaseResult:
+        if self.predictor is None or burst.group != 0:  # coarse bursts: three-step PS (the net knows fine fringes)
+            return classical_result(burst)
+        if abs(burst.angles[-1] - burst.angles[0]) < self.still_span:
+            self.still_bursts += 1
+            return classical_result(burst)
+        predictor = self._pool.get()
+        try:
+            return predictor.predict_burst(burst, mc=self.mc)
+        finally:
+            self._pool.put(predictor)
