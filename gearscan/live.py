@@ -218,7 +218,7 @@ def run_live(
             for name, st in (pipeline.stats.items() if pipeline else []):
                 stats[f"latency_ms/{name}"] = st.as_dict()["latency_ms_mean"]
                 stats[f"dropped/{name}"] = st.dropped_in
-            logger.log_burst(m.burst, m.result, cloud=m.cloud, stats=stats)
+            logger.log_burst(m.burst, m.result, cloud=m.cloud, stats=stats, unresolved=m.unresolved, mixed=m.mixed)
         if on_burst is not None:
             on_burst(m, row)
         state["measured"] += 1  # only bursts that really came out (after a failure the rest drain undone)

@@ -297,7 +297,8 @@ def replay(
         metrics.per_burst.append(row)
         if logger:
             logger.log_burst(m.burst, m.result, mask=mask, cloud=m.cloud, error=err,
-                             stats={k: v for k, v in row.items() if k.endswith(("rmse_rad", "rms_mm"))})
+                             stats={k: v for k, v in row.items() if k.endswith(("rmse_rad", "rms_mm"))},
+                             unresolved=m.unresolved, mixed=m.mixed)
         if fuse is not None and m.cloud is not None and len(m.cloud):
             fuse.add(m.cloud)
         if export is not None and m.cloud is not None:

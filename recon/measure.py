@@ -193,4 +193,4 @@ class Reconstructor:
             "mixed": int(mixed.sum()),
         }
         cloud = to_cloud(tri, self.rig, result.angle, burst_index=burst.index)
-        return Measurement(burst, result, cloud, phase_abs, tri.valid, unresolved, stats)
+        return Measurement(burst, result, cloud, phase_abs, tri.valid, unresolved, stats, mixed)

@@ -165,3 +165,24 @@ def test_bursts_without_fringes_warn_in_the_viewer_and_on_the_console(tmp_path, 
     logged = read_rrd(tmp_path / "sim.rrd")["log/warnings"]
     texts = [r["TextLog:text"][0] for r in logged]
     assert texts == console and all(r["TextLog:level"][0] == "WARN" for r in logged)
+
+
+def test_pixels_without_a_point_are_shown_by_cause(replayed):
+    """The depth panel's overlay marks unresolved and mixed pixels in their own classes: the pixels the
+    reconstruction counted (Measurement.unwrap) are exactly the ones the viewer shows, none dropped unseen."""
+    from gearscan.viewer.log import MASK_CLASSES
+
+    data, seen = replayed
+    rows = {r["burst"]: r for r in data["world/camera/masks/cloud"] if r.get("SegmentationImage:buffer")}
+    mixed_total = 0
+    for index, (m, _) in seen.items():
+        fmt = rows[index]["SegmentationImage:format"][0]
+        seg = np.frombuffer(bytes(rows[index]["SegmentationImage:buffer"][0]), np.uint8).reshape(fmt["height"], fmt["width"])
+        assert set(np.unique(seg)) <= set(MASK_CLASSES)
+        np.testing.assert_array_equal(seg == 2, m.unresolved)
+        np.testing.assert_array_equal(seg == 3, m.mixed)
+        assert (seg == 2).sum() == m.unwrap["unresolved"] and (seg == 3).sum() == m.unwrap["mixed"]
+        r, c = m.cloud.pixels.T
+        assert np.all(seg[r, c] == 0)  # a pixel with a point has a value
+        mixed_total += m.unwrap["mixed"]
+    assert mixed_total > 0  # the scene has silhouettes: the check sees something

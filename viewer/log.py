@@ -13,6 +13,9 @@ Entity layout (stable, the blueprints and the tests rely on it)::
     world/camera/sigma/{model,data,total}   phase uncertainty, float32, rad, viridis 0..0.2
     world/camera/sigma_mm             depth uncertainty of each cloud point at its pixel, float32, mm
     world/camera/error                |phase error| vs truth, float32, rad, magma 0..0.5 (truth only)
+    world/camera/masks/{phase,cloud}  segmentation overlays (classes in MASK_CLASSES): grey where a panel has
+                                      no value; on the depth panel, pixels that should have measured but got
+                                      no point, by cause (unresolved fringe order, mixed pixel)
     (each image entity also holds a static ``unit`` string, for tools reading the .rrd)
     legend/{phase,sigma_rad,sigma_mm,error}   the colour bars (static RGB images with ticks and unit)
     world/cloud                       points (turntable frame), coloured by uncertainty
@@ -111,6 +114,15 @@ SCALES: dict[str, Scale] = {s.entity: s for s in (
     Scale("world/camera/sigma_mm", "depth uncertainty", "mm", "viridis", 0.0, SIGMA_MAX_MM, "legend/sigma_mm",
           mask="world/camera/masks/cloud"),
 )}
+
+# classes of the grey overlays on the float images (world/camera/masks/*): the depth-uncertainty panel
+# also says why a pixel that should have measured has no point, so nothing is dropped unseen
+MASK_CLASSES: dict[int, tuple[str, tuple[int, int, int, int]]] = {
+    0: ("value", (0, 0, 0, 0)),
+    1: ("no value", (48, 48, 48, 255)),
+    2: ("unresolved: no trustworthy fringe order", (230, 0, 200, 255)),
+    3: ("mixed: blends two surfaces, dropped", (255, 140, 0, 255)),
+}
 
 # time-series plots, one per unit: stats subtree -> view title
 PLOTS: dict[str, str] = {
@@ -381,7 +393,8 @@ class RerunLogger:
     def _log_legends(self) -> None:
         """The colour bars and each image entity's unit (static, once)."""
         rr, s = self.rr, self.stream
-        s.log("world/camera/masks", rr.AnnotationContext([(0, "value", (0, 0, 0, 0)), (1, "no value", (48, 48, 48, 255))]), static=True)
+        s.log("world/camera/masks", rr.AnnotationContext([(cls, label, rgba) for cls, (label, rgba) in MASK_CLASSES.items()]),
+              static=True)
         done = set()
         for scale in SCALES.values():
             s.log(scale.entity, rr.AnyValues(unit=scale.unit), static=True)
@@ -440,6 +453,8 @@ class RerunLogger:
         cloud: Cloud | None = None,
         error: np.ndarray | None = None,
         stats: dict[str, float] | None = None,
+        unresolved: np.ndarray | None = None,
+        mixed: np.ndarray | None = None,
     ) -> None:
         rr, s = self.rr, self.stream
         s.set_time("burst", sequence=burst.index)
@@ -461,7 +476,11 @@ class RerunLogger:
         if cloud is not None and len(cloud):
             rows, cols = np.asarray(cloud.pixels, np.int64).T
             depth_sigma[rows, cols] = cloud.sigma
-        s.log("world/camera/masks/cloud", rr.SegmentationImage(np.isnan(depth_sigma).astype(np.uint8), opacity=1.0))
+        no_point = np.isnan(depth_sigma).astype(np.uint8)  # class 1, or 2/3 where a point was expected
+        for cls, where in ((2, unresolved), (3, mixed)):
+            if where is not None:
+                no_point[np.asarray(where, bool) & (no_point == 1)] = cls
+        s.log("world/camera/masks/cloud", rr.SegmentationImage(no_point, opacity=1.0))
         s.log("world/camera/sigma_mm", SCALES["world/camera/sigma_mm"].image(depth_sigma))
         if error is not None:
             s.log("world/camera/error", SCALES["world/camera/error"].image(np.abs(error), valid))

@@ -168,3 +168,4 @@ class Measurement:
     valid: np.ndarray | None = None
     unresolved: np.ndarray | None = None
     unwrap: dict[str, int] = field(default_factory=dict)
+    mixed: np.ndarray | None = None  # pixels whose point was dropped as a blend of two surfaces
