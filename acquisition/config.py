@@ -30,9 +30,10 @@ import tomllib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from gearscan.acquisition.camera import CameraSettings
+from gearscan.core.patterns import PatternSet
 
 
 class ConfigError(ValueError):
@@ -71,6 +72,23 @@ class ProjectorConfig(BaseModel):
     period_px: float = Field(16.0, ge=2)
     settle_ms: float = Field(20.0, ge=0)
     gamma: float | None = Field(None, gt=0)
+    # CAD-free unwrapping: a coarse three-step burst at this period first and then after every
+    # coarse_every measuring bursts (recon.unwrap = "coarse" unwraps the fine ones around it)
+    coarse_period_px: float | None = Field(None, ge=2)
+    coarse_every: int = Field(4, ge=1)
+
+    @model_validator(mode="after")
+    def _coarse_wider(self) -> ProjectorConfig:
+        if self.coarse_period_px is not None and not self.coarse_period_px > self.period_px:
+            raise ValueError(f"coarse_period_px must exceed period_px = {self.period_px:g} "
+                             f"(got {self.coarse_period_px:g})")
+        return self
+
+    def patterns(self) -> PatternSet:
+        """The pattern set this projector shows: three-step, plus the coarse group when configured."""
+        if self.coarse_period_px is None:
+            return PatternSet.three_step(self.period_px)
+        return PatternSet.with_coarse(self.period_px, self.coarse_period_px)
 
 
 class AcquisitionConfig(BaseModel):

@@ -21,7 +21,6 @@ from gearscan.acquisition.bursts import BurstAssembler
 from gearscan.acquisition.camera import BaseCamera, CameraError, GrabTimeout
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError
 from gearscan.acquisition.encoder import EncoderError, EncoderReader
-from gearscan.core.patterns import PatternSet
 from gearscan.core.types import Burst, EncoderSample, Frame
 
 # A rig without encoder: the gear is taken as standing still at its CAD zero (angle 0), so
@@ -88,7 +87,14 @@ class AcquisitionSession:
                  extra_meta: dict | None = None) -> None:
         self.cfg = cfg
         self.settings = cfg.camera.settings()
-        self.patterns = PatternSet.three_step(cfg.projector.period_px)
+        self.patterns = cfg.projector.patterns()
+        self.order = self.patterns.cycle(cfg.projector.coarse_every)  # one cycle of the projector sequence
+        if self.patterns.coarse_period_px is not None and self.settings.trigger != "software":
+            raise ConfigError(
+                "projector.coarse_period_px: coarse bursts are sequenced by software (camera.trigger = 'software'); "
+                f"a projector playing its own sequence shows the three measuring patterns only (got trigger "
+                f"{self.settings.trigger!r})"
+            )
         if self.settings.trigger != "software" and self.settings.pattern_cycle != 3:
             raise ConfigError(
                 f"camera.pattern_cycle: must be 3 with trigger {self.settings.trigger!r} (the projector cycles the "
@@ -111,7 +117,8 @@ class AcquisitionSession:
         self.projector = None
         self.writer = None
         self.assembler: BurstAssembler | None = None
-        self.frames = self.encoder_samples = self.burst_count = 0
+        self.frames = self.encoder_samples = self.burst_count = 0  # burst_count: measuring bursts
+        self.coarse_bursts = 0  # the coarse bursts between them (projector.coarse_period_px)
 
     def __enter__(self) -> AcquisitionSession:
         from gearscan.core.recording import RecordingWriter
@@ -128,6 +135,7 @@ class AcquisitionSession:
                 frame_id_modulus=self.camera.frame_id_modulus,
                 frame_id_skips_zero=self.camera.frame_id_skips_zero,
                 fixed_angle=None if self.encoder else NO_ENCODER_ANGLE,
+                groups=1 if self.patterns.coarse_period_px is None else 2,
             )
             reference = None if self.encoder else NO_ENCODER_REFERENCE
             if self.encoder is not None:  # before the recording exists: a missing index leaves no folder
@@ -195,7 +203,7 @@ class AcquisitionSession:
             from gearscan.projector.sequencer import SoftwareSequencer
 
             yield from SoftwareSequencer(self.projector, self.camera, self.patterns,
-                                         settle_s=self.cfg.projector.settle_ms / 1e3).run()
+                                         settle_s=self.cfg.projector.settle_ms / 1e3).run(order=self.order)
         else:
             yield from iter(lambda: self.camera.grab(2.0), None)
 
@@ -233,7 +241,10 @@ class AcquisitionSession:
             burst = self.assembler.push(frame)
             if burst is not None:
                 since_burst = 0
-                self.burst_count += 1
+                if burst.group:
+                    self.coarse_bursts += 1
+                else:
+                    self.burst_count += 1
                 if self.writer is not None:
                     for f, a in zip(burst.frames, burst.angles, strict=True):
                         self.writer.write_frame(dataclasses.replace(f, encoder_angle=a))

@@ -39,6 +39,8 @@ height = 800
 period_px = 40.0             # fringe period, projector pixels
 settle_ms = 20.0             # wait after showing a pattern before triggering the camera
 # gamma = 2.2                # display gamma to pre-compensate
+# coarse_period_px = 160.0   # CAD-free: a coarse burst at this period first and then every
+# coarse_every = 4           # coarse_every measuring bursts (with recon.unwrap = "coarse")
 
 # [encoder]                  # omit without an encoder: the gear is then taken as standing still
                              # at angle 0 (its CAD pose); every burst goes to three-step PS.
@@ -70,7 +72,9 @@ still_span_deg = 0.075       # bursts spanning less turntable angle go to three-
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S
 max_sigma_rad = 0.3          # drop pixels whose total phase uncertainty exceeds this
 unwrap = "cad"               # fringe orders from the gear's CAD ("cad") or its envelope only ("envelope",
-                             # CAD-free: needs fringes wider than the tooth depth, see --check)
+                             # CAD-free: needs fringes wider than the tooth depth, see --check), or
+                             # around the last coarse burst ("coarse", CAD-free at any period: needs
+                             # projector.coarse_period_px; costs one burst in coarse_every + 1)
 cad_deviation = true         # colour the cloud by distance to the gear's CAD model
 
 [viewer]
@@ -106,7 +110,7 @@ class ReconSection(BaseModel):
 
     min_modulation: float = Field(0.05, ge=0, le=1)
     max_sigma_rad: float = Field(0.3, gt=0)
-    unwrap: Literal["cad", "envelope"] = "cad"
+    unwrap: Literal["cad", "envelope", "coarse"] = "cad"
     cad_deviation: bool = True
 
 
@@ -141,6 +145,9 @@ class LiveConfig(AcquisitionConfig):
             cfg = cls.model_validate(data)
         except ValidationError as exc:
             raise ConfigError(f"{source}: " + format_errors(exc)) from exc
+        if cfg.recon.unwrap == "coarse" and cfg.projector.coarse_period_px is None:
+            raise ConfigError(f"{source}: recon.unwrap = 'coarse' unwraps around coarse bursts: set "
+                              "projector.coarse_period_px (e.g. 160, wider than the tooth depth; `live --check` says)")
         if base is not None and not cfg.rig.calibration.is_absolute():
             cfg = cfg.model_copy(update={"rig": RigRef(calibration=base / cfg.rig.calibration)})
         return cfg

@@ -20,7 +20,7 @@ from gearscan.core.types import Burst, Measurement
 from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineError, PipelineReport, StageSpec
 from gearscan.recon.deviation import CadScorer
-from gearscan.recon.measure import Reconstructor
+from gearscan.recon.measure import CoarseStage, Reconstructor
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +82,7 @@ class LiveReport:
     stopped_by: str = ""
     status: LiveStatus | None = None
     encoder: dict[str, int] | None = field(default=None)
+    coarse_bursts: int = 0  # acquired between the measuring bursts (projector.coarse_period_px)
 
     @property
     def skipped(self) -> int:
@@ -93,7 +94,8 @@ class LiveReport:
         """The end summary: why it stopped, what was measured, what was dropped and why, where the stream is."""
         measured = self.status.measured if self.status else 0
         lines = [f"stopped by {self.stopped_by} after {self.pipeline.wall_s:.1f} s: {self.bursts} bursts acquired, "
-                 f"{measured} measured ({measured / max(self.pipeline.wall_s, 1e-9):.1f}/s)"]
+                 f"{measured} measured ({measured / max(self.pipeline.wall_s, 1e-9):.1f}/s)"
+                 + (f", {self.coarse_bursts} coarse bursts for CAD-free unwrapping" if self.coarse_bursts else "")]
         drops = self.status.drops if self.status else {}
         meaning = dict(DROP_CAUSES.values())
         lines.append("dropped: " + ("; ".join(f"{n} {meaning[c]}" for c, n in drops.items()) or "nothing"))
@@ -177,6 +179,7 @@ def run_live(
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
                                    unwrap=cfg.recon.unwrap)
+    coarse = CoarseStage(rig, cfg.projector.coarse_period_px, cfg.gear, recon if cfg.recon.unwrap == "coarse" else None)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None
     logger = None
     if save or connect or spawn:
@@ -227,7 +230,8 @@ def run_live(
         source,
         [
             StageSpec("infer", lambda b: Measurement(b, decoder(b)), queue_size=2, workers=getattr(decoder, "workers", 1)),
-            StageSpec("reconstruct", lambda m: recon(m.burst, m.result), queue_size=2, close=recon.close),
+            StageSpec("reconstruct", lambda m: coarse(m) if m.burst.group else recon(m.burst, m.result),
+                      queue_size=2, close=recon.close),
             StageSpec("output", output, close=logger.close if logger else None, queue_size=4),
         ],
         source_name="acquisition",
@@ -268,6 +272,7 @@ def run_live(
             stopped_by=stopped_by,
             status=snapshot(),
             encoder=session.encoder.stats.as_dict() if session.encoder else None,
+            coarse_bursts=session.coarse_bursts,
         )
 
     try:

@@ -24,7 +24,7 @@ from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
-from gearscan.recon.measure import Reconstructor
+from gearscan.recon.measure import CoarseStage, Reconstructor
 
 log = logging.getLogger(__name__)
 
@@ -187,29 +187,6 @@ class CloudExport:
             if folder is not None:
                 save_cloud(cloud, folder / f"burst_{cloud.burst_index:06d}{suffix}")
         self.written += 1
-
-
-class CoarseStage:
-    """Takes the coarse bursts out of the stream: with ``unwrap="coarse"`` each one is unwrapped by
-    the gear's envelope and its cloud becomes the prior of the fine bursts after it
-    (:mod:`gearscan.recon.cloud_prior`); otherwise it is only counted. It emits nothing."""
-
-    def __init__(self, rig: Rig, period_px: float | None, gear, fine: Reconstructor | None) -> None:
-        self.bursts = 0
-        self.rig = rig
-        self.fine = fine
-        self.recon = None
-        if fine is not None and period_px is not None:
-            # no mixed-pixel filter: a prior needs the surface to a fraction of the fine range, edges included
-            self.recon = Reconstructor.for_gear(rig, period_px, gear, unwrap="envelope", mixed_border_px=None)
-
-    def __call__(self, m: Measurement) -> None:
-        from gearscan.recon.cloud_prior import CloudDepthPrior
-
-        self.bursts += 1
-        if self.recon is not None:
-            measured = self.recon(m.burst, m.result)
-            self.fine.set_prior(CloudDepthPrior(self.rig, measured.cloud.points))
 
 
 def replay(

@@ -17,7 +17,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -156,11 +156,15 @@ class SoftwareSequencer:
         self.stats.show_to_frame_ms.append((time.monotonic_ns() - t_show) / 1e6)
         return dataclasses.replace(frame, pattern_index=index)
 
-    def run(self, cycles: int | None = None) -> Iterator[Frame]:
-        """Frames for patterns 0..N-1, repeated ``cycles`` times (None: forever)."""
-        n = len(self.patterns)
+    def run(self, cycles: int | None = None, order: Sequence[int] | None = None) -> Iterator[Frame]:
+        """Frames for the patterns of ``order`` (default 0..N-1: :meth:`PatternSet.cycle`), repeated
+        ``cycles`` times (None: forever)."""
+        order = list(range(len(self.patterns))) if order is None else list(order)
+        bad = [i for i in order if not 0 <= i < len(self.patterns)]
+        if bad or not order:
+            raise ValueError(f"order: expected pattern indices in 0..{len(self.patterns) - 1}, got {order}")
         c = 0
         while cycles is None or c < cycles:
-            for i in range(n):
+            for i in order:
                 yield self.capture(i)
             c += 1

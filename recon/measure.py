@@ -194,3 +194,26 @@ class Reconstructor:
         }
         cloud = to_cloud(tri, self.rig, result.angle, burst_index=burst.index)
         return Measurement(burst, result, cloud, phase_abs, tri.valid, unresolved, stats, mixed)
+
+
+class CoarseStage:
+    """Takes the coarse bursts out of the stream: with ``unwrap="coarse"`` each one is unwrapped by
+    the gear's envelope and its cloud becomes the prior of the fine bursts after it
+    (:mod:`gearscan.recon.cloud_prior`); otherwise it is only counted. It emits nothing."""
+
+    def __init__(self, rig: Rig, period_px: float | None, gear, fine: Reconstructor | None) -> None:
+        self.bursts = 0
+        self.rig = rig
+        self.fine = fine
+        self.recon = None
+        if fine is not None and period_px is not None:
+            # no mixed-pixel filter: a prior needs the surface to a fraction of the fine range, edges included
+            self.recon = Reconstructor.for_gear(rig, period_px, gear, unwrap="envelope", mixed_border_px=None)
+
+    def __call__(self, m: Measurement) -> None:
+        from gearscan.recon.cloud_prior import CloudDepthPrior
+
+        self.bursts += 1
+        if self.recon is not None:
+            measured = self.recon(m.burst, m.result)
+            self.fine.set_prior(CloudDepthPrior(self.rig, measured.cloud.points))

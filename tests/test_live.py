@@ -284,3 +284,49 @@ def test_a_second_live_on_the_same_encoder_runs(twin, tmp_path):
             time.sleep(1.0)  # the device streams into the closed port meanwhile
         dev.kill()
     assert [r.bursts for r in reports] == [3, 3], [r.summary() for r in reports]
+
+
+def test_live_sequences_coarse_bursts_for_cad_free_unwrapping(tmp_path):
+    """projector.coarse_period_px makes live show a coarse burst first and then after every
+    coarse_every measuring bursts; recon.unwrap = "coarse" measures the fine bursts around it without
+    the CAD: as many points as around the CAD on a still gear 0.6 mm off its CAD, with its true
+    deviation; the live recording keeps the coarse bursts, so it replays CAD-free too."""
+    from gearscan.live import run_live
+    from gearscan.replay import replay
+    from gearscan.twin.defects import GearDefects
+
+    rec = render_recording(tmp_path / "twin", rig=default_rig(192, 192), motion="static", bursts=4,
+                           defects=GearDefects(module=2.06), coarse_period_px=160.0, coarse_every=2)
+    rig_path = tmp_path / "rig.json"
+    RecordingReader(rec).rig.save(rig_path)
+    text = _config(tmp_path, rec, rig_path, None).read_text()
+    points = {}
+    for mode in ("coarse", "cad"):
+        cfg = LiveConfig.from_toml(text.replace("settle_ms = 1", "settle_ms = 1\ncoarse_period_px = 160.0\ncoarse_every = 2")
+                                   + f'\n[recon]\nunwrap = "{mode}"\n', "live.toml")
+        seen = {}
+        report = run_live(cfg, record=tmp_path / f"rec-{mode}", bursts=4, decoder=Decoder(classical=True),
+                          on_burst=lambda m, row, seen=seen: seen.setdefault(m.burst.index, m), handle_signals=False)
+        assert report.bursts == 4 and report.coarse_bursts == 2, report.summary()
+        assert "2 coarse bursts" in report.summary()
+        assert all(m.burst.group == 0 for m in seen.values())  # coarse bursts are the prior, not a result
+        points[mode] = {k: len(m.cloud) for k, m in seen.items()}  # a busy stage may skip a burst (counted)
+        assert len(seen) >= 2 and report.status.measured == len(seen), report.summary()
+    both = set(points["coarse"]) & set(points["cad"])
+    assert both, points
+    for k in both:  # the coarse prior finds the orders the CAD finds: the same points, burst by burst
+        assert points["coarse"][k] >= 0.95 * points["cad"][k] > 1000, points
+    live_rec = RecordingReader(tmp_path / "rec-coarse")
+    assert live_rec.patterns.coarse_period_px == 160.0 and len(live_rec) == 3 * (4 + 2)
+    metrics = replay(tmp_path / "rec-coarse", decoder=Decoder(classical=True), unwrap="coarse", truth=False)
+    assert metrics.assembler["coarse_bursts"] == 2 and len(metrics.per_burst) == 4
+
+
+def test_coarse_unwrapping_needs_a_coarse_period():
+    text = TEMPLATE.replace('unwrap = "cad"', 'unwrap = "coarse"')
+    with pytest.raises(ValueError, match="projector.coarse_period_px"):
+        LiveConfig.from_toml(text, "rig.toml")
+    with pytest.raises(ValueError, match="coarse_period_px must exceed period_px"):
+        LiveConfig.from_toml(text.replace("# coarse_period_px = 160.0", "coarse_period_px = 20.0"), "rig.toml")
+    cfg = LiveConfig.from_toml(text.replace("# coarse_period_px = 160.0", "coarse_period_px = 160.0"), "rig.toml")
+    assert cfg.projector.patterns().cycle(cfg.projector.coarse_every) == [3, 4, 5] + [0, 1, 2] * 4

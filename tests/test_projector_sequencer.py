@@ -52,6 +52,22 @@ def test_software_sync_shows_then_triggers_and_stamps_patterns(camera):
     assert [f.frame_id for f in frames] == list(range(9))
 
 
+def test_coarse_bursts_are_shown_in_the_cycle_order(camera):
+    """With a coarse group the projector shows a coarse burst first and then coarse_every measuring
+    bursts (the order twin recordings use); each frame is stamped with the pattern it saw."""
+    proj = MockProjector(width=64, height=8)
+    proj.open()
+    pats = PatternSet.with_coarse(16.0, 64.0)
+    order = pats.cycle(coarse_every=2)
+    assert order == [3, 4, 5, 0, 1, 2, 0, 1, 2]
+    frames = list(SoftwareSequencer(proj, camera, pats, settle_s=0.0).run(cycles=1, order=order))
+    assert [f.pattern_index for f in frames] == order == [s.index for s in proj.log]
+    assert [s.checksum for s in proj.log[:3]] == [int(pats.image(i, 64, 8).sum()) for i in (3, 4, 5)]
+    assert PatternSet.three_step(16.0).cycle(coarse_every=5) == [0, 1, 2]  # no coarse group: the plain burst
+    with pytest.raises(ValueError, match="order"):
+        next(SoftwareSequencer(proj, camera, pats).run(order=[0, 6]))
+
+
 def test_gamma_precompensation_linearises_a_simulated_display():
     gamma, black = 2.2, 0.03
 

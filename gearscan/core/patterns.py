@@ -91,6 +91,15 @@ class PatternSet:
         pats = cls.n_step(3, period_px).patterns + cls.n_step(3, coarse_period_px).patterns
         return cls(pats, name=f"3-step@{period_px:g}px+coarse@{coarse_period_px:g}px")
 
+    def cycle(self, coarse_every: int = 1) -> list[int]:
+        """Pattern indices of one sequence cycle: the three-step burst (0, 1, 2); with a coarse group a
+        coarse burst (3, 4, 5) first and then ``coarse_every`` measuring bursts (as twin recordings do)."""
+        if self.coarse_period_px is None:
+            return list(range(len(self.patterns)))
+        if coarse_every < 1:
+            raise PatternError(f"coarse_every: expected >= 1 measuring burst per coarse burst, got {coarse_every}")
+        return [3, 4, 5] + [0, 1, 2] * coarse_every
+
     @property
     def coarse_period_px(self) -> float | None:
         """The coarse bursts' period when this set is two three-step groups (fine, coarse), else None."""
