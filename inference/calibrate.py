@@ -5,24 +5,33 @@ predicts whole validation bursts; the wrapped phase errors against the twin's tr
 predicted total sigmas fit ``sigma' = a * sigma**b`` by Gaussian NLL
 (:func:`~gearscan.inference.uncertainty.fit_sigma_calibration`). To show that the map transfers,
 it is first fitted on half of the start points and scored on the other half; the stored map is
-then fitted on all of them.
+then fitted on all of them. :func:`calibrate_trained_model` fits the same maps (and the variance
+scale) on the validation loader at the end of training.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import math
+from collections.abc import Callable, Iterable, Sequence
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from gearscan.core.phase import phase_error
+from gearscan.inference.concrete_dropout import set_stochastic
 from gearscan.inference.model_io import read_config, write_config
+from gearscan.inference.models import PhaseNet
 from gearscan.inference.predictor import Predictor, model_path
 from gearscan.inference.uncertainty import (
     SigmaCalibration,
     fit_sigma_calibration,
+    fit_variance_scale,
     gaussian_nll,
+    mc_moments,
+    phase_sigma,
+    plot_reliability,
     reliability,
 )
 
@@ -80,6 +89,7 @@ def calibrate_model(
     Writes ``sigma_calibration`` and an ``uncertainty_calibration`` report into the model's JSON
     (or into ``output``'s JSON, copying the weights there); returns that report.
     """
+    from gearscan.inference.data import MotionInput
     from gearscan.twin.dataset import TwinBurstDataset
 
     path = model_path(model)
@@ -89,7 +99,9 @@ def calibrate_model(
     predictor.calibration = {}  # fit on the uncalibrated sigma (var_scale stays applied)
     # the bursts the network decodes in use: moving ones (the pipeline's Decoder sends still
     # bursts to three-step PS), turning either way
-    dataset = TwinBurstDataset(val, crop=None, reverse=True, motion_input=predictor.needs_angles)
+    dataset = TwinBurstDataset(val, crop=None, reverse=True)
+    if predictor.needs_angles:
+        dataset = MotionInput(dataset)
     rng = np.random.default_rng(seed)
     pick = sorted(rng.choice(len(dataset), min(items, len(dataset)), replace=False).tolist())
     modes = [("deterministic", 0)] + ([("mc", mc)] if mc > 0 and predictor.has_dropout else [])
@@ -117,3 +129,73 @@ def calibrate_model(
         shutil.copyfile(path, target)
     write_config(target, meta)
     return report
+
+
+@torch.no_grad()
+def calibrate_trained_model(
+    model: PhaseNet,
+    val_loader: Iterable[dict],
+    device: torch.device,
+    autocast: Callable[[], AbstractContextManager[object]],
+    mc: int = 0,
+    reliability_png: str | Path | None = None,
+) -> tuple[float, dict, dict]:
+    """Fit a freshly trained model's uncertainty calibration on validation batches.
+
+    Returns (var_scale, report, sigma maps): the deterministic-mode variance scale (kept only if
+    ECE improves), then the sigma map ``a * sigma**b`` per mode by Gaussian NLL
+    (:func:`fit_sigma_calibration`; MC mode with ``mc`` passes when ``mc`` > 0), as
+    ``gearscan calibrate-uncertainty`` fits it. ``val_loader`` is iterated once per mode;
+    ``reliability_png``: where to draw the deterministic reliability diagram (None: not drawn).
+    """
+
+    def collect(passes: int) -> tuple[np.ndarray, np.ndarray]:
+        errs, sigs = [], []
+        for batch in val_loader:
+            x = batch["input"].to(device)
+            with autocast():
+                if passes:
+                    st = mc_moments(model, x, passes)
+                    M, D = st.M.cpu().numpy(), st.D.cpu().numpy()
+                    var_M = (st.model_var_M + st.data_var_M).cpu().numpy()
+                    var_D = (st.model_var_D + st.data_var_D).cpu().numpy()
+                else:
+                    pred = model(x).float().cpu().numpy()
+                    M, D, var_M, var_D = pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3]
+            mask = batch["mask"].numpy().astype(bool)
+            errs.append(phase_error(np.arctan2(M, D), batch["phase"].numpy())[mask])
+            # model and data sigma add in quadrature: one propagation of the summed variances
+            sigs.append(phase_sigma(M, D, var_M, var_D)[mask])
+        return np.concatenate(errs), np.concatenate(sigs)
+
+    model.eval()
+    set_stochastic(model, False)
+    err, sig = collect(0)
+    if err.size == 0:
+        return 1.0, {}, {}
+    k, before, after = fit_variance_scale(err, sig)
+    sig = sig * math.sqrt(k)
+    det_map, det_fit = fit_sigma_calibration(err, sig)
+    sigma_cal = {"deterministic": det_map.to_json()}
+    report = {
+        "mode": "deterministic",
+        "var_scale": k,
+        "ece_before": before,
+        "ece_after": after,
+        "pixels": int(err.size),
+        "sigma_calibration": {"deterministic": det_fit},
+    }
+    if reliability_png is not None:
+        plot_reliability(
+            reliability(err, det_map(sig)),
+            reliability_png,
+            f"validation, var scale {k:.3g}, sigma' = {det_map.a:.3g} sigma^{det_map.b:.2f}",
+        )
+    if mc > 0:
+        err, sig = collect(mc)
+        mc_map, mc_fit = fit_sigma_calibration(err, sig * math.sqrt(k))
+        sigma_cal["mc"] = mc_map.to_json()
+        report["sigma_calibration"]["mc"] = mc_fit | {"passes": mc}
+    model.eval()
+    set_stochastic(model, False)
+    return k, report, sigma_cal

@@ -210,7 +210,7 @@ def _load_dataset(spec: str, max_items: int | None = None, motion_input: bool = 
     ``package.module:function`` returning a dataset or (train, val)."""
     import importlib
 
-    from gearscan.inference.data import NpzBurstDataset
+    from gearscan.inference.data import MotionInput, NpzBurstDataset
 
     if (Path(spec) / "index.json").is_file():
         import numpy as np
@@ -218,7 +218,9 @@ def _load_dataset(spec: str, max_items: int | None = None, motion_input: bool = 
 
         from gearscan.twin.dataset import TwinBurstDataset
 
-        ds = TwinBurstDataset(spec, static=True, motion_input=motion_input, reverse=reverse)
+        ds = TwinBurstDataset(spec, static=True, reverse=reverse)
+        if motion_input:
+            ds = MotionInput(ds)
         if max_items is not None and len(ds) > max_items:  # a validation sample, seeded
             pick = np.random.default_rng(0).choice(len(ds), max_items, replace=False)
             return Subset(ds, sorted(pick.tolist()))

@@ -14,7 +14,6 @@ to load every item.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -122,49 +121,30 @@ class NpzBurstDataset(TensorBurstDataset):
         return paths
 
 
-def render_twin_bursts(
-    *,
-    size: int = 64,
-    field_mm: float = 10.0,
-    teeth: int = 20,
-    starts: int = 4,
-    bursts_per_start: int = 2,
-    max_step_deg: float = 0.6,
-    period_px: float = 18.0,
-    seed: int = 0,
-) -> list[dict]:
-    """Render a small set of moving three-step bursts from the twin (for tests and smoke runs).
+class MotionInput(Dataset):
+    """A dataset whose items also carry the encoder's rotation as input channels.
 
-    Start points are spread over one tooth pitch; from each, ``bursts_per_start`` bursts with
-    random frame steps in ``[0, max_step_deg]``. The label is the analytic truth at the first
-    frame's pose (M, D normalised; DESIGN.md). ``group`` is the start-point index.
+    Appends :func:`~gearscan.inference.models.motion_channels` of each item's ``"angles"``
+    (the three frames' turntable angles, rad) to its ``"input"``: what a ``motion_input``
+    network is fed. ``groups`` passes through, so group-aware splits still work.
     """
-    from gearscan.core.gear import GearSpec
-    from gearscan.core.patterns import PatternSet
-    from gearscan.core.rig import default_rig
-    from gearscan.twin.render import TwinRenderer
 
-    rng = np.random.default_rng(seed)
-    gear = GearSpec(teeth=teeth)
-    renderer = TwinRenderer(default_rig(size, size, field_mm=field_mm), gear)
-    patterns = PatternSet.three_step(period_px)
-    pitch = 2 * math.pi / teeth
-    scale = float(renderer.optics.full_scale)
-    items = []
-    for s in range(starts):
-        a0 = pitch * s / starts
-        for _ in range(bursts_per_start):
-            steps = np.radians(rng.uniform(0.0, max_step_deg, size=2))
-            angles = [a0, a0 + steps[0], a0 + steps[0] + steps[1]]
-            imgs, truths = renderer.render_sequence(angles, patterns, [0, 1, 2], rng)
-            t = truths[0]
-            items.append(
-                {
-                    "input": imgs.astype(np.float32) / scale,
-                    "target": np.stack([t.M, t.D]).astype(np.float32),
-                    "mask": t.mask,
-                    "phase": t.phase.astype(np.float32),
-                    "group": s,
-                }
-            )
-    return items
+    def __init__(self, dataset: Dataset) -> None:
+        self.dataset = dataset
+
+    def __len__(self) -> int:
+        return len(self.dataset)  # type: ignore[arg-type]
+
+    @property
+    def groups(self) -> Sequence[int] | None:
+        return getattr(self.dataset, "groups", None)
+
+    def __getitem__(self, i: int) -> dict:
+        from gearscan.inference.models import motion_channels
+
+        item = dict(self.dataset[i])
+        if "angles" not in item:
+            raise KeyError(f"item {i}: a motion-input network needs the burst's 'angles' (rad); this dataset has none")
+        inp = np.asarray(item["input"], dtype=np.float32)
+        item["input"] = np.concatenate([inp, motion_channels(item["angles"], *inp.shape[1:])])
+        return item

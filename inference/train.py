@@ -4,7 +4,8 @@
   dropout rates get no gradient); stage 2 turns the masks and the regulariser on, starting
   from the best stage-1 weights. Models without dropout (the peers) run stage 1 only.
 - Adam, learning rate ``lr`` with a schedule restarted per stage: ``step`` (x ``gamma`` every
-  ``step_every`` epochs; paper: 1e-3, x0.9 every 20), ``cosine`` or ``constant``.
+  ``step_every`` epochs; paper: 1e-3, x0.9 every 20), ``cosine`` or ``constant``; torch's
+  schedulers, stepped once per epoch (:mod:`gearscan.inference.lr_schedule`).
 - Early stopping per stage after ``patience`` epochs without validation improvement. The
   validation score is ``alpha*NLL + mse_weight*MSE`` in deterministic mode (no regulariser), so
   it compares across stages.
@@ -22,10 +23,12 @@
   the best-on-val weights so far are saved as ``cpu_<m>min.safetensors`` (a 10-minute budget's
   result, read off a longer run with a constant schedule). Every metrics row has ``cpu_min``.
 - DDP: launched with ``torchrun`` (env ``WORLD_SIZE`` > 1), gloo on CPU, nccl on CUDA; rank 0
-  writes files; validation sums are all-reduced so every rank takes the same decisions.
+  writes files; validation sums are all-reduced so every rank takes the same decisions
+  (:mod:`gearscan.inference.distributed`).
 
-Resuming restores weights, optimizer, stage, epoch, best score and history (not the data
-order's RNG state, so a resumed run is statistically, not bitwise, the same).
+Resuming restores weights, optimizer, stage, epoch, best score and history, and rebuilds the
+stage's learning-rate schedule at that epoch (not the data order's RNG state, so a resumed run is
+statistically, not bitwise, the same).
 """
 
 from __future__ import annotations
@@ -34,12 +37,10 @@ import contextlib
 import csv
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Subset
 
@@ -50,11 +51,18 @@ from gearscan.inference.concrete_dropout import (
     set_stochastic,
 )
 from gearscan.inference.data import dataset_groups, split_by_group
+from gearscan.inference.distributed import (
+    Dist,
+    all_reduce_sum,
+    barrier,
+    init_distributed,
+    resolve_device,
+)
 from gearscan.inference.losses import LossConfig, PhaseLoss
+from gearscan.inference.lr_schedule import SCHEDULES, build_scheduler
 from gearscan.inference.model_io import load_into, load_state, save_model, widen_inputs
 from gearscan.inference.models import ModelConfig, PhaseNet, build_model
-
-SCHEDULES = ("step", "cosine", "constant")
+from gearscan.inference.plots import plot_history
 
 
 @dataclass
@@ -121,51 +129,6 @@ class TrainConfig:
         return d
 
 
-def learning_rate(
-    config: TrainConfig, epoch_in_stage: int, stage_epochs: int, stage: int = 1
-) -> float:
-    """Learning rate of an epoch (0-based within its stage); stage 2 peaks at ``lr_dropout``."""
-    base = config.lr if stage == 1 or config.lr_dropout is None else config.lr_dropout
-    if config.schedule == "step":
-        return base * config.gamma ** (epoch_in_stage // config.step_every)
-    if config.schedule == "cosine":
-        return 0.5 * base * (1 + math.cos(math.pi * epoch_in_stage / max(1, stage_epochs)))
-    return base
-
-
-# --- distributed helpers ------------------------------------------------------------------------
-@dataclass
-class Dist:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-
-def init_distributed(device_kind: str) -> Dist:
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return Dist()
-    import torch.distributed as dist
-
-    if not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if device_kind == "cuda" else "gloo")
-    return Dist(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")))
-
-
-def _all_reduce(values: list[float], d: Dist, device: torch.device) -> list[float]:
-    if d.world == 1:
-        return values
-    import torch.distributed as dist
-
-    t = torch.tensor(values, dtype=torch.float64, device=device)
-    dist.all_reduce(t)
-    return t.tolist()
-
-
 # --- the loop -------------------------------------------------------------------------------------
 @dataclass
 class TrainResult:
@@ -176,14 +139,6 @@ class TrainResult:
     seconds: float
     cpu_seconds: float = 0.0  # CPU time of this process over the whole fit (all threads)
     budget_hit: bool = False
-
-
-def _resolve_device(name: str, d: Dist) -> torch.device:
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda":
-        return torch.device("cuda", d.local_rank)
-    return torch.device(name)
 
 
 def _crop(batch: dict, size: int | None, gen: torch.Generator) -> dict:
@@ -216,9 +171,9 @@ class Trainer:
         self, config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None
     ) -> None:
         self.config = config
-        self.device = _resolve_device(config.device, Dist())
+        self.device = resolve_device(config.device, Dist())
         self.dist = init_distributed(self.device.type)
-        self.device = _resolve_device(config.device, self.dist)
+        self.device = resolve_device(config.device, self.dist)
         from gearscan.inference.predictor import resolve_precision
 
         self.precision = resolve_precision(config.precision, self.device)  # by the CPU's bf16 support
@@ -240,6 +195,7 @@ class Trainer:
                 reset_dropout_rates(self.model, config.model.init_min, config.model.init_max)
         self.criterion = PhaseLoss(config.loss)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+        self.scheduler: torch.optim.lr_scheduler.LRScheduler | None = None  # the running stage's
         self.has_dropout = bool(concrete_layers(self.model))
         self.state = {"stage": 1, "epoch": 0, "best": math.inf, "bad": 0, "stage_best": math.inf, "cpu_s": 0.0,
                       "checkpoints": []}
@@ -346,9 +302,7 @@ class Trainer:
         load_into(net, load_state(src), src)
         return net
 
-    def _train_epoch(self, net: torch.nn.Module, stage: int, epoch: int, lr: float) -> dict:
-        for g in self.optimizer.param_groups:
-            g["lr"] = lr
+    def _train_epoch(self, net: torch.nn.Module, stage: int, epoch: int) -> dict:
         self.model.train()
         set_stochastic(self.model, stage == 2)
         gen = torch.Generator().manual_seed(self.config.seed * 100003 + epoch * 7 + self.dist.rank)
@@ -390,7 +344,7 @@ class Trainer:
         if bar is not None:
             bar.stop()
         set_stochastic(self.model, False)
-        vals = _all_reduce([sums[k] for k in sums] + [n], self.dist, self.device)
+        vals = all_reduce_sum([sums[k] for k in sums] + [n], self.dist, self.device)
         return {f"train_{k}": vals[j] / max(vals[-1], 1) for j, k in enumerate(sums)} | {"steps": n}
 
     @torch.no_grad()
@@ -418,7 +372,7 @@ class Trainer:
             se, npx = _wrapped_sq_err(pred.float(), batch["phase"].to(self.device), mask)
             acc[2] += se
             acc[3] += npx
-        acc = _all_reduce(acc, self.dist, self.device)
+        acc = all_reduce_sum(acc, self.dist, self.device)
         return {"val_loss": acc[0] / max(acc[1], 1), "val_rmse": math.sqrt(acc[2] / max(acc[3], 1))}
 
     # both stages -----------------------------------------------------------------------------
@@ -449,12 +403,14 @@ class Trainer:
                     self.model,
                     device_ids=[self.device.index] if self.device.type == "cuda" else None,
                 )
+            # epoch > 0 when resuming mid-stage: the schedule picks up where it was
+            self.scheduler = build_scheduler(self.optimizer, cfg, stage, n_epochs, self.state["epoch"])
             while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience and not self.budget_spent():
                 epoch = self.state["epoch"]
-                lr = learning_rate(cfg, epoch, n_epochs, stage)
                 te = time.perf_counter()
-                row = {"stage": stage, "epoch": epoch + 1, "lr": lr}
-                row.update(self._train_epoch(net, stage, epoch, lr))
+                row = {"stage": stage, "epoch": epoch + 1, "lr": self.scheduler.get_last_lr()[0]}
+                row.update(self._train_epoch(net, stage, epoch))
+                self.scheduler.step()
                 row.update(self._validate())
                 row["seconds"] = time.perf_counter() - te
                 row["cpu_min"] = self.cpu_seconds() / 60.0
@@ -480,7 +436,7 @@ class Trainer:
                     self._write_metrics()
             # stage done: continue from this stage's best weights
             best_file = self.out / f"stage{stage}_best.safetensors"
-            self._barrier()
+            barrier(self.dist)
             if best_file.is_file():
                 load_into(self.model, load_state(best_file), best_file)
             self.state.update(
@@ -499,7 +455,16 @@ class Trainer:
         fit_cpu = self.cpu_seconds()
         var_scale, calib, sigma_cal = 1.0, {}, {}
         if cfg.calibrate:
-            var_scale, calib, sigma_cal = self._calibrate()
+            from gearscan.inference.calibrate import calibrate_trained_model
+
+            var_scale, calib, sigma_cal = calibrate_trained_model(
+                self.model,
+                self._loader(self.val_set, False, 0),
+                self.device,
+                self._autocast,
+                mc=cfg.calibrate_mc if cfg.model.dropout else 0,
+                reliability_png=self.out / "reliability.png" if self.dist.main else None,
+            )
         best_path = None
         if self.dist.main:
             final = self.history[-1] if self.history else {}
@@ -518,121 +483,16 @@ class Trainer:
                     "budget_hit": budget_hit,
                 },
             )
-        self._barrier()
+        barrier(self.dist)
         return TrainResult(
             best_path, self.history, float(self.state["best"]), var_scale, time.perf_counter() - t0,
             fit_cpu, budget_hit,
         )
 
-    def _barrier(self) -> None:
-        if self.dist.world > 1:
-            import torch.distributed as dist
-
-            dist.barrier()
-
-    @torch.no_grad()
-    def _calibrate(self) -> tuple[float, dict, dict]:
-        """Fit the uncertainty calibration on validation data: returns (var_scale, report, sigma maps).
-
-        The deterministic-mode variance scale (kept only if ECE improves), then the sigma map
-        ``a * sigma**b`` per mode by Gaussian NLL (:func:`fit_sigma_calibration`; MC mode with
-        ``calibrate_mc`` passes when the model has Concrete Dropout), as
-        ``gearscan calibrate-uncertainty`` fits it.
-        """
-        from gearscan.core.phase import phase_error
-        from gearscan.inference.uncertainty import (
-            fit_sigma_calibration,
-            fit_variance_scale,
-            mc_moments,
-            phase_sigma,
-            plot_reliability,
-            reliability,
-        )
-
-        def collect(mc: int) -> tuple[np.ndarray, np.ndarray]:
-            errs, sigs = [], []
-            for batch in self._loader(self.val_set, False, 0):
-                x = batch["input"].to(self.device)
-                with self._autocast():
-                    if mc:
-                        st = mc_moments(self.model, x, mc)
-                        M, D = st.M.cpu().numpy(), st.D.cpu().numpy()
-                        var_M = (st.model_var_M + st.data_var_M).cpu().numpy()
-                        var_D = (st.model_var_D + st.data_var_D).cpu().numpy()
-                    else:
-                        pred = self.model(x).float().cpu().numpy()
-                        M, D, var_M, var_D = pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3]
-                mask = batch["mask"].numpy().astype(bool)
-                errs.append(phase_error(np.arctan2(M, D), batch["phase"].numpy())[mask])
-                # model and data sigma add in quadrature: one propagation of the summed variances
-                sigs.append(phase_sigma(M, D, var_M, var_D)[mask])
-            return np.concatenate(errs), np.concatenate(sigs)
-
-        self.model.eval()
-        set_stochastic(self.model, False)
-        err, sig = collect(0)
-        if err.size == 0:
-            return 1.0, {}, {}
-        k, before, after = fit_variance_scale(err, sig)
-        sig = sig * math.sqrt(k)
-        det_map, det_fit = fit_sigma_calibration(err, sig)
-        sigma_cal = {"deterministic": det_map.to_json()}
-        report = {
-            "mode": "deterministic",
-            "var_scale": k,
-            "ece_before": before,
-            "ece_after": after,
-            "pixels": int(err.size),
-            "sigma_calibration": {"deterministic": det_fit},
-        }
-        if self.dist.main:
-            plot_reliability(
-                reliability(err, det_map(sig)),
-                self.out / "reliability.png",
-                f"validation, var scale {k:.3g}, sigma' = {det_map.a:.3g} sigma^{det_map.b:.2f}",
-            )
-        if self.config.calibrate_mc > 0 and self.config.model.dropout:
-            err, sig = collect(self.config.calibrate_mc)
-            mc_map, mc_fit = fit_sigma_calibration(err, sig * math.sqrt(k))
-            sigma_cal["mc"] = mc_map.to_json()
-            report["sigma_calibration"]["mc"] = mc_fit | {"passes": self.config.calibrate_mc}
-        self.model.eval()
-        set_stochastic(self.model, False)
-        return k, report, sigma_cal
-
 
 def train(config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None) -> TrainResult:
     """Train per ``config`` on ``train_set`` (split by group if ``val_set`` is None)."""
     return Trainer(config, train_set, val_set).fit()
-
-
-def plot_history(history: list[dict], path: str | Path) -> Path:
-    """Loss curves (train total, val loss) and val RMSE per epoch, stage boundaries dashed."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    x = np.arange(1, len(history) + 1)
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
-    a.plot(x, [h["train_total"] for h in history], label="train loss")
-    a.plot(x, [h["val_loss"] for h in history], label="val loss (no reg)")
-    a.set_yscale("symlog", linthresh=1e-6)
-    b.plot(x, [h["val_rmse"] for h in history], color="C2")
-    b.set_ylabel("val wrapped RMSE (rad)")
-    if all(h["val_rmse"] > 0 for h in history):
-        b.set_yscale("log")
-    for ax in (a, b):
-        ax.set_xlabel("epoch")
-        for i in range(1, len(history)):
-            if history[i]["stage"] != history[i - 1]["stage"]:
-                ax.axvline(i + 0.5, ls="--", color="grey")
-    a.legend()
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
 
 
 if (

@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, Subset
 
+from gearscan.inference.data import MotionInput
 from gearscan.inference.losses import LossConfig
 from gearscan.inference.models import ModelConfig
 from gearscan.inference.train import TrainConfig, train
@@ -87,11 +88,15 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     parts = [TwinBurstDataset(root, crop=args.crop, static=True, static_repeat=args.static_repeat, seed=i,
-                              motion_input=args.motion_input, reverse=args.reverse)
+                              reverse=args.reverse)
              for i, root in enumerate(args.train)]
+    if args.motion_input:
+        parts = [MotionInput(p) for p in parts]
     train_set = parts[0] if len(parts) == 1 else ConcatDataset(parts)
     p_min, p_max = (float(v) for v in args.dropout_init.split(","))
-    val_full = TwinBurstDataset(args.val, crop=None, static=True, motion_input=args.motion_input, reverse=args.reverse)
+    val_full = TwinBurstDataset(args.val, crop=None, static=True, reverse=args.reverse)
+    if args.motion_input:
+        val_full = MotionInput(val_full)
     rng = np.random.default_rng(0)
     val_set = Subset(val_full, sorted(rng.choice(len(val_full), args.val_items, replace=False).tolist()))
     residual = not args.no_residual

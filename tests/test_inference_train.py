@@ -1,9 +1,10 @@
-"""Training loop on a tiny twin set: overfits, two stages, group split, resume, init, DDP."""
+"""Training loop on a tiny twin set: overfits, two stages, group split, LR schedules, resume, init, DDP."""
 
 from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import subprocess
 import sys
@@ -18,14 +19,15 @@ from gearscan.core.phase import three_step, wrapped_rmse
 from gearscan.inference.data import (
     NpzBurstDataset,
     TensorBurstDataset,
-    render_twin_bursts,
     split_by_group,
 )
 from gearscan.inference.losses import LossConfig
+from gearscan.inference.lr_schedule import build_scheduler
 from gearscan.inference.model_io import load_model
 from gearscan.inference.models import ModelConfig
 from gearscan.inference.predictor import Predictor
-from gearscan.inference.train import TrainConfig, Trainer, learning_rate, train
+from gearscan.inference.train import TrainConfig, Trainer, train
+from gearscan.mocks.twin_bursts import render_twin_bursts
 
 torch.set_num_threads(1)
 
@@ -210,15 +212,65 @@ def test_split_by_group_never_mixes():
         split_by_group([1, 1, 1])
 
 
+def _epoch_lrs(cfg: TrainConfig, stage_epochs: int, stage: int = 1, start: int = 0) -> list[float]:
+    """The learning rate of each epoch of a stage from ``start`` on, stepped as the trainer does."""
+    opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=cfg.lr)
+    scheduler = build_scheduler(opt, cfg, stage, stage_epochs, start)
+    lrs = []
+    for _ in range(start, stage_epochs):
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        scheduler.step()
+    return lrs
+
+
 def test_learning_rate_schedules():
     cfg = TrainConfig(lr=1e-3, step_every=20, gamma=0.9)
-    assert learning_rate(cfg, 0, 100) == pytest.approx(1e-3)
-    assert learning_rate(cfg, 19, 100) == pytest.approx(1e-3)
-    assert learning_rate(cfg, 45, 100) == pytest.approx(1e-3 * 0.81)
+    step = _epoch_lrs(cfg, 100)
+    assert step[:20] == pytest.approx([1e-3] * 20)  # epochs 0-19
+    assert step[20] == pytest.approx(9e-4)
+    assert step[45] == pytest.approx(1e-3 * 0.81)
+    assert step == pytest.approx([1e-3 * 0.9 ** (e // 20) for e in range(100)], rel=1e-12)
     cos = TrainConfig(lr=1e-3, schedule="cosine")
-    assert learning_rate(cos, 50, 100) == pytest.approx(5e-4)
+    cosine = _epoch_lrs(cos, 100)
+    assert cosine[0] == pytest.approx(1e-3) and cosine[50] == pytest.approx(5e-4)  # half way: half
+    assert cosine == pytest.approx([0.5e-3 * (1 + math.cos(math.pi * e / 100)) for e in range(100)], rel=1e-12)
+    assert _epoch_lrs(TrainConfig(lr=1e-3, schedule="constant"), 30) == pytest.approx([1e-3] * 30)
+    # stage 2 restarts at lr_dropout, also on the optimizer stage 1 ran on
+    two = TrainConfig(lr=1e-3, lr_dropout=2e-4, step_every=20, gamma=0.9)
+    assert _epoch_lrs(two, 50, stage=2)[::20] == pytest.approx([2e-4, 1.8e-4, 1.62e-4])
+    opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=two.lr)
+    build_scheduler(opt, two, 1, 50, 45)
+    assert opt.param_groups[0]["lr"] == pytest.approx(1e-3 * 0.81)
+    build_scheduler(opt, two, 2, 50)
+    assert opt.param_groups[0]["lr"] == pytest.approx(2e-4)
+    # resuming at an epoch: the rates of the uninterrupted stage
+    assert _epoch_lrs(cfg, 100, start=45) == step[45:]
+    assert _epoch_lrs(cos, 100, start=37) == cosine[37:]
     with pytest.raises(ValueError, match="schedule: expected one of"):
         TrainConfig(schedule="linear")
+
+
+def test_resume_mid_stage_keeps_the_schedule(tmp_path, monkeypatch):
+    ds = TensorBurstDataset(list(twin_items()))
+    kw = dict(epochs_deterministic=4, epochs_dropout=0, schedule="cosine", steps_per_epoch=1, calibrate=False)
+    original = Trainer._train_epoch
+    calls = {"n": 0}
+
+    def flaky(self, *a, **kw):
+        calls["n"] += 1
+        if calls["n"] == 3:  # Ctrl-C in the third epoch of stage 1
+            raise KeyboardInterrupt
+        return original(self, *a, **kw)
+
+    monkeypatch.setattr(Trainer, "_train_epoch", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        train(_cfg(tmp_path, **kw), ds, ds)
+    monkeypatch.setattr(Trainer, "_train_epoch", original)
+    resumed = train(_cfg(tmp_path, resume=True, **kw), ds, ds)
+    assert [(h["stage"], h["epoch"]) for h in resumed.history] == [(1, 1), (1, 2), (1, 3), (1, 4)]
+    expected = [0.5e-3 * (1 + math.cos(math.pi * e / 4)) for e in range(4)]
+    assert [h["lr"] for h in resumed.history] == pytest.approx(expected, rel=1e-12)
 
 
 def test_ddp_two_processes_gloo(tmp_path):

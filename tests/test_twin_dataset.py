@@ -9,6 +9,7 @@ import pytest
 
 from gearscan.core.gear import GearSpec
 from gearscan.core.phase import wrapped_rmse
+from gearscan.inference.data import MotionInput
 from gearscan.twin.dataset import (
     DatasetError,
     DatasetSpec,
@@ -50,9 +51,12 @@ def test_items_labels_and_truth(small_dataset):
 
 def test_motion_input_carries_the_encoder_rotation(small_dataset):
     root, spec = small_dataset
-    plain, moving = TwinBurstDataset(root), TwinBurstDataset(root, motion_input=True)
+    plain = TwinBurstDataset(root)
+    moving = MotionInput(plain)
+    assert moving.groups == plain.groups
     a, b = plain[816 + 5], moving[816 + 5]
     i, j, k = b["poses"]
+    np.testing.assert_allclose(a["angles"], np.radians(np.array([i, j, k]) * spec.pose_step_deg))
     assert b["input"].shape == (5, 80, 80)
     np.testing.assert_array_equal(b["input"][:3], a["input"])
     np.testing.assert_allclose(b["input"][3:, 0, 0], [(j - i) * spec.pose_step_deg, (k - i) * spec.pose_step_deg], rtol=1e-5)

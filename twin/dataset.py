@@ -222,8 +222,8 @@ class TwinBurstDataset:
     M, D, ``mask`` (H, W) bool, ``phase`` (H, W) truth wrapped phase, ``group`` (start point id,
     for splits) and ``span_deg`` (angle from frame 1 to frame 3). ``static=True`` adds the
     ``poses`` motionless bursts (i, i, i) to the protocol's i < j < k ones, ``static_repeat``
-    times each (oversampling: they are 2 % of the inputs otherwise). ``motion_input=True``
-    appends the encoder's rotation channels (:func:`~gearscan.inference.models.motion_channels`).
+    times each (oversampling: they are 2 % of the inputs otherwise). ``angles`` are the three
+    frames' turntable angles (rad, from the start point): what an encoder would report.
     ``reverse=True`` adds every moving burst played backwards (poses k > j > i, the same three
     patterns in the same order, label at pose k): the turntable turning the other way, from the
     same renders.
@@ -240,7 +240,6 @@ class TwinBurstDataset:
         crop: int | None = None,
         groups: list[int] | None = None,
         seed: int = 0,
-        motion_input: bool = False,
         reverse: bool = False,
     ) -> None:
         self.root = Path(root)
@@ -275,7 +274,6 @@ class TwinBurstDataset:
         if crop is not None and not (16 <= crop <= min(self.spec.width, self.spec.height)):
             raise DatasetError(f"crop must be in 16..{min(self.spec.width, self.spec.height)}, got {crop}")
         self.crop = crop
-        self.motion_input = motion_input
         self._rng = np.random.default_rng(seed)
         self._arrays: dict[int, dict[str, np.ndarray]] = {}
         self._idx3 = [0, self.spec.steps // 3, 2 * self.spec.steps // 3]
@@ -312,11 +310,6 @@ class TwinBurstDataset:
             sl = (slice(None), slice(None))
         frames = np.stack([a["images"][p, s][sl] for p, s in zip((i, j, k), self._idx3, strict=True)])
         inp = frames.astype(np.float32) / self.full_scale(g)
-        if self.motion_input:  # the encoder's view of the burst: rotation since frame 1
-            from gearscan.inference.models import motion_channels
-
-            angles = np.radians(np.array([i, j, k]) * self.spec.pose_step_deg)
-            inp = np.concatenate([inp, motion_channels(angles, *inp.shape[1:])])
         return {
             "input": inp,
             # copies: memory-mapped views are read-only and torch warns on them
@@ -327,4 +320,5 @@ class TwinBurstDataset:
             "group": g,
             "span_deg": (k - i) * self.spec.pose_step_deg,  # negative: turning backwards
             "poses": (i, j, k),
+            "angles": np.radians(np.array([i, j, k], dtype=np.float64) * self.spec.pose_step_deg),
         }
