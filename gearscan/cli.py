@@ -264,6 +264,7 @@ def replay_cmd(
     fuse: Annotated[Path | None, typer.Option(help="fuse every burst's cloud in the gear frame and write it here (.ply/.pcd/.csv: x y z mm, sigma, deviation from CAD, bursts)")] = None,
     voxel_mm: Annotated[float, typer.Option(min=0.001, help="with --fuse: voxel edge of the fused model, mm")] = 0.1,
     min_bursts: Annotated[int, typer.Option(min=1, help="with --fuse: keep fused points seen by at least this many bursts")] = 3,
+    refine: Annotated[bool, typer.Option(help="with --fuse: fit each fused point to every raw frame that saw it (keeps the recording's frames in memory)")] = True,
     ply: Annotated[Path | None, typer.Option(help="write every burst's cloud (gear frame: x y z mm, sigma) as DIR/burst_NNNNNN.ply")] = None,
     csv: Annotated[Path | None, typer.Option(help="write every burst's cloud as DIR/burst_NNNNNN.csv (x_mm,y_mm,z_mm,sigma_mm[,deviation_mm])")] = None,
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON for a recording made without one (replaces the recording's own)")] = None,
@@ -304,14 +305,17 @@ def replay_cmd(
 
             fuser = CloudFuser(voxel_mm, min_bursts)
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
-                        truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export)
+                        truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None)
         if fuse is not None:
             from gearscan.recon.fuse import save_fused
 
             if result.fused is None or not len(result.fused):
                 raise RecordingError(f"--fuse: no point was seen by {min_bursts} bursts; nothing written to {fuse}")
             save_fused(result.fused, fuse)
-            typer.echo(f"fused model: {len(result.fused):,} points from {result.fused.bursts_added} bursts -> {fuse}")
+            fitted = ""
+            if result.fused.refined is not None:
+                fitted = f", {int(result.fused.refined.sum()):,} of them fitted to the raw frames"
+            typer.echo(f"fused model: {len(result.fused):,} points from {result.fused.bursts_added} bursts{fitted} -> {fuse}")
         if export is not None:
             typer.echo(f"burst clouds: {export.written} -> " + ", ".join(str(d) for d in (ply, csv) if d is not None))
     except (RecordingError, PipelineError) as exc:
@@ -583,6 +587,7 @@ def inspect_cmd(
     min_bursts: Annotated[int, typer.Option(min=1, help="keep fused points seen by at least this many bursts")] = 3,
     unwrap: Annotated[str, typer.Option(help="fringe orders from the CAD ('cad') or its envelope ('envelope')")] = "cad",
     save: Annotated[Path | None, typer.Option(help="also write the rerun stream (bursts + fused model) to this .rrd")] = None,
+    refine: Annotated[bool, typer.Option(help="fit each fused point to every raw frame that saw it (keeps the recording's frames in memory)")] = True,
 ) -> None:
     """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
     from gearscan.core.recording import RecordingError
@@ -594,7 +599,7 @@ def inspect_cmd(
     decoder = _decoder(classical, 0, model)
     try:
         report = run_inspection(recording, out, decoder=decoder, grade=grade, voxel_mm=voxel_mm, min_bursts=min_bursts,
-                                unwrap=unwrap, save=save, progress=lambda s: typer.echo(f"- {s}"))
+                                unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"))
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
     summary = report.inspection.summary()

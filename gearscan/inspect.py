@@ -91,13 +91,15 @@ def run_inspection(
     min_bursts: int = 3,
     unwrap: str = "cad",
     save: str | Path | None = None,
+    refine: bool = True,
     progress: Callable[[str], None] | None = None,
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
 
     ``decoder``: as for :func:`~gearscan.replay.replay` (default three-step PS); ``save``: also
-    write the rerun stream (bursts and the fused model) there. ``inspect_options`` go to
+    write the rerun stream (bursts and the fused model) there; ``refine``: fit the fused points
+    to the raw frames (:class:`~gearscan.recon.track.TrackRefiner`). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import replay
@@ -112,11 +114,12 @@ def run_inspection(
     span = revolution_deg(reader)
     say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
     fuser = CloudFuser(voxel_mm, min_bursts)
-    metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save)
+    metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine)
     if metrics.fused is None or not len(metrics.fused):
         raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
     fused = metrics.fused
-    say(f"fused {len(fused):,} points from {fused.bursts_added} bursts; inspecting")
+    fitted = f", {int(fused.refined.sum()):,} fitted to the raw frames" if fused.refined is not None else ""
+    say(f"fused {len(fused):,} points from {fused.bursts_added} bursts{fitted}; inspecting")
     insp = inspect_gear(fused.points, fused.sigma, gear, voxel_mm=voxel_mm, **inspect_options)
     d = 2 * gear.pitch_radius
     tolerances = iso1328_tolerances(gear.module, d, grade) if grade is not None else None
@@ -145,7 +148,8 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         "revolution_deg": report.revolution_deg,
         "fused": {"points": len(report.fused), "bursts": report.fused.bursts_added, "voxel_mm": report.fused.voxel_mm,
                   "median_sigma_um": 1e3 * float(np.median(report.fused.sigma)),
-                  "median_bursts_per_point": float(np.median(report.fused.bursts))},
+                  "median_bursts_per_point": float(np.median(report.fused.bursts)),
+                  "refined_points": None if report.fused.refined is None else int(report.fused.refined.sum())},
         "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
         "grade": report.grade,
         "tolerances_um": report.tolerances,
@@ -174,7 +178,9 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         f"Gear: z = {insp.teeth}, m = {insp.module:g} mm, pitch diameter {insp.pitch_diameter_mm:.2f} mm. "
         f"Fused model: {len(report.fused):,} points from {report.fused.bursts_added} bursts over "
         f"{report.revolution_deg:.0f}° of the turntable (voxel {report.fused.voxel_mm:g} mm, median "
-        f"{np.median(report.fused.bursts):.0f} bursts and σ {1e3 * np.median(report.fused.sigma):.1f} µm per point).",
+        f"{np.median(report.fused.bursts):.0f} bursts and σ {1e3 * np.median(report.fused.sigma):.1f} µm per point)"
+        + (f"; {100 * report.fused.refined.mean():.0f} % of the points fitted to the raw frames that saw them."
+           if report.fused.refined is not None else "."),
         "",
         f"Gear axis fitted from the flanks: {insp.eccentricity_um:.1f} µm from the turntable axis towards "
         f"{insp.eccentricity_deg:.1f}°; transverse section z = {insp.section_mm[0]:.1f} to {insp.section_mm[1]:.1f} mm.",

@@ -38,6 +38,7 @@ class ReplayMetrics:
     assembler: dict[str, int] = field(default_factory=dict)
     damage: dict = field(default_factory=dict)  # RecordingReader.damage_summary(): skipped damage
     fused: FusedCloud | None = None  # the revolution fused in the gear frame (replay(fuse=...))
+    refine: dict = field(default_factory=dict)  # replay(refine=True): what the frame fit refined
 
     @property
     def bursts(self) -> int:
@@ -59,8 +60,11 @@ class ReplayMetrics:
         return out
 
     def to_json(self) -> dict:
-        return {"summary": self.summary(), "bursts": self.per_burst, "pipeline": self.pipeline,
-                "assembler": self.assembler, "damage": self.damage}
+        out = {"summary": self.summary(), "bursts": self.per_burst, "pipeline": self.pipeline,
+               "assembler": self.assembler, "damage": self.damage}
+        if self.refine:
+            out["refine"] = self.refine
+        return out
 
 
 class TruthScorer:
@@ -189,6 +193,25 @@ class CloudExport:
         self.written += 1
 
 
+#: Largest memory the frame fit of ``replay(refine=True)`` may keep (frames and depth maps).
+REFINE_MAX_BYTES = 8 << 30
+
+
+def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: CloudFuser | None):
+    """The frame fit of a fused replay, refused up front (not after the replay) when it cannot run."""
+    from gearscan.recon.track import TrackRefiner
+
+    if fuse is None:
+        raise ValueError("refine: the frame fit refines a fused model; fuse the replay too (--fuse FILE)")
+    first = reader.frame(0).image
+    need = TrackRefiner.memory_bytes(len(reader), *first.shape, first.dtype.itemsize)
+    if need > REFINE_MAX_BYTES:
+        raise RecordingError(f"{reader.path}: refining keeps every frame in memory, {need / 2**30:.1f} GiB for "
+                             f"{len(reader)} frames (limit {REFINE_MAX_BYTES / 2**30:.0f} GiB); replay a shorter "
+                             "stretch (one revolution) or leave refinement off (--no-refine)")
+    return TrackRefiner(rig, period_px)
+
+
 def replay(
     recording: str | Path,
     *,
@@ -205,6 +228,7 @@ def replay(
     fuse: CloudFuser | None = None,
     rig: str | Path | Rig | None = None,
     export: CloudExport | None = None,
+    refine: bool = False,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
@@ -217,7 +241,9 @@ def replay(
     ``metrics.damage`` lists it (``gearscan replay --strict`` turns it into a failure).
 
     ``fuse``: every burst's cloud goes into this fuser; at the end ``metrics.fused`` holds the
-    fused model with its signed deviation from the CAD, also logged to the viewer.
+    fused model with its signed deviation from the CAD, also logged to the viewer. ``refine``
+    (with ``fuse``): the fused points are then fitted to every raw frame that saw them
+    (:class:`~gearscan.recon.track.TrackRefiner`; keeps the recording's frames in memory).
 
     ``rig``: the calibration (file or :class:`Rig`) for a recording made without one; it
     replaces the recording's own when both exist. ``export``: every burst's cloud is also
@@ -251,6 +277,9 @@ def replay(
         logger = RerunLogger(save=save, connect=connect, spawn=spawn)
         logger.log_rig(rig)
     metrics = ReplayMetrics()
+    refiner = None
+    if refine:
+        refiner = make_refiner(reader, rig, period, fuse)
     assembler = BurstAssembler(groups=1 if coarse_period is None else 2)
     camera = ReplayCamera(reader, realtime=speed is not None, speed=speed or 1.0)
 
@@ -278,6 +307,8 @@ def replay(
                              unresolved=m.unresolved, mixed=m.mixed)
         if fuse is not None and m.cloud is not None and len(m.cloud):
             fuse.add(m.cloud)
+        if refiner is not None:
+            refiner.add(m)
         if export is not None and m.cloud is not None:
             cloud = m.cloud
             if cloud.deviation is None and export_cad is not None and len(cloud):
@@ -293,6 +324,8 @@ def replay(
             except ValueError as exc:  # no point in any burst
                 log.warning("nothing fused: %s", exc)
             else:
+                if refiner is not None and len(refiner):
+                    fused, metrics.refine = refiner.refine_fused(fused)
                 metrics.fused = fused.with_deviation(CadScorer(gear).distances(fused.points)) if gear is not None else fused
                 if logger and metrics.fused.deviation is not None:
                     logger.log_fused(metrics.fused.points, metrics.fused.deviation, bursts=fused.bursts_added,

@@ -18,7 +18,7 @@ tables in batches, so memory follows the gear's surface, not the number of burst
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +36,9 @@ class FusedCloud:
 
     ``sigma`` is the inverse-variance standard error of ``points`` (mm), ``bursts`` how many
     bursts saw the voxel, ``samples`` how many points went into it, ``deviation`` the signed
-    distance to the CAD (mm, + outside the material) when it was computed.
+    distance to the CAD (mm, + outside the material) when it was computed, ``refined`` which
+    points were moved onto the surface the raw frames show (:mod:`gearscan.recon.track`; None
+    when no refinement ran).
     """
 
     points: np.ndarray
@@ -46,23 +48,25 @@ class FusedCloud:
     voxel_mm: float
     bursts_added: int
     deviation: np.ndarray | None = None
+    refined: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
 
     def select(self, keep: np.ndarray) -> FusedCloud:
         """The points where boolean ``keep`` is True (every per-point array alike)."""
-        dev = None if self.deviation is None else self.deviation[keep]
-        return FusedCloud(self.points[keep], self.sigma[keep], self.bursts[keep], self.samples[keep],
-                          self.voxel_mm, self.bursts_added, dev)
+        def pick(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[keep]
+
+        return replace(self, points=self.points[keep], sigma=self.sigma[keep], bursts=self.bursts[keep],
+                       samples=self.samples[keep], deviation=pick(self.deviation), refined=pick(self.refined))
 
     def with_deviation(self, deviation: np.ndarray) -> FusedCloud:
         """A copy with ``deviation`` (mm, one per point) set."""
         deviation = np.asarray(deviation, dtype=np.float64)
         if deviation.shape != (len(self),):
             raise ValueError(f"deviation: expected ({len(self)},), got {deviation.shape}")
-        return FusedCloud(self.points, self.sigma, self.bursts, self.samples, self.voxel_mm,
-                          self.bursts_added, deviation)
+        return replace(self, deviation=deviation)
 
     def to_cloud(self) -> Cloud:
         """As a :class:`Cloud` (frame "world"; pixels unknown), ``extras["bursts"]`` the counts."""
@@ -165,7 +169,8 @@ def fuse(clouds, voxel_mm: float = 0.1, min_bursts: int = 1) -> FusedCloud:
 
 
 def save_fused(fused: FusedCloud, path: str | Path) -> Path:
-    """Write the fused cloud as PLY/PCD (open3d) or CSV with ``sigma``, ``bursts`` and, if set, ``deviation``."""
+    """Write the fused cloud as PLY/PCD (open3d) or CSV with ``sigma``, ``bursts`` and, if set,
+    ``deviation`` and ``refined`` (1: fitted on the raw frames)."""
     from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 
     path = Path(path)
@@ -173,4 +178,7 @@ def save_fused(fused: FusedCloud, path: str | Path) -> Path:
         raise ValueError(f"fused cloud path: expected a suffix in {EXPORT_SUFFIXES}, got {path.suffix!r} ({path})")
     if not len(fused):
         raise ValueError("the fused cloud is empty: nothing to write")
-    return save_cloud(fused.to_cloud(), path, extra={"bursts": fused.bursts})
+    extra = {"bursts": fused.bursts}
+    if fused.refined is not None:
+        extra["refined"] = fused.refined.astype(np.int32)
+    return save_cloud(fused.to_cloud(), path, extra=extra)

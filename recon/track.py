@@ -1,0 +1,283 @@
+"""Refine a fused gear model on the raw frames: each point fitted to every frame that saw it.
+
+A burst's phase carries the motion error of its three frames (the network corrects most of it,
+not all: about 0.1 mm per burst at 0.6 deg/frame on the default rig), and averaging bursts in
+:mod:`gearscan.recon.fuse` only shrinks that error as the square root of how many saw a point.
+The frames themselves hold more: a gear-frame point ``X`` is at a known pixel in every frame
+(rotate it by the frame's encoder angle, project it) where the camera measured
+``I = A + B cos(psi)``, and the rig says which projector column, hence which fringe phase ``psi``,
+lights ``X`` in that frame. Over the dozens of frames of a revolution that saw ``X`` the
+pattern phase sweeps the whole circle (the point moves through the fringes as the gear turns),
+so one linear least-squares fit per point gives the phase offset ``eps`` between what the frames
+show and what ``X`` predicts. ``eps = 0`` exactly where ``X`` is on the real surface, so ``X`` is
+moved along its camera ray by ``eps`` over the phase's depth sensitivity, and the fit repeated.
+
+What it needs is only geometry and the encoder: the fused cloud (any decoder's) as the start,
+within a fraction of a fringe of the surface. It uses no CAD, so a gear that is not its CAD
+keeps its deviation. A frame that did not see the point (occluded, shadowed, another surface at
+a silhouette) is left out when the burst it belongs to measured no point within ``visible_mm``
+of ``X`` at that pixel, and samples far from the fit are dropped before the last solve.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from gearscan.core.phase import THREE_STEP_SHIFTS
+from gearscan.core.rig import Rig, rot_z
+from gearscan.core.types import Measurement
+from gearscan.recon.fuse import FusedCloud
+
+_CHUNK = 200_000  # points per vectorised block (bounds the temporary arrays to ~100 MB)
+
+
+@dataclass
+class _BurstView:
+    images: np.ndarray  # (3, H, W) raw camera counts
+    angles: np.ndarray  # (3,) rad
+    depth: np.ndarray  # (H, W) float32 camera z (mm) of the burst's own points at angles[0]; NaN none
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """Refined points (gear frame, mm) with what each fit used and how well it fitted."""
+
+    points: np.ndarray  # (N, 3)
+    sigma: np.ndarray  # (N,) mm along the ray; inf where not refined
+    refined: np.ndarray  # (N,) bool: fitted on enough well-spread frames
+    frames: np.ndarray  # (N,) int: samples in the final fit
+    moved_mm: np.ndarray  # (N,) signed distance moved along the ray
+    stats: dict = field(default_factory=dict)
+
+
+class TrackRefiner:
+    """Collects a revolution's bursts (frames, encoder angles, measured depth) and refines a fused cloud.
+
+    ``min_frames``: fewest frames (after outlier removal) a point's fit needs; ``min_spread``:
+    the least resultant-free spread of the pattern phases over those frames (1 - |mean e^{i psi}|,
+    0 when every frame shows the point at one phase, 1 when the phases cover the circle evenly);
+    ``visible_mm``: how close a burst's own point must be for its frames to count as seeing ``X``.
+    """
+
+    def __init__(self, rig: Rig, period_px: float, *, iterations: int = 4, min_frames: int = 9,
+                 min_spread: float = 0.5, visible_mm: float = 0.3, max_step_mm: float = 0.3,
+                 outlier_sigma: float = 3.0, drift: bool = True) -> None:
+        if not period_px > 0:
+            raise ValueError(f"period_px: expected > 0 projector pixels, got {period_px}")
+        if iterations < 1 or min_frames < 4:
+            raise ValueError(f"iterations >= 1 and min_frames >= 4 expected, got {iterations} and {min_frames}")
+        self.rig = rig
+        self.period_px = float(period_px)
+        self.iterations = int(iterations)
+        self.min_frames = int(min_frames)
+        self.min_spread = float(min_spread)
+        self.visible_mm = float(visible_mm)
+        self.max_step_mm = float(max_step_mm)
+        self.outlier_sigma = float(outlier_sigma)
+        self.drift = bool(drift)
+        self.bursts: list[_BurstView] = []
+
+    def __len__(self) -> int:
+        return len(self.bursts)
+
+    def add(self, m: Measurement) -> None:
+        """Keep one measured burst: its frames, angles and where it measured the surface."""
+        cam = self.rig.camera
+        h, w = cam.height, cam.width
+        images = m.burst.images
+        if images.shape[1:] != (h, w):
+            raise ValueError(f"burst {m.burst.index}: frames {images.shape[1:]} do not match the rig camera {(h, w)}")
+        depth = np.full((h, w), np.nan, np.float32)
+        if m.cloud is not None and len(m.cloud):
+            if m.cloud.frame != "world":
+                raise ValueError(f"burst {m.burst.index}: expected a gear-frame cloud, got frame {m.cloud.frame!r}")
+            t = cam.T_from_world @ rot_z(m.burst.angles[0])
+            z = m.cloud.points @ t[2, :3] + t[2, 3]
+            depth[m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]] = z
+        self.bursts.append(_BurstView(np.array(images), np.asarray(m.burst.angles, np.float64), depth))
+
+    @staticmethod
+    def memory_bytes(frames: int, height: int, width: int, itemsize: int) -> int:
+        """What :meth:`add` keeps for ``frames`` frames: the raw images and one depth map per burst."""
+        return frames * height * width * itemsize + (frames // 3) * height * width * 4
+
+    def refine_fused(self, fused: FusedCloud) -> tuple[FusedCloud, dict]:
+        """``fused`` with its refined points moved and their sigma from the fit; the others kept."""
+        res = self.refine(fused.points)
+        r = res.refined
+        points = np.where(r[:, None], res.points, fused.points)
+        sigma = np.where(r, res.sigma, fused.sigma)
+        return replace(fused, points=points, sigma=sigma, refined=r, deviation=None), res.stats
+
+    # -- geometry ---------------------------------------------------------------------------
+    def _camera_xyz(self, pts: np.ndarray, angle: float) -> np.ndarray:
+        t = self.rig.camera.T_from_world @ rot_z(angle)
+        return pts @ t[:3, :3].T + t[:3, 3]
+
+    def _visible(self, pts: np.ndarray, b: _BurstView) -> np.ndarray:
+        cam = self.rig.camera
+        p = self._camera_xyz(pts, b.angles[0])
+        uv = np.rint(cam.project_device(p))
+        h, w = b.depth.shape
+        ok = np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        vis = np.zeros(len(pts), bool)
+        idx = np.flatnonzero(ok)
+        d = b.depth[uv[idx, 1].astype(np.int64), uv[idx, 0].astype(np.int64)]
+        vis[idx] = np.abs(d - p[idx, 2]) <= self.visible_mm  # NaN (no point there) compares False
+        return vis
+
+    def _samples(self, pts: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], k: int,
+                 rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For visible (point, burst) pairs, frame ``k`` of the burst: intensity, model phase and
+        its derivative along the ray (rad/mm), and whether the sample lies inside the image."""
+        ip, ib = pairs
+        cam, proj = self.rig.camera, self.rig.projector
+        intensity = np.zeros(len(ip))
+        psi = np.zeros(len(ip))
+        dpsi = np.zeros(len(ip))
+        inside = np.zeros(len(ip), bool)
+        angle = np.zeros(len(ip))
+        scale = 2 * math.pi / self.period_px
+        eps = 0.01  # mm, finite-difference step along the ray
+        for bi in np.unique(ib):
+            sel = np.flatnonzero(ib == bi)
+            b = self.bursts[bi]
+            x = pts[ip[sel]]
+            world = x @ rot_z(b.angles[k])[:3, :3].T
+            world_d = (x + eps * rays[ip[sel]]) @ rot_z(b.angles[k])[:3, :3].T
+            uv = cam.project(world)
+            u_p, u_pd = proj.project(world)[:, 0], proj.project(world_d)[:, 0]
+            img = b.images[k].astype(np.float32)
+            h, w = img.shape
+            ok = np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+            uvc = np.where(ok[:, None], uv, 0.0)
+            x0 = np.minimum(np.floor(uvc[:, 0]).astype(np.int64), w - 2)
+            y0 = np.minimum(np.floor(uvc[:, 1]).astype(np.int64), h - 2)
+            fx, fy = uvc[:, 0] - x0, uvc[:, 1] - y0
+            val = ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x0 + 1])
+                   + fy * ((1 - fx) * img[y0 + 1, x0] + fx * img[y0 + 1, x0 + 1]))
+            intensity[sel] = val
+            psi[sel] = scale * u_p + THREE_STEP_SHIFTS[k]
+            dpsi[sel] = scale * (u_pd - u_p) / eps
+            inside[sel] = ok
+            angle[sel] = b.angles[k]
+        return intensity, psi, dpsi, inside, angle
+
+    # -- the fit ------------------------------------------------------------------------------
+    def refine(self, points: np.ndarray) -> TrackResult:
+        """Move each gear-frame point onto the surface the frames saw (see the module docstring)."""
+        pts0 = np.asarray(points, np.float64)
+        if pts0.ndim != 2 or pts0.shape[1] != 3:
+            raise ValueError(f"points: expected (N, 3) gear-frame points, got shape {pts0.shape}")
+        if not self.bursts:
+            raise ValueError("no bursts added: nothing to refine on")
+        out_pts, out_sigma = pts0.copy(), np.full(len(pts0), np.inf)
+        refined = np.zeros(len(pts0), bool)
+        frames = np.zeros(len(pts0), np.int64)
+        for start in range(0, len(pts0), _CHUNK):
+            sl = slice(start, start + _CHUNK)
+            p, s, r, f = self._refine_chunk(pts0[sl])
+            out_pts[sl], out_sigma[sl], refined[sl], frames[sl] = p, s, r, f
+        cam_c = self.rig.camera.center_world
+        moved = np.einsum("ij,ij->i", out_pts - pts0, _unit(pts0 - cam_c))  # sign only; ray varies by angle
+        stats = {"points": len(pts0), "refined": int(refined.sum()),
+                 "median_frames": float(np.median(frames[refined])) if refined.any() else 0.0,
+                 "median_abs_move_mm": float(np.median(np.abs(moved[refined]))) if refined.any() else 0.0}
+        return TrackResult(out_pts, out_sigma, refined, frames.astype(np.int32), moved, stats)
+
+    def _refine_chunk(self, pts: np.ndarray):
+        n = len(pts)
+        vis_rows, vis_cols = [], []
+        for bi, b in enumerate(self.bursts):
+            v = np.flatnonzero(self._visible(pts, b))
+            vis_rows.append(v)
+            vis_cols.append(np.full(len(v), bi))
+        ip, ib = np.concatenate(vis_rows), np.concatenate(vis_cols)
+        # each point moves along the camera ray of the mean angle of the bursts that saw it
+        ang = np.array([b.angles[0] for b in self.bursts])
+        count = np.bincount(ip, minlength=n)
+        mean_c = np.bincount(ip, np.cos(ang[ib]), minlength=n) / np.maximum(count, 1)
+        mean_s = np.bincount(ip, np.sin(ang[ib]), minlength=n) / np.maximum(count, 1)
+        theta = np.arctan2(mean_s, mean_c)
+        c_world = self.rig.camera.center_world
+        # camera centre in the gear frame at angle theta: rot_z(-theta) c_world
+        cth, sth = np.cos(theta), np.sin(theta)
+        c_gear = np.stack([cth * c_world[0] + sth * c_world[1], -sth * c_world[0] + cth * c_world[1],
+                           np.full(n, c_world[2])], axis=1)
+        rays = _unit(pts - c_gear)
+        x = pts.copy()
+        sigma = np.full(n, np.inf)
+        ok_fit = np.zeros(n, bool)
+        used = np.zeros(n, np.int64)
+        keep = None
+        for it in range(self.iterations):
+            cols = [self._samples(x, (ip, ib), k, rays) for k in range(3)]
+            idx = np.concatenate([ip] * 3)
+            val = np.concatenate([c[0] for c in cols])
+            psi = np.concatenate([c[1] for c in cols])
+            dpsi = np.concatenate([c[2] for c in cols])
+            good = np.concatenate([c[3] for c in cols])
+            tau = np.angle(np.exp(1j * (np.concatenate([c[4] for c in cols]) - theta[idx])))
+            if keep is not None:
+                good &= keep
+            coef, res_sd, nfr, spread = _fit(idx[good], val[good], psi[good], tau[good], n, self.drift)
+            cc, ss = coef[:, 1], coef[:, 2]
+            if it == self.iterations - 2 or self.iterations == 1:  # drop samples far from the fit
+                pred = np.einsum("ij,ij->i", _design(psi, tau, self.drift), coef[idx])
+                keep = np.abs(val - pred) <= self.outlier_sigma * np.maximum(res_sd[idx], 1e-6)
+            eps = np.arctan2(ss, cc)  # phase the frames show minus the point's model phase
+            slope = np.bincount(idx[good], dpsi[good], minlength=n) / np.maximum(nfr, 1)
+            fit = (nfr >= self.min_frames) & (spread >= self.min_spread) & (np.abs(slope) > 1e-3)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = np.where(fit, eps / slope, 0.0)
+            step = np.clip(step, -self.max_step_mm, self.max_step_mm)
+            x = x + step[:, None] * rays
+            amp = np.hypot(cc, ss)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sig_phase = res_sd / (amp * np.sqrt(np.maximum(nfr, 1) / 2.0))
+                sigma = np.where(fit, np.abs(sig_phase / slope), np.inf)
+            ok_fit, used = fit, nfr
+        return x, sigma, ok_fit, used
+
+
+def _design(psi: np.ndarray, tau: np.ndarray, drift: bool) -> np.ndarray:
+    """Columns of ``I = a + C cos(psi) - S sin(psi)`` (``drift``: each also linear in ``tau``)."""
+    c, s = np.cos(psi), -np.sin(psi)
+    cols = [np.ones_like(c), c, s]
+    if drift:  # shading that changes as the surface turns: a, C, S linear in the turn angle
+        cols += [tau, tau * c, tau * s]
+    return np.stack(cols, axis=1)
+
+
+def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: int, drift: bool):
+    """Per-point least squares over its samples (:func:`_design`): coefficients ``(n, 3 or 6)``
+    (a, C, S first), the residual standard deviation, the number of samples and the spread of ``psi``."""
+    x = _design(psi, tau, drift)
+    p = x.shape[1]
+    ata = np.empty((n, p, p))
+    atb = np.empty((n, p))
+    for i in range(p):
+        atb[:, i] = np.bincount(idx, x[:, i] * val, minlength=n)
+        for j in range(i, p):
+            ata[:, i, j] = ata[:, j, i] = np.bincount(idx, x[:, i] * x[:, j], minlength=n)
+    count = ata[:, 0, 0]
+    # how well the phases cover the circle: 1 for an even spread, 0 at one phase (or at two
+    # opposite ones, which leave sin and cos apart unresolved)
+    spread = 2.0 * np.linalg.eigvalsh(ata[:, :3, :3] / np.maximum(count, 1)[:, None, None])[:, 0]
+    solvable = (count >= 2 * p) & (spread > 1e-3)
+    if drift:
+        solvable &= np.linalg.eigvalsh(ata)[:, 0] > 1e-12 * np.maximum(count, 1)
+    sol = np.zeros((n, p))
+    if solvable.any():
+        sol[solvable] = np.linalg.solve(ata[solvable], atb[solvable][..., None])[..., 0]
+    pred = np.einsum("ij,ij->i", x, sol[idx])
+    sse = np.bincount(idx, (val - pred) ** 2, minlength=n)
+    res_sd = np.sqrt(sse / np.maximum(count - p, 1))
+    return sol, res_sd, count.astype(np.int64), np.where(solvable, spread, 0.0)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
