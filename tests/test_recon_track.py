@@ -1,0 +1,126 @@
+"""The frame fit of a fused model (recon/track.py), scored against the twin's true surface."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from gearscan.core.recording import RecordingError, RecordingReader
+from gearscan.core.rig import default_rig
+from gearscan.inference.decoder import Decoder
+from gearscan.recon.fuse import CloudFuser
+from gearscan.recon.track import TrackRefiner
+from gearscan.twin.defects import GearDefects, true_mesh
+from gearscan.twin.recordings import render_recording
+
+
+def _scene(mesh) -> o3d.t.geometry.RaycastingScene:
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return scene
+
+
+def _signed(scene, points: np.ndarray) -> np.ndarray:
+    return scene.compute_signed_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
+
+
+def _rms_um(d: np.ndarray) -> float:
+    return 1e3 * float(np.sqrt(np.mean(np.square(d))))
+
+
+@pytest.fixture(scope="module")
+def off_cad_turn(tmp_path_factory):
+    """16 bursts at 0.6 deg/frame of a gear cut at module 2.06 whose recording keeps the 2.0 CAD,
+    decoded by three-step PS (its motion error is the first pass's), fused, frames kept."""
+    from gearscan.replay import replay
+
+    rec = tmp_path_factory.mktemp("track") / "rec"
+    render_recording(rec, rig=default_rig(192, 192), defects=GearDefects(module=2.06), motion="uniform:0.6",
+                     bursts=16, start_deg=2.0)
+    reader = RecordingReader(rec)
+    refiner = TrackRefiner(reader.rig, reader.patterns.periods[0])
+    metrics = replay(rec, decoder=Decoder(classical=True), fuse=CloudFuser(0.1, 3), truth=False,
+                     on_burst=lambda m, _row: refiner.add(m))
+    fitted, stats = refiner.refine_fused(metrics.fused)
+    truth = _scene(true_mesh(reader.gear, GearDefects.from_meta(reader.meta)))
+    return reader, refiner, metrics.fused, fitted, stats, truth
+
+
+def test_fit_moves_the_fused_points_onto_the_true_surface(off_cad_turn):
+    _, _, fused, fitted, stats, truth = off_cad_turn
+    r = fitted.refined
+    assert len(fitted) == len(fused) and stats["refined"] == int(r.sum())
+    assert r.mean() > 0.6, f"only {r.mean():.0%} of the points fitted"
+    before, after = _signed(truth, fused.points[r]), _signed(truth, fitted.points[r])
+    # three-step's motion error survives fusion; the fit leaves camera noise
+    assert _rms_um(before) > 80
+    assert _rms_um(after) < 30 and _rms_um(after) < _rms_um(before) / 4
+    # points not fitted stay exactly where fusion put them, with fusion's sigma
+    np.testing.assert_array_equal(fitted.points[~r], fused.points[~r])
+    np.testing.assert_array_equal(fitted.sigma[~r], fused.sigma[~r])
+    # the fit's sigma is the size of its error (median |z| of a Gaussian: 0.67)
+    z = np.abs(after) / fitted.sigma[r]
+    assert 0.3 < np.median(z) < 2.0
+
+
+def test_fit_keeps_the_deviation_from_the_cad(off_cad_turn):
+    """The fit uses no CAD: a gear 0.4 mm off its CAD is measured off it by what the true surface is."""
+    reader, _, _, fitted, _, truth = off_cad_turn
+    pts = fitted.points[fitted.refined]
+    cad = _scene(reader.gear.mesh())
+    true_points = truth.compute_closest_points(o3d.core.Tensor(pts.astype(np.float32)))["points"].numpy()
+    measured, actual = _signed(cad, pts), _signed(cad, true_points)
+    assert np.median(np.abs(actual)) > 0.25  # the test means something: the gear is far off its CAD
+    assert _rms_um(measured - actual) < 30
+    assert np.percentile(np.abs(measured), 95) == pytest.approx(np.percentile(np.abs(actual), 95), rel=0.05)
+
+
+def test_points_seen_in_too_few_frames_stay_where_they_were(off_cad_turn):
+    reader, refiner, fused, _, _, _ = off_cad_turn
+    few = TrackRefiner(reader.rig, reader.patterns.periods[0])
+    few.bursts = refiner.bursts[:2]  # six frames: fewer than the fit's nine
+    res = few.refine(fused.points)
+    assert not res.refined.any()
+    np.testing.assert_array_equal(res.points, fused.points)
+    assert np.isinf(res.sigma).all()
+
+
+def test_bad_input_is_named(off_cad_turn):
+    reader, _, _, _, _, _ = off_cad_turn
+    ref = TrackRefiner(reader.rig, reader.patterns.periods[0])
+    with pytest.raises(ValueError, match="no bursts added"):
+        ref.refine(np.zeros((4, 3)))
+    ref.bursts = off_cad_turn[1].bursts[:1]
+    with pytest.raises(ValueError, match=r"points: expected \(N, 3\)"):
+        ref.refine(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="period_px"):
+        TrackRefiner(reader.rig, 0.0)
+
+
+def test_replay_refuses_refinement_it_cannot_hold_before_replaying(off_cad_turn, monkeypatch):
+    import gearscan.replay as replay_mod
+
+    reader = off_cad_turn[0]
+    monkeypatch.setattr(replay_mod, "REFINE_MAX_BYTES", 1024)
+    with pytest.raises(RecordingError, match="refining keeps every frame in memory"):
+        replay_mod.replay(reader.path, decoder=Decoder(classical=True), fuse=CloudFuser(0.1, 3), truth=False, refine=True)
+    with pytest.raises(ValueError, match="fuse the replay too"):
+        replay_mod.replay(reader.path, decoder=Decoder(classical=True), truth=False, refine=True)
+
+
+def test_replay_fuse_writes_which_points_were_fitted(off_cad_turn, tmp_path):
+    from typer.testing import CliRunner
+
+    from gearscan.cli import app
+
+    reader = off_cad_turn[0]
+    out = tmp_path / "fused.csv"
+    res = CliRunner().invoke(app, ["replay", str(reader.path), "--classical", "--no-truth", "--fuse", str(out),
+                                   "--save", str(tmp_path / "r.rrd")])
+    assert res.exit_code == 0, res.output
+    assert "fitted to the raw frames" in res.output
+    header = out.read_text().splitlines()[0].split(",")
+    assert "refined" in header
+    table = np.loadtxt(out, delimiter=",", skiprows=1)
+    assert 0.6 < table[:, header.index("refined")].mean() < 1.0
