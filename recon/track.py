@@ -49,7 +49,7 @@ class TrackResult:
     sigma: np.ndarray  # (N,) mm along the ray; inf where not refined
     refined: np.ndarray  # (N,) bool: fitted on enough well-spread frames
     frames: np.ndarray  # (N,) int: samples in the final fit
-    moved_mm: np.ndarray  # (N,) signed distance moved along the ray
+    moved_mm: np.ndarray  # (N,) distance moved along the ray (+ away from the camera)
     stats: dict = field(default_factory=dict)
 
 
@@ -57,8 +57,9 @@ class TrackRefiner:
     """Collects a revolution's bursts (frames, encoder angles, measured depth) and refines a fused cloud.
 
     ``min_frames``: fewest frames (after outlier removal) a point's fit needs; ``min_spread``:
-    the least resultant-free spread of the pattern phases over those frames (1 - |mean e^{i psi}|,
-    0 when every frame shows the point at one phase, 1 when the phases cover the circle evenly);
+    how evenly the fringe phases of those frames must cover the circle (twice the smallest
+    eigenvalue of the fit's normalised normal matrix: 1 for an even spread, 0 at one phase or at
+    two opposite ones, where sine and cosine cannot be told apart);
     ``visible_mm``: how close a burst's own point must be for its frames to count as seeing ``X``.
     """
 
@@ -177,12 +178,11 @@ class TrackRefiner:
         out_pts, out_sigma = pts0.copy(), np.full(len(pts0), np.inf)
         refined = np.zeros(len(pts0), bool)
         frames = np.zeros(len(pts0), np.int64)
+        moved = np.zeros(len(pts0))
         for start in range(0, len(pts0), _CHUNK):
             sl = slice(start, start + _CHUNK)
-            p, s, r, f = self._refine_chunk(pts0[sl])
-            out_pts[sl], out_sigma[sl], refined[sl], frames[sl] = p, s, r, f
-        cam_c = self.rig.camera.center_world
-        moved = np.einsum("ij,ij->i", out_pts - pts0, _unit(pts0 - cam_c))  # sign only; ray varies by angle
+            p, s, r, f, mv = self._refine_chunk(pts0[sl])
+            out_pts[sl], out_sigma[sl], refined[sl], frames[sl], moved[sl] = p, s, r, f, mv
         stats = {"points": len(pts0), "refined": int(refined.sum()),
                  "median_frames": float(np.median(frames[refined])) if refined.any() else 0.0,
                  "median_abs_move_mm": float(np.median(np.abs(moved[refined]))) if refined.any() else 0.0}
@@ -240,7 +240,8 @@ class TrackRefiner:
                 sig_phase = res_sd / (amp * np.sqrt(np.maximum(nfr, 1) / 2.0))
                 sigma = np.where(fit, np.abs(sig_phase / slope), np.inf)
             ok_fit, used = fit, nfr
-        return x, sigma, ok_fit, used
+        x = np.where(ok_fit[:, None], x, pts)  # a point the last fit could not take stays where it was
+        return x, sigma, ok_fit, used, np.einsum("ij,ij->i", x - pts, rays)
 
 
 def _design(psi: np.ndarray, tau: np.ndarray, drift: bool) -> np.ndarray:
