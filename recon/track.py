@@ -130,11 +130,10 @@ class TrackRefiner:
         vis[idx] = np.abs(d - p[idx, 2]) <= self.visible_mm  # NaN (no point there) compares False
         return vis
 
-    def _samples(self, pts: np.ndarray, pairs: tuple[np.ndarray, np.ndarray], k: int,
-                 rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """For visible (point, burst) pairs, frame ``k`` of the burst: intensity, model phase and
-        its derivative along the ray (rad/mm), and whether the sample lies inside the image."""
-        ip, ib = pairs
+    def _samples(self, pts: np.ndarray, ip: np.ndarray, bounds: np.ndarray, k: int,
+                 rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For visible (point, burst) pairs, frame ``k`` of the burst: intensity, model phase, its
+        derivative along the ray (rad/mm), whether the sample lies inside the image, frame angle."""
         cam, proj = self.rig.camera, self.rig.projector
         intensity = np.zeros(len(ip))
         psi = np.zeros(len(ip))
@@ -143,9 +142,10 @@ class TrackRefiner:
         angle = np.zeros(len(ip))
         scale = 2 * math.pi / self.period_px
         eps = 0.01  # mm, finite-difference step along the ray
-        for bi in np.unique(ib):
-            sel = np.flatnonzero(ib == bi)
-            b = self.bursts[bi]
+        for bi, b in enumerate(self.bursts):  # the pairs are grouped by burst: one slice each
+            sel = slice(bounds[bi], bounds[bi + 1])
+            if sel.start == sel.stop:
+                continue
             x = pts[ip[sel]]
             world = x @ rot_z(b.angles[k])[:3, :3].T
             world_d = (x + eps * rays[ip[sel]]) @ rot_z(b.angles[k])[:3, :3].T
@@ -196,6 +196,7 @@ class TrackRefiner:
             vis_rows.append(v)
             vis_cols.append(np.full(len(v), bi))
         ip, ib = np.concatenate(vis_rows), np.concatenate(vis_cols)
+        bounds = np.searchsorted(ib, np.arange(len(self.bursts) + 1))  # ib ascends: burst bi is ip[bounds[bi]:bounds[bi+1]]
         # each point moves along the camera ray of the mean angle of the bursts that saw it
         ang = np.array([b.angles[0] for b in self.bursts])
         count = np.bincount(ip, minlength=n)
@@ -214,7 +215,7 @@ class TrackRefiner:
         used = np.zeros(n, np.int64)
         keep = None
         for it in range(self.iterations):
-            cols = [self._samples(x, (ip, ib), k, rays) for k in range(3)]
+            cols = [self._samples(x, ip, bounds, k, rays) for k in range(3)]
             idx = np.concatenate([ip] * 3)
             val = np.concatenate([c[0] for c in cols])
             psi = np.concatenate([c[1] for c in cols])
