@@ -7,10 +7,12 @@ jittery, so the mapping is fitted as
 
     host = host0 + slope * (device - device0) + offset
 
-with ``slope`` (1 + drift) from a least-squares line through the fastest message of each of
-8 time bins of a sliding window, and ``offset`` put on the LOWER envelope of the residuals: the fastest message of the window defines the
-latency floor. That is robust to latency spikes (a delayed line never pulls the mapping
-late), and only the constant minimum latency remains as a bias.
+with ``slope`` (1 + drift) and ``offset`` from the LOWER envelope of the window's pairs: the
+line below every pair that is highest at the window's middle (the linear-programming clock-skew
+estimate, Moon, Skelly & Towsley 1999), i.e. the edge of the pairs' lower convex hull above the
+middle. Only the fastest messages define it: a reader that falls behind for a while (a loaded
+machine: every line of a quarter second arrives milliseconds late) sits above the envelope and
+never tilts or lifts the mapping, and only the constant minimum latency remains as a bias.
 """
 
 from __future__ import annotations
@@ -70,14 +72,7 @@ class ClockSync:
         y = (arr[:, 1] - self._host0).astype(np.float64)
         slope = 1.0
         if x.max() - x.min() >= self.min_span_ns and len(x) >= 16:
-            # slope through the fastest message of each of 8 time bins: latency varies
-            # (a reader that falls behind reads lines late), the floor does not
-            r = y - x
-            bins = np.array_split(np.arange(len(x)), 8)
-            pick = np.array([b[np.argmin(r[b])] for b in bins])
-            xs, ys = x[pick], y[pick]
-            xm, ym = xs.mean(), ys.mean()
-            slope = float(np.dot(xs - xm, ys - ym) / np.dot(xs - xm, xs - xm))
+            slope = 1.0 + _envelope_slope(x, y - x)
         self.slope = slope
         self.offset_ns = float(np.min(y - slope * x))
         self._fitted = True
@@ -94,3 +89,31 @@ class ClockSync:
         if not self._fitted:
             return int(device_ns)
         return self._host0 + int(round(self.slope * (int(device_ns) - self._device0) + self.offset_ns))
+
+
+def _envelope_slope(x: np.ndarray, r: np.ndarray, bins: int = 64) -> float:
+    """Slope of the lower convex hull of ``(x, r)`` at the middle of ``x`` (``x`` ascending).
+
+    A stall that covers the middle of the window (over half of it) still tilts it.
+
+    The hull is built on the lowest pair of each of ``bins`` consecutive groups (a late pair is
+    never a hull vertex, so nothing is lost but cost).
+    """
+    groups = np.array_split(np.arange(len(x)), min(bins, len(x)))
+    pick = np.array([g[np.argmin(r[g])] for g in groups if len(g)])
+    hull: list[int] = []  # Andrew's monotone chain, lower part
+    for i in pick:
+        while len(hull) >= 2:
+            a, b = hull[-2], hull[-1]
+            if (x[b] - x[a]) * (r[i] - r[a]) - (r[b] - r[a]) * (x[i] - x[a]) <= 0:
+                hull.pop()  # b is on or above the segment a-i
+            else:
+                break
+        hull.append(int(i))
+    if len(hull) < 2:
+        return 0.0
+    mid = 0.5 * (x[0] + x[-1])
+    for a, b in zip(hull, hull[1:], strict=False):
+        if x[b] >= mid and x[b] > x[a]:
+            return float((r[b] - r[a]) / (x[b] - x[a]))
+    return 0.0
