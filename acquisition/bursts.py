@@ -1,4 +1,4 @@
-"""Burst assembly: frames in pattern order 0, 1, 2 -> :class:`~gearscan.core.types.Burst`.
+"""Burst assembly: frames in pattern order 0, 1, 2 (or 0, 2, 1) -> :class:`~gearscan.core.types.Burst`.
 
 Each frame gets the turntable angle at its exposure midpoint, linearly interpolated in the
 encoder history (host clock). The assembler never emits a wrong burst: a frame-id gap
@@ -114,6 +114,16 @@ class BurstAssembler:
                 return angle, why
             time.sleep(0.001)
 
+    def _expected(self) -> list[int]:
+        """Pattern indices the next frame may have: a group's first pattern to start a burst, then
+        the other two in either order (0, 1, 2 or 0, 2, 1: :attr:`Burst.reversed_order`)."""
+        if not self._pending:
+            return [3 * g for g in range(self.groups)]
+        first = self._pending[0].pattern_index
+        if len(self._pending) == 1:
+            return [first + 1, first + 2]
+        return [first + 3 - (self._pending[1].pattern_index - first)]  # the one not yet shown
+
     # -- API ------------------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the partial burst and the last frame id (after a camera reconnect)."""
@@ -142,13 +152,13 @@ class BurstAssembler:
         self._last_id = frame.frame_id
 
         starts = [3 * g for g in range(self.groups)]  # a burst starts at the first pattern of a group
-        expected = self._pending[0].pattern_index + len(self._pending) if self._pending else None
-        if frame.pattern_index != expected and not (expected is None and frame.pattern_index in starts):
+        expected = self._expected()
+        if frame.pattern_index not in expected:
             self.stats.pattern_errors += 1
             self._event(
                 "pattern_order",
                 frame.frame_id,
-                f"pattern {frame.pattern_index} where {expected if expected is not None else ' or '.join(map(str, starts))} "
+                f"pattern {frame.pattern_index} where {' or '.join(map(str, expected))} "
                 f"was expected; partial burst of {len(self._pending)} discarded",
             )
             self._discard_pending()

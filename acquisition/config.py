@@ -76,6 +76,9 @@ class ProjectorConfig(BaseModel):
     # coarse_every measuring bursts (recon.unwrap = "coarse" unwraps the fine ones around it)
     coarse_period_px: float | None = Field(None, ge=2)
     coarse_every: int = Field(4, ge=1)
+    # every other measuring burst in the order 0, 2, 1 (PatternSet.cycle): the fused model's frame fit
+    # then fits nearly every point of a turning gear (software trigger)
+    alternate_order: bool = False
 
     @model_validator(mode="after")
     def _coarse_wider(self) -> ProjectorConfig:

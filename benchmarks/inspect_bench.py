@@ -7,7 +7,10 @@ revolution (once fused only, once with the frame fit of recon/track.py) and read
 fused cloud is scored against the TRUE (as-built) mesh,
 not the CAD. Writes ``benchmarks/inspect_report.md`` (+ ``.json``) with host and commit.
 
-    python benchmarks/inspect_bench.py [--recording DIR] [--classical]
+    python benchmarks/inspect_bench.py [--recording DIR] [--classical] [--fixed-order] [--compare]
+
+The revolution is recorded with every other burst in the order 0, 2, 1 (projector.alternate_order)
+unless ``--fixed-order``; ``--compare`` also fits the same revolution recorded the other way.
 """
 
 from __future__ import annotations
@@ -43,7 +46,12 @@ def commit() -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--recording", type=Path, default=Path("out/inspect_bench/rec"))
+    ap.add_argument("--recording", type=Path, default=None,
+                    help="default: out/inspect_bench/rec_alternate (or rec_fixed with --fixed-order)")
+    ap.add_argument("--fixed-order", action="store_true",
+                    help="every burst in the order 0, 1, 2 (default: every other one 0, 2, 1, as projector.alternate_order)")
+    ap.add_argument("--compare", action="store_true",
+                    help="also fit the same revolution recorded in the other pattern order and report both")
     ap.add_argument("--out", type=Path, default=Path("out/inspect_bench/report"))
     ap.add_argument("--classical", action="store_true", help="three-step PS instead of the network")
     ap.add_argument("--voxel-mm", type=float, default=0.1)
@@ -58,14 +66,22 @@ def main() -> None:
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()
-    if not (args.recording / "recording.json").exists():
-        from gearscan.twin.recordings import render_recording
+    alternate = not args.fixed_order
 
-        t = time.perf_counter()
-        render_recording(args.recording, defects=GearDefects.from_options(
-            eccentricity_um=DEFECTS["eccentricity_um"], pitch_errors=DEFECTS["pitch_errors"], chips=DEFECTS["chips"]),
-            motion="uniform:0.6", bursts=200)
-        print(f"rendered in {time.perf_counter() - t:.0f} s")
+    def recording(alt: bool) -> Path:
+        path = args.recording if args.recording is not None and alt == alternate else \
+            Path(f"out/inspect_bench/rec_{'alternate' if alt else 'fixed'}")
+        if not (path / "recording.json").exists():
+            from gearscan.twin.recordings import render_recording
+
+            t = time.perf_counter()
+            render_recording(path, defects=GearDefects.from_options(
+                eccentricity_um=DEFECTS["eccentricity_um"], pitch_errors=DEFECTS["pitch_errors"], chips=DEFECTS["chips"]),
+                motion="uniform:0.6", bursts=200, alternate_order=alt)
+            print(f"rendered {path} in {time.perf_counter() - t:.0f} s")
+        return path
+
+    args.recording = recording(alternate)
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
     decoder = Decoder(classical=args.classical)
@@ -91,12 +107,23 @@ def main() -> None:
     o3d.utility.random.seed(0)
     samples = np.asarray(true_mesh(reader.gear, GearDefects.from_meta(reader.meta)).sample_points_uniformly(200_000).points)
     pcd = lambda pts: o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))  # noqa: E731
-    near = np.asarray(pcd(samples).compute_point_cloud_distance(pcd(fused.points))) <= 2 * args.voxel_mm
     flank_side = np.abs(samples[:, 2]) < reader.gear.face_width / 2 - 1e-3  # not the two end faces
-    coverage = float(near[flank_side].mean())
+
+    def coverage_of(points: np.ndarray) -> float:
+        near = np.asarray(pcd(samples).compute_point_cloud_distance(pcd(points))) <= 2 * args.voxel_mm
+        return float(near[flank_side].mean())
+
+    coverage = coverage_of(fused.points)
 
     def rms_of(d: np.ndarray) -> float:
         return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+
+    def order_row(name: str, rep, d: np.ndarray, cov: float) -> dict:
+        r = rep.fused.refined
+        return {"order": name, "points": len(rep.fused), "coverage": cov, "fitted": float(r.mean()),
+                "fitted_rms_mm": rms_of(d[r]), "kept_rms_mm": rms_of(d[~r]), "rms_mm": rms_of(d),
+                "p95_mm": float(np.percentile(d, 95)), "fp_max_error_um": fp_error(rep.inspection),
+                "chip": chip_verdict(rep.inspection)}
 
     refined = fused.refined
     strata = []
@@ -122,6 +149,16 @@ def main() -> None:
         return max(float(np.nanmax(np.abs(np.asarray(i.single_pitch_um[s]) - np.asarray(truth["single_pitch_um"][s]))))
                    for s in ("left", "right"))
 
+    order_name = "alternating (0, 1, 2 / 0, 2, 1)" if alternate else "fixed (0, 1, 2)"
+    orders = [order_row(order_name, report, dist, coverage)]
+    if args.compare:
+        other = recording(not alternate)
+        t = time.perf_counter()
+        rep2 = run_inspection(other, args.out / "other_order", decoder=decoder, grade=8, voxel_mm=args.voxel_mm,
+                              min_bursts=args.min_bursts, refine=True, progress=print)
+        print(f"other order: {time.perf_counter() - t:.0f} s")
+        orders.append(order_row("fixed (0, 1, 2)" if alternate else "alternating (0, 1, 2 / 0, 2, 1)", rep2,
+                                distance(rep2.fused.points), coverage_of(rep2.fused.points)))
     names = ["eccentricity (µm)", "runout from eccentricity (µm)", "Fp left (µm)", "Fp right (µm)",
              "fp tooth 3 left (µm)", "fp tooth 3 right (µm)"]
     truths = [e_true, truth["runout_from_eccentricity_um"], truth["total_cumulative_pitch_um"]["left"],
@@ -137,10 +174,11 @@ def main() -> None:
         f"`python benchmarks/inspect_bench.py` — commit {commit()}, host: {started}.",
         "",
         f"Twin: default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, 200 bursts ({report.revolution_deg:.0f}° of encoder "
-        f"angle), eccentricity 50 µm, tooth 3 +30 µm pitch error, tooth 7 tip chipped 0.3 mm. Decoder: {decoder}. "
+        f"angle), eccentricity 50 µm, tooth 3 +30 µm pitch error, tooth 7 tip chipped 0.3 mm; pattern order "
+        f"{order_name}. Decoder: {decoder}. "
         f"Replay + fusion + inspection: {seconds:.0f} s (the recording rendered beforehand by this script's "
         "render step, or `gearscan twin render REC --bursts 200 --motion uniform:0.6 --eccentricity-um 50 "
-        "--pitch-error 3:30 --chip 7:0.3`).",
+        f"--pitch-error 3:30 --chip 7:0.3{' --alternate-order' if alternate else ''}`).",
         "",
         "## Inspection vs the twin's truth (acceptance: within 5 µm + 5 %)",
         "",
@@ -180,10 +218,27 @@ def main() -> None:
         f"Frame fit (`recon/track.py`, on by default in `inspect` and `replay --fuse`): "
         f"{100 * refined.mean():.1f} % of the fused points were fitted to the raw frames that saw them "
         f"({1e3 * before_refined:.1f} µm before, **{1e3 * rms_refined:.1f} µm after**); the other "
-        f"{100 * (1 - refined.mean()):.1f} % keep their fused position ({1e3 * rms_kept:.1f} µm): their frames show "
-        "them at too few distinct fringe phases to fit (at this speed a point whose fringes move about a "
-        "sixth of a period per frame is seen at only two opposite phases, 0 and pi, burst after burst).",
+        f"{100 * (1 - refined.mean()):.1f} % keep their fused position ({1e3 * rms_kept:.1f} µm): their fit's own "
+        "sigma is above 30 µm (too few frames, or fringe phases too close to two opposite ones to tell sine from "
+        "cosine; with every burst in the order 0, 1, 2 a point whose fringes move a sixth of a period per frame "
+        "sees only 0 and pi, burst after burst).",
         "",
+        *([
+            "## Pattern order: the same revolution shown both ways",
+            "",
+            "At 0.6°/frame a fringe that moves a sixth of a period per frame steps the phase a point sees by "
+            "2pi/3 + pi/3 = pi every frame when the bursts are all 0, 1, 2: those points are seen at two opposite "
+            "phases only, and the fit cannot place them. Every other burst in the order 0, 2, 1 "
+            "(`[projector] alternate_order`, `twin render --alternate-order`) steps them by -pi/3 there.",
+            "",
+            "| pattern order | fused points | coverage | fitted | RMS of the fitted (µm) | RMS of the rest (µm) | "
+            "RMS whole cloud (µm) | p95 (µm) | largest fp error (µm) | chipped teeth |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+            *[f"| {o['order']} | {o['points']:,} | {100 * o['coverage']:.1f} % | {100 * o['fitted']:.1f} % | "
+              f"{1e3 * o['fitted_rms_mm']:.1f} | {1e3 * o['kept_rms_mm']:.1f} | **{1e3 * o['rms_mm']:.1f}** | "
+              f"{1e3 * o['p95_mm']:.1f} | {o['fp_max_error_um']:.1f} | {o['chip']} |" for o in orders],
+            "",
+        ] if len(orders) > 1 else []),
         "| bursts per fused point | points | RMS fused only (µm) | RMS with the fit (µm) | p95 (µm) | fitted | RMS of the fitted (µm) |",
         "|---|---|---|---|---|---|---|",
         *[f"| {name} | {n:,} | {1e3 * r0:.1f} | {1e3 * r:.1f} | {1e3 * p:.1f} | {100 * f:.0f} % | {1e3 * rf:.1f} |"
@@ -206,7 +261,8 @@ def main() -> None:
         "refined_before_rms_mm": before_refined, "kept_rms_mm": rms_kept, "plain_seconds": plain_seconds,
         "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "fused_only_fp_max_error_um": plain_fp_err,
         "fused_only_chip_noise_um": plain.inspection.chip_noise_um, "chip_noise_um": insp.chip_noise_um, "chipped": list(insp.chipped_teeth),
-        "truth_chipped": truth["chipped_teeth"], "Fr_um": insp.Fr_um}, indent=2))
+        "truth_chipped": truth["chipped_teeth"], "Fr_um": insp.Fr_um, "pattern_order": order_name,
+        "orders": orders}, indent=2))
     print("\n".join(lines))
 
 

@@ -88,13 +88,16 @@ class AcquisitionSession:
         self.cfg = cfg
         self.settings = cfg.camera.settings()
         self.patterns = cfg.projector.patterns()
-        self.order = self.patterns.cycle(cfg.projector.coarse_every)  # one cycle of the projector sequence
-        if self.patterns.coarse_period_px is not None and self.settings.trigger != "software":
-            raise ConfigError(
-                "projector.coarse_period_px: coarse bursts are sequenced by software (camera.trigger = 'software'); "
-                f"a projector playing its own sequence shows the three measuring patterns only (got trigger "
-                f"{self.settings.trigger!r})"
-            )
+        # one cycle of the projector sequence
+        self.order = self.patterns.cycle(cfg.projector.coarse_every, alternate=cfg.projector.alternate_order)
+        for key, on in (("coarse_period_px", self.patterns.coarse_period_px is not None),
+                        ("alternate_order", cfg.projector.alternate_order)):
+            if on and self.settings.trigger != "software":
+                raise ConfigError(
+                    f"projector.{key}: this sequence is shown by software (camera.trigger = 'software'); "
+                    f"a projector playing its own sequence shows the three measuring patterns in order only (got trigger "
+                    f"{self.settings.trigger!r})"
+                )
         if self.settings.trigger != "software" and self.settings.pattern_cycle != 3:
             raise ConfigError(
                 f"camera.pattern_cycle: must be 3 with trigger {self.settings.trigger!r} (the projector cycles the "

@@ -94,6 +94,7 @@ def twin_render(
     true_module: Annotated[float | None, typer.Option(help="defect: as-built module, mm (the recording states --module as CAD)")] = None,
     coarse_period: Annotated[float | None, typer.Option(help="also a coarse three-step burst at this period (projector px), first and then every --coarse-every bursts: CAD-free unwrapping (replay --unwrap coarse)")] = None,
     coarse_every: Annotated[int, typer.Option(min=1, help="with --coarse-period: bursts between coarse bursts")] = 4,
+    alternate_order: Annotated[bool, typer.Option(help="every other burst shows its patterns as 0, 2, 1 (as live's projector.alternate_order): the fused model's frame fit then fits nearly every point")] = False,
 ) -> None:
     """Render a twin recording of a rotating gear (frames, encoder, ground truth), optionally with known defects."""
     from gearscan.core.recording import RecordingError
@@ -118,7 +119,7 @@ def twin_render(
             render_recording(
                 out, rig=the_rig, gear=gear, defects=as_built, optics=optics, motion=motion, bursts=bursts, period_px=period,
                 start_deg=start, motion_blur=motion_blur, seed=seed, overwrite=overwrite,
-                coarse_period_px=coarse_period, coarse_every=coarse_every,
+                coarse_period_px=coarse_period, coarse_every=coarse_every, alternate_order=alternate_order,
                 progress=lambda i, n: prog.update(task, completed=i),
             )
     except (RigError, MotionError, RenderError, RecordingError, ValueError) as exc:

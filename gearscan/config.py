@@ -41,6 +41,8 @@ settle_ms = 20.0             # wait after showing a pattern before triggering th
 # gamma = 2.2                # display gamma to pre-compensate
 # coarse_period_px = 160.0   # CAD-free: a coarse burst at this period first and then every
 # coarse_every = 4           # coarse_every measuring bursts (with recon.unwrap = "coarse")
+# alternate_order = true     # every other burst shows its patterns as 0, 2, 1: the fused model's
+                             # frame fit (inspect, replay --fuse) then fits nearly every point
 
 # [encoder]                  # omit without an encoder: the gear is then taken as standing still
                              # at angle 0 (its CAD pose); every burst goes to three-step PS.

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gearscan.core.phase import in_capture_order
 from gearscan.core.types import Burst, PhaseResult
 from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
@@ -284,8 +285,13 @@ class Predictor:
         return self.predict_tensor(x, mc)
 
     def predict_burst(self, burst: Burst, mc: int = 0) -> PhaseResult:
-        """Predict a :class:`Burst` (full scale from its bit depth; angle = first frame's)."""
+        """Predict a :class:`Burst` (full scale from its bit depth; angle = first frame's).
+
+        A burst shown in reversed order (shifts 0, 4pi/3, 2pi/3) is a forward burst of the negated
+        phase: the network decodes it as such and the result is turned back (:func:`in_capture_order`).
+        """
         result = self.predict(burst.images, mc, full_scale=burst.full_scale, angles=np.asarray(burst.angles))
+        result = in_capture_order(result, burst)
         return dataclasses.replace(result, burst_index=burst.index, angle=float(burst.angles[0]))
 
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from gearscan.core.phase import THREE_STEP_SHIFTS
+from gearscan.core.phase import burst_shifts
 from gearscan.core.rig import Rig, rot_z
 from gearscan.core.types import Measurement
 from gearscan.recon.fuse import FusedCloud
@@ -39,6 +39,7 @@ class _BurstView:
     images: np.ndarray  # (3, H, W) raw camera counts
     angles: np.ndarray  # (3,) rad
     depth: np.ndarray  # (H, W) float32 camera z (mm) of the burst's own points at angles[0]; NaN none
+    shifts: np.ndarray  # (3,) rad, each frame's pattern shift in capture order
 
 
 @dataclass(frozen=True)
@@ -47,7 +48,7 @@ class TrackResult:
 
     points: np.ndarray  # (N, 3)
     sigma: np.ndarray  # (N,) mm along the ray; inf where not refined
-    refined: np.ndarray  # (N,) bool: fitted on enough well-spread frames
+    refined: np.ndarray  # (N,) bool: fitted on enough frames, sigma within max_sigma_mm
     frames: np.ndarray  # (N,) int: samples in the final fit
     moved_mm: np.ndarray  # (N,) distance moved along the ray (+ away from the camera)
     stats: dict = field(default_factory=dict)
@@ -56,20 +57,31 @@ class TrackResult:
 class TrackRefiner:
     """Collects a revolution's bursts (frames, encoder angles, measured depth) and refines a fused cloud.
 
-    ``min_frames``: fewest frames (after outlier removal) a point's fit needs; ``min_spread``:
-    how evenly the fringe phases of those frames must cover the circle (twice the smallest
-    eigenvalue of the fit's normalised normal matrix: 1 for an even spread, 0 at one phase or at
-    two opposite ones, where sine and cosine cannot be told apart);
+    ``min_frames``: fewest frames (after outlier removal) a point's fit needs; ``max_sigma_mm``:
+    largest standard error along the ray a fit may have to replace the fused position (from the
+    fit's own covariance: residual noise, how evenly the frames' fringe phases cover the circle,
+    the shading drift it also solves for); ``min_spread``: a floor on that evenness (twice the
+    smallest eigenvalue of the fit's normalised normal matrix: 1 for an even spread, 0 at one
+    phase or at two opposite ones, where sine and cosine cannot be told apart);
     ``visible_mm``: how close a burst's own point must be for its frames to count as seeing ``X``.
+
+    Defaults: ``max_sigma_mm = 0.03`` and ``min_spread = 0.05`` were chosen on an independent
+    40-burst twin stretch (seed 7, start 11 deg, default rig, 0.6 deg/frame; 40k points against
+    the true surface): they fit 90 % of the fused points at 8.2 um RMS where the former rule
+    (spread >= 0.5, no sigma bound) fit 78 % at 5.6 um, and move the whole cloud from 26.8 to
+    19.9 um RMS; a fit accepted at 20-30 um sigma is still three times closer to the surface than
+    the fused point it replaces (57 um).
     """
 
     def __init__(self, rig: Rig, period_px: float, *, iterations: int = 4, min_frames: int = 9,
-                 min_spread: float = 0.5, visible_mm: float = 0.3, max_step_mm: float = 0.3,
-                 outlier_sigma: float = 3.0, drift: bool = True) -> None:
+                 min_spread: float = 0.05, visible_mm: float = 0.3, max_step_mm: float = 0.3,
+                 outlier_sigma: float = 3.0, drift: bool = True, max_sigma_mm: float = 0.03) -> None:
         if not period_px > 0:
             raise ValueError(f"period_px: expected > 0 projector pixels, got {period_px}")
         if iterations < 1 or min_frames < 4:
             raise ValueError(f"iterations >= 1 and min_frames >= 4 expected, got {iterations} and {min_frames}")
+        if not (max_sigma_mm > 0 and 0 <= min_spread <= 1):
+            raise ValueError(f"max_sigma_mm > 0 and 0 <= min_spread <= 1 expected, got {max_sigma_mm} and {min_spread}")
         self.rig = rig
         self.period_px = float(period_px)
         self.iterations = int(iterations)
@@ -79,6 +91,7 @@ class TrackRefiner:
         self.max_step_mm = float(max_step_mm)
         self.outlier_sigma = float(outlier_sigma)
         self.drift = bool(drift)
+        self.max_sigma_mm = float(max_sigma_mm)
         self.bursts: list[_BurstView] = []
 
     def __len__(self) -> int:
@@ -98,7 +111,8 @@ class TrackRefiner:
             t = cam.T_from_world @ rot_z(m.burst.angles[0])
             z = m.cloud.points @ t[2, :3] + t[2, 3]
             depth[m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]] = z
-        self.bursts.append(_BurstView(np.array(images), np.asarray(m.burst.angles, np.float64), depth))
+        self.bursts.append(_BurstView(np.array(images), np.asarray(m.burst.angles, np.float64), depth,
+                                      burst_shifts(m.burst)))
 
     @staticmethod
     def memory_bytes(frames: int, height: int, width: int, itemsize: int) -> int:
@@ -161,7 +175,7 @@ class TrackRefiner:
             val = ((1 - fy) * ((1 - fx) * img[y0, x0] + fx * img[y0, x0 + 1])
                    + fy * ((1 - fx) * img[y0 + 1, x0] + fx * img[y0 + 1, x0 + 1]))
             intensity[sel] = val
-            psi[sel] = scale * u_p + THREE_STEP_SHIFTS[k]
+            psi[sel] = scale * u_p + b.shifts[k]
             dpsi[sel] = scale * (u_pd - u_p) / eps
             inside[sel] = ok
             angle[sel] = b.angles[k]
@@ -224,22 +238,22 @@ class TrackRefiner:
             tau = np.angle(np.exp(1j * (np.concatenate([c[4] for c in cols]) - theta[idx])))
             if keep is not None:
                 good &= keep
-            coef, res_sd, nfr, spread = _fit(idx[good], val[good], psi[good], tau[good], n, self.drift)
+            coef, res_sd, nfr, spread, sig_eps = _fit(idx[good], val[good], psi[good], tau[good], n, self.drift)
             cc, ss = coef[:, 1], coef[:, 2]
             if it == self.iterations - 2 or self.iterations == 1:  # drop samples far from the fit
                 pred = np.einsum("ij,ij->i", _design(psi, tau, self.drift), coef[idx])
                 keep = np.abs(val - pred) <= self.outlier_sigma * np.maximum(res_sd[idx], 1e-6)
             eps = np.arctan2(ss, cc)  # phase the frames show minus the point's model phase
             slope = np.bincount(idx[good], dpsi[good], minlength=n) / np.maximum(nfr, 1)
-            fit = (nfr >= self.min_frames) & (spread >= self.min_spread) & (np.abs(slope) > 1e-3)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sigma_mm = np.abs(sig_eps / slope)
+            fit = ((nfr >= self.min_frames) & (spread >= self.min_spread) & (np.abs(slope) > 1e-3)
+                   & (sigma_mm <= self.max_sigma_mm))
             with np.errstate(divide="ignore", invalid="ignore"):
                 step = np.where(fit, eps / slope, 0.0)
             step = np.clip(step, -self.max_step_mm, self.max_step_mm)
             x = x + step[:, None] * rays
-            amp = np.hypot(cc, ss)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                sig_phase = res_sd / (amp * np.sqrt(np.maximum(nfr, 1) / 2.0))
-                sigma = np.where(fit, np.abs(sig_phase / slope), np.inf)
+            sigma = np.where(fit, sigma_mm, np.inf)
             ok_fit, used = fit, nfr
         x = np.where(ok_fit[:, None], x, pts)  # a point the last fit could not take stays where it was
         return x, sigma, ok_fit, used, np.einsum("ij,ij->i", x - pts, rays)
@@ -273,12 +287,21 @@ def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: 
     if drift:
         solvable &= np.linalg.eigvalsh(ata)[:, 0] > 1e-12 * np.maximum(count, 1)
     sol = np.zeros((n, p))
+    cov_cs = np.full((n, 2, 2), np.inf)  # (C, S) block of the inverse normal matrix
     if solvable.any():
-        sol[solvable] = np.linalg.solve(ata[solvable], atb[solvable][..., None])[..., 0]
+        inv = np.linalg.inv(ata[solvable])
+        sol[solvable] = np.einsum("nij,nj->ni", inv, atb[solvable])
+        cov_cs[solvable] = inv[:, 1:3, 1:3]
     pred = np.einsum("ij,ij->i", x, sol[idx])
     sse = np.bincount(idx, (val - pred) ** 2, minlength=n)
     res_sd = np.sqrt(sse / np.maximum(count - p, 1))
-    return sol, res_sd, count.astype(np.int64), np.where(solvable, spread, 0.0)
+    # first-order variance of eps = atan2(S, C): gradient (-S, C) / B^2 through the (C, S) covariance
+    c, s = sol[:, 1], sol[:, 2]
+    b2 = np.maximum(c * c + s * s, 1e-12)
+    with np.errstate(invalid="ignore"):
+        q = (s * s * cov_cs[:, 0, 0] - 2 * c * s * cov_cs[:, 0, 1] + c * c * cov_cs[:, 1, 1]) / (b2 * b2)
+    sigma_eps = np.where(solvable, res_sd * np.sqrt(np.maximum(q, 0.0)), np.inf)
+    return sol, res_sd, count.astype(np.int64), np.where(solvable, spread, 0.0), sigma_eps
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -134,3 +134,14 @@ def test_coarse_bursts_are_assembled_in_their_own_group():
     assert [b.group for b in bursts] == [1, 0]
     assert asm.stats.pattern_errors == 2  # the 4 breaks the burst begun at 0; the 5 starts none
     assert BurstAssembler().push(Frame(img, 0, 0, 3, encoder_angle=0.0)) is None  # one group: 3 never starts
+
+
+def test_alternating_order_is_a_burst_and_a_broken_one_is_refused():
+    """0, 2, 1 is a burst (reversed order, as projector.alternate_order shows it); 0, 2, 2 is not."""
+    asm = BurstAssembler(fixed_angle=0.0)
+    patterns = [0, 1, 2, 0, 2, 1, 0, 2, 2, 0, 1, 2]
+    bursts = [b for i, p in enumerate(patterns) if (b := asm.push(_frame(i, pattern=p))) is not None]
+    assert [[f.frame_id for f in b.frames] for b in bursts] == [[0, 1, 2], [3, 4, 5], [9, 10, 11]]
+    assert [b.reversed_order for b in bursts] == [False, True, False]
+    assert asm.stats.pattern_errors == 1 and [e.kind for e in asm.events] == ["pattern_order"]
+    assert "pattern 2 where 1 was expected" in asm.events[0].detail

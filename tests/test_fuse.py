@@ -38,6 +38,18 @@ def test_bursts_count_once_per_voxel_and_min_bursts_filters():
     assert f.bursts[order].tolist() == [2, 1] and f.samples[order].tolist() == [3, 1]
     assert len(fuser.result(min_bursts=2)) == 1
     assert f.bursts_added == 2
+    # the burst's two pixels share its error: one observation of their mean weight, not two
+    assert f.sigma[order][0] == pytest.approx(1 / np.sqrt(1 / 0.01**2 + 1 / 0.02**2))
+
+
+def test_sigma_counts_bursts_not_pixels():
+    """Many pixels of one burst in a voxel do not shrink sigma; another burst does."""
+    one = fuse([_cloud(np.full((9, 3), 0.05), np.full(9, 0.02), 0)], voxel_mm=0.1)
+    assert one.sigma[0] == pytest.approx(0.02) and one.samples[0] == 9
+    two = fuse([_cloud(np.full((9, 3), 0.05), np.full(9, 0.02), 0), _cloud([[0.05] * 3], [0.02], 1)], voxel_mm=0.1)
+    assert two.sigma[0] == pytest.approx(0.02 / np.sqrt(2))
+    mixed = fuse([_cloud(np.full((2, 3), 0.05), [0.01, 0.03], 0)], voxel_mm=0.1)
+    assert mixed.sigma[0] == pytest.approx(1 / np.sqrt((1 / 0.01**2 + 1 / 0.03**2) / 2))
 
 
 def test_bad_points_are_skipped_and_bad_input_named():

@@ -171,3 +171,11 @@ def test_the_mock_projector_log_stays_bounded():
         proj.show(np.full((2, 4), i, np.uint8), i % 3)
     assert proj.shown == 23 and 5 <= len(proj.log) <= 10
     assert proj.log[-1].checksum == 22 * 8  # the newest is kept
+
+
+def test_alternating_cycle_shows_every_other_burst_reversed():
+    assert PatternSet.three_step(16.0).cycle(alternate=True) == [0, 1, 2, 0, 2, 1]
+    coarse = PatternSet.with_coarse(16.0, 64.0)
+    assert coarse.cycle(coarse_every=2, alternate=True) == [3, 4, 5, 0, 1, 2, 0, 2, 1]
+    # an odd count between coarse bursts: two coarse periods per cycle, so the alternation goes on
+    assert coarse.cycle(coarse_every=1, alternate=True) == [3, 4, 5, 0, 1, 2, 3, 4, 5, 0, 2, 1]

@@ -62,6 +62,12 @@ def test_fit_moves_the_fused_points_onto_the_true_surface(off_cad_turn):
     # the fit's sigma is the size of its error (median |z| of a Gaussian: 0.67)
     z = np.abs(after) / fitted.sigma[r]
     assert 0.3 < np.median(z) < 2.0
+    # sigma comes from each fit's own covariance and ranks the points: the better-determined half
+    # is closer to the true surface than the other half, and no accepted fit is above the bound
+    s = fitted.sigma[r]
+    assert s.max() <= TrackRefiner(off_cad_turn[0].rig, 40.0).max_sigma_mm
+    low = s <= np.median(s)
+    assert _rms_um(after[low]) < 0.8 * _rms_um(after[~low])
 
 
 def test_fit_keeps_the_deviation_from_the_cad(off_cad_turn):
@@ -96,6 +102,8 @@ def test_bad_input_is_named(off_cad_turn):
         ref.refine(np.zeros((4, 2)))
     with pytest.raises(ValueError, match="period_px"):
         TrackRefiner(reader.rig, 0.0)
+    with pytest.raises(ValueError, match="max_sigma_mm"):
+        TrackRefiner(reader.rig, 40.0, max_sigma_mm=0.0)
 
 
 def test_replay_refuses_refinement_it_cannot_hold_before_replaying(off_cad_turn, monkeypatch):

@@ -44,13 +44,15 @@ def render_recording(
     progress: Callable[[int, int], None] | None = None,
     coarse_period_px: float | None = None,
     coarse_every: int = 4,
+    alternate_order: bool = False,
 ) -> Path:
     """Render ``bursts`` three-step bursts under ``motion`` into recording folder ``out``.
 
     ``gear`` is the nominal spec the recording states as its CAD; with ``defects`` the twin
     renders the as-built gear and ``recording.json`` holds the answer under ``truth``. With
     ``coarse_period_px`` a coarse three-step burst (patterns 3-5) comes first and then after every
-    ``coarse_every`` bursts, as a rig sequencing them would (:meth:`PatternSet.with_coarse`).
+    ``coarse_every`` bursts, as a rig sequencing them would (:meth:`PatternSet.with_coarse`). With
+    ``alternate_order`` every other measuring burst shows its patterns as 0, 2, 1 (:meth:`PatternSet.cycle`).
     """
     rig = rig or default_rig()
     gear = gear or GearSpec()
@@ -62,7 +64,10 @@ def render_recording(
             raise ValueError(f"coarse_every: expected >= 1 burst between coarse bursts, got {coarse_every}")
         patterns = PatternSet.with_coarse(period_px, coarse_period_px)
         sequence = [g for k in range(bursts) for g in ([1, 0] if k % coarse_every == 0 else [0])]
-    pattern_index = [3 * g + n for g in sequence for n in range(3)]
+    fine_orders = ((0, 1, 2), (0, 2, 1)) if alternate_order else ((0, 1, 2),)
+    fine_k = np.cumsum([g == 0 for g in sequence]) - 1  # index of each burst among the measuring ones
+    pattern_index = [3 * g + n for g, k in zip(sequence, fine_k, strict=True)
+                     for n in (fine_orders[k % len(fine_orders)] if g == 0 else (0, 1, 2))]
     angles = frame_angles(motion, len(sequence), start_deg)
     truth = defects.truth(gear) if defects is not None and not defects.empty else None  # validates first
     renderer = TwinRenderer(rig, gear, optics, defects=defects)
@@ -83,7 +88,8 @@ def render_recording(
             "exposure_us": exposure_us,
             "frame_interval_ms": frame_interval_ms,
         },
-        "twin": {"optics": optics.model_dump(), "motion": motion, "seed": seed, "motion_blur": motion_blur},
+        "twin": {"optics": optics.model_dump(), "motion": motion, "seed": seed, "motion_blur": motion_blur,
+                 "alternate_order": alternate_order},
         "encoder": {"counts_per_rev": ENCODER_COUNTS_PER_REV, "rate_hz": ENCODER_RATE_HZ},
         **({"truth": truth} if truth else {}),
     }

@@ -91,14 +91,24 @@ class PatternSet:
         pats = cls.n_step(3, period_px).patterns + cls.n_step(3, coarse_period_px).patterns
         return cls(pats, name=f"3-step@{period_px:g}px+coarse@{coarse_period_px:g}px")
 
-    def cycle(self, coarse_every: int = 1) -> list[int]:
+    def cycle(self, coarse_every: int = 1, alternate: bool = False) -> list[int]:
         """Pattern indices of one sequence cycle: the three-step burst (0, 1, 2); with a coarse group a
-        coarse burst (3, 4, 5) first and then ``coarse_every`` measuring bursts (as twin recordings do)."""
+        coarse burst (3, 4, 5) first and then ``coarse_every`` measuring bursts (as twin recordings do).
+
+        ``alternate``: every other measuring burst shows its patterns as 0, 2, 1, so that on a
+        turning gear no surface point sees the same two fringe phases frame after frame (a fringe
+        moving a sixth of a period per frame does, in the order 0, 1, 2): the frame fit of the fused
+        model (:mod:`gearscan.recon.track`) can then fit it.
+        """
+        orders = ([0, 1, 2], [0, 2, 1]) if alternate else ([0, 1, 2],)
         if self.coarse_period_px is None:
-            return list(range(len(self.patterns)))
+            if len(self.patterns) != 3 and alternate:
+                raise PatternError(f"alternate: a three-pattern set expected, got {len(self.patterns)} patterns")
+            return [i for o in orders for i in o] if len(self.patterns) == 3 else list(range(len(self.patterns)))
         if coarse_every < 1:
             raise PatternError(f"coarse_every: expected >= 1 measuring burst per coarse burst, got {coarse_every}")
-        return [3, 4, 5] + [0, 1, 2] * coarse_every
+        fine = coarse_every * (2 if alternate and coarse_every % 2 else 1)  # alternation carries across cycles
+        return [i for k in range(fine) for i in ([3, 4, 5] if k % coarse_every == 0 else []) + orders[k % len(orders)]]
 
     @property
     def coarse_period_px(self) -> float | None:

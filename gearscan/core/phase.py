@@ -8,6 +8,7 @@ Decoding follows paper eq. 2: ``M = -sum I_n sin(delta_n)``, ``D = sum I_n cos(d
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -59,6 +60,24 @@ def three_step(images: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.nd
     return decode_phase(images, THREE_STEP_SHIFTS, full_scale)
 
 
+def burst_shifts(burst: Burst) -> np.ndarray:
+    """The phase shift of each of the burst's frames, in capture order (rad)."""
+    return THREE_STEP_SHIFTS[[0, 2, 1]] if burst.reversed_order else THREE_STEP_SHIFTS
+
+
+def in_capture_order(result: PhaseResult, burst: Burst) -> PhaseResult:
+    """``result`` of decoding the burst's frames as if their shifts were 0, 2pi/3, 4pi/3, turned
+    into the phase of its real shifts.
+
+    Frames shown in the order 0, 4pi/3, 2pi/3 read ``A + B cos(phi - 2 pi k / 3)``: a forward
+    burst of ``-phi`` (and of the opposite fringe motion), so any forward decoder measures
+    ``-phi``: the phase and M change sign, D and every uncertainty stay.
+    """
+    if not burst.reversed_order:
+        return result
+    return replace(result, phase=(-result.phase).astype(np.float32), M=(-result.M).astype(np.float32))
+
+
 def wrap(phase: np.ndarray) -> np.ndarray:
     """Wrap to (-pi, pi]."""
     return np.angle(np.exp(1j * np.asarray(phase)))
@@ -89,7 +108,7 @@ def classical_result(burst: Burst, read_noise_dn: float = 1.0) -> PhaseResult:
     Its data uncertainty is the noise-only phase sigma ``s_I sqrt(2/N) / B`` for a read noise
     of ``read_noise_dn``; three-step PS has no estimate of its (dominant) motion error.
     """
-    phase, m, d = three_step(burst.images, burst.full_scale)
+    phase, m, d = decode_phase(burst.images, burst_shifts(burst), burst.full_scale)
     mod = np.hypot(m, d)  # 2B/S
     with np.errstate(divide="ignore"):
         sigma = np.where(mod > 0, (2.0 * read_noise_dn / burst.full_scale) * np.sqrt(2 / 3) / mod, np.inf)

@@ -617,7 +617,8 @@ class RecordingReader:
 
     def _check_order(self, cycle: int | None) -> None:
         """A recording holds whole bursts in capture order (the recorder writes only complete
-        bursts, frame after frame): line n holds pattern ``(n - 1) % cycle``, ids increase, and
+        bursts, frame after frame): line n holds pattern ``(n - 1) % cycle`` (three-frame bursts: 0, 1, 2
+        or 0, 2, 1, as an alternating sequence shows them), ids increase, and
         within a burst they increase by one. A line that breaks this has a wrong number in it,
         which the assembler would otherwise turn into an unexplained lost burst."""
         unwrap, keep, prev = FrameIdUnwrapper(self.frame_id_wrap), [], None  # prev: (line, extended id)
@@ -626,18 +627,28 @@ class RecordingReader:
         if groups:
             cycle = 3
         group = 0  # the pattern group (fine 0, coarse 1) of the burst the line belongs to
+        second = 1  # the burst's second pattern within its group: 1, or 2 in the order 0, 2, 1
         for rec, n in zip(self.records, self.lines, strict=True):
             ext = unwrap(rec.frame_id)
             why = ""
-            if groups and (n - 1) % 3 == 0:
+            pos = (n - 1) % 3
+            if groups and pos == 0:
                 group = rec.pattern_index // 3
+            if cycle == 3 or groups:  # three-frame bursts: 0, 1, 2 or 0, 2, 1 (PatternSet.cycle(alternate=True))
+                allowed = (0,) if pos == 0 else (1, 2) if pos == 1 else (3 - second,)
+                if pos == 1 and rec.pattern_index % 3 in allowed:
+                    second = rec.pattern_index % 3
             if angles and rec.encoder_angle is None:
                 why = "encoder_angle_rad is null where the recording's other frames have an angle"
             elif groups and not (rec.pattern_index < 6 and rec.pattern_index // 3 == group
-                                 and rec.pattern_index % 3 == (n - 1) % 3):
+                                 and rec.pattern_index % 3 in allowed):
                 why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole three-frame "
-                       f"fine (0-2) and coarse (3-5) bursts holds pattern {3 * group + (n - 1) % 3}")
-            elif not groups and cycle is not None and rec.pattern_index != (n - 1) % cycle:
+                       f"fine (0-2) and coarse (3-5) bursts holds pattern "
+                       f"{' or '.join(str(3 * group + a) for a in allowed)}")
+            elif not groups and cycle == 3 and rec.pattern_index not in allowed:
+                why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole "
+                       f"3-frame bursts holds pattern {' or '.join(map(str, allowed))}")
+            elif not groups and cycle is not None and cycle != 3 and rec.pattern_index != (n - 1) % cycle:
                 why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole "
                        f"{cycle}-frame bursts holds pattern {(n - 1) % cycle}")
             elif prev is not None and ext <= prev[1]:

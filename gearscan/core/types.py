@@ -76,6 +76,9 @@ class Burst:
 
     ``angles`` are the encoder angles (rad) at each frame's exposure midpoint; the
     burst's ground truth (and the network's target) is the phase at ``angles[0]``.
+    The shifts come in that order, or reversed after the first (0, 4pi/3, 2pi/3:
+    :attr:`reversed_order`): a sequence that alternates the two gives every surface point
+    of a turning gear distinct fringe phases from frame to frame (``recon.track``).
     """
 
     frames: tuple[Frame, Frame, Frame]
@@ -91,6 +94,12 @@ class Burst:
     @property
     def full_scale(self) -> int:
         return self.frames[0].full_scale
+
+    @property
+    def reversed_order(self) -> bool:
+        """True when the frames show the group's patterns in the order 0, 2, 1 (shifts 0, 4pi/3, 2pi/3)."""
+        first = self.frames[0].pattern_index
+        return (self.frames[1].pattern_index, self.frames[2].pattern_index) == (first + 2, first + 1)
 
     @property
     def timestamp_ns(self) -> int:
