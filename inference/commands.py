@@ -5,6 +5,7 @@ Only light imports at module level; torch and friends load inside the functions.
 
 from __future__ import annotations
 
+import math
 import struct
 import zipfile
 import zlib
@@ -12,6 +13,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+
+from gearscan.inference.decoder import STILL_SPAN_DEG
 
 
 def _read_images(paths: list[Path]):
@@ -155,6 +158,14 @@ def predict(
             "input; an .npz may hold them as 'angles', rad)"
         ),
     ] = None,
+    still_span_deg: Annotated[
+        float,
+        typer.Option(
+            min=0.0,
+            help="with angles: a burst that turned less than this (frame 1 to 3) is decoded by three-step PS, "
+            "as live and replay do (no motion, no motion error; 0: always the network)",
+        ),
+    ] = STILL_SPAN_DEG,
 ) -> None:
     """Predict wrapped phase and its uncertainty from one three-step burst.
 
@@ -163,8 +174,9 @@ def predict(
     """
     import numpy as np
 
+    from gearscan.core.phase import three_step_result
     from gearscan.inference.model_io import ModelFileError
-    from gearscan.inference.predictor import PRECISIONS, Predictor
+    from gearscan.inference.predictor import PRECISIONS, Predictor, resolve_full_scale
 
     if precision not in PRECISIONS:
         raise typer.BadParameter(f"expected one of {', '.join(PRECISIONS)}, got {precision!r}", param_hint="--precision")
@@ -187,7 +199,11 @@ def predict(
         except ValueError as exc:
             raise typer.BadParameter(f"--angles-deg: expected three numbers 'A,B,C', got {angles_deg!r}") from exc
     try:
-        result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles)
+        if angles is not None and abs(float(angles[-1] - angles[0])) < math.radians(still_span_deg):
+            # the pipeline's still rule (inference.decoder)
+            result = three_step_result(frames, resolve_full_scale(frames, full_scale))
+        else:
+            result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles)
     except ValueError as exc:  # a motion-input model without angles, or bad angles
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

@@ -71,6 +71,17 @@ def model_path(path: str | Path | None) -> Path:
     return path.with_suffix(".safetensors") if path.suffix == ".json" else path
 
 
+def resolve_full_scale(frames: np.ndarray, full_scale: float | None) -> float:
+    """``full_scale``, or the raw dtype's maximum (255, 65535) when None; floats need it given."""
+    if full_scale is not None:
+        return full_scale
+    if frames.dtype == np.uint8:
+        return 255.0
+    if frames.dtype == np.uint16:
+        return 65535.0
+    raise ValueError(f"frames: expected uint8 or uint16 raw frames (or pass full_scale), got dtype {frames.dtype}")
+
+
 def frames_to_tensor(frames: np.ndarray, full_scale: float | None = None) -> torch.Tensor:
     """``(3, H, W)`` (or ``(C, H, W)``) raw frames -> ``(1, C, H, W)`` float32 in [0, 1].
 
@@ -79,15 +90,7 @@ def frames_to_tensor(frames: np.ndarray, full_scale: float | None = None) -> tor
     frames = np.asarray(frames)
     if frames.ndim != 3 or frames.shape[0] < 3:
         raise ValueError(f"frames: expected (3, H, W), got shape {frames.shape}")
-    if full_scale is None:
-        if frames.dtype == np.uint8:
-            full_scale = 255.0
-        elif frames.dtype == np.uint16:
-            full_scale = 65535.0
-        else:
-            raise ValueError(
-                f"frames: expected uint8 or uint16 raw frames (or pass full_scale), got dtype {frames.dtype}"
-            )
+    full_scale = resolve_full_scale(frames, full_scale)
     if not full_scale > 0:
         raise ValueError(f"full_scale: expected > 0, got {full_scale}")
     x = torch.from_numpy(np.ascontiguousarray(frames, dtype=np.float32)) / float(full_scale)

@@ -323,3 +323,23 @@ def test_mirrored_fringes_are_decoded_in_the_trained_orientation(saved):
     a, b = pred.predict(frames), pred.predict(mirrored)
     for key in ("phase", "M", "D", "sigma_total"):
         np.testing.assert_allclose(getattr(b, key)[:, ::-1], getattr(a, key), atol=1e-6)
+
+
+def test_predict_cli_sends_a_still_burst_to_three_step(saved, tmp_path):
+    """With angles, predict follows the pipeline's rule: a burst that did not turn has no motion
+    error, so three-step PS decodes it (exactly the closed form); a turning one goes to the network."""
+    from gearscan.core.phase import three_step
+
+    _, path = saved
+    frames = _frames()
+    np.savez(tmp_path / "still.npz", frames=frames, angles=np.radians([10.0, 10.0, 10.0]))
+    predict([tmp_path / "still.npz"], output=tmp_path / "s.npz", mc=0, model=path)
+    phase3 = three_step(frames, 255)[0]
+    with np.load(tmp_path / "s.npz") as z:
+        assert str(z["mode"]) == "three-step"
+        np.testing.assert_allclose(z["phase"], phase3, atol=1e-6)
+    predict([tmp_path / "still.npz"], output=tmp_path / "n.npz", mc=0, model=path, still_span_deg=0.0)
+    predict([tmp_path / "still.npz"], output=tmp_path / "m.npz", mc=0, model=path, angles_deg="10,10.6,11.2")
+    for name in ("n.npz", "m.npz"):  # --still-span-deg 0, or a turning burst: the network
+        with np.load(tmp_path / name) as z:
+            assert str(z["mode"]) == "deterministic"

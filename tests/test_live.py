@@ -330,3 +330,40 @@ def test_coarse_unwrapping_needs_a_coarse_period():
         LiveConfig.from_toml(text.replace("# coarse_period_px = 160.0", "coarse_period_px = 20.0"), "rig.toml")
     cfg = LiveConfig.from_toml(text.replace("# coarse_period_px = 160.0", "coarse_period_px = 160.0"), "rig.toml")
     assert cfg.projector.patterns().cycle(cfg.projector.coarse_every) == [3, 4, 5] + [0, 1, 2] * 4
+
+
+def test_live_alternates_the_pattern_order(tmp_path):
+    """projector.alternate_order: every other burst is shown 0, 2, 1; live decodes both orders to the
+    same surface (a still twin gear: as many points in a reversed burst as in a forward one), and its
+    recording keeps the order, so it replays."""
+    from gearscan.live import run_live
+    from gearscan.replay import replay
+
+    rec = render_recording(tmp_path / "twin", rig=default_rig(160, 160), motion="static", bursts=4, alternate_order=True)
+    rig_path = tmp_path / "rig.json"
+    RecordingReader(rec).rig.save(rig_path)
+    cfg = LiveConfig.from_toml(_config(tmp_path, rec, rig_path, None).read_text()
+                               .replace("settle_ms = 1", "settle_ms = 1\nalternate_order = true"), "live.toml")
+    assert cfg.projector.patterns().cycle(alternate=cfg.projector.alternate_order) == [0, 1, 2, 0, 2, 1]
+    seen = {}
+    report = run_live(cfg, record=tmp_path / "rec", bursts=4, decoder=Decoder(classical=True),
+                      on_burst=lambda m, row: seen.setdefault(m.burst.index, m), handle_signals=False)
+    assert report.bursts == 4 and report.status.measured == len(seen) >= 2, report.summary()
+    orders = {k: m.burst.reversed_order for k, m in seen.items()}
+    assert all(orders[k] == (k % 2 == 1) for k in orders), orders
+    counts = {k: len(m.cloud) for k, m in seen.items()}
+    assert min(counts.values()) >= 0.95 * max(counts.values()) > 500, counts
+    metrics = replay(tmp_path / "rec", decoder=Decoder(classical=True), truth=False)
+    assert len(metrics.per_burst) == 4 and metrics.assembler["pattern_errors"] == 0
+
+
+def test_alternate_order_needs_software_sequencing(tmp_path):
+    from gearscan.acquire import AcquisitionSession
+    from gearscan.acquisition.config import ConfigError
+
+    rec = render_recording(tmp_path / "twin", rig=default_rig(64, 64), motion="static", bursts=1)
+    text = _config(tmp_path, rec, tmp_path / "rig.json", None).read_text()
+    cfg = LiveConfig.from_toml(text.replace('trigger = "software"', 'trigger = "hardware"')
+                               .replace("settle_ms = 1", "settle_ms = 1\nalternate_order = true"), "live.toml")
+    with pytest.raises(ConfigError, match="projector.alternate_order"):
+        AcquisitionSession(cfg)

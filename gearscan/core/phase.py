@@ -103,17 +103,22 @@ def wrapped_rmse(estimate: np.ndarray, truth: np.ndarray, mask: np.ndarray | Non
 
 
 def classical_result(burst: Burst, read_noise_dn: float = 1.0) -> PhaseResult:
-    """Three-step phase shifting of a burst.
+    """Three-step phase shifting of a burst (its frames' own shift order).
 
     Its data uncertainty is the noise-only phase sigma ``s_I sqrt(2/N) / B`` for a read noise
     of ``read_noise_dn``; three-step PS has no estimate of its (dominant) motion error.
     """
-    phase, m, d = decode_phase(burst.images, burst_shifts(burst), burst.full_scale)
+    result = three_step_result(burst.images, burst.full_scale, burst_shifts(burst), read_noise_dn)
+    return replace(result, burst_index=burst.index, angle=float(burst.angles[0]))
+
+
+def three_step_result(images: np.ndarray, full_scale: float, shifts: np.ndarray = THREE_STEP_SHIFTS,
+                      read_noise_dn: float = 1.0) -> PhaseResult:
+    """:func:`classical_result` of a ``(3, H, W)`` stack with these ``shifts`` (rad)."""
+    phase, m, d = decode_phase(images, shifts, full_scale)
     mod = np.hypot(m, d)  # 2B/S
     with np.errstate(divide="ignore"):
-        sigma = np.where(mod > 0, (2.0 * read_noise_dn / burst.full_scale) * np.sqrt(2 / 3) / mod, np.inf)
+        sigma = np.where(mod > 0, (2.0 * read_noise_dn / full_scale) * np.sqrt(2 / 3) / mod, np.inf)
     sigma = sigma.astype(np.float32)
-    return PhaseResult(
-        phase=phase, M=m, D=d, sigma_model=np.zeros_like(sigma), sigma_data=sigma, sigma_total=sigma,
-        mode="three-step", burst_index=burst.index, angle=float(burst.angles[0]),
-    )
+    return PhaseResult(phase=phase, M=m, D=d, sigma_model=np.zeros_like(sigma), sigma_data=sigma,
+                       sigma_total=sigma, mode="three-step")
