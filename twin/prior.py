@@ -61,8 +61,10 @@ class TwinPrior:
         self.period_px = float(period_px)
         self.renderer = TwinRenderer(rig, gear, Optics(camera_defocus_px=camera_defocus_px))
 
-    def maps(self, angles: np.ndarray | tuple[float, float, float]) -> PriorMaps:
-        """Prior maps for frames at turntable ``angles`` (rad, the encoder's, first frame first)."""
+    def maps(self, angles: np.ndarray | tuple[float, float, float],
+             nominal: np.ndarray = THREE_STEP_SHIFTS) -> PriorMaps:
+        """Prior maps for frames at turntable ``angles`` (rad, the encoder's, first frame first) whose
+        patterns have the shifts ``nominal`` (a reversed burst's: ``core.phase.burst_shifts``)."""
         angles = np.asarray(angles, np.float64)
         if angles.shape != (3,) or not np.isfinite(angles).all():
             raise ValueError(f"angles: expected three finite turntable angles (rad), got {angles}")
@@ -76,13 +78,13 @@ class TwinPrior:
             change = 2 * np.pi * (s.u_proj - u0) / self.period_px
             clean &= np.isfinite(change)
             clean &= self.renderer.clean_mask(s.lit & (s.cos_incidence >= MIN_INCIDENCE_COS), s)
-            shifts[k] = THREE_STEP_SHIFTS[k] + np.nan_to_num(change)
+            shifts[k] = nominal[k] + np.nan_to_num(change)
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio[k] = np.where((irr0 > 0) & (s.irradiance > 0), s.irradiance / irr0, 1.0)
         return PriorMaps(shifts, ratio, clean, _noise_gain(shifts))
 
     def decode(self, frames: np.ndarray, full_scale: float, angles, *, max_gain: float = 2.0,
-               read_noise_dn: float = 1.0) -> tuple[PhaseResult, np.ndarray]:
+               read_noise_dn: float = 1.0, nominal: np.ndarray = THREE_STEP_SHIFTS) -> tuple[PhaseResult, np.ndarray]:
         """Phase of a burst solved with the prior's shifts, and where the prior is usable.
 
         Each frame is first divided by its predicted shading ratio (so ``A`` and ``B`` stay put),
@@ -92,7 +94,7 @@ class TwinPrior:
         frames = np.asarray(frames)
         if frames.ndim != 3 or frames.shape[0] != 3:
             raise ValueError(f"frames: expected a three-step burst (3, H, W), got shape {frames.shape}")
-        prior = self.maps(angles)
+        prior = self.maps(angles, nominal)
         if frames.shape[1:] != prior.clean.shape:
             raise ValueError(f"frames: {frames.shape[1:]} do not match the rig's camera {prior.clean.shape}")
         usable = prior.usable(max_gain)
