@@ -138,6 +138,47 @@ def test_noise_level_matches_the_sensor_model(rig256, gear, gear_mesh):
     assert np.std(diff) / math.sqrt(2) == pytest.approx(2.0, rel=0.05)
 
 
+@pytest.mark.parametrize(
+    ("bit_depth", "full_well", "read_noise"),
+    [(16, 12000.0, 40.0), (8, 12000.0, 0.6), (12, math.inf, 3.0)],
+)
+def test_expose_noise_is_shot_plus_read_noise(rig256, gear, gear_mesh, bit_depth, full_well, read_noise):
+    """Per-pixel mean and variance over many exposures of flat images against the sensor model.
+
+    Signal ``x S`` DN is ``x full_well`` electrons: shot variance ``x S^2 / full_well`` DN^2,
+    plus read noise^2, plus 1/12 DN^2 of rounding (Sheppard). Images are independent.
+    """
+    optics = Optics(full_well=full_well, read_noise=read_noise, bit_depth=bit_depth)
+    r = TwinRenderer(rig256, gear, optics, mesh=gear_mesh)
+    s = optics.full_scale
+    levels = np.array([0.05, 0.3, 0.7], np.float32)
+    linear = np.broadcast_to(levels[None, :, None, None], (400, 3, 24, 24)).copy()
+    raw = r.expose(linear, np.random.default_rng(3))
+    assert raw.dtype == optics.dtype and raw.shape == (400, 3, 24, 24)
+    img = raw.astype(np.float64)
+    shot = levels * s * s / full_well if math.isfinite(full_well) else 0 * levels
+    expect_var = shot + read_noise**2 + 1 / 12
+    var = img.var(axis=0, ddof=1).mean(axis=(1, 2))  # per pixel over realisations, then averaged
+    mean = img.mean(axis=(0, 2, 3))
+    # 400 realisations x 576 pixels: the variance is known to ~0.3 %, the mean to < 0.01 DN
+    np.testing.assert_allclose(var, expect_var, rtol=0.03)
+    assert np.all(np.abs(mean - levels * s) < 0.02 * np.sqrt(expect_var))
+    # different images get independent noise: neighbours in the stack are uncorrelated
+    noise = (img - img.mean(axis=0))[:, 1].reshape(400, -1)
+    corr = np.mean(noise[:-1] * noise[1:]) / np.mean(noise * noise)
+    assert abs(corr) < 0.02
+
+
+def test_expose_checks_shape_and_is_reproducible(noisy_renderer):
+    lin = np.full((3, 16, 16), 0.5, np.float32)
+    a = noisy_renderer.expose(lin.copy(), np.random.default_rng(5))
+    b = noisy_renderer.expose(lin.copy(), np.random.default_rng(5))
+    assert np.array_equal(a, b) and not np.array_equal(a[0], a[1])
+    assert noisy_renderer.expose(lin[0].copy(), np.random.default_rng(5)).shape == (16, 16)
+    with pytest.raises(RenderError, match=r"expected \(\.\.\., H, W\) images, got shape \(16,\)"):
+        noisy_renderer.expose(lin[0, 0].copy(), np.random.default_rng(5))
+
+
 def test_multi_frequency_and_16_bit(rig256, gear, gear_mesh):
     r = TwinRenderer(rig256, gear, Optics(bit_depth=16).noise_free(), mesh=gear_mesh)
     ps = PatternSet.multi_frequency([PERIOD, 4 * PERIOD], steps=4)
