@@ -41,7 +41,8 @@ class FusedCloud:
     bursts saw the voxel, ``samples`` how many points went into it, ``deviation`` the signed
     distance to the CAD (mm, + outside the material) when it was computed, ``refined`` which
     points were moved onto the surface the raw frames show (:mod:`gearscan.recon.track`; None
-    when no refinement ran).
+    when no refinement ran), ``voxel_index`` which row of the fuser's result each point is once
+    :meth:`select` dropped some (None: all, in order).
     """
 
     points: np.ndarray
@@ -52,6 +53,7 @@ class FusedCloud:
     bursts_added: int
     deviation: np.ndarray | None = None
     refined: np.ndarray | None = None
+    voxel_index: np.ndarray | None = None  # (N,) each point's row in the fuser's result, once points were dropped
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -62,7 +64,8 @@ class FusedCloud:
             return None if a is None else a[keep]
 
         return replace(self, points=self.points[keep], sigma=self.sigma[keep], bursts=self.bursts[keep],
-                       samples=self.samples[keep], deviation=pick(self.deviation), refined=pick(self.refined))
+                       samples=self.samples[keep], deviation=pick(self.deviation), refined=pick(self.refined),
+                       voxel_index=np.arange(len(self))[keep] if self.voxel_index is None else self.voxel_index[keep])
 
     def with_deviation(self, deviation: np.ndarray) -> FusedCloud:
         """A copy with ``deviation`` (mm, one per point) set."""

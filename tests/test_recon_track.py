@@ -50,8 +50,10 @@ def off_cad_turn(tmp_path_factory):
 def test_fit_moves_the_fused_points_onto_the_true_surface(off_cad_turn):
     _, _, fused, fitted, stats, truth = off_cad_turn
     r = fitted.refined
-    assert len(fitted) == len(fused) and stats["refined"] == int(r.sum())
+    rows = fitted.voxel_index if fitted.voxel_index is not None else np.arange(len(fitted))
+    assert stats["refined"] == int(r.sum())
     assert r.mean() > 0.6, f"only {r.mean():.0%} of the points fitted"
+    fused = fused.select(np.isin(np.arange(len(fused)), rows))  # the fused points the fit kept, same rows
     before, after = _signed(truth, fused.points[r]), _signed(truth, fitted.points[r])
     # three-step's motion error survives fusion; the fit leaves camera noise
     assert _rms_um(before) > 80
@@ -132,3 +134,24 @@ def test_replay_fuse_writes_which_points_were_fitted(off_cad_turn, tmp_path):
     assert "refined" in header
     table = np.loadtxt(out, delimiter=",", skiprows=1)
     assert 0.6 < table[:, header.index("refined")].mean() < 1.0
+
+
+def test_points_off_the_fitted_surface_are_dropped_and_counted():
+    """A plane of fitted points with unfitted ones on it (kept), 0.3 mm off it (dropped) and far from
+    any fitted point (kept: nothing contradicts it)."""
+    from gearscan.recon.track import off_surface
+
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(0, 2, (400, 2)), rng.normal(0, 0.003, 400)]
+    unfitted = np.array([[1.0, 1.0, 0.04], [1.2, 0.8, -0.3], [1.5, 1.5, 0.3], [9.0, 9.0, 0.5]])
+    pts = np.r_[plane, unfitted]
+    fitted = np.r_[np.ones(400, bool), np.zeros(4, bool)]
+    off = off_surface(pts, fitted)
+    assert off.tolist()[400:] == [False, True, True, False] and not off[:400].any()
+
+
+def test_refine_fused_drops_the_off_surface_points_with_their_rows(off_cad_turn):
+    _, refiner, fused, fitted, stats, truth = off_cad_turn
+    assert len(fitted) == len(fused) - stats["off_surface"]
+    rows = fitted.voxel_index if fitted.voxel_index is not None else np.arange(len(fitted))
+    np.testing.assert_array_equal(fitted.points[~fitted.refined], fused.points[rows][~fitted.refined])
