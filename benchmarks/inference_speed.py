@@ -1,9 +1,20 @@
-"""CPU inference time of CD-DCU-Net per burst: fp32 vs bf16 autocast + channels_last.
+"""CPU inference time of the shipped CD-DCU-Net per burst: deterministic and Monte Carlo (T passes).
 
-Untrained weights (timing does not depend on them). Writes ``inference_speed.md`` and
-``inference_speed.json`` beside this script.
+Measures ``Predictor.load()`` (inference/weights/default.safetensors, precision chosen by the CPU)
+through ``Predictor.predict`` (uint8 frames in, PhaseResult out), on synthetic fringe frames:
 
-    .venv/bin/python benchmarks/inference_speed.py [--width 16] [--size 512] [--threads 2] [--mc 20]
+- deterministic pass, per image size;
+- MC T=20 before/after: "plain" runs the whole network once per pass on ``x.repeat(chunk)``
+  in chunks of 2 (the previous default); "reuse" computes the deterministic prefix (classical
+  M, D, padding, stem) once per burst, the first dropout layer's passes as one convolution, and
+  chunks by image size (``auto_mc_chunk``);
+- at the first size: the reuse path by chunk size, fp32 beside the chosen precision, and where
+  the time goes (one profiled MC run: share of op time by feature-map resolution, and the
+  per-pass multiply-accumulates by resolution), so the report can say what bounds it.
+
+Writes ``inference_speed.md`` and ``inference_speed.json`` beside this script.
+
+    .venv/bin/python benchmarks/inference_speed.py [--sizes 512 800 1232x1360] [--threads 2] [--mc 20]
 """
 
 from __future__ import annotations
@@ -13,17 +24,60 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from gearscan.inference.models import build_model
-from gearscan.inference.predictor import Predictor, cpu_has_fast_bf16
+from gearscan.inference import predictor as predictor_module
+from gearscan.inference.predictor import Predictor, auto_mc_chunk
+from gearscan.inference.uncertainty import mc_moments
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
 
 
-def time_call(fn, repeats: int, warmup: int = 2) -> list[float]:
+def host_info(threads: int) -> dict:
+    flags = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").is_file() else ""
+    model = next(
+        (ln.split(":", 1)[1].strip() for ln in flags.splitlines() if ln.startswith("model name")),
+        "",
+    )
+
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(
+                ["git", *args], cwd=REPO, capture_output=True, text=True, check=True
+            ).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            return ""
+
+    dirty = git("status", "--porcelain", "--", "inference", "benchmarks/inference_speed.py")
+    return {
+        "cpu": model or platform.processor() or platform.machine(),
+        "avx512_bf16": "avx512_bf16" in flags,
+        "amx_bf16": "amx_bf16" in flags,
+        "cores": os.cpu_count(),
+        "threads": threads,
+        "torch": torch.__version__,
+        "commit": git("rev-parse", "--short", "HEAD")
+        + (" + uncommitted inference changes" if dirty else ""),
+    }
+
+
+def fringe_frames(h: int, w: int) -> np.ndarray:
+    """Three 8-bit phase-shifted frames, phase increasing along the columns (as the twin's)."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    phase = 2 * np.pi * xx / 24 + 0.002 * yy
+    return np.stack([128 + 90 * np.cos(phase + 2 * np.pi * n / 3) for n in range(3)]).astype(
+        np.uint8
+    )
+
+
+def time_call(fn, repeats: int, warmup: int = 1) -> list[float]:
     for _ in range(warmup):
         fn()
     out = []
@@ -34,83 +88,251 @@ def time_call(fn, repeats: int, warmup: int = 2) -> list[float]:
     return out
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    h, _, w = text.partition("x")
+    return int(h), int(w or h)
+
+
+def mc_time(
+    pred: Predictor,
+    frames: np.ndarray,
+    passes: int,
+    repeats: int,
+    *,
+    plain: bool,
+    chunk: int | None,
+) -> list[float]:
+    """Seconds per ``pred.predict(frames, mc=passes)`` with the plain or the prefix-reusing path."""
+    saved_fn, saved_chunk = predictor_module.mc_moments, pred.mc_chunk
+    predictor_module.mc_moments = partial(mc_moments, reuse_prefix=not plain)
+    pred.mc_chunk = chunk
+    try:
+        return time_call(lambda: pred.predict(frames, mc=passes), repeats)
+    finally:
+        predictor_module.mc_moments, pred.mc_chunk = saved_fn, saved_chunk
+
+
+def macs_by_resolution(model: torch.nn.Module, h: int, w: int) -> dict[str, float]:
+    """Multiply-accumulates of one pass by output resolution (convs and transposed convs), and the stem's."""
+    out: dict[str, float] = {}
+    hooks = []
+
+    def hook(mod, inp, res):
+        if isinstance(mod, torch.nn.ConvTranspose2d):
+            macs = inp[0].numel() * mod.weight.shape[1] * mod.weight.shape[2] * mod.weight.shape[3]
+        else:
+            macs = res.numel() * mod.weight[0].numel()
+        key = f"{res.shape[-2]}x{res.shape[-1]}"
+        out[key] = out.get(key, 0.0) + macs
+
+    for m in model.modules():
+        if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d)):
+            hooks.append(m.register_forward_hook(hook))
+    with torch.no_grad():
+        model(torch.rand(1, model.config.in_channels, h, w))
+    for hk in hooks:
+        hk.remove()
+    stem = sum(
+        m.weight[0].numel() * m.weight.shape[0] * h * w
+        for m in model.encoder.stem.modules()
+        if isinstance(m, torch.nn.Conv2d)
+    )
+    return {**out, "stem (once per burst)": float(stem)}
+
+
+def time_by_resolution(pred: Predictor, frames: np.ndarray, passes: int) -> dict[str, float]:
+    """Share of op self-time by the largest feature map an op reads (full resolution, 1/2, ...,
+    1/16 of the rows), over one profiled MC run; "other": ops without a 4-D input."""
+    from torch.profiler import ProfilerActivity, profile
+
+    pred.predict(frames, mc=passes)
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        pred.predict(frames, mc=passes)
+    shares: dict[str, float] = {}
+    for ev in prof.key_averages(group_by_input_shape=True):
+        shapes = [s for s in (ev.input_shapes or []) if isinstance(s, list) and len(s) == 4]
+        rows = max((s[2] for s in shapes), default=0)
+        ratio = round(frames.shape[1] / rows) if rows else 0
+        key = (
+            "other" if not 1 <= ratio <= 16 else ("full resolution" if ratio == 1 else f"1/{ratio}")
+        )
+        shares[key] = shares.get(key, 0.0) + ev.self_cpu_time_total
+    total = sum(shares.values()) or 1.0
+    return {k: v / total for k, v in sorted(shares.items(), key=lambda kv: -kv[1])}
+
+
+def conv_throughput(precision: str, h: int, w: int) -> dict[str, float]:
+    """GMAC/s of single 3x3 convs, channels_last, in ``precision``: the same work with 8 or 16 outputs."""
+    import torch.nn.functional as F
+
+    dt = torch.bfloat16 if precision == "bf16" else torch.float32
+    cl = torch.channels_last
+    cases = {
+        f"8->8 at {h}x{w}, batch 2": (2, 8, 8, h, w),
+        f"8->16 at {h}x{w}, batch 1": (1, 8, 16, h, w),
+        f"8->4 at {h}x{w}, batch 2 (fp32: the head)": (2, 8, 4, h, w),
+        f"32->32 at {h // 4}x{w // 4}, batch 2": (2, 32, 32, h // 4, w // 4),
+    }
+    out = {}
+    with torch.inference_mode():
+        for name, (b, cin, cout, hh, ww) in cases.items():
+            d = torch.float32 if "fp32" in name else dt
+            x = torch.randn(b, cin, hh, ww).to(d).contiguous(memory_format=cl)
+            wt = torch.randn(cout, cin, 3, 3).to(d).contiguous(memory_format=cl)
+            t = min(time_call(lambda x=x, wt=wt: F.conv2d(x, wt, padding=1), 5, warmup=2))
+            out[name] = b * hh * ww * cin * cout * 9 / t / 1e9
+    return out
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--width", type=int, default=16)
-    ap.add_argument("--size", type=int, nargs="+", default=[512])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--sizes", nargs="+", default=["512", "800", "1232x1360"], help="HxW or N (square)"
+    )
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--mc", type=int, default=20)
-    ap.add_argument("--mc-repeats", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=5, help="deterministic repeats")
+    ap.add_argument(
+        "--mc-repeats", type=int, default=3, help="MC repeats at the first size (1 beyond 800x800)"
+    )
+    ap.add_argument("--chunks", type=int, nargs="*", default=[1, 2, 4, 5, 10, 20])
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    rows = []
-    for size in args.size:
-        frames = np.random.default_rng(0).integers(0, 256, size=(3, size, size)).astype(np.uint8)
-        variants = {
-            "fp32 (contiguous)": dict(precision="fp32", head_fp32=True, channels_last=False),
-            "fp32+channels_last": dict(precision="fp32", head_fp32=True),
-            "bf16+channels_last (fp32 head)": dict(precision="bf16", head_fp32=True),
-            "bf16+channels_last (bf16 head)": dict(precision="bf16", head_fp32=False),
-        }
-        for label, v in variants.items():
-            model = build_model("cd-dcu-net", width=args.width, head_fp32=v["head_fp32"])
-            pred = Predictor(model, precision=v["precision"], channels_last=v.get("channels_last"))
-            slow = v["precision"] == "bf16" and not cpu_has_fast_bf16()
-            det = time_call(
-                lambda pred=pred, frames=frames: pred.predict(frames),
-                2 if slow else args.repeats,
-                warmup=1,
-            )
-            row = {
-                "size": size,
-                "variant": label,
-                "deterministic_s_median": statistics.median(det),
-                "deterministic_s_min": min(det),
-            }
-            if args.mc and not slow:
-                mc = time_call(
-                    lambda pred=pred, frames=frames: pred.predict(frames, mc=args.mc),
-                    args.mc_repeats,
-                    warmup=1,
-                )
-                row[f"mc{args.mc}_s_median"] = statistics.median(mc)
-            rows.append(row)
-            print(row, flush=True)
-    info = {
-        "width": args.width,
-        "threads": args.threads,
-        "torch": torch.__version__,
-        "cpu": platform.processor() or platform.machine(),
-        "cores": os.cpu_count(),
-        "cpu_native_bf16": cpu_has_fast_bf16(),
-        "load_average_1min_at_end": os.getloadavg()[0],
-        "note": "shared 2-core machine; other jobs were running",
-        "rows": rows,
+    load_start = os.getloadavg()
+    info = host_info(args.threads)
+    pred = Predictor.load()
+    info["precision"] = pred.precision
+    info["channels_last"] = pred.channels_last
+    info["model"] = {
+        k: pred.model.config.to_json()[k] for k in ("name", "width", "classical_input", "residual")
     }
-    here = Path(__file__).resolve().parent
-    (here / "inference_speed.json").write_text(json.dumps(info, indent=2))
+    print(info, flush=True)
+    rows, chunk_rows, extra = [], [], {}
+    for i, text in enumerate(args.sizes):
+        h, w = parse_size(text)
+        frames = fringe_frames(h, w)
+        big = h * w > 800 * 800
+        reps = 1 if big else (args.mc_repeats if i == 0 else 2)
+        det = time_call(lambda frames=frames: pred.predict(frames), 2 if big else args.repeats)
+        row = {
+            "size": f"{h}x{w}",
+            "precision": pred.precision,
+            "deterministic_s": min(det),
+            "deterministic_s_median": statistics.median(det),
+            "mc_chunk": auto_mc_chunk(h, w, args.mc),
+        }
+        if not big:
+            before = mc_time(pred, frames, args.mc, reps, plain=True, chunk=2)
+            row.update(mc_plain_s=min(before), mc_plain_s_median=statistics.median(before))
+        after = mc_time(pred, frames, args.mc, reps, plain=False, chunk=None)
+        row.update(mc_reuse_s=min(after), mc_reuse_s_median=statistics.median(after))
+        rows.append(row)
+        print(row, flush=True)
+        if i == 0:
+            for c in args.chunks:
+                t = mc_time(pred, frames, args.mc, 2, plain=False, chunk=c)
+                chunk_rows.append({"size": f"{h}x{w}", "chunk": c, "mc_reuse_s": min(t)})
+                print(chunk_rows[-1], flush=True)
+            if pred.precision != "fp32":
+                fp32 = Predictor.load(precision="fp32")
+                d = time_call(partial(fp32.predict, frames), args.repeats)
+                m = mc_time(fp32, frames, args.mc, 2, plain=False, chunk=None)
+                extra["fp32"] = {
+                    "size": f"{h}x{w}",
+                    "deterministic_s": min(d),
+                    "mc_reuse_s": min(m),
+                }
+                print(extra["fp32"], flush=True)
+            macs = macs_by_resolution(pred.model, h, w)
+            extra["macs_per_pass"] = macs
+            extra["time_share_by_resolution"] = time_by_resolution(pred, frames, args.mc)
+            extra["conv_gmac_per_s"] = conv_throughput(pred.precision, h, w)
+            print(extra["conv_gmac_per_s"], flush=True)
+            print(extra["time_share_by_resolution"], flush=True)
+    info.update(
+        load_average_at_start=load_start,
+        load_average_at_end=os.getloadavg(),
+        passes=args.mc,
+        rows=rows,
+        chunks=chunk_rows,
+        **extra,
+    )
+    (HERE / "inference_speed.json").write_text(json.dumps(info, indent=2) + "\n")
+    (HERE / "inference_speed.md").write_text(report(info))
+
+
+def report(info: dict) -> str:
+    T = info["passes"]
+    la0, la1 = info["load_average_at_start"], info["load_average_at_end"]
     lines = [
-        f"# CD-DCU-Net CPU inference time (w={args.width}, {args.threads} threads, torch {torch.__version__})",
+        f"# Shipped CD-DCU-Net: CPU inference time per burst (deterministic and MC T={T})",
         "",
-        "Per burst through `Predictor.predict` (uint8 frames in, PhaseResult out; includes conversion and",
-        "phase/sigma propagation). Untrained weights; median of repeats.",
-        f"CPU native bf16 (AVX512-BF16/AMX): {cpu_has_fast_bf16()}; 1-min load average "
-        f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (other engineers' jobs were running, so",
-        "absolute times are pessimistic; the ratios between variants are the useful part).",
+        f"Host: {info['cpu']}, {info['cores']} cores, AVX512-BF16 {'yes' if info['avx512_bf16'] else 'no'}, "
+        f"AMX {'yes' if info['amx_bf16'] else 'no'}; {info['threads']} threads; torch {info['torch']}; "
+        f"commit {info['commit']}.",
+        f"Load average (1/5/15 min) at start {la0[0]:.1f}/{la0[1]:.1f}/{la0[2]:.1f}, at end "
+        f"{la1[0]:.1f}/{la1[1]:.1f}/{la1[2]:.1f} (a shared machine: other jobs ran beside this one).",
+        f"Model: inference/weights/default ({info['model']}); precision chosen by the CPU: "
+        f"{info['precision']}, channels_last {info['channels_last']}.",
+        "Through `Predictor.predict` (uint8 fringe frames in, PhaseResult out, propagation included); "
+        "min of repeats (median in the JSON).",
         "",
-        f"| size | variant | deterministic median (s) | deterministic min (s) | MC T={args.mc} (s) |",
-        "|---|---|---|---|---|",
+        f"MC before = whole network per pass, chunks of 2, float64 moments (the previous path, "
+        f"`mc_moments(..., reuse_prefix=False)`); after = classical M/D, padding and stem once per burst, "
+        f"the first dropout layer's {T} passes as convolutions with stacked mask-scaled weights, the rest "
+        f"per pass in chunks by image size (`auto_mc_chunk`), float32 moments around the first pass.",
+        "",
+        f"| size | deterministic (s) | MC T={T} before (s) | MC T={T} after (s) | chunk | after / pass (ms) |",
+        "|---|---|---|---|---|---|",
     ]
-    for r in rows:
-        mc = r.get(f"mc{args.mc}_s_median")
+    for r in info["rows"]:
+        before = f"{r['mc_plain_s']:.2f}" if "mc_plain_s" in r else "-"
         lines.append(
-            f"| {r['size']}² | {r['variant']} | {r['deterministic_s_median']:.3f} | {r['deterministic_s_min']:.3f} | "
-            + (f"{mc:.2f}" if mc is not None else "-")
-            + " |"
+            f"| {r['size']} | {r['deterministic_s']:.3f} | {before} | {r['mc_reuse_s']:.2f} | {r['mc_chunk']} | "
+            f"{1000 * r['mc_reuse_s'] / T:.0f} |"
         )
-    (here / "inference_speed.md").write_text("\n".join(lines) + "\n")
+    if info.get("chunks"):
+        lines += [
+            "",
+            f"MC T={T} after, by chunk (passes per batched forward), {info['chunks'][0]['size']}:",
+            "",
+            "| chunk | " + " | ".join(str(c["chunk"]) for c in info["chunks"]) + " |",
+            "|---|" + "---|" * len(info["chunks"]),
+            "| s | " + " | ".join(f"{c['mc_reuse_s']:.2f}" for c in info["chunks"]) + " |",
+        ]
+    if "fp32" in info:
+        f = info["fp32"]
+        lines += [
+            "",
+            f"fp32 instead ({f['size']}): deterministic {f['deterministic_s']:.3f} s, "
+            f"MC T={T} after {f['mc_reuse_s']:.2f} s.",
+        ]
+    if "macs_per_pass" in info:
+        macs = info["macs_per_pass"]
+        per_pass = (
+            sum(v for k, v in macs.items() if not k.startswith("stem"))
+            - macs["stem (once per burst)"]
+        )
+        first = info["rows"][0]
+        lines += [
+            "",
+            "## What bounds it",
+            "",
+            "Multiply-accumulates of one pass by output resolution (G): "
+            + ", ".join(f"{k} {v / 1e9:.3f}" for k, v in macs.items())
+            + f". Per MC pass (without the stem): {per_pass / 1e9:.2f} GMAC, so T={T} is "
+            f"{T * per_pass / 1e9:.0f} GMAC; after, that ran at "
+            f"{T * per_pass / first['mc_reuse_s'] / 1e9:.0f} GMAC/s on {info['threads']} threads.",
+            "Share of op time by the largest map an op reads (one profiled MC run, "
+            f"{first['size']}): "
+            + ", ".join(f"{k} {100 * v:.0f} %" for k, v in info["time_share_by_resolution"].items())
+            + ".",
+            f"Single convs in {info['precision']} ({info['threads']} threads), GMAC/s: "
+            + ", ".join(f"{k}: {v:.0f}" for k, v in info["conv_gmac_per_s"].items())
+            + ".",
+        ]
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

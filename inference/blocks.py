@@ -90,7 +90,15 @@ class Encoder(nn.Module):
         self.drops = nn.ModuleList(drop(c) for c in chans)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
-        feats = [self.drops[0](self.stem(x))]
+        return self.from_first(self.drops[0](self.stem(x)))
+
+    def from_first(self, first: torch.Tensor) -> list[torch.Tensor]:
+        """The feature maps of every scale given the finest one, ``drops[0](stem(x))``.
+
+        Lets Monte Carlo sampling run the deterministic stem once per input and only the rest
+        once per pass (:meth:`gearscan.inference.models.UNetFamily.core_passes`).
+        """
+        feats = [first]
         for down, dr in zip(self.downs, self.drops[1:], strict=True):
             feats.append(dr(down(feats[-1])))
         return feats

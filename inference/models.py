@@ -22,6 +22,11 @@ frames): ``classical_input`` appends the classical M, D as two extra input chann
 ``motion_input`` (not in the paper) adds the turntable's rotation from frame 1 to frames 2 and
 3, as measured by the encoder, as two constant input channels (:func:`motion_channels`): three
 frames alone cannot tell a still gear from a slowly moving one on a smooth flank.
+
+Monte Carlo sampling (:func:`gearscan.inference.uncertainty.mc_moments`) splits a pass in two:
+:meth:`PhaseNet.mc_prefix` computes what precedes the first stochastic layer once per input
+(classical M, D, padding and, for the U-Net family, the stem), :meth:`PhaseNet.mc_passes` runs the
+rest for ``k`` passes; for the same random stream the samples are those of ``forward``.
 """
 
 from __future__ import annotations
@@ -138,6 +143,76 @@ def pad_to_multiple(
     return F.pad(x, pads, mode=mode), pads
 
 
+@dataclass(frozen=True)
+class McPrefix:
+    """The part of a network's pass over one input that Monte Carlo sampling computes once.
+
+    ``shared``: input of the first stochastic layer, ``(B, ...)`` (padded);
+    ``base``: classical M, D ``(B, 2, H, W)`` that the mean outputs correct (``residual``), or None;
+    ``crop``: ``(top, left, h, w)`` of the input inside the padded maps.
+    """
+
+    shared: torch.Tensor
+    base: torch.Tensor | None
+    crop: tuple[int, int, int, int]
+
+
+def _crop(raw: torch.Tensor, crop: tuple[int, int, int, int]) -> torch.Tensor:
+    """``raw`` cropped back to the input size, float32, contiguous (NCHW).
+
+    Contiguous because the head's output may be channels_last, and softplus on a channel slice
+    of that runs a strided scalar loop (measured ~10x slower than on contiguous maps).
+    """
+    top, left, h, w = crop
+    return raw[:, :, top : top + h, left : left + w].float().contiguous()
+
+
+def repeat_batch(x: torch.Tensor, k: int) -> torch.Tensor:
+    """``x`` ``(B, ...)`` repeated ``k`` times along the batch (pass-major), in ``x``'s memory format."""
+    if k == 1:
+        return x
+    cl = x.ndim == 4 and not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last)
+    out = x.repeat(k, *([1] * (x.ndim - 1)))
+    return out.contiguous(memory_format=torch.channels_last) if cl else out
+
+
+def dropout_on_shared_input(layer: nn.Module, x: torch.Tensor, k: int) -> torch.Tensor:
+    """``layer(repeat_batch(x, k))``: ``k`` passes of a dropout layer over one shared input.
+
+    For a stochastic channel-wise :class:`ConcreteDropout2d` and ``x`` ``(1, C, H, W)``, pass
+    ``t`` is ``conv(x * m_t) = conv(x; W * m_t)`` (a channel mask on the input of a linear conv
+    scales the weights per input channel), so the ``k`` passes are ONE convolution of ``x`` with
+    the ``k`` scaled weight sets stacked along its output channels: ``x`` is read once, no masked
+    copies of it are made, and a conv with ``k * C_out`` outputs runs faster than ``k`` with
+    ``C_out``. The masks are the layer's own draw for a batch of ``k`` (same shape, same random
+    stream), so the samples are those of the plain path. Anything else: the plain path.
+    """
+    if not (
+        isinstance(layer, ConcreteDropout2d)
+        and layer.stochastic
+        and layer.channelwise
+        and x.ndim == 4
+        and x.shape[0] == 1
+    ):
+        return layer(repeat_batch(x, k))
+    c = layer.conv
+    keep = layer._drop(torch.ones(k, x.shape[1], 1, 1, device=x.device))  # (k, C_in, 1, 1) float32
+    w = c.weight.unsqueeze(0) * keep.unsqueeze(1).to(c.weight.dtype)  # (k, C_out, C_in, kh, kw)
+    w = w.reshape(-1, *c.weight.shape[1:])
+    b = None if c.bias is None else c.bias.repeat(k)
+    y = F.conv2d(x, w, b, c.stride, c.padding, c.dilation, c.groups)  # (1, k*C_out, H', W')
+    if y.is_contiguous():  # NCHW: already pass-major
+        return y.view(k, -1, *y.shape[2:])
+    # channels_last: memory (H', W', k, C_out) -> (k, H', W', C_out)
+    h, w_ = y.shape[2:]
+    return (
+        y.permute(0, 2, 3, 1)
+        .reshape(h, w_, k, -1)
+        .permute(2, 3, 0, 1)
+        .contiguous(memory_format=torch.channels_last)
+    )
+
+
 class PhaseNet(nn.Module):
     """Common wrapper: input checks, classical M/D options, padding, output activation.
 
@@ -181,6 +256,16 @@ class PhaseNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, C_in, H, W)`` -> ``(B, 4, H, W)``: mean M, mean D, var M, var D (float32)."""
+        padded, base, crop = self._prepare(x)
+        raw = _crop(self.core(padded), crop)
+        mean = raw[:, :2] + base if self.config.residual else raw[:, :2]
+        var = F.softplus(raw[:, 2:]) + VAR_FLOOR
+        return torch.cat([mean, var], dim=1)
+
+    def _prepare(
+        self, x: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None, tuple[int, int, int, int]]:
+        """Checked, padded core input; classical M, D (or None); ``(top, left, h, w)`` to crop back."""
         if x.ndim != 4 or x.shape[1] != self.config.in_channels:
             raise ValueError(
                 f"{self.config.name}: expected input (B, {self.config.in_channels}, H, W), got {tuple(x.shape)}"
@@ -193,10 +278,32 @@ class PhaseNet(nn.Module):
         )
         inp = torch.cat([x, base.to(x.dtype)], dim=1) if self.config.classical_input else x
         padded, (left, _, top, _) = pad_to_multiple(inp)
-        raw = self.core(padded)[:, :, top : top + h, left : left + w].float()
-        mean = raw[:, :2] + base if self.config.residual else raw[:, :2]
-        var = F.softplus(raw[:, 2:]) + VAR_FLOOR
-        return torch.cat([mean, var], dim=1)
+        return padded, base, (top, left, h, w)
+
+    # --- Monte Carlo sampling: the deterministic prefix once, the stochastic rest per pass -----
+    def core_prefix(self, x: torch.Tensor) -> torch.Tensor:
+        """The part of :meth:`core` before its first stochastic layer (here: none; subclasses)."""
+        return x
+
+    def core_passes(self, shared: torch.Tensor, k: int) -> torch.Tensor:
+        """:meth:`core` for ``k`` stochastic passes from ``core_prefix``'s output ``(B, ...)``:
+        ``(k*B, 4, H, W)`` raw, pass-major (the order of ``x.repeat(k, 1, 1, 1)``)."""
+        return self.core(repeat_batch(shared, k))
+
+    def mc_prefix(self, x: torch.Tensor) -> McPrefix:
+        """What every stochastic pass over ``x`` ``(B, C_in, H, W)`` shares, computed once."""
+        padded, base, crop = self._prepare(x)
+        return McPrefix(self.core_prefix(padded), base if self.config.residual else None, crop)
+
+    def mc_passes(self, prefix: McPrefix, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``k`` stochastic passes: means WITHOUT ``prefix.base`` and variances, each ``(k*B, 2, H, W)``.
+
+        ``forward`` of ``x.repeat(k, 1, 1, 1)`` gives the same samples (same masks for the same
+        random stream) with ``prefix.base`` added to the means; leaving that constant out lets the
+        caller accumulate the small corrections and add it once.
+        """
+        raw = _crop(self.core_passes(prefix.shared, k), prefix.crop)
+        return raw[:, :2], F.softplus(raw[:, 2:]) + VAR_FLOOR
 
 
 class UNetFamily(PhaseNet):
@@ -211,6 +318,14 @@ class UNetFamily(PhaseNet):
 
     def core(self, x: torch.Tensor) -> torch.Tensor:
         return self.run_head(self.head, self.decoder(self.encoder(x)))
+
+    def core_prefix(self, x: torch.Tensor) -> torch.Tensor:
+        """The stem: deterministic, full resolution, before the first dropout layer."""
+        return self.encoder.stem(x)
+
+    def core_passes(self, shared: torch.Tensor, k: int) -> torch.Tensor:
+        first = dropout_on_shared_input(self.encoder.drops[0], shared, k)
+        return self.run_head(self.head, self.decoder(self.encoder.from_first(first)))
 
 
 class CDDCUNet(UNetFamily):

@@ -38,13 +38,23 @@ DEFAULT_MODEL = WEIGHTS_DIR / "default.safetensors"
 PRECISIONS = ("auto", "fp32", "bf16")
 CALIBRATION_MODES = ("deterministic", "mc")
 CPUINFO = Path("/proc/cpuinfo")
+# MC passes per batched forward: as many as fit in this many pixels, at least 1. Measured with the
+# shipped w=8 model, bf16 + channels_last on 2 cores: chunk 2 fastest at 512x512 (1 and 4 slower),
+# chunk 1 at 800x800 and 1232x1360 (benchmarks/inference_speed.md).
+MC_CHUNK_PIXELS = 2 * 512 * 512
+
+
+def auto_mc_chunk(height: int, width: int, passes: int) -> int:
+    """Passes per batched forward for MC sampling of an ``height x width`` image (see ``MC_CHUNK_PIXELS``)."""
+    return max(1, min(passes, MC_CHUNK_PIXELS // max(1, height * width)))
 
 
 def cpu_has_fast_bf16() -> bool:
     """True if the CPU has native bf16 matrix instructions (AVX512-BF16 or AMX).
 
-    Without them (e.g. AVX2-only hosts) bf16 autocast is emulated and measured 4-5x SLOWER
-    than fp32 for CD-DCU-Net w=16 at 512x512 (benchmarks/inference_speed.md).
+    Without them (e.g. AVX2-only hosts) bf16 autocast is emulated and measured 4-7x SLOWER
+    than fp32 for CD-DCU-Net w=16 at 512x512 (benchmarks/inference_speed.md as of commit
+    befe6f9; the current report is from an AVX512-BF16 host, where bf16 is the faster one).
     """
     try:
         flags = CPUINFO.read_text()
@@ -128,7 +138,7 @@ class Predictor:
     precision : ``"auto"``, ``"fp32"`` or ``"bf16"`` (autocast); see :func:`resolve_precision`
     channels_last : channels_last memory format (default: on CPU, where it was faster in fp32
         and bf16 alike)
-    mc_chunk : passes per batched forward in MC mode
+    mc_chunk : passes per batched forward in MC mode; None: :func:`auto_mc_chunk` by image size
     still_gate_rad : per pixel, a network phase within this of three-step PS's is replaced by
         three-step PS's (0: off). A correction that small is what the network invents on a still
         gear (where three-step has no motion error and beats it); a real motion correction is larger.
@@ -142,7 +152,7 @@ class Predictor:
         var_scale: float = 1.0,
         device: str = "cpu",
         precision: str = "auto",
-        mc_chunk: int = 2,
+        mc_chunk: int | None = None,
         meta: dict | None = None,
         channels_last: bool | None = None,
         calibration: dict[str, SigmaCalibration] | None = None,
@@ -158,7 +168,9 @@ class Predictor:
             self.device.type == "cpu" if channels_last is None else bool(channels_last)
         )
         self.var_scale = float(var_scale)
-        self.mc_chunk = int(mc_chunk)
+        if mc_chunk is not None and int(mc_chunk) < 1:
+            raise ValueError(f"mc_chunk: expected >= 1 or None (by image size), got {mc_chunk}")
+        self.mc_chunk = None if mc_chunk is None else int(mc_chunk)
         self.meta = meta or {}
         if still_gate_rad is None:
             still_gate_rad = float((self.meta.get("still_gate") or {}).get("rad", 0.0))
@@ -177,7 +189,7 @@ class Predictor:
         *,
         device: str = "cpu",
         precision: str = "auto",
-        mc_chunk: int = 2,
+        mc_chunk: int | None = None,
         still_gate_rad: float | None = None,
     ) -> Predictor:
         """Load ``path`` (.safetensors + .json); default: the shipped model."""
@@ -246,11 +258,11 @@ class Predictor:
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
         with self._autocast():
-            stats = (
-                mc_moments(self.model, x, mc, self.mc_chunk)
-                if mc > 0
-                else deterministic_moments(self.model, x)
-            )
+            if mc > 0:
+                chunk = self.mc_chunk or auto_mc_chunk(*x.shape[-2:], mc)
+                stats = mc_moments(self.model, x, mc, chunk)
+            else:
+                stats = deterministic_moments(self.model, x)
         if mirror:
             stats = MomentStats(*(torch.flip(getattr(stats, f.name), dims=[-1]) for f in dataclasses.fields(stats)))
         mode = f"mc{mc}" if mc > 0 else "deterministic"

@@ -35,6 +35,7 @@ from scipy.special import erf
 
 from gearscan.core.types import PhaseResult
 from gearscan.inference.concrete_dropout import set_stochastic
+from gearscan.inference.models import PhaseNet
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,39 +61,93 @@ def _is_zero(t: torch.Tensor) -> bool:
 
 
 @torch.no_grad()
-def mc_moments(model: torch.nn.Module, x: torch.Tensor, passes: int, chunk: int = 2) -> MomentStats:
+def mc_moments(
+    model: torch.nn.Module,
+    x: torch.Tensor,
+    passes: int,
+    chunk: int = 2,
+    *,
+    reuse_prefix: bool = True,
+) -> MomentStats:
     """Run ``passes`` stochastic forward passes of ``x`` ``(B, C, H, W)`` in chunks of ``chunk``.
 
-    Each chunk replicates the batch ``chunk`` times (one batched forward); a chunk of 2 is
-    faster than one batch of T on CPU (cache). The model is put in eval mode (BN running
-    statistics) with its Concrete Dropout masks on, and restored to deterministic afterwards.
+    Each chunk is one batched forward of ``chunk`` passes. The model is put in eval mode (BN
+    running statistics) with its Concrete Dropout masks on, and restored to deterministic
+    afterwards.
+
+    ``reuse_prefix`` (a :class:`~gearscan.inference.models.PhaseNet`): what precedes the first
+    stochastic layer (classical M, D, padding, the stem) is computed once, not once per pass,
+    the first dropout layer's passes run as one convolution
+    (:func:`~gearscan.inference.models.dropout_on_shared_input`), and the moments are accumulated
+    in float32 around the first pass's means (shift-invariant; the classical M, D of a residual
+    network are added once at the end). The masks are drawn in the same order and shapes as
+    the plain path's, so for the same random stream both give the same samples and moments up
+    to float rounding. Other models, or ``reuse_prefix=False``: every pass runs the whole model
+    on ``x.repeat(chunk, 1, 1, 1)``, moments in float64.
     """
     if passes < 1:
         raise ValueError(f"passes: expected >= 1, got {passes}")
     if chunk < 1:
         raise ValueError(f"chunk: expected >= 1, got {chunk}")
-    b = x.shape[0]
     was_training = model.training
     model.eval()
     set_stochastic(model, True)
     try:
-        s1 = torch.zeros((b, 2, *x.shape[2:]), dtype=torch.float64, device=x.device)
-        s2 = torch.zeros_like(s1)
-        sv = torch.zeros_like(s1)
-        done = 0
-        while done < passes:
-            k = min(chunk, passes - done)
-            out = model(x.repeat(k, 1, 1, 1)).double().view(k, b, 4, *x.shape[2:])
-            s1 += out[:, :, :2].sum(0)
-            s2 += (out[:, :, :2] ** 2).sum(0)
-            sv += out[:, :, 2:].sum(0)
-            done += k
+        if reuse_prefix and isinstance(model, PhaseNet):
+            return _mc_moments_split(model, x, passes, chunk)
+        return _mc_moments_plain(model, x, passes, chunk)
     finally:
         set_stochastic(model, False)
         model.train(was_training)
+
+
+def _mc_moments_plain(
+    model: torch.nn.Module, x: torch.Tensor, passes: int, chunk: int
+) -> MomentStats:
+    b = x.shape[0]
+    s1 = torch.zeros((b, 2, *x.shape[2:]), dtype=torch.float64, device=x.device)
+    s2 = torch.zeros_like(s1)
+    sv = torch.zeros_like(s1)
+    done = 0
+    while done < passes:
+        k = min(chunk, passes - done)
+        out = model(x.repeat(k, 1, 1, 1)).double().view(k, b, 4, *x.shape[2:])
+        s1 += out[:, :, :2].sum(0)
+        s2 += (out[:, :, :2] ** 2).sum(0)
+        sv += out[:, :, 2:].sum(0)
+        done += k
     mean = s1 / passes
     model_var = (s2 / passes - mean**2).clamp_min(0)
-    data_var = sv / passes
+    return _stats(mean, model_var, sv / passes)
+
+
+def _mc_moments_split(model: PhaseNet, x: torch.Tensor, passes: int, chunk: int) -> MomentStats:
+    b = x.shape[0]
+    prefix = model.mc_prefix(x)
+    shift = s1 = s2 = sv = None
+    done = 0
+    while done < passes:
+        k = min(chunk, passes - done)
+        mean, var = model.mc_passes(prefix, k)
+        mean = mean.view(k, b, *mean.shape[1:])
+        var = var.view(k, b, *var.shape[1:])
+        if shift is None:
+            shift = mean[0].clone()
+            s1, s2, sv = torch.zeros_like(shift), torch.zeros_like(shift), torch.zeros_like(shift)
+        d = mean - shift
+        s1 += d.sum(0)
+        s2 += (d * d).sum(0)
+        sv += var.sum(0)
+        done += k
+    d_mean = s1 / passes
+    model_var = (s2 / passes - d_mean**2).clamp_min(0)
+    mean = shift + d_mean
+    if prefix.base is not None:
+        mean = mean + prefix.base
+    return _stats(mean, model_var, sv / passes)
+
+
+def _stats(mean: torch.Tensor, model_var: torch.Tensor, data_var: torch.Tensor) -> MomentStats:
     f = torch.float32
     return MomentStats(
         mean[:, 0].to(f),

@@ -16,6 +16,7 @@ from gearscan.inference.models import build_model
 from gearscan.inference.predictor import (
     DEFAULT_MODEL,
     Predictor,
+    auto_mc_chunk,
     frames_to_tensor,
     resolve_precision,
 )
@@ -277,6 +278,24 @@ def test_predictor_folds_batchnorm_exactly_and_leaves_the_callers_model_alone():
         b = mc_moments(pred.model, x, 3, 3)
         torch.testing.assert_close(b.D, a.D, atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(b.model_var_M, a.model_var_M, atol=1e-5, rtol=1e-4)
+
+
+def test_mc_chunk_by_image_size(saved):
+    """Passes per batched forward: 2 at 512x512, 1 from 800x800 up (measured), all of them for
+    small images; an explicit chunk is kept, a bad one refused."""
+    assert auto_mc_chunk(512, 512, 20) == 2
+    assert auto_mc_chunk(800, 800, 20) == 1 and auto_mc_chunk(1232, 1360, 20) == 1
+    assert auto_mc_chunk(64, 64, 20) == 20 and auto_mc_chunk(64, 64, 3) == 3
+    _, path = saved
+    assert Predictor.load(path).mc_chunk is None and Predictor.load(path, mc_chunk=3).mc_chunk == 3
+    with pytest.raises(ValueError, match="mc_chunk: expected >= 1 or None"):
+        Predictor.load(path, mc_chunk=0)
+    frames = _frames(hw=(32, 40), seed=2)
+    torch.manual_seed(0)
+    auto = Predictor.load(path).predict(frames, mc=4)  # 32x40: the 4 passes in one chunk
+    torch.manual_seed(0)
+    four = Predictor.load(path, mc_chunk=4).predict(frames, mc=4)
+    np.testing.assert_allclose(auto.sigma_model, four.sigma_model, rtol=1e-5, atol=1e-7)
 
 
 def test_predictor_applies_the_calibration_of_its_mode(saved):

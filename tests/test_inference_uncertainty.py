@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 import torch
 
-from gearscan.inference.concrete_dropout import concrete_layers
-from gearscan.inference.models import build_model
+from gearscan.inference.concrete_dropout import concrete_layers, set_stochastic
+from gearscan.inference.models import build_model, dropout_on_shared_input
 from gearscan.inference.uncertainty import (
     MomentStats,
     SigmaCalibration,
@@ -108,6 +109,109 @@ def test_mc_with_dropout_gives_model_uncertainty():
     m = build_model("cd-dcu-net", width=4).eval()
     mc = mc_moments(m, torch.rand(1, 3, 32, 32), passes=6, chunk=2)
     assert mc.model_var_M.mean().item() > 0
+
+
+def _randomise_bn(model):
+    for m in model.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.3, 0.3)
+            m.running_var.uniform_(0.5, 2.0)
+    return model.eval()
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        dict(name="cd-dcu-net", classical_input=True, residual=True),  # the shipped kind
+        dict(name="cd-dcu-net"),
+        dict(name="ts-unet", dropout=True),  # no split of its own: the generic prefix
+    ],
+)
+@pytest.mark.parametrize("batch, chunk", [(1, 1), (1, 3), (2, 2)])
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_mc_reusing_the_prefix_gives_the_plain_paths_samples(options, batch, chunk, channels_last):
+    """Stem once + first dropout as one conv + float32 moments: the same masks (same seed) give
+    the same moments as running the whole network per pass, up to float rounding."""
+    torch.manual_seed(0)
+    model = _randomise_bn(build_model(width=4, init_min=0.1, init_max=0.3, **options))
+    x = torch.rand(batch, 3, 21, 38)  # padded to 32 x 48 inside
+    if channels_last:
+        model = model.to(memory_format=torch.channels_last)
+        x = x.contiguous(memory_format=torch.channels_last)
+    torch.manual_seed(11)
+    plain = mc_moments(model, x, passes=7, chunk=chunk, reuse_prefix=False)
+    torch.manual_seed(11)
+    split = mc_moments(model, x, passes=7, chunk=chunk)
+    assert plain.model_var_M.mean() > 1e-9  # the masks do something
+    for name in (f.name for f in dataclasses.fields(MomentStats)):
+        a, b = getattr(plain, name), getattr(split, name)
+        scale = a.abs().max().item()
+        torch.testing.assert_close(b, a, atol=1e-5 * scale, rtol=1e-4, msg=name)
+    assert all(not layer.stochastic for layer in concrete_layers(model))
+
+
+def test_mc_reusing_the_prefix_under_bf16_autocast_stays_close():
+    torch.manual_seed(1)
+    model = build_model(width=4, classical_input=True, residual=True, init_min=0.1, init_max=0.3).eval()
+    model = model.to(memory_format=torch.channels_last)
+    x = torch.rand(1, 3, 32, 40).contiguous(memory_format=torch.channels_last)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        torch.manual_seed(4)
+        plain = mc_moments(model, x, passes=6, chunk=2, reuse_prefix=False)
+        torch.manual_seed(4)
+        split = mc_moments(model, x, passes=6, chunk=2)
+    # bf16 rounds x*m (plain) and W*m (split) differently: |M| <= ~1, bf16 eps 2^-8
+    torch.testing.assert_close(split.M, plain.M, atol=2e-2, rtol=0)
+    torch.testing.assert_close(split.data_var_D, plain.data_var_D, atol=2e-2, rtol=5e-2)
+    assert split.model_var_M.mean().item() == pytest.approx(plain.model_var_M.mean().item(), rel=0.2)
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 5])
+def test_mc_moments_of_a_tiny_model_are_the_moments_of_its_passes(chunk):
+    """Model variance = population variance of the T means, data variance = mean of the T
+    variances, against the T passes of the plain network (same masks), in float64 numpy."""
+    torch.manual_seed(2)
+    model = build_model(width=2, classical_input=True, residual=True, init_min=0.2, init_max=0.4).eval()
+    x = torch.rand(1, 3, 16, 24)
+    passes = 5
+    torch.manual_seed(9)
+    set_stochastic(model, True)
+    with torch.no_grad():
+        outs = [model(x.repeat(min(chunk, passes - d), 1, 1, 1)) for d in range(0, passes, chunk)]
+    set_stochastic(model, False)
+    o = torch.cat(outs).double().numpy()  # (T, 4, H, W)
+    torch.manual_seed(9)
+    st = mc_moments(model, x, passes=passes, chunk=chunk)
+    assert o[:, 0].var(0).mean() > 1e-9
+    np.testing.assert_allclose(st.M[0].numpy(), o[:, 0].mean(0), atol=1e-6)
+    np.testing.assert_allclose(st.D[0].numpy(), o[:, 1].mean(0), atol=1e-6)
+    np.testing.assert_allclose(st.model_var_M[0].numpy(), o[:, 0].var(0), rtol=1e-3, atol=1e-9)
+    np.testing.assert_allclose(st.model_var_D[0].numpy(), o[:, 1].var(0), rtol=1e-3, atol=1e-9)
+    np.testing.assert_allclose(st.data_var_M[0].numpy(), o[:, 2].mean(0), rtol=1e-5)
+    np.testing.assert_allclose(st.data_var_D[0].numpy(), o[:, 3].mean(0), rtol=1e-5)
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_dropout_on_a_shared_input_is_the_layer_on_its_repeats(channels_last):
+    """k masked passes of one input as a single conv with k scaled weight sets (k * C_out outputs)."""
+    from gearscan.inference.concrete_dropout import ConcreteDropout2d
+
+    torch.manual_seed(3)
+    layer = ConcreteDropout2d(6, 5, init_min=0.2, init_max=0.4)
+    layer.stochastic = True
+    x = torch.randn(1, 6, 12, 9)
+    if channels_last:
+        layer = layer.to(memory_format=torch.channels_last)
+        x = x.contiguous(memory_format=torch.channels_last)
+    torch.manual_seed(5)
+    ref = layer(x.repeat(4, 1, 1, 1))
+    torch.manual_seed(5)
+    got = dropout_on_shared_input(layer, x, 4)
+    assert got.shape == (4, 5, 12, 9)
+    assert got.is_contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
+    torch.testing.assert_close(got, ref, atol=1e-5, rtol=1e-5)
+    layer.stochastic = False  # deterministic: the plain layer
+    torch.testing.assert_close(dropout_on_shared_input(layer, x, 2), layer(x).repeat(2, 1, 1, 1))
 
 
 def test_to_phase_result_combines_by_eq19_and_scales():
