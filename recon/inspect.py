@@ -38,7 +38,10 @@ Steps and definitions (all in the transverse section band around mid-face):
    ``2 e``) and ``runout_about_gear_axis_um`` (the spaces alone).
 6. **Chipped teeth**: in each tooth's tip zone (radius above ``r_a - tip_zone``, the whole
    face) the signed distance to the CAD moved onto the fitted axis is averaged in tooth-local
-   cells and compared with the median tooth's in the same cell (errors that every tooth shares,
+   cells (across the tooth x along the face, all radii of the zone in one cell: a chip face lies
+   at a smaller radius than the surface it replaced, and cells split by radius put the two in
+   different cells, where the chip was missed on a twin revolution) and compared with the median
+   tooth's in the same cell (errors that every tooth shares,
    since all are seen through the same views, cancel); the cells more than ``chip_mm`` below
    it cover ``missing_mm2``; a tooth is flagged when that area exceeds ``chip_area_mm2`` or its
    tip zone has under half the median tooth's points. The check is *inconclusive* (no tooth
@@ -397,15 +400,15 @@ def _tips(points, gear, centre, theta0, cad_mesh, zone, chip_mm, area_mm2, voxel
     kk = np.round(ang / tau)
     tooth = kk.astype(int) % z
     counts = np.bincount(tooth, minlength=z)
-    # tooth-local cells (arc across the tooth, radius, z): each tooth against the median tooth in
-    # the same cell, so errors every tooth shares (all are seen through the same views) cancel
+    # tooth-local cells (arc across the tooth x z, every radius of the zone): each tooth against the
+    # median tooth in the same cell, so errors every tooth shares (all are seen through the same
+    # views) cancel; a chipped corner's face sits in the cells of the surface it replaced
     cell = 0.1 if voxel_mm <= 0.1 else voxel_mm
     arc = (ang - kk * tau) * gear.tip_radius
     ia = np.floor((arc + gear.tip_radius * tau / 2) / cell).astype(int)
-    ir = np.floor((r[zone_pts] - (gear.tip_radius - zone)) / cell).astype(int)
     iz = np.floor((aligned[:, 2] - aligned[:, 2].min()) / (4 * cell)).astype(int)
-    shape = (ia.max() + 1, ir.max() + 1, iz.max() + 1)
-    flat = np.ravel_multi_index((ia, ir, iz), shape)
+    shape = (ia.max() + 1, iz.max() + 1)
+    flat = np.ravel_multi_index((ia, iz), shape)
     n_cells = int(np.prod(shape))
     idx = tooth * n_cells + flat
     sums = np.bincount(idx, dev, minlength=z * n_cells).reshape(z, n_cells)
