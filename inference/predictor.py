@@ -39,8 +39,9 @@ PRECISIONS = ("auto", "fp32", "bf16")
 CALIBRATION_MODES = ("deterministic", "mc")
 CPUINFO = Path("/proc/cpuinfo")
 # MC passes per batched forward: as many as fit in this many pixels, at least 1. Measured with the
-# shipped w=8 model, bf16 + channels_last on 2 cores: chunk 2 fastest at 512x512 (1 and 4 slower),
-# chunk 1 at 800x800 and 1232x1360 (benchmarks/inference_speed.md).
+# shipped w=8 model, bf16 + channels_last on 2 cores (AVX512-BF16): chunk 2 fastest at 512x512, 1
+# to 20 in benchmarks/inference_speed.md; chunk 1 at 800x800 (2.65 s vs 2.73 for 2, 3.26 for 4)
+# and 1232x1360 (7.2 s vs 7.9 for 2, 12.9 for 4): bigger batches fall out of cache.
 MC_CHUNK_PIXELS = 2 * 512 * 512
 
 
