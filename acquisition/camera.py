@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from gearscan.acquisition.clock import ClockSync
 from gearscan.core.frame_ids import FrameIdUnwrapper, FrameIdWrap
@@ -69,7 +69,9 @@ class CameraSettings(BaseModel):
     ``frame_rate_hz`` applies in free-run only. ``buffer_count`` bounds the driver's buffer
     pool: when the consumer falls behind, the camera drops frames (seen as frame-id gaps)
     instead of memory growing. ``packet_size`` (GigE only): None negotiates the largest
-    size the path allows, 0 keeps the camera's value.
+    size the path allows, 0 keeps the camera's value. ``pattern_cycle``: frames of a sequence
+    the projector plays by itself (hardware trigger) get pattern ``n % pattern_cycle``, or
+    ``pattern_sequence[n % pattern_cycle]`` when that gives the patterns in the order played.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
@@ -84,6 +86,15 @@ class CameraSettings(BaseModel):
     buffer_count: int = Field(8, ge=2, le=256)
     packet_size: int | None = None
     pattern_cycle: int = Field(0, ge=0)
+    pattern_sequence: tuple[int, ...] | None = None
+
+    @model_validator(mode="after")
+    def _sequence_fits_the_cycle(self) -> CameraSettings:
+        seq = self.pattern_sequence
+        if seq is not None and (len(seq) != self.pattern_cycle or min(seq, default=0) < 0):
+            raise ValueError(f"pattern_sequence: expected {self.pattern_cycle} pattern indices >= 0 "
+                             f"(one per frame of the cycle), got {list(seq)}")
+        return self
 
     @field_validator("pixel_format")
     @classmethod
@@ -287,6 +298,8 @@ class BaseCamera:
         if cycle and self._first_ext is not None:
             # counted on extended ids: a 2**32 counter is no multiple of 3, its wrap must not shift the cycle
             pattern = (ext - self._first_ext) % cycle
+            if self.settings.pattern_sequence is not None:
+                pattern = self.settings.pattern_sequence[pattern]
         self.stats.frames += 1
         return Frame(
             image=raw.image,

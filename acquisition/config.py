@@ -77,7 +77,8 @@ class ProjectorConfig(BaseModel):
     coarse_period_px: float | None = Field(None, ge=2)
     coarse_every: int = Field(4, ge=1)
     # every other measuring burst in the order 0, 2, 1 (PatternSet.cycle): the fused model's frame fit
-    # then fits nearly every point of a turning gear (software trigger)
+    # then fits nearly every point of a turning gear (a hardware-sequenced projector must play that order:
+    # camera.pattern_cycle = 6)
     alternate_order: bool = False
 
     @model_validator(mode="after")

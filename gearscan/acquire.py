@@ -70,7 +70,8 @@ def make_projector(cfg: AcquisitionConfig):
         return WindowProjector(display=p.display, width=p.width, height=p.height)
     raise ConfigError(
         "projector.backend: 'lightcrafter' plays its sequence by itself; set camera.trigger = 'hardware' "
-        "and camera.pattern_cycle = 3 and the projector is not driven by record (got 'lightcrafter' with software trigger)"
+        "and camera.pattern_cycle to the sequence's length (3; 6 with projector.alternate_order), and the projector "
+        "is not driven by record (got 'lightcrafter' with software trigger)"
     )
 
 
@@ -90,19 +91,19 @@ class AcquisitionSession:
         self.patterns = cfg.projector.patterns()
         # one cycle of the projector sequence
         self.order = self.patterns.cycle(cfg.projector.coarse_every, alternate=cfg.projector.alternate_order)
-        for key, on in (("coarse_period_px", self.patterns.coarse_period_px is not None),
-                        ("alternate_order", cfg.projector.alternate_order)):
-            if on and self.settings.trigger != "software":
+        if self.settings.trigger != "software":  # the projector plays self.order by itself, frame n its n-th entry
+            if self.settings.pattern_cycle != len(self.order):
                 raise ConfigError(
-                    f"projector.{key}: this sequence is shown by software (camera.trigger = 'software'); "
-                    f"a projector playing its own sequence shows the three measuring patterns in order only (got trigger "
-                    f"{self.settings.trigger!r})"
+                    f"camera.pattern_cycle: must be {len(self.order)} with trigger {self.settings.trigger!r}: the "
+                    f"projector plays the sequence {self.order} by itself (program it so, starting with the camera's "
+                    f"first frame), got {self.settings.pattern_cycle}"
                 )
-        if self.settings.trigger != "software" and self.settings.pattern_cycle != 3:
-            raise ConfigError(
-                f"camera.pattern_cycle: must be 3 with trigger {self.settings.trigger!r} (the projector cycles the "
-                f"three patterns by itself), got {self.settings.pattern_cycle}"
-            )
+            if self.settings.pattern_sequence not in (None, tuple(self.order)):
+                raise ConfigError(
+                    f"camera.pattern_sequence: {list(self.settings.pattern_sequence)} is not the sequence the projector "
+                    f"section asks for, {self.order}; leave it out (it is taken from [projector])"
+                )
+            self.settings = self.settings.model_copy(update={"pattern_sequence": tuple(self.order)})
         self.out, self.overwrite, self.extra_meta = out, overwrite, extra_meta or {}
         rig = self.extra_meta.get("rig")  # a recording's rig must fit its frames, or replay refuses it
         self.rig_size = (rig["camera"]["width"], rig["camera"]["height"]) if isinstance(rig, dict) else None

@@ -28,6 +28,8 @@ pixel_format = "Mono8"       # Mono8, Mono12 or Mono16
 exposure_us = 5000.0
 gain_db = 0.0
 trigger = "software"         # "software" (projector sequencing), "hardware" or "free-run"
+# pattern_cycle = 3          # trigger = "hardware": frames per sequence the projector plays by itself
+                             # (6 with projector.alternate_order: 0,1,2,0,2,1; the order comes from [projector])
 # roi = [0, 0, 800, 800]     # x, y, width, height
 
 [projector]
@@ -43,6 +45,7 @@ settle_ms = 20.0             # wait after showing a pattern before triggering th
 # coarse_every = 4           # coarse_every measuring bursts (with recon.unwrap = "coarse")
 # alternate_order = true     # every other burst shows its patterns as 0, 2, 1: the fused model's
                              # frame fit (inspect, replay --fuse) then fits nearly every point
+                             # (a hardware-sequenced projector must play that order too)
 
 # [encoder]                  # omit without an encoder: the gear is then taken as standing still
                              # at angle 0 (its CAD pose); every burst goes to three-step PS.

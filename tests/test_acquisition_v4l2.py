@@ -69,3 +69,18 @@ def test_unknown_device_path_names_the_setting():
     with pytest.raises(CameraNotFound, match=r"camera.id: '/dev/video99' not found; V4L2 devices"):
         with V4L2Camera("/dev/video99"):
             pass
+
+
+def test_frames_are_numbered_by_the_projectors_sequence():
+    """A projector that plays 0, 1, 2, 0, 2, 1 by itself: frame n shows entry n % 6, and a dropped
+    frame (sequence gap) does not shift the numbering of the ones after it."""
+    seq = (0, 1, 2, 0, 2, 1)
+    with V4L2Camera("/dev/videoX", backend=FakeV4L2Backend(skip_sequences={8})) as cam:
+        cam.configure(CameraSettings(pixel_format="Mono8", roi=(0, 0, 64, 48), pattern_cycle=6, pattern_sequence=seq))
+        cam.start()
+        frames = [cam.grab(1.0) for _ in range(11)]
+        cam.stop()
+    assert [f.frame_id for f in frames] == [0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11]
+    assert [f.pattern_index for f in frames] == [seq[f.frame_id % 6] for f in frames]
+    with pytest.raises(ValueError, match="pattern_sequence: expected 6 pattern indices"):
+        CameraSettings(pattern_cycle=6, pattern_sequence=(0, 1, 2))

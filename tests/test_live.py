@@ -357,13 +357,19 @@ def test_live_alternates_the_pattern_order(tmp_path):
     assert len(metrics.per_burst) == 4 and metrics.assembler["pattern_errors"] == 0
 
 
-def test_alternate_order_needs_software_sequencing(tmp_path):
+def test_a_hardware_sequenced_projector_plays_the_alternating_order(tmp_path):
+    """With trigger = hardware the projector plays the sequence by itself: the camera must count its
+    length and numbers each frame by it (0, 1, 2, 0, 2, 1), or the session is refused by name."""
     from gearscan.acquire import AcquisitionSession
     from gearscan.acquisition.config import ConfigError
 
     rec = render_recording(tmp_path / "twin", rig=default_rig(64, 64), motion="static", bursts=1)
-    text = _config(tmp_path, rec, tmp_path / "rig.json", None).read_text()
-    cfg = LiveConfig.from_toml(text.replace('trigger = "software"', 'trigger = "hardware"')
-                               .replace("settle_ms = 1", "settle_ms = 1\nalternate_order = true"), "live.toml")
-    with pytest.raises(ConfigError, match="projector.alternate_order"):
-        AcquisitionSession(cfg)
+    text = _config(tmp_path, rec, tmp_path / "rig.json", None).read_text().replace(
+        'trigger = "software"', 'trigger = "hardware"').replace("settle_ms = 1", "settle_ms = 1\nalternate_order = true")
+    with pytest.raises(ConfigError, match=r"camera.pattern_cycle: must be 6 .*\[0, 1, 2, 0, 2, 1\]"):
+        AcquisitionSession(LiveConfig.from_toml(text.replace('trigger = "hardware"', 'trigger = "hardware"\npattern_cycle = 3'), "live.toml"))
+    with pytest.raises(ConfigError, match="camera.pattern_sequence"):
+        AcquisitionSession(LiveConfig.from_toml(text.replace(
+            'trigger = "hardware"', 'trigger = "hardware"\npattern_cycle = 6\npattern_sequence = [0, 1, 2, 0, 1, 2]'), "live.toml"))
+    session = AcquisitionSession(LiveConfig.from_toml(text.replace('trigger = "hardware"', 'trigger = "hardware"\npattern_cycle = 6'), "live.toml"))
+    assert session.settings.pattern_sequence == (0, 1, 2, 0, 2, 1)
