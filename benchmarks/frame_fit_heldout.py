@@ -28,7 +28,7 @@ STRETCHES = [  # seed, start (deg), defects: none of these chose anything
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bursts", type=int, default=60)
-    ap.add_argument("--out", type=Path, default=Path("out/frame_fit_heldout"))
+    ap.add_argument("--out", type=Path, default=HERE.parent / "out" / "frame_fit_heldout")
     args = ap.parse_args()
 
     import open3d as o3d
