@@ -480,6 +480,11 @@ def _live_check(cfg, rig, source: Path) -> None:
     try:
         lines.append("camera: " + check_camera(cfg, (rig.camera.width, rig.camera.height)))
         lines.append("projector: " + check_projector(cfg))
+        seq = cfg.projector.patterns().cycle(cfg.projector.coarse_every, alternate=cfg.projector.alternate_order)
+        lines.append("pattern sequence: " + ", ".join(map(str, seq)) + (
+            " (the projector plays it by itself: program it so, from the camera's first frame; "
+            f"camera.pattern_cycle = {len(seq)})" if cfg.camera.trigger != "software" else
+            " (shown by software, one pattern per triggered frame)"))
     except (CameraError, ConfigError) as exc:
         raise _fail(str(exc)) from exc
     if cfg.encoder is None:
