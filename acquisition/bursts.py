@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass, field
 
 from gearscan.acquisition.encoder import EncoderHistory
 from gearscan.core.frame_ids import FrameIdWrap
+from gearscan.core.patterns import next_offsets
 from gearscan.core.types import Burst, Frame
 
 
@@ -116,13 +117,11 @@ class BurstAssembler:
 
     def _expected(self) -> list[int]:
         """Pattern indices the next frame may have: a group's first pattern to start a burst, then
-        the other two in either order (0, 1, 2 or 0, 2, 1: :attr:`Burst.reversed_order`)."""
+        the other two in either order (:data:`~gearscan.core.patterns.BURST_ORDERS`)."""
         if not self._pending:
             return [3 * g for g in range(self.groups)]
         first = self._pending[0].pattern_index
-        if len(self._pending) == 1:
-            return [first + 1, first + 2]
-        return [first + 3 - (self._pending[1].pattern_index - first)]  # the one not yet shown
+        return [first + o for o in next_offsets([f.pattern_index - first for f in self._pending])]
 
     # -- API ------------------------------------------------------------------------------
     def reset(self) -> None:

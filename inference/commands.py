@@ -5,7 +5,6 @@ Only light imports at module level; torch and friends load inside the functions.
 
 from __future__ import annotations
 
-import math
 import struct
 import zipfile
 import zlib
@@ -14,7 +13,7 @@ from typing import Annotated
 
 import typer
 
-from gearscan.inference.decoder import STILL_SPAN_DEG
+from gearscan.inference.decoder import STILL_SPAN_DEG, turned_less_than
 
 
 def _read_images(paths: list[Path]):
@@ -199,8 +198,7 @@ def predict(
         except ValueError as exc:
             raise typer.BadParameter(f"--angles-deg: expected three numbers 'A,B,C', got {angles_deg!r}") from exc
     try:
-        if angles is not None and abs(float(angles[-1] - angles[0])) < math.radians(still_span_deg):
-            # the pipeline's still rule (inference.decoder)
+        if angles is not None and turned_less_than(angles, still_span_deg):  # the pipeline's still rule
             result = three_step_result(frames, resolve_full_scale(frames, full_scale))
         else:
             result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles)

@@ -17,6 +17,12 @@ from gearscan.core.types import Burst, PhaseResult
 STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beats the network (Decoder)
 
 
+def turned_less_than(angles, span_deg: float) -> bool:
+    """Whether the turntable turned less than ``span_deg`` from a burst's first to its last frame
+    (``angles`` in rad): such a burst has no motion error, and three-step PS decodes it."""
+    return abs(float(angles[-1]) - float(angles[0])) < math.radians(span_deg)
+
+
 class Decoder:
     """Burst -> PhaseResult with the network (``mc`` passes, 0 = deterministic) or three-step PS.
 
@@ -40,7 +46,7 @@ class Decoder:
             raise ValueError(f"model.workers: expected >= 1, got {workers}")
         if not still_span_deg >= 0:
             raise ValueError(f"model.still_span_deg: expected >= 0 degrees, got {still_span_deg}")
-        self.still_span = math.radians(still_span_deg)
+        self.still_span_deg = float(still_span_deg)
         self.still_bursts = 0
         self.mc = mc
         self.workers = 1
@@ -69,7 +75,7 @@ class Decoder:
     def __call__(self, burst: Burst) -> PhaseResult:
         if self.predictor is None or burst.group != 0:  # coarse bursts: three-step PS (the net knows fine fringes)
             return classical_result(burst)
-        if abs(burst.angles[-1] - burst.angles[0]) < self.still_span:
+        if turned_less_than(burst.angles, self.still_span_deg):
             self.still_bursts += 1
             return classical_result(burst)
         predictor = self._pool.get()

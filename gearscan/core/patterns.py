@@ -16,6 +16,17 @@ DEFAULT_PERIOD_PX = 40.0
 the default rig with a module-2, 20-tooth gear."""
 
 
+BURST_ORDERS = ((0, 1, 2), (0, 2, 1))
+"""The two orders a three-step burst may show its group's patterns in: forward, and reversed after
+the first (shifts 0, 4pi/3, 2pi/3), which an alternating sequence shows every other burst."""
+
+
+def next_offsets(seen: tuple[int, ...] | list[int]) -> tuple[int, ...]:
+    """Pattern offsets within its group that a burst's next frame may show, after ``seen``."""
+    k = len(seen)
+    return tuple(sorted({o[k] for o in BURST_ORDERS if k < 3 and o[:k] == tuple(seen)}))
+
+
 class PatternError(ValueError):
     """A pattern set parameter is out of range."""
 
@@ -100,7 +111,7 @@ class PatternSet:
         moving a sixth of a period per frame does, in the order 0, 1, 2): the frame fit of the fused
         model (:mod:`gearscan.recon.track`) can then fit it.
         """
-        orders = ([0, 1, 2], [0, 2, 1]) if alternate else ([0, 1, 2],)
+        orders = BURST_ORDERS if alternate else BURST_ORDERS[:1]
         if self.coarse_period_px is None:
             if len(self.patterns) != 3 and alternate:
                 raise PatternError(f"alternate: a three-pattern set expected, got {len(self.patterns)} patterns")
@@ -108,7 +119,7 @@ class PatternSet:
         if coarse_every < 1:
             raise PatternError(f"coarse_every: expected >= 1 measuring burst per coarse burst, got {coarse_every}")
         fine = coarse_every * (2 if alternate and coarse_every % 2 else 1)  # alternation carries across cycles
-        return [i for k in range(fine) for i in ([3, 4, 5] if k % coarse_every == 0 else []) + orders[k % len(orders)]]
+        return [i for k in range(fine) for i in ([3, 4, 5] if k % coarse_every == 0 else []) + list(orders[k % len(orders)])]
 
     @property
     def coarse_period_px(self) -> float | None:

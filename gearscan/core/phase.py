@@ -62,7 +62,7 @@ def three_step(images: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.nd
 
 def burst_shifts(burst: Burst) -> np.ndarray:
     """The phase shift of each of the burst's frames, in capture order (rad)."""
-    return THREE_STEP_SHIFTS[[0, 2, 1]] if burst.reversed_order else THREE_STEP_SHIFTS
+    return THREE_STEP_SHIFTS[list(burst.offsets)]
 
 
 def in_capture_order(result: PhaseResult, burst: Burst) -> PhaseResult:

@@ -58,6 +58,7 @@ import cv2
 import numpy as np
 
 from gearscan.core.frame_ids import FrameIdUnwrapper, FrameIdWrap
+from gearscan.core.patterns import BURST_ORDERS, next_offsets
 from gearscan.core.types import (
     ENCODER_COUNT_MAX,
     ENCODER_SEQ_MODULUS,
@@ -627,17 +628,19 @@ class RecordingReader:
         if groups:
             cycle = 3
         group = 0  # the pattern group (fine 0, coarse 1) of the burst the line belongs to
-        second = 1  # the burst's second pattern within its group: 1, or 2 in the order 0, 2, 1
+        seen: list[int] = []  # the burst's patterns so far, within its group
         for rec, n in zip(self.records, self.lines, strict=True):
             ext = unwrap(rec.frame_id)
             why = ""
             pos = (n - 1) % 3
             if groups and pos == 0:
                 group = rec.pattern_index // 3
-            if cycle == 3 or groups:  # three-frame bursts: 0, 1, 2 or 0, 2, 1 (PatternSet.cycle(alternate=True))
-                allowed = (0,) if pos == 0 else (1, 2) if pos == 1 else (3 - second,)
-                if pos == 1 and rec.pattern_index % 3 in allowed:
-                    second = rec.pattern_index % 3
+            if cycle == 3 or groups:  # three-frame bursts in either of the BURST_ORDERS
+                seen = seen[:pos] if pos else []
+                seen += BURST_ORDERS[0][len(seen):pos]  # a damaged line before: read as the forward order
+                allowed = next_offsets(seen)
+                if rec.pattern_index % 3 in allowed:
+                    seen.append(rec.pattern_index % 3)
             if angles and rec.encoder_angle is None:
                 why = "encoder_angle_rad is null where the recording's other frames have an angle"
             elif groups and not (rec.pattern_index < 6 and rec.pattern_index // 3 == group

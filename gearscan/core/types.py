@@ -96,10 +96,15 @@ class Burst:
         return self.frames[0].full_scale
 
     @property
+    def offsets(self) -> tuple[int, int, int]:
+        """Each frame's pattern within the burst's group, in capture order: (0, 1, 2) or (0, 2, 1)."""
+        first = self.frames[0].pattern_index
+        return tuple(f.pattern_index - first for f in self.frames)  # type: ignore[return-value]
+
+    @property
     def reversed_order(self) -> bool:
         """True when the frames show the group's patterns in the order 0, 2, 1 (shifts 0, 4pi/3, 2pi/3)."""
-        first = self.frames[0].pattern_index
-        return (self.frames[1].pattern_index, self.frames[2].pattern_index) == (first + 2, first + 1)
+        return self.offsets == (0, 2, 1)
 
     @property
     def timestamp_ns(self) -> int:
