@@ -129,7 +129,9 @@ class ConcreteDropout2d(nn.Module):
             f"stochastic={self.stochastic}"
         )
 
-    def _drop(self, x: torch.Tensor) -> torch.Tensor:
+    def drop(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` times a freshly drawn relaxed mask, kept features scaled by ``1 / (1 - p)``; the
+        stochastic pass applies the layer's conv to this (MC sampling may batch that conv itself)."""
         p = self.p.to(torch.float32)
         shape = (x.shape[0], x.shape[1], 1, 1) if self.channelwise else x.shape
         u = torch.rand(shape, device=x.device, dtype=torch.float32)
@@ -150,7 +152,7 @@ class ConcreteDropout2d(nn.Module):
             raise ValueError(f"ConcreteDropout2d: expected (B, C, H, W), got {tuple(x.shape)}")
         self._input_dim = x.shape[1] if self.channelwise else x.shape[1] * x.shape[2] * x.shape[3]
         if self.stochastic:
-            return self.conv(self._drop(x))
+            return self.conv(self.drop(x))
         # deterministic: conv(x * s) == conv with weights * s, without a pass over the feature map
         scale = self.keep_scale().to(self.conv.weight.dtype)
         c = self.conv

@@ -196,7 +196,7 @@ def dropout_on_shared_input(layer: nn.Module, x: torch.Tensor, k: int) -> torch.
     ):
         return layer(repeat_batch(x, k))
     c = layer.conv
-    keep = layer._drop(torch.ones(k, x.shape[1], 1, 1, device=x.device))  # (k, C_in, 1, 1) float32
+    keep = layer.drop(torch.ones(k, x.shape[1], 1, 1, device=x.device))  # (k, C_in, 1, 1) float32
     w = c.weight.unsqueeze(0) * keep.unsqueeze(1).to(c.weight.dtype)  # (k, C_out, C_in, kh, kw)
     w = w.reshape(-1, *c.weight.shape[1:])
     b = None if c.bias is None else c.bias.repeat(k)

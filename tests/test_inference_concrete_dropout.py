@@ -52,7 +52,7 @@ def test_deterministic_mode_is_expectation_of_stochastic(temperature):
     torch.manual_seed(0)
     layer = ConcreteDropout2d(64, init_min=0.3, init_max=0.3, temperature=temperature)
     with torch.no_grad():
-        kept = layer._drop(
+        kept = layer.drop(
             torch.ones(4000, 64, 1, 1)
         )  # the conv is linear: comparing its input suffices
     # SE of the mean of 256000 draws is < 0.002
@@ -63,7 +63,7 @@ def test_deterministic_mode_is_expectation_of_stochastic(temperature):
 def test_channelwise_mask_is_constant_over_the_image():
     torch.manual_seed(0)
     layer = ConcreteDropout2d(64, init_min=0.3, init_max=0.3)
-    dropped = layer._drop(torch.ones(8, 64, 5, 7))
+    dropped = layer.drop(torch.ones(8, 64, 5, 7))
     assert torch.allclose(dropped, dropped[..., :1, :1].expand_as(dropped))
     assert not torch.allclose(dropped[:, :1], dropped[:, 1:2])
 
