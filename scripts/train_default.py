@@ -57,7 +57,7 @@ WEIGHTS = Path(__file__).resolve().parents[1] / "inference" / "weights"
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--train", type=Path, nargs="+", default=[Path("data/train")], help="one or more dataset folders")
-    ap.add_argument("--val", type=Path, default=Path("data/val"))
+    ap.add_argument("--val", type=Path, nargs="+", default=[Path("data/val")], help="one or more dataset folders")
     ap.add_argument("--out", type=Path, default=Path("runs/default"))
     ap.add_argument("--name", default="cd-dcu-net", help="cd-dcu-net, unet, ts-unet or dr-unet")
     ap.add_argument("--width", type=int, default=8)
@@ -69,6 +69,9 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--val-items", type=int, default=48)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    ap.add_argument("--workers", type=int, default=0, help="DataLoader workers")
+    ap.add_argument("--no-calibrate", action="store_true", help="skip the sigma calibration at the end")
     ap.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
                     help="autocast; auto = bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), else fp32")
     ap.add_argument("--mse-weighting", default="modulation")
@@ -94,7 +97,8 @@ def main() -> None:
         parts = [MotionInput(p) for p in parts]
     train_set = parts[0] if len(parts) == 1 else ConcatDataset(parts)
     p_min, p_max = (float(v) for v in args.dropout_init.split(","))
-    val_full = TwinBurstDataset(args.val, crop=None, static=True, reverse=args.reverse)
+    val_parts = [TwinBurstDataset(root, crop=None, static=True, reverse=args.reverse) for root in args.val]
+    val_full = val_parts[0] if len(val_parts) == 1 else ConcatDataset(val_parts)
     if args.motion_input:
         val_full = MotionInput(val_full)
     rng = np.random.default_rng(0)
@@ -118,13 +122,16 @@ def main() -> None:
         widen_inputs=args.motion_input,
         steps_per_epoch=args.steps_per_epoch,
         precision=args.precision,
+        device=args.device,
+        num_workers=args.workers,
+        calibrate=not args.no_calibrate,
         resume=args.resume,
         progress=True,
     )
     t0 = time.time()
     result = train(config, train_set, val_set)
     info = {"train_seconds": time.time() - t0, "train_items": len(train_set), "val_items": len(val_set),
-            "train_data": [str(r) for r in args.train], "val_data": str(args.val), "args": vars(args) | {"train": [str(r) for r in args.train], "val": str(args.val), "out": str(args.out)}}
+            "train_data": [str(r) for r in args.train], "val_data": [str(r) for r in args.val], "args": vars(args) | {"train": [str(r) for r in args.train], "val": [str(r) for r in args.val], "out": str(args.out)}}
     (args.out / "recipe.json").write_text(json.dumps(info, indent=2, default=str))
     print(result)
     if args.ship:

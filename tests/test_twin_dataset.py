@@ -139,3 +139,16 @@ def test_view_randomised_scenes_span_views_modules_and_fringe_periods():
     assert len(names) >= 3
     lo, hi = VIEW_RANGES["camera_period_px"]
     assert all(lo * 0.99 <= p <= hi * 1.01 for p in periods) and max(periods) / min(periods) > 2
+
+
+def test_dataloader_workers_draw_their_own_crops(small_dataset):
+    """Each DataLoader worker crops from its own random stream, not a copy of the parent's: items
+    0 and 1 (same first frame, so equal crops would give equal first images) land on two workers."""
+    import torch
+
+    root, _ = small_dataset
+    ds = TwinBurstDataset(root, crop=32, seed=3)
+    loader = torch.utils.data.DataLoader(torch.utils.data.Subset(ds, [0, 1]), batch_size=1, num_workers=2)
+    a, b = (item["input"][0, 0].numpy() for item in loader)
+    assert ds.combos[0][0] == ds.combos[1][0]  # same first pose
+    assert np.ptp(a) > 0 and not np.array_equal(a, b)

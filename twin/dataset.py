@@ -28,6 +28,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -274,6 +275,7 @@ class TwinBurstDataset:
         if crop is not None and not (16 <= crop <= min(self.spec.width, self.spec.height)):
             raise DatasetError(f"crop must be in 16..{min(self.spec.width, self.spec.height)}, got {crop}")
         self.crop = crop
+        self._seed, self._pid = seed, os.getpid()
         self._rng = np.random.default_rng(seed)
         self._arrays: dict[int, dict[str, np.ndarray]] = {}
         self._idx3 = [0, self.spec.steps // 3, 2 * self.spec.steps // 3]
@@ -303,6 +305,9 @@ class TwinBurstDataset:
         a = self._open(g)
         h, w = self.spec.height, self.spec.width
         if self.crop:
+            if os.getpid() != self._pid:  # a DataLoader worker: its own crop stream, not a copy of the parent's
+                self._pid = os.getpid()
+                self._rng = np.random.default_rng([self._seed, self._pid])
             y = int(self._rng.integers(0, h - self.crop + 1))
             x = int(self._rng.integers(0, w - self.crop + 1))
             sl = (slice(y, y + self.crop), slice(x, x + self.crop))

@@ -1,0 +1,149 @@
+"""Reproduce a CD-DCU-Net from nothing in one command: render the twin data, train, calibrate.
+
+The same command runs on a 2-core CPU or on a lent GPU machine (``--device cuda``); only the
+budget and the number of render processes change::
+
+    python scripts/reproduce_model.py --out runs/repro --device cpu --jobs 2 --train-minutes 120
+    python scripts/reproduce_model.py --out runs/repro --device cuda --jobs 16 --train-minutes 15 --width 32
+
+Data (twin/splits.py: train gears and seeds only; val gears and seeds only for the validation
+set that does early stopping and the sigma calibration; nothing from the test split):
+
+- ``radial``: the shipped model's family (``--randomize``: radial view, module 1.5-3 mm, camera
+  period 12-40 px), train tooth counts 11-40;
+- ``views``: any view (radial/side/oblique/face), module 0.5-5 mm, camera period 5-60 px, train
+  tooth counts 11-76;
+- ``val``: the same two randomisers on val tooth counts and seeds.
+
+Every item set is a folder of its own (one render process each), so the render runs in parallel
+and resumes where it stopped. Training is ``scripts/train_default.py`` (deterministic stage,
+then Concrete Dropout, cosine schedules, best-on-val weights, sigma calibration on val) with the
+number of epochs sized to ``--train-minutes`` by a short timed probe on this machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAIN = ROOT / "scripts" / "train_default.py"
+
+# (name, teeth, repeats, max start points, views, seed): the seeds are in the train split's
+# range 3-9999 (val 10000-19999), one per folder so no two folders share a scene
+_RADIAL_TEETH = [t for t in range(11, 41) if t not in (25, 32, 35, 37, 39, 10)]
+_VIEW_TEETH = [t for t in range(11, 77) if t not in (25, 32, 35, 37, 39) and not (t >= 41 and t % 2)
+               and t not in range(42, 79, 4)]
+_VAL_SETS = [("val_radial", [25, 32], 2, 2, False, 10002), ("val_views", list(range(42, 79, 4)), 1, 2, True, 10001)]
+
+
+def _chunks(values: list[int], n: int) -> list[list[int]]:
+    return [values[i::n] for i in range(n) if values[i::n]]
+
+
+def plan(scale: float) -> tuple[list[tuple], list[tuple]]:
+    """The render jobs (train, val) for a data ``scale`` (1.0: ~540 start points, ~24 GB at 256x256)."""
+    repeats_radial = max(1, round(6 * scale))
+    repeats_views = max(1, round(4 * scale))
+    train = []
+    for i, teeth in enumerate(_chunks(_RADIAL_TEETH, 6)):
+        train.append((f"radial_{i}", teeth, repeats_radial, 1, False, 3001 + i))
+    for i, teeth in enumerate(_chunks(_VIEW_TEETH, 10)):
+        train.append((f"views_{i}", teeth, repeats_views, 2, True, 4001 + i))
+    return train, list(_VAL_SETS)
+
+
+def _render(job: tuple, root: Path, size: int) -> str:
+    """One folder of twin data (resumes a partial one); runs in its own process."""
+    from gearscan.core.gear import GearSpec
+    from gearscan.twin.dataset import DatasetSpec, generate_dataset
+
+    name, teeth, repeats, points, views, seed = job
+    gears = [GearSpec(teeth=t) for t in teeth for _ in range(repeats)]
+    spec = DatasetSpec(gears=gears, width=size, height=size, randomize=True, views=views, seed=seed,
+                       max_start_points=points)
+    t0 = time.time()
+    generate_dataset(root / name, spec)
+    return f"{name}: {len(gears)} scenes, {time.time() - t0:.0f} s"
+
+
+def render(jobs: list[tuple], root: Path, size: int, processes: int) -> None:
+    """Render every job's folder, ``processes`` at a time (one render thread pair each)."""
+    root.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    with ProcessPoolExecutor(processes) as pool:
+        for line in pool.map(_render, jobs, [root] * len(jobs), [size] * len(jobs)):
+            print("rendered", line, flush=True)
+
+
+def _train_cmd(args, train_dirs: list[Path], val_dirs: list[Path], out: Path, epochs_det: int, epochs_drop: int,
+               steps: int, val_items: int) -> list[str]:
+    return [sys.executable, str(TRAIN), "--train", *map(str, train_dirs), "--val", *map(str, val_dirs),
+            "--out", str(out), "--width", str(args.width), "--crop", str(args.crop), "--batch", str(args.batch),
+            "--steps-per-epoch", str(steps), "--epochs-det", str(epochs_det), "--epochs-drop", str(epochs_drop),
+            "--lr", str(args.lr), "--val-items", str(val_items), "--patience", "1000", "--reverse",
+            "--static-repeat", str(args.static_repeat), "--dropout-init", "0.02,0.1", "--device", args.device,
+            "--workers", str(args.workers), "--threads", str(args.threads)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=Path("runs/repro"))
+    ap.add_argument("--data", type=Path, default=Path("data/repro"), help="where the renders go (resumed)")
+    ap.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    ap.add_argument("--jobs", type=int, default=2, help="render processes")
+    ap.add_argument("--scale", type=float, default=1.0, help="data size (1.0: ~540 train start points)")
+    ap.add_argument("--size", type=int, default=256, help="rendered image size, px")
+    ap.add_argument("--width", type=int, default=8, help="network base width w")
+    ap.add_argument("--crop", type=int, default=128)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--lr", type=float, default=2e-3)
+    ap.add_argument("--static-repeat", type=int, default=20, help="oversample the still bursts")
+    ap.add_argument("--steps-per-epoch", type=int, default=200)
+    ap.add_argument("--val-items", type=int, default=96)
+    ap.add_argument("--train-minutes", type=float, default=120.0, help="wall-clock training budget")
+    ap.add_argument("--workers", type=int, default=0, help="DataLoader workers")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--skip-render", action="store_true", help="the renders are already in --data")
+    ap.add_argument("--render-only", action="store_true", help="stop after rendering")
+    args = ap.parse_args()
+
+    train_jobs, val_jobs = plan(args.scale)
+    t0 = time.time()
+    if not args.skip_render:
+        render(train_jobs + val_jobs, args.data, args.size, args.jobs)
+    render_s = time.time() - t0
+    if args.render_only:
+        print(f"rendered in {render_s:.0f} s", flush=True)
+        return
+    train_dirs = [args.data / j[0] for j in train_jobs]
+    val_dirs = [args.data / j[0] for j in val_jobs]
+
+    # probe: seconds per training step on this machine with these settings (the second, warm epoch's)
+    probe = args.out / "probe"
+    subprocess.run(_train_cmd(args, train_dirs, val_dirs, probe, 2, 0, 100, 8) + ["--no-calibrate"], check=True)
+    last = json.loads((probe / "metrics.json").read_text())[-1]
+    per_step = last["seconds"] / last["steps"]
+    total_epochs = max(2, int(args.train_minutes * 60 * 0.85 / (per_step * args.steps_per_epoch)))
+    epochs_drop = max(1, total_epochs // 10)
+    epochs_det = total_epochs - epochs_drop
+    print(f"probe: {per_step * 1000:.0f} ms/step -> {epochs_det} + {epochs_drop} epochs of {args.steps_per_epoch}",
+          flush=True)
+    t2 = time.time()
+    subprocess.run(_train_cmd(args, train_dirs, val_dirs, args.out, epochs_det, epochs_drop, args.steps_per_epoch,
+                              args.val_items), check=True)
+    info = {"render_seconds": render_s, "train_seconds": time.time() - t2, "probe_ms_per_step": per_step * 1000,
+            "epochs": [epochs_det, epochs_drop], "args": {k: str(v) for k, v in vars(args).items()},
+            "train_sets": train_jobs, "val_sets": val_jobs}
+    (args.out / "reproduce.json").write_text(json.dumps(info, indent=2))
+    print(json.dumps({k: info[k] for k in ("render_seconds", "train_seconds", "epochs")}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
