@@ -19,6 +19,11 @@ Every item set is a folder of its own (one render process each), so the render r
 and resumes where it stopped. Training is ``scripts/train_default.py`` (deterministic stage,
 then Concrete Dropout, cosine schedules, best-on-val weights, sigma calibration on val) with the
 number of epochs sized to ``--train-minutes`` by a short timed probe on this machine.
+
+On a lent GPU machine the renderer needs open3d, which is not installed there and whose wheel is
+larger than what travels with a command: carry ``libOpen3D`` compressed (xz: 36 MB), the rest of
+the package, the GL/X libraries it links against (libEGL, libGL, libX11, libudev, libusb, libidn2;
+only those the machine lacks, on LD_LIBRARY_PATH) and the pydantic and triangle wheels.
 """
 
 from __future__ import annotations
@@ -32,15 +37,23 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from gearscan.twin.splits import SplitError, split_of_seed, split_of_teeth
+
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "scripts" / "train_default.py"
 
-# (name, teeth, repeats, max start points, views, seed): the seeds are in the train split's
-# range 3-9999 (val 10000-19999), one per folder so no two folders share a scene
-_RADIAL_TEETH = [t for t in range(11, 41) if t not in (25, 32, 35, 37, 39, 10)]
-_VIEW_TEETH = [t for t in range(11, 77) if t not in (25, 32, 35, 37, 39) and not (t >= 41 and t % 2)
-               and t not in range(42, 79, 4)]
-_VAL_SETS = [("val_radial", [25, 32], 2, 2, False, 10002), ("val_views", list(range(42, 79, 4)), 1, 2, True, 10001)]
+
+def _teeth(split: str, lo: int, hi: int) -> list[int]:
+    """The tooth counts in ``[lo, hi]`` that ``split`` owns (twin/splits.py decides, not this script)."""
+    return [t for t in range(lo, hi + 1) if split_of_teeth(t) == split]
+
+
+# a render job: (folder name, teeth, repeats, max start points, any view?, seed); one seed per
+# folder so no two folders share a scene, each checked against its split in plan()
+_RADIAL_TEETH = _teeth("train", 11, 40)  # the default's family: the shipped model's tooth range
+_VIEW_TEETH = _teeth("train", 11, 76)
+_VAL_SETS = [("val_radial", _teeth("val", 11, 40), 2, 2, False, 10002),
+             ("val_views", _teeth("val", 41, 78), 1, 2, True, 10001)]
 
 
 def _chunks(values: list[int], n: int) -> list[list[int]]:
@@ -56,6 +69,10 @@ def plan(scale: float) -> tuple[list[tuple], list[tuple]]:
         train.append((f"radial_{i}", teeth, repeats_radial, 1, False, 3001 + i))
     for i, teeth in enumerate(_chunks(_VIEW_TEETH, 10)):
         train.append((f"views_{i}", teeth, repeats_views, 2, True, 4001 + i))
+    for name, jobs in (("train", train), ("val", _VAL_SETS)):
+        wrong = [j[0] for j in jobs if split_of_seed(j[5]) != name]
+        if wrong:
+            raise SplitError(f"render jobs {wrong}: seed outside the {name} split")
     return train, list(_VAL_SETS)
 
 
