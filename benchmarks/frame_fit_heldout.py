@@ -45,6 +45,7 @@ def coverage(reader, points: np.ndarray, step: int = 4, within_mm: float = 0.2) 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bursts", type=int, default=60)
+    ap.add_argument("--model", type=Path, default=None, help="network weights (.safetensors); default: the shipped model")
     ap.add_argument("--out", type=Path, default=HERE.parent / "out" / "frame_fit_heldout")
     args = ap.parse_args()
 
@@ -58,7 +59,7 @@ def main() -> None:
     from gearscan.twin.recordings import render_recording
 
     started, rows = host(), []
-    decoder = Decoder()
+    decoder = Decoder(args.model)
     for s in STRETCHES:
         for alternate in (True, False):
             rec = args.out / f"seed{s['seed']}_{'alternate' if alternate else 'fixed'}"
@@ -91,7 +92,8 @@ def main() -> None:
         f"`python benchmarks/frame_fit_heldout.py --bursts {args.bursts}` — commit {commit()}, host: {started}.",
         "",
         f"Default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, {args.bursts} bursts per stretch, eccentricity 50 µm, "
-        "one tooth +30 µm pitch error, one tip chipped 0.3 mm; shipped network (deterministic), fused per 0.1 mm "
+        f"one tooth +30 µm pitch error, one tip chipped 0.3 mm; {f'network `{args.model}`' if args.model else 'shipped network'} "
+        "(deterministic), fused per 0.1 mm "
         "voxel (>= 3 bursts), fitted to the frames (sigma bound 30 µm, off-surface drop 0.15 mm within 0.5 mm). "
         "None of these stretches chose a setting. Distances to the twin's true (as-built) surface.",
         "",

@@ -54,6 +54,7 @@ def main() -> None:
                     help="also fit the same revolution recorded in the other pattern order and report both")
     ap.add_argument("--out", type=Path, default=Path("out/inspect_bench/report"))
     ap.add_argument("--classical", action="store_true", help="three-step PS instead of the network")
+    ap.add_argument("--model", type=Path, default=None, help="network weights (.safetensors); default: the shipped model")
     ap.add_argument("--voxel-mm", type=float, default=0.1)
     ap.add_argument("--min-bursts", type=int, default=3)
     args = ap.parse_args()
@@ -84,7 +85,7 @@ def main() -> None:
     args.recording = recording(alternate)
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
-    decoder = Decoder(classical=args.classical)
+    decoder = Decoder(args.model, classical=args.classical)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
 
@@ -168,7 +169,8 @@ def main() -> None:
     rows = list(zip(names, truths, quantities(insp), quantities(plain.inspection), strict=True))
     fp_err, plain_fp_err = fp_error(insp), fp_error(plain.inspection)
     ok = lambda t, m: abs(m - t) <= 5 + 0.05 * abs(t)  # noqa: E731
-    decoder = "three-step PS" if args.classical else "shipped network (deterministic)"
+    decoder = "three-step PS" if args.classical else (
+        f"network `{args.model}` (deterministic)" if args.model else "shipped network (deterministic)")
     lines = [
         "# Inspection benchmark (issue 14: fused revolution, ISO 1328-1 pitch and runout)",
         "",

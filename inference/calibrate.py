@@ -1,12 +1,15 @@
 """Fit a model's uncertainty calibration on twin validation data and store it in its JSON.
 
 Per mode (deterministic, and Monte Carlo when the model has Concrete Dropout) the network
-predicts whole validation bursts; the wrapped phase errors against the twin's truth and the
-predicted total sigmas fit ``sigma' = a * sigma**b`` by Gaussian NLL
+predicts whole validation bursts, moving ones (both turning senses) and still ones: without
+angles the network cannot tell them apart, so neither can its sigma. The wrapped phase errors
+against the twin's truth, the predicted total sigmas and the departures from three-step PS fit
+``sigma' = a * sigma**b * (departure + d0)**c`` by the log score of the ECE's event
 (:func:`~gearscan.inference.uncertainty.fit_sigma_calibration`). To show that the map transfers,
-it is first fitted on half of the start points and scored on the other half; the stored map is
-then fitted on all of them. :func:`calibrate_trained_model` fits the same maps (and the variance
-scale) on the validation loader at the end of training.
+each validation folder is first scored by a map fitted on the others (one folder: on half of
+its start points, scored on the other half); the stored map is then fitted on all of them.
+:func:`calibrate_trained_model` fits the same maps (and the variance scale) on the validation
+loader at the end of training.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Sequence
 from contextlib import AbstractContextManager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +26,12 @@ import torch
 from gearscan.core.phase import phase_error
 from gearscan.inference.concrete_dropout import set_stochastic
 from gearscan.inference.model_io import read_config, write_config
-from gearscan.inference.models import PhaseNet
+from gearscan.inference.models import PhaseNet, classical_md
 from gearscan.inference.predictor import Predictor, model_path
 from gearscan.inference.uncertainty import (
     SigmaCalibration,
+    departure,
+    event_log_score,
     fit_sigma_calibration,
     fit_variance_scale,
     gaussian_nll,
@@ -36,58 +42,100 @@ from gearscan.inference.uncertainty import (
 )
 
 
+@dataclass(frozen=True, slots=True)
+class PixelErrors:
+    """Per truth-mask pixel: wrapped phase error, uncalibrated total sigma, departure from
+    three-step PS (rad), and the pixel's validation folder, start point and still flag."""
+
+    error: np.ndarray
+    sigma: np.ndarray
+    departure: np.ndarray
+    folder: np.ndarray
+    group: np.ndarray
+    still: np.ndarray
+
+    def take(self, keep: np.ndarray) -> PixelErrors:
+        return PixelErrors(*(getattr(self, f)[keep] for f in self.__slots__))
+
+    @staticmethod
+    def concat(parts: Sequence[PixelErrors]) -> PixelErrors:
+        return PixelErrors(*(np.concatenate([getattr(p, f) for p in parts]) for f in PixelErrors.__slots__))
+
+
 def collect_errors(
     predictor: Predictor, dataset, items: Sequence[int], mc: int = 0,
-    progress: Callable[[int, int], None] | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Wrapped phase errors, predicted total sigmas and start-point ids over the truth masks."""
-    errs, sigmas, groups = [], [], []
+    progress: Callable[[int, int], None] | None = None, *, folder: int = 0, still: bool = False,
+) -> PixelErrors:
+    """Errors, sigmas (as ``predictor`` reports them) and departures over the truth masks."""
+    parts = []
     for n, i in enumerate(items):
         item = dataset[int(i)]
         x = torch.from_numpy(np.asarray(item["input"], np.float32))[None]
         r = predictor.predict_tensor(x, mc)
         mask = np.asarray(item["mask"], bool)
-        errs.append(phase_error(r.phase, item["phase"])[mask].astype(np.float32))
-        sigmas.append(r.sigma_total[mask])
-        groups.append(np.full(int(mask.sum()), int(item["group"])))
+        m3, d3 = classical_md(x[:, :3])[0].numpy()
+        k = int(mask.sum())
+        parts.append(PixelErrors(
+            phase_error(r.phase, item["phase"])[mask].astype(np.float32), r.sigma_total[mask],
+            departure(r.phase, np.arctan2(m3, d3))[mask], np.full(k, folder, np.int16),
+            np.full(k, int(item["group"]), np.int32), np.full(k, still, bool)))
         if progress:
             progress(n + 1, len(items))
-    return np.concatenate(errs), np.concatenate(sigmas), np.concatenate(groups)
+    return PixelErrors.concat(parts)
 
 
-def _scores(err: np.ndarray, sigma: np.ndarray) -> dict[str, float]:
-    return {"nll": gaussian_nll(err, sigma), "ece": reliability(err, sigma).ece,
-            "rmse": float(np.sqrt(np.mean(err.astype(np.float64) ** 2))),
-            "mean_sigma": float(np.mean(sigma))}
+def _scores(px: PixelErrors, sigma: np.ndarray) -> dict[str, float]:
+    """NLL, event score, RMSE, mean sigma, and the ECE of the moving and still pixels apart."""
+    out = {"nll": gaussian_nll(px.error, sigma), "event_score": event_log_score(px.error, sigma),
+           "ece": reliability(px.error, sigma).ece,
+           "rmse": float(np.sqrt(np.mean(px.error.astype(np.float64) ** 2))),
+           "mean_sigma": float(np.mean(sigma))}
+    for name, keep in (("moving", ~px.still), ("still", px.still)):
+        if keep.any():
+            out[f"ece_{name}"] = reliability(px.error[keep], sigma[keep]).ece
+    return out
 
 
-def fit_mode(err: np.ndarray, sigma: np.ndarray, groups: np.ndarray) -> tuple[SigmaCalibration, dict]:
-    """Fit on all pixels; report a fit on half the start points scored on the other half."""
-    ids = np.unique(groups)
-    report: dict = {}
-    if ids.size >= 2:
-        fit_ids = ids[: ids.size // 2]
-        fit = np.isin(groups, fit_ids)
-        half, _ = fit_sigma_calibration(err[fit], sigma[fit])
-        report["held_out"] = {
-            "fitted_on_start_points": [int(g) for g in fit_ids],
-            "before": _scores(err[~fit], sigma[~fit]),
-            "after": _scores(err[~fit], half(sigma[~fit])),
-            "map": half.to_json(),
-        }
-    cal, metrics = fit_sigma_calibration(err, sigma)
-    report["all"] = metrics
+def _fit(px: PixelErrors) -> tuple[SigmaCalibration, dict]:
+    return fit_sigma_calibration(px.error, px.sigma, px.departure)
+
+
+def fit_mode(px: PixelErrors, folders: Sequence[str]) -> tuple[SigmaCalibration, dict]:
+    """Fit on all pixels; report each held-out piece scored by a map fitted without it.
+
+    Several folders: leave one folder out. One folder: fit on half its start points, score the rest.
+    """
+    report: dict = {"held_out": []}
+    if len(folders) >= 2:
+        pieces = [(f"folder {name}", px.folder == k) for k, name in enumerate(folders)]
+    else:
+        ids = np.unique(px.group)
+        pieces = ([(f"start points {[int(g) for g in ids[ids.size // 2:]]}", ~np.isin(px.group, ids[: ids.size // 2]))]
+                  if ids.size >= 2 else [])
+    for name, held in pieces:
+        if held.all() or not held.any():
+            continue
+        part, _ = _fit(px.take(~held))
+        test = px.take(held)
+        report["held_out"].append({
+            "scored": name, "map": part.to_json(),
+            "before": _scores(test, test.sigma), "after": _scores(test, part(test.sigma, test.departure)),
+        })
+    cal, metrics = _fit(px)
+    report["all"] = metrics | {"after": _scores(px, cal(px.sigma, px.departure))}
     return cal, report
 
 
 def calibrate_model(
-    model: str | Path | None, val: str | Path, *, items: int = 64, mc: int = 20,
+    model: str | Path | None, val: str | Path | Sequence[str | Path], *, items: int = 64, mc: int = 20,
     seed: int = 0, output: str | Path | None = None, progress: Callable[[str], None] | None = None,
 ) -> dict:
     """Fit and store the sigma calibration of ``model`` (default: the shipped one) on ``val``.
 
-    Writes ``sigma_calibration`` and an ``uncertainty_calibration`` report into the model's JSON
-    (or into ``output``'s JSON, copying the weights there); returns that report.
+    ``val``: one or more twin validation folders; per folder ``items`` moving bursts and
+    ``items // 2`` still ones. Writes ``sigma_calibration`` and an ``uncertainty_calibration``
+    report into the model's JSON (or into ``output``'s JSON, copying the weights there); returns
+    that report.
     """
     from gearscan.inference.data import MotionInput
     from gearscan.twin.dataset import TwinBurstDataset
@@ -95,24 +143,35 @@ def calibrate_model(
     path = model_path(model)
     if items < 2:
         raise ValueError(f"items: expected >= 2 validation bursts, got {items}")
+    folders = [str(v) for v in ([val] if isinstance(val, str | Path) else val)]
+    if not folders:
+        raise ValueError("val: expected at least one validation folder")
     predictor = Predictor.load(path)
     predictor.calibration = {}  # fit on the uncalibrated sigma (var_scale stays applied)
-    # the bursts the network decodes in use: moving ones (the pipeline's Decoder sends still
-    # bursts to three-step PS), turning either way
-    dataset = TwinBurstDataset(val, crop=None, reverse=True)
-    if predictor.needs_angles:
-        dataset = MotionInput(dataset)
-    rng = np.random.default_rng(seed)
-    pick = sorted(rng.choice(len(dataset), min(items, len(dataset)), replace=False).tolist())
+    sets = []  # (folder index, dataset, picked items, still)
+    for k, folder in enumerate(folders):
+        rng = np.random.default_rng([seed, k])
+        for still in (False, True):
+            ds = (TwinBurstDataset(folder, crop=None, static=True, motion="uniform", max_span=0) if still
+                  else TwinBurstDataset(folder, crop=None, reverse=True))
+            if predictor.needs_angles:
+                ds = MotionInput(ds)
+            n = min(items // 2 if still else items, len(ds))
+            if n:
+                sets.append((k, ds, sorted(rng.choice(len(ds), n, replace=False).tolist()), still))
     modes = [("deterministic", 0)] + ([("mc", mc)] if mc > 0 and predictor.has_dropout else [])
-    calibration, report = {}, {"data": str(val), "items": len(pick), "seed": seed}
+    calibration = {}
+    report = {"data": folders, "items": {"moving": sum(len(p) for _, _, p, s in sets if not s),
+                                         "still": sum(len(p) for _, _, p, s in sets if s)}, "seed": seed}
     for name, passes in modes:
-        def tick(n: int, total: int, name: str = name) -> None:
-            if progress and (n == total or n % 8 == 0):
-                progress(f"{name}: {n}/{total} bursts")
+        parts = []
+        for k, ds, pick, still in sets:
+            def tick(n: int, total: int, name: str = name, k: int = k, still: bool = still) -> None:
+                if progress and (n == total or n % 8 == 0):
+                    progress(f"{name}: {folders[k]} {'still' if still else 'moving'} {n}/{total} bursts")
 
-        err, sigma, groups = collect_errors(predictor, dataset, pick, passes, tick)
-        cal, rep = fit_mode(err, sigma, groups)
+            parts.append(collect_errors(predictor, ds, pick, passes, tick, folder=k, still=still))
+        cal, rep = fit_mode(PixelErrors.concat(parts), folders)
         calibration[name] = cal
         report[name] = {"passes": passes, "map": cal.to_json(), **rep}
     meta = read_config(path)
@@ -143,14 +202,14 @@ def calibrate_trained_model(
     """Fit a freshly trained model's uncertainty calibration on validation batches.
 
     Returns (var_scale, report, sigma maps): the deterministic-mode variance scale (kept only if
-    ECE improves), then the sigma map ``a * sigma**b`` per mode by Gaussian NLL
-    (:func:`fit_sigma_calibration`; MC mode with ``mc`` passes when ``mc`` > 0), as
+    ECE improves), then the sigma map ``a * sigma**b * (departure + d0)**c`` per mode by the
+    event log score (:func:`fit_sigma_calibration`; MC mode with ``mc`` passes when ``mc`` > 0), as
     ``gearscan calibrate-uncertainty`` fits it. ``val_loader`` is iterated once per mode;
     ``reliability_png``: where to draw the deterministic reliability diagram (None: not drawn).
     """
 
-    def collect(passes: int) -> tuple[np.ndarray, np.ndarray]:
-        errs, sigs = [], []
+    def collect(passes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        errs, sigs, deps = [], [], []
         for batch in val_loader:
             x = batch["input"].to(device)
             with autocast():
@@ -163,19 +222,22 @@ def calibrate_trained_model(
                     pred = model(x).float().cpu().numpy()
                     M, D, var_M, var_D = pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3]
             mask = batch["mask"].numpy().astype(bool)
-            errs.append(phase_error(np.arctan2(M, D), batch["phase"].numpy())[mask])
+            phase = np.arctan2(M, D)
+            errs.append(phase_error(phase, batch["phase"].numpy())[mask])
             # model and data sigma add in quadrature: one propagation of the summed variances
             sigs.append(phase_sigma(M, D, var_M, var_D)[mask])
-        return np.concatenate(errs), np.concatenate(sigs)
+            md3 = classical_md(x[:, :3].float()).cpu().numpy()
+            deps.append(departure(phase, np.arctan2(md3[:, 0], md3[:, 1]))[mask])
+        return np.concatenate(errs), np.concatenate(sigs), np.concatenate(deps)
 
     model.eval()
     set_stochastic(model, False)
-    err, sig = collect(0)
+    err, sig, dep = collect(0)
     if err.size == 0:
         return 1.0, {}, {}
     k, before, after = fit_variance_scale(err, sig)
     sig = sig * math.sqrt(k)
-    det_map, det_fit = fit_sigma_calibration(err, sig)
+    det_map, det_fit = fit_sigma_calibration(err, sig, dep)
     sigma_cal = {"deterministic": det_map.to_json()}
     report = {
         "mode": "deterministic",
@@ -187,13 +249,14 @@ def calibrate_trained_model(
     }
     if reliability_png is not None:
         plot_reliability(
-            reliability(err, det_map(sig)),
+            reliability(err, det_map(sig, dep)),
             reliability_png,
-            f"validation, var scale {k:.3g}, sigma' = {det_map.a:.3g} sigma^{det_map.b:.2f}",
+            f"validation, var scale {k:.3g}, sigma' = {det_map.a:.3g} sigma^{det_map.b:.2f} "
+            f"(departure + {det_map.d0:g})^{det_map.c:.2f}",
         )
     if mc > 0:
-        err, sig = collect(mc)
-        mc_map, mc_fit = fit_sigma_calibration(err, sig * math.sqrt(k))
+        err, sig, dep = collect(mc)
+        mc_map, mc_fit = fit_sigma_calibration(err, sig * math.sqrt(k), dep)
         sigma_cal["mc"] = mc_map.to_json()
         report["sigma_calibration"]["mc"] = mc_fit | {"passes": mc}
     model.eval()

@@ -422,15 +422,16 @@ def train(
 
 def calibrate_uncertainty(
     val: Annotated[
-        Path,
-        typer.Argument(help="twin validation dataset folder (`gearscan twin dataset`), gears not trained on",
+        list[Path],
+        typer.Argument(help="twin validation dataset folders (`gearscan twin dataset`), gears not trained on",
                        exists=True, file_okay=False),
     ],
     model: Annotated[
         Path | None,
         typer.Option("--model", help="model .safetensors to calibrate; default: the shipped model"),
     ] = None,
-    items: Annotated[int, typer.Option(min=2, help="validation bursts (whole images)")] = 64,
+    items: Annotated[int, typer.Option(min=2, help="moving validation bursts per folder (whole images); "
+                                                   "half as many still ones")] = 64,
     mc: Annotated[int, typer.Option(min=0, help="Monte Carlo passes for the MC-mode map (0: deterministic only)")] = 20,
     seed: Annotated[int, typer.Option(help="seed of the burst sample")] = 0,
     output: Annotated[
@@ -438,8 +439,9 @@ def calibrate_uncertainty(
         typer.Option("--output", "-o", help="write a calibrated copy here (.safetensors) instead of in place"),
     ] = None,
 ) -> None:
-    """Fit the uncertainty calibration (sigma' = a sigma^b per mode, by Gaussian NLL) and store it
-    in the model's JSON; prints NLL and ECE before and after on held-out start points."""
+    """Fit the uncertainty calibration (sigma' = a sigma^b (departure + d0)^c per mode, by the log
+    score of the ECE's event) and store it in the model's JSON; prints the ECE before and after on
+    held-out data (each folder scored by a map fitted on the others; one folder: half its start points)."""
     from gearscan.inference.calibrate import calibrate_model
     from gearscan.inference.model_io import ModelFileError
     from gearscan.twin.dataset import DatasetError
@@ -454,9 +456,13 @@ def calibrate_uncertainty(
         if mode not in report:
             continue
         r = report[mode]
-        line = f"{mode}: sigma' = {r['map']['a']:.4g} * sigma^{r['map']['b']:.3f}"
-        if "held_out" in r:
-            b, a = r["held_out"]["before"], r["held_out"]["after"]
-            line += (f"; held-out start points: NLL {b['nll']:.3f} -> {a['nll']:.3f}, "
-                     f"ECE {b['ece']:.3f} -> {a['ece']:.3f} (RMSE {a['rmse']:.4f} rad)")
+        m = r["map"]
+        line = f"{mode}: sigma' = {m['a']:.4g} * sigma^{m['b']:.3f}"
+        if "c" in m:
+            line += f" * (departure + {m['d0']:g})^{m['c']:.3f}"
         typer.echo(line)
+        for piece in r["held_out"]:
+            b, a = piece["before"], piece["after"]
+            parts = [f"ECE {b['ece']:.3f} -> {a['ece']:.3f}"]
+            parts += [f"{k} {b[f'ece_{k}']:.3f} -> {a[f'ece_{k}']:.3f}" for k in ("moving", "still") if f"ece_{k}" in a]
+            typer.echo(f"  held-out {piece['scored']}: " + ", ".join(parts) + f" (RMSE {a['rmse']:.4f} rad)")

@@ -252,7 +252,9 @@ class Predictor:
                 f"mc={mc}: this model ({self.model.config.name}) has no Concrete Dropout layers; use mc=0"
             )
         x = x.to(self.device)
-        classical = classical_md(x[:, :3].float())[0].cpu().numpy() if self.still_gate_rad > 0 else None
+        calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
+        needs_classical = self.still_gate_rad > 0 or (calibration is not None and calibration.needs_departure)
+        classical = classical_md(x[:, :3].float())[0].cpu().numpy() if needs_classical else None
         mirror = fringe_phase_decreases_along_columns(x)
         if mirror:  # the nets were trained on phase increasing along the columns: mirror in and out
             x = torch.flip(x, dims=[-1])
@@ -267,9 +269,9 @@ class Predictor:
         if mirror:
             stats = MomentStats(*(torch.flip(getattr(stats, f.name), dims=[-1]) for f in dataclasses.fields(stats)))
         mode = f"mc{mc}" if mc > 0 else "deterministic"
-        calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
-        result = to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale, calibration=calibration)
-        return result if classical is None else still_gate(result, classical, self.still_gate_rad)
+        result = to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale, calibration=calibration,
+                                 classical_phase=None if classical is None else np.arctan2(*classical))
+        return result if self.still_gate_rad <= 0 else still_gate(result, classical, self.still_gate_rad)
 
     @property
     def needs_angles(self) -> bool:

@@ -15,7 +15,7 @@ from gearscan.inference.calibrate import calibrate_model, collect_errors
 from gearscan.inference.model_io import save_model
 from gearscan.inference.models import build_model
 from gearscan.inference.predictor import Predictor
-from gearscan.inference.uncertainty import gaussian_nll
+from gearscan.inference.uncertainty import SigmaCalibration
 from gearscan.twin.dataset import DatasetSpec, TwinBurstDataset, generate_dataset
 
 torch.set_num_threads(1)
@@ -41,25 +41,38 @@ def test_calibration_is_fitted_on_truth_stored_and_applied(val_set, model_path, 
     assert "sigma_calibration" not in json.loads(model_path.with_suffix(".json").read_text())  # source untouched
     meta = json.loads(out.with_suffix(".json").read_text())
     assert set(meta["sigma_calibration"]) == {"deterministic", "mc"}
+    assert report["items"] == {"moving": 8, "still": 4}
     for mode in ("deterministic", "mc"):
         r = report[mode]
-        assert r["all"]["nll_after"] <= r["all"]["nll_before"] and r["all"]["pixels"] > 1500
-        assert r["held_out"]["fitted_on_start_points"] == [0]  # fitted on one start point, scored on the other
-    # the stored map, applied by the predictor, lowers the NLL of the twin's truth on those bursts
-    ds = TwinBurstDataset(val_set, crop=None, reverse=True)  # what calibrate_model scores
+        assert r["all"]["event_score_after"] <= r["all"]["event_score_before"] and r["all"]["pixels"] > 1500
+        (piece,) = r["held_out"]  # one folder: fitted on one start point, scored on the other
+        assert piece["scored"] == "start points [1]"
+        assert {"ece_moving", "ece_still"} <= set(piece["after"])
+    # the predictor applies the stored map, reading the departure from the same frames
+    ds = TwinBurstDataset(val_set, crop=None, reverse=True)
     pick = sorted(np.random.default_rng(0).choice(len(ds), 8, replace=False).tolist())
-    err0, sig0, _ = collect_errors(Predictor.load(model_path), ds, pick)
-    err1, sig1, _ = collect_errors(Predictor.load(out), ds, pick)
-    np.testing.assert_array_equal(err0, err1)  # the phase is not touched
-    assert gaussian_nll(err1, sig1) < gaussian_nll(err0, sig0)
-    assert gaussian_nll(err1, sig1) == pytest.approx(report["deterministic"]["all"]["nll_after"], rel=1e-4)
+    raw, cal = collect_errors(Predictor.load(model_path), ds, pick), collect_errors(Predictor.load(out), ds, pick)
+    np.testing.assert_array_equal(raw.error, cal.error)  # the phase is not touched
+    np.testing.assert_array_equal(raw.departure, cal.departure)
+    stored = SigmaCalibration.from_json(meta["sigma_calibration"]["deterministic"])
+    assert stored.needs_departure
+    np.testing.assert_allclose(cal.sigma, stored(raw.sigma, raw.departure), rtol=1e-5)
+
+
+def test_calibration_over_two_folders_scores_each_by_a_map_fitted_on_the_other(val_set, model_path, tmp_path):
+    other = tmp_path / "val2"
+    generate_dataset(other, DatasetSpec(gears=[GearSpec(teeth=17)], width=96, height=96, max_start_points=1, seed=5))
+    report = calibrate_model(model_path, [val_set, other], items=4, mc=0, output=tmp_path / "c" / "n.safetensors")
+    assert report["items"] == {"moving": 8, "still": 4}
+    scored = [p["scored"] for p in report["deterministic"]["held_out"]]
+    assert scored == [f"folder {val_set}", f"folder {other}"]
 
 
 def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_path):
     runner = CliRunner()
     res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--items", "4", "--mc", "0"])
     assert res.exit_code == 0, res.output
-    assert "deterministic: sigma' = " in res.output and "held-out start points: NLL" in res.output
+    assert "deterministic: sigma' = " in res.output and "held-out start points [1]: ECE" in res.output
     meta = json.loads(model_path.with_suffix(".json").read_text())
     assert set(meta["sigma_calibration"]) == {"deterministic"} and meta["var_scale"] == 1.0
     not_a_dataset = tmp_path / "empty"

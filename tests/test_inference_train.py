@@ -111,10 +111,10 @@ def test_two_stages_split_files_and_rates_move(tmp_path):
     assert (
         meta["var_scale"] > 0 and "calibration" in meta and meta["training"]["epochs_dropout"] == 3
     )
-    # the sigma maps are fitted per mode by NLL on the validation truth, and the predictor applies them
+    # the sigma maps are fitted per mode by the event score on the validation truth, and the predictor applies them
     fits = meta["calibration"]["sigma_calibration"]
     assert set(meta["sigma_calibration"]) == {"deterministic", "mc"} and fits["mc"]["passes"] == 20
-    assert all(f["nll_after"] <= f["nll_before"] for f in fits.values())
+    assert all(f["score"] == "event" and f["event_score_after"] <= f["event_score_before"] for f in fits.values())
     assert set(Predictor.load(out / "best.safetensors").calibration) == {"deterministic", "mc"}
     assert (out / "metrics.csv").read_text().splitlines()[0].startswith("stage,epoch,lr")
 

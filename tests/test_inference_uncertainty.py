@@ -12,6 +12,7 @@ import torch
 from gearscan.inference.concrete_dropout import concrete_layers, set_stochastic
 from gearscan.inference.models import build_model, dropout_on_shared_input
 from gearscan.inference.uncertainty import (
+    DEPARTURE_FLOOR,
     MomentStats,
     SigmaCalibration,
     confidence,
@@ -267,11 +268,11 @@ def test_sigma_calibration_fit_recovers_a_power_law_by_nll():
     raw = rng.uniform(0.02, 0.5, 200000)
     true = 0.2 * raw**0.5  # the network's sigma spreads too much, like the shipped one's
     err = true * rng.standard_normal(raw.size)
-    cal, m = fit_sigma_calibration(err, raw)
+    cal, m = fit_sigma_calibration(err, raw, score="nll")
     assert cal.a == pytest.approx(0.2, rel=0.05) and cal.b == pytest.approx(0.5, abs=0.03)
     assert m["nll_after"] < m["nll_before"] and m["ece_after"] < 0.01 < m["ece_before"]
     np.testing.assert_allclose(cal(raw), cal.a * raw**cal.b, rtol=1e-5)
-    ident, _ = fit_sigma_calibration(err, true)  # already calibrated: stays (near) identity
+    ident, _ = fit_sigma_calibration(err, true, score="nll")  # already calibrated: stays (near) identity
     assert ident.a == pytest.approx(1.0, rel=0.1) and ident.b == pytest.approx(1.0, abs=0.03)
 
 
@@ -294,8 +295,53 @@ def test_sigma_calibration_is_one_factor_on_every_sigma_and_variance():
 
 
 def test_sigma_calibration_rejects_bad_values_by_name():
-    with pytest.raises(ValueError, match="a > 0 and 0 < b <= 3"):
+    with pytest.raises(ValueError, match="a > 0, 0 < b <= 3"):
         SigmaCalibration(-1.0, 0.5)
     with pytest.raises(ValueError, match=r"sigma_calibration.mc: expected \{'a': float, 'b': float\}"):
         SigmaCalibration.from_json({"a": 1.0}, "sigma_calibration.mc")
+    with pytest.raises(ValueError, match="d0 > 0"):
+        SigmaCalibration.from_json({"a": 1.0, "b": 1.0, "c": 0.3, "d0": 0.0})
     assert SigmaCalibration.from_json({"a": 0.5, "b": 0.4}) == SigmaCalibration(0.5, 0.4)
+    full = SigmaCalibration(0.5, 0.4, 0.3, 0.02)
+    assert SigmaCalibration.from_json(full.to_json()) == full
+    with pytest.raises(ValueError, match="expected a departure map of shape"):
+        full(np.ones(3, np.float32))
+
+
+def _departure_world(n: int, seed: int):
+    """Raw sigmas, departures and Gaussian errors whose true sigma grows with both."""
+    rng = np.random.default_rng(seed)
+    raw = rng.uniform(0.03, 0.4, n)
+    dep = np.exp(rng.uniform(np.log(0.002), np.log(1.0), n))  # still-like to strongly corrected
+    true = 0.15 * raw**0.6 * (dep + DEPARTURE_FLOOR) ** 0.35
+    return raw, dep, true * rng.standard_normal(n)
+
+
+def test_event_score_fit_recovers_a_departure_dependence_the_power_law_cannot():
+    raw, dep, err = _departure_world(300000, 11)
+    plain, _ = fit_sigma_calibration(err, raw)
+    cal, m = fit_sigma_calibration(err, raw, dep)
+    assert cal.a == pytest.approx(0.15, rel=0.15) and cal.b == pytest.approx(0.6, abs=0.06)
+    assert cal.c == pytest.approx(0.35, abs=0.04) and not plain.needs_departure
+    assert m["event_score_after"] < m["event_score_before"] and m["ece_after"] < 0.01
+    # on fresh pixels, split where it matters: small departures (still-like) and large ones
+    raw2, dep2, err2 = _departure_world(200000, 12)
+    for part in (dep2 < 0.02, dep2 > 0.3):
+        assert reliability(err2[part], cal(raw2[part], dep2[part])).ece < 0.02
+        assert reliability(err2[part], plain(raw2[part])).ece > 0.05
+
+
+def test_to_phase_result_reads_the_departure_from_the_classical_phase():
+    M = torch.tensor([[[0.3, -0.2]]])
+    D = torch.tensor([[[0.4, 0.5]]])
+    dv = torch.tensor([[[9e-4, 1e-4]]])
+    z = torch.zeros_like(dv)
+    stats = MomentStats(M, D, z, z, dv, dv)
+    cal = SigmaCalibration(0.3, 0.6, 0.5)
+    raw = to_phase_result(stats)
+    classical = raw.phase + np.array([[0.0, 0.5]], np.float32)  # three-step agrees at one pixel only
+    r = to_phase_result(stats, calibration=cal, classical_phase=classical)
+    np.testing.assert_allclose(r.sigma_total, 0.3 * raw.sigma_total**0.6 * (np.array([[0.0, 0.5]]) + 0.01) ** 0.5,
+                               rtol=1e-4)
+    with pytest.raises(ValueError, match="pass classical_phase"):
+        to_phase_result(stats, calibration=cal)
