@@ -7,10 +7,14 @@ import pytest
 
 from gearscan.core.gear import GearSpec
 from gearscan.core.rig import default_rig
+from gearscan.inference.model_io import read_config
+from gearscan.inference.predictor import DEFAULT_MODEL
 from gearscan.twin.families import FAMILIES, SEED_BLOCK, draw_gear, family_seed
 from gearscan.twin.randomize import aim_point, view_rig
 from gearscan.twin.splits import (
+    SHIPPED,
     SHIPPED_V5,
+    SHIPPED_V6,
     SPLITS,
     TEETH_RANGE,
     SplitError,
@@ -37,12 +41,21 @@ def test_splits_are_disjoint_by_gear_rig_and_seed() -> None:
         split_of_seed(seed)  # exactly one owner, or it raises
 
 
-def test_shipped_model_saw_only_train_and_val() -> None:
-    assert SHIPPED_V5.train_teeth <= SPLITS["train"].teeth
-    assert SHIPPED_V5.val_teeth <= SPLITS["val"].teeth
-    assert all(split_of_seed(s) == "train" for s in SHIPPED_V5.train_dataset_seeds)
-    assert all(split_of_seed(s) == "val" for s in SHIPPED_V5.val_dataset_seeds)
-    assert "25" in SHIPPED_V5.summary()
+@pytest.mark.parametrize("shipped", [SHIPPED_V5, SHIPPED_V6], ids=["v5", "v6"])
+def test_shipped_models_saw_only_train_and_val(shipped) -> None:
+    assert shipped.train_teeth <= SPLITS["train"].teeth
+    assert shipped.val_teeth <= SPLITS["val"].teeth
+    assert all(split_of_seed(s) == "train" for s in shipped.train_dataset_seeds)
+    assert all(split_of_seed(s) == "val" for s in shipped.val_dataset_seeds)
+    assert "25" in shipped.summary()
+
+
+def test_v6_record_matches_the_plan_that_rendered_it() -> None:
+    meta = read_config(DEFAULT_MODEL)["training"]
+    assert SHIPPED is SHIPPED_V6 and meta["version"] == "v6"
+    assert {t for _, teeth, *_ in meta["train_sets"] for t in teeth} == SHIPPED_V6.train_teeth
+    assert {t for _, teeth, *_ in meta["val_sets"] for t in teeth} == SHIPPED_V6.val_teeth
+    assert {s[-1] for s in meta["train_sets"]} == set(SHIPPED_V6.train_dataset_seeds)
 
 
 def test_families_draw_test_gears_rigs_and_seeds_only() -> None:

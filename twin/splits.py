@@ -24,9 +24,10 @@ adaptation``) renders their own rig and gear, whatever its tooth count: :func:`r
 called there with the seed only. A benchmark that fine-tunes on a test scene's rig keeps its test
 bursts untouched by other means (non-test seeds, other start angles: ``benchmarks/adaptation.py``).
 
-The shipped model predates this module; what it saw is :data:`SHIPPED_V5` (from
-``scripts/train_default.py`` and its model card). One exception is stated there: its
-validation used the default rig (gear 25), which the test split now owns.
+What the shipped model saw is :data:`SHIPPED` (v6, :data:`SHIPPED_V6`: rendered by
+``scripts/reproduce_model.py`` under these rules). The earlier default, v5, predates this module
+(:data:`SHIPPED_V5`, from ``scripts/train_default.py`` and its model card); one exception is
+stated there: its validation used the default rig (gear 25), which the test split now owns.
 """
 
 from __future__ import annotations
@@ -224,7 +225,7 @@ class ShippedData:
 
 _V5_TRAIN2 = (11, 13, 14, 15, 17, 18, 19, 21, 22, 23, 24, 26, 27, 28, 29, 31, 33, 34, 38, 40)
 SHIPPED_V5 = ShippedData(
-    model="v5 (inference/weights/default.*)",
+    model="v5 (inference/weights/v5.*; the default until session 23)",
     train_teeth=frozenset({12, 16, 20, 30, 36, *_V5_TRAIN2}),
     train_dataset_seeds=(1, 7, 11),
     train_rig="radial-random rigs of twin/randomize.py at 256x256",
@@ -235,3 +236,21 @@ SHIPPED_V5 = ShippedData(
     val_rigs="data/val: 3 radial-random rigs, seed 2; data/val_default: the default rig, seed 0",
     val_used_for="early stopping, v5 over v4, the sigma calibration and the still threshold (0.075 deg)",
 )
+
+_V6_RADIAL = (11, 17, 23, 30, 40, 12, 18, 24, 31, 13, 19, 26, 33, 14, 20, 27, 34, 15, 21, 28, 36, 16, 22, 29, 38)
+_V6_VIEWS = (11, 21, 33, 64, 12, 22, 34, 68, 13, 23, 36, 72, 14, 24, 38, 76, 15, 26, 40, 16, 27, 44, 17, 28, 48,
+             18, 29, 52, 19, 30, 56, 20, 31, 60)
+SHIPPED_V6 = ShippedData(
+    model="v6 (inference/weights/default.*, the default since session 23)",
+    train_teeth=frozenset({*_V6_RADIAL, *_V6_VIEWS}),
+    train_dataset_seeds=(*range(3001, 3007), *range(4001, 4011)),
+    train_rig="radial-random rigs (teeth 11-40) and any-view rigs: radial, side, oblique, face (teeth 11-76) of "
+              "twin/randomize.py at 256x256",
+    train_module_mm=(0.5, 5.0),
+    train_camera_period_px=(5.0, 60.0),
+    val_teeth=frozenset({25, 32, *range(42, 79, 4)}),
+    val_dataset_seeds=(10002, 10001),
+    val_rigs="val_radial: radial-random rigs, seed 10002; val_views: any-view rigs, seed 10001",
+    val_used_for="early stopping, v6 over the w = 32 run and v5, and the sigma calibration (its form too)",
+)
+SHIPPED = SHIPPED_V6  # what the shipped default model (inference/weights/default.*) saw
