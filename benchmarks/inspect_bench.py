@@ -141,7 +141,8 @@ def main() -> None:
     # the same points before the fit: the plain run fused the same voxels in the same order
     rows_in_plain = fused.voxel_index if fused.voxel_index is not None else np.arange(len(fused))
     before_refined = rms_of(plain_dist[rows_in_plain][refined])
-    off_surface = len(plain.fused) - len(fused)  # unfitted points off the fitted surface, dropped
+    off_surface = report.refine["off_surface"]  # unfitted points off the fitted surface, dropped
+    uncertain = report.refine["uncertain"]  # unfitted points above the sigma bound, dropped
     e_true = 1e3 * float(np.hypot(*truth["eccentricity_mm"]))
     def quantities(i) -> list[float]:
         return [i.eccentricity_um, i.runout_from_eccentricity_um, i.Fp_um["left"], i.Fp_um["right"],
@@ -227,7 +228,9 @@ def main() -> None:
         "sees only 0 and pi, burst after burst). "
         f"{off_surface:,} points the fit could not take lay more than 0.15 mm off the plane of the fitted points "
         "within 0.5 mm and were dropped (counted; `recon.track.off_surface`): silhouette and shadow-edge pixels that "
-        "several bursts put in one voxel. These settings were chosen on this revolution.",
+        "several bursts put in one voxel. These settings were chosen on this revolution. "
+        f"{uncertain:,} more unfitted points carried a sigma above the fit's own 30 µm bound and were dropped (counted; "
+        "`TrackRefiner.refine_fused`: one bound for every point of the refined cloud; a rule, not tuned here).",
         "",
         *([
             "## Pattern order: the same revolution shown both ways",
@@ -266,6 +269,7 @@ def main() -> None:
         "fused_only_rms_mm": plain_rms, "refined_fraction": float(refined.mean()), "refined_rms_mm": rms_refined,
         "refined_before_rms_mm": before_refined, "kept_rms_mm": rms_kept, "plain_seconds": plain_seconds,
         "off_surface": off_surface,
+        "uncertain": uncertain,
         "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "fused_only_fp_max_error_um": plain_fp_err,
         "fused_only_chip_noise_um": plain.inspection.chip_noise_um, "chip_noise_um": insp.chip_noise_um, "chipped": list(insp.chipped_teeth),
         "truth_chipped": truth["chipped_teeth"], "Fr_um": insp.Fr_um, "pattern_order": order_name,

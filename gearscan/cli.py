@@ -308,6 +308,7 @@ def replay_cmd(
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
                         truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None)
         if fuse is not None:
+            from gearscan.inspect import dropped_note
             from gearscan.recon.fuse import save_fused
 
             if result.fused is None or not len(result.fused):
@@ -316,7 +317,8 @@ def replay_cmd(
             fitted = ""
             if result.fused.refined is not None:
                 fitted = f", {int(result.fused.refined.sum()):,} of them fitted to the raw frames"
-            typer.echo(f"fused model: {len(result.fused):,} points from {result.fused.bursts_added} bursts{fitted} -> {fuse}")
+            typer.echo(f"fused model: {len(result.fused):,} points from {result.fused.bursts_added} bursts{fitted} -> {fuse}"
+                       + dropped_note(result.refine))
         if export is not None:
             typer.echo(f"burst clouds: {export.written} -> " + ", ".join(str(d) for d in (ply, csv) if d is not None))
     except (RecordingError, PipelineError) as exc:

@@ -44,6 +44,17 @@ class InspectionReport:
     revolution_deg: float
     files: dict[str, Path]
     truth: dict | None = None
+    refine: dict | None = None  # the frame fit's counts (recon.track.TrackRefiner.refine_fused), if it ran
+
+
+def dropped_note(refine: dict | None) -> str:
+    """What the frame fit left out of the fused model, in words (empty if it dropped nothing)."""
+    if not refine:
+        return ""
+    parts = [f"{refine[k]:,} {what}" for k, what in (
+        ("off_surface", "off the surface their fitted neighbours measured"),
+        ("uncertain", "with a sigma above the fit's bound")) if refine.get(k)]
+    return f" Left out (unfitted points): {'; '.join(parts)}." if parts else ""
 
 
 def chip_verdict(insp) -> str:
@@ -132,7 +143,7 @@ def run_inspection(
     out.mkdir(parents=True, exist_ok=True)
     files = {"fused": save_fused(fused, out / "fused.ply")}
     files.update(write_plots(insp, out, tolerances))
-    report = InspectionReport(insp, fused, grade, tolerances, classes, span, files, truth)
+    report = InspectionReport(insp, fused, grade, tolerances, classes, span, files, truth, metrics.refine or None)
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
@@ -149,7 +160,9 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         "fused": {"points": len(report.fused), "bursts": report.fused.bursts_added, "voxel_mm": report.fused.voxel_mm,
                   "median_sigma_um": 1e3 * float(np.median(report.fused.sigma)),
                   "median_bursts_per_point": float(np.median(report.fused.bursts)),
-                  "refined_points": None if report.fused.refined is None else int(report.fused.refined.sum())},
+                  "refined_points": None if report.fused.refined is None else int(report.fused.refined.sum()),
+                  "dropped_off_surface": (report.refine or {}).get("off_surface"),
+                  "dropped_uncertain": (report.refine or {}).get("uncertain")},
         "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
         "grade": report.grade,
         "tolerances_um": report.tolerances,
@@ -180,7 +193,7 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         f"{report.revolution_deg:.0f}° of the turntable (voxel {report.fused.voxel_mm:g} mm, median "
         f"{np.median(report.fused.bursts):.0f} bursts and σ {1e3 * np.median(report.fused.sigma):.1f} µm per point)"
         + (f"; {100 * report.fused.refined.mean():.0f} % of the points fitted to the raw frames that saw them."
-           if report.fused.refined is not None else "."),
+           if report.fused.refined is not None else ".") + dropped_note(report.refine),
         "",
         f"Gear axis fitted from the flanks: {insp.eccentricity_um:.1f} µm from the turntable axis towards "
         f"{insp.eccentricity_deg:.1f}°; transverse section z = {insp.section_mm[0]:.1f} to {insp.section_mm[1]:.1f} mm.",

@@ -120,14 +120,18 @@ class TrackRefiner:
         return frames * height * width * itemsize + (frames // 3) * height * width * 4
 
     def refine_fused(self, fused: FusedCloud) -> tuple[FusedCloud, dict]:
-        """``fused`` with its refined points moved and their sigma from the fit; the points the fit could
-        not take are kept where fusion put them, unless they lie off the surface their fitted
-        neighbours measured (:func:`off_surface`: dropped, counted in ``stats["off_surface"]``).
+        """``fused`` with its refined points moved and their sigma from the fit; every point of the
+        result has a sigma of at most ``max_sigma_mm``.
 
-        A kept unfitted point gets its bursts' sigma without credit for averaging them
-        (``sigma * sqrt(bursts)``): the few bursts that saw it saw it from nearly the same view and
-        share their error, so fusion's standard error flattered it (median |error| / sigma 2.1-2.3
-        on the inspection revolution in either pattern order; 1.0 without the credit).
+        The points the fit could not take keep their fused position, with their bursts' sigma
+        without credit for averaging them (``sigma * sqrt(bursts)``): the few bursts that saw such a
+        point saw it from nearly the same view and share their error, so fusion's standard error
+        flattered it (median |error| / sigma 2.1-2.3 on the inspection revolution in either pattern
+        order; 1.0 without the credit). Two kinds of them are dropped and counted: those off the
+        surface their fitted neighbours measured (:func:`off_surface`, ``stats["off_surface"]``),
+        and those whose sigma exceeds ``max_sigma_mm``, the bound a fit must meet too
+        (``stats["uncertain"]``): one bound for every point of the refined cloud, so what it
+        holds was measured to within it and what it lacks is counted, not guessed.
         """
         res = self.refine(fused.points)
         r = res.refined
@@ -135,8 +139,10 @@ class TrackRefiner:
         sigma = np.where(r, res.sigma, fused.sigma * np.sqrt(np.maximum(fused.bursts, 1)))
         out = replace(fused, points=points, sigma=sigma, refined=r, deviation=None)
         off = off_surface(points, r)
-        stats = {**res.stats, "off_surface": int(off.sum())}
-        return (out.select(~off) if off.any() else out), stats
+        uncertain = ~r & ~off & (sigma > self.max_sigma_mm)
+        stats = {**res.stats, "off_surface": int(off.sum()), "uncertain": int(uncertain.sum())}
+        drop = off | uncertain
+        return (out.select(~drop) if drop.any() else out), stats
 
     # -- geometry ---------------------------------------------------------------------------
     def _camera_xyz(self, pts: np.ndarray, angle: float) -> np.ndarray:

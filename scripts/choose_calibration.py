@@ -1,6 +1,6 @@
 """Choose the form of the sigma calibration on the VAL split: which map carries from one val folder to another.
 
-    python scripts/choose_calibration.py data/repro/val_radial data/repro/val_views --model inference/weights/v6.safetensors
+    python scripts/choose_calibration.py data/repro/val_radial data/repro/val_views   # the shipped default (v6)
 
 Per folder, 96 moving bursts (both senses) and 48 still ones through the uncalibrated network
 (deterministic; ``--mc T`` for Monte Carlo). Each candidate map is fitted on one folder and

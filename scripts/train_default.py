@@ -1,4 +1,5 @@
-"""Recipe of the shipped default model (CPU): data, network and schedule in one place.
+"""Recipe of v5, the default until session 23 (CPU): data, network and schedule in one place; v6 (the
+shipped default now) was trained by scripts/reproduce_model.py, which calls this script's training.
 
 Data (randomised rigs, optics, fringe periods and gear sizes; tooth count 25 is never trained on):
 
@@ -11,7 +12,7 @@ Data (randomised rigs, optics, fringe periods and gear sizes; tooth count 25 is 
         --randomize --seed 2
 
 The shipped weights are the end of five runs, each starting from the one before (CPU, ~130 min
-in all; `inference/weights/MODEL_CARD.md`):
+in all; `inference/weights/V5_MODEL_CARD.md`):
 
     python scripts/train_default.py --train data/train --out runs/v1 --epochs-det 35 --epochs-drop 5 \
         --steps-per-epoch 100 --crop 128 --lr 2e-3 --val-items 32 --patience 25

@@ -152,6 +152,20 @@ def test_points_off_the_fitted_surface_are_dropped_and_counted():
 
 def test_refine_fused_drops_the_off_surface_points_with_their_rows(off_cad_turn):
     _, refiner, fused, fitted, stats, truth = off_cad_turn
-    assert len(fitted) == len(fused) - stats["off_surface"]
+    assert len(fitted) == len(fused) - stats["off_surface"] - stats["uncertain"]
     rows = fitted.voxel_index if fitted.voxel_index is not None else np.arange(len(fitted))
     np.testing.assert_array_equal(fitted.points[~fitted.refined], fused.points[rows][~fitted.refined])
+
+
+def test_refined_cloud_holds_no_point_above_the_sigma_bound_and_counts_the_rest(off_cad_turn):
+    """The same bursts refined with a tighter bound: every kept point (fitted or not) is within it,
+    and the unfitted points above it are dropped and counted, not moved."""
+    reader, refiner, fused, loose, loose_stats, _ = off_cad_turn
+    tight = TrackRefiner(reader.rig, reader.patterns.periods[0], max_sigma_mm=0.005)
+    tight.bursts = refiner.bursts
+    out, stats = tight.refine_fused(fused)
+    assert out.sigma.max() <= 0.005 and loose.sigma.max() > 0.005
+    assert stats["uncertain"] > loose_stats["uncertain"]
+    assert len(out) == len(fused) - stats["off_surface"] - stats["uncertain"]
+    rows = out.voxel_index if out.voxel_index is not None else np.arange(len(out))
+    np.testing.assert_array_equal(out.points[~out.refined], fused.points[rows][~out.refined])
