@@ -208,7 +208,8 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "from fixed seeds; nothing here chose anything. Families: `twin/families.py`; splits: `twin/splits.py`.",
         f"- **What the model saw**: {shipped_saw(args.model)}. So every test gear and seed is unseen"
         + ("; the test split's `default` rig is the one exception by rig: v5 was validated on it (data/val_default, "
-           "gear 25) and its still threshold was chosen there." if "v5" in shipped_saw(args.model) else "."),
+           "gear 25) and its still threshold was chosen there." if shipped_saw(args.model) == SHIPPED_V5.summary()
+           else "."),
         f"- **Bursts**: {timing['bursts']} ({len(scenes_json)} scenes: per scene the paper's motions uniform "
         "0.6/0.6, non-uniform 0.1/1.6 and 0.5/1.0 deg, each also turning backwards; 2 random spans 0-2 deg, "
         f"random sense; 2 still bursts); MC T={args.mc} on {timing['mc_bursts']} of them. Render "

@@ -141,8 +141,8 @@ def main() -> None:
     # the same points before the fit: the plain run fused the same voxels in the same order
     rows_in_plain = fused.voxel_index if fused.voxel_index is not None else np.arange(len(fused))
     before_refined = rms_of(plain_dist[rows_in_plain][refined])
-    off_surface = report.refine["off_surface"]  # unfitted points off the fitted surface, dropped
-    uncertain = report.refine["uncertain"]  # unfitted points above the sigma bound, dropped
+    off_surface = (report.refine or {}).get("off_surface", 0)  # unfitted points off the fitted surface, dropped
+    uncertain = (report.refine or {}).get("uncertain", 0)  # unfitted points above the sigma bound, dropped
     e_true = 1e3 * float(np.hypot(*truth["eccentricity_mm"]))
     def quantities(i) -> list[float]:
         return [i.eccentricity_um, i.runout_from_eccentricity_um, i.Fp_um["left"], i.Fp_um["right"],

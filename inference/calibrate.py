@@ -14,6 +14,7 @@ loader at the end of training.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable, Iterable, Sequence
 from contextlib import AbstractContextManager
@@ -27,7 +28,7 @@ from gearscan.core.phase import phase_error
 from gearscan.inference.concrete_dropout import set_stochastic
 from gearscan.inference.model_io import read_config, write_config
 from gearscan.inference.models import PhaseNet, classical_md
-from gearscan.inference.predictor import Predictor, model_path
+from gearscan.inference.predictor import Predictor, model_path, still_gate
 from gearscan.inference.uncertainty import (
     SigmaCalibration,
     departure,
@@ -66,18 +67,25 @@ def collect_errors(
     predictor: Predictor, dataset, items: Sequence[int], mc: int = 0,
     progress: Callable[[int, int], None] | None = None, *, folder: int = 0, still: bool = False,
 ) -> PixelErrors:
-    """Errors, sigmas (as ``predictor`` reports them) and departures over the truth masks."""
+    """Errors, sigmas (as ``predictor`` reports them) and departures over the truth masks.
+
+    The departure is the network's own phase against three-step PS's, before any still gate, as
+    the Predictor reads it at run time; the error is the gated output's.
+    """
+    ungated = copy.copy(predictor)
+    ungated.still_gate_rad = 0.0
     parts = []
     for n, i in enumerate(items):
         item = dataset[int(i)]
         x = torch.from_numpy(np.asarray(item["input"], np.float32))[None]
-        r = predictor.predict_tensor(x, mc)
+        net = ungated.predict_tensor(x, mc)
+        classical = classical_md(x[:, :3])[0].numpy()
+        r = still_gate(net, classical, predictor.still_gate_rad) if predictor.still_gate_rad > 0 else net
         mask = np.asarray(item["mask"], bool)
-        m3, d3 = classical_md(x[:, :3])[0].numpy()
         k = int(mask.sum())
         parts.append(PixelErrors(
             phase_error(r.phase, item["phase"])[mask].astype(np.float32), r.sigma_total[mask],
-            departure(r.phase, np.arctan2(m3, d3))[mask], np.full(k, folder, np.int16),
+            departure(net.phase, np.arctan2(*classical))[mask], np.full(k, folder, np.int16),
             np.full(k, int(item["group"]), np.int32), np.full(k, still, bool)))
         if progress:
             progress(n + 1, len(items))

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from gearscan.inference.calibrate import PixelErrors, collect_errors
+from gearscan.inference.data import MotionInput
 from gearscan.inference.predictor import Predictor
 from gearscan.inference.uncertainty import fit_sigma_calibration, reliability
 from gearscan.twin.dataset import TwinBurstDataset
@@ -37,6 +38,8 @@ def collect(predictor: Predictor, folder: str, k: int, items: int, mc: int) -> P
     for still in (False, True):
         ds = (TwinBurstDataset(folder, crop=None, static=True, motion="uniform", max_span=0) if still
               else TwinBurstDataset(folder, crop=None, reverse=True))
+        if predictor.needs_angles:
+            ds = MotionInput(ds)
         n = min(items // 2 if still else items, len(ds))
         pick = sorted(np.random.default_rng([0, k, still]).choice(len(ds), n, replace=False).tolist())
         parts.append(collect_errors(predictor, ds, pick, mc, folder=k, still=still))

@@ -11,8 +11,10 @@ Data (randomised rigs, optics, fringe periods and gear sizes; tooth count 25 is 
     gearscan twin dataset data/val --teeth 25 --repeats 3 --max-start-points 2 --width 256 --height 256 \
         --randomize --seed 2
 
-The shipped weights are the end of five runs, each starting from the one before (CPU, ~130 min
-in all; `inference/weights/V5_MODEL_CARD.md`):
+v5's weights (`inference/weights/v5.*`) are the end of five runs, each starting from the one
+before (CPU, ~130 min in all; `inference/weights/V5_MODEL_CARD.md`). The last run's ``--ship``
+copies its weights over the shipped default (`default.*`, now v6); to rebuild v5 beside it, drop
+``--ship`` and copy ``runs/v5r/best.*`` to ``inference/weights/v5.*``:
 
     python scripts/train_default.py --train data/train --out runs/v1 --epochs-det 35 --epochs-drop 5 \
         --steps-per-epoch 100 --crop 128 --lr 2e-3 --val-items 32 --patience 25
@@ -29,7 +31,9 @@ in all; `inference/weights/V5_MODEL_CARD.md`):
         --init runs/v4/best.safetensors --reverse --dropout-init 0.02,0.1 --static-repeat 20 \
         --epochs-det 40 --epochs-drop 4 --steps-per-epoch 100 --crop 128 --lr 3e-4 --val-items 48 --patience 30 --ship
 
-Then the uncertainty calibration (sigma' = a sigma^b per mode, by Gaussian NLL; ~6 CPU minutes):
+Then v5's uncertainty calibration (sigma' = a sigma^b per mode, by Gaussian NLL; ~6 CPU minutes).
+Today's `gearscan calibrate-uncertainty` fits the departure map by the event score instead; v5's JSON
+keeps the map below, which every report before session 23 measured:
 
     gearscan calibrate-uncertainty data/val --items 64 --mc 20
 """

@@ -327,8 +327,11 @@ def test_bad_sigma_calibration_in_the_config_is_named(saved, entry, match):
 
 
 def test_mirrored_fringes_are_decoded_in_the_trained_orientation(saved):
-    """Phase decreasing along the columns (a mirrored camera or projector) is mirrored in and out."""
+    """Phase decreasing along the columns (a mirrored camera or projector) is mirrored in and out,
+    sigma map included."""
+    from gearscan.core.phase import three_step
     from gearscan.inference.predictor import fringe_phase_decreases_along_columns
+    from gearscan.inference.uncertainty import departure
 
     _, path = saved
     h, w = 24, 40
@@ -338,10 +341,21 @@ def test_mirrored_fringes_are_decoded_in_the_trained_orientation(saved):
     mirrored = np.ascontiguousarray(frames[:, :, ::-1])
     assert not fringe_phase_decreases_along_columns(frames_to_tensor(frames))
     assert fringe_phase_decreases_along_columns(frames_to_tensor(mirrored))
+    meta = json.loads(path.with_suffix(".json").read_text())
+    meta["sigma_calibration"] = {"deterministic": {"a": 0.4, "b": 0.6, "c": 0.3, "d0": 0.01}}
+    path.with_suffix(".json").write_text(json.dumps(meta))
     pred = Predictor.load(path)
     a, b = pred.predict(frames), pred.predict(mirrored)
     for key in ("phase", "M", "D", "sigma_total"):
         np.testing.assert_allclose(getattr(b, key)[:, ::-1], getattr(a, key), atol=1e-6)
+    # the departure map reads the network's phase against three-step PS's in the same orientation
+    raw = Predictor.load(path)
+    raw.calibration = {}
+    r = raw.predict(frames)
+    dep = departure(r.phase, three_step(frames, 255)[0])
+    expected = 0.4 * r.sigma_total**0.6 * (dep + 0.01) ** 0.3
+    np.testing.assert_allclose(a.sigma_total, expected, rtol=1e-4)
+    np.testing.assert_allclose(b.sigma_total[:, ::-1], expected, rtol=1e-4)
 
 
 def test_predict_cli_sends_a_still_burst_to_three_step(saved, tmp_path):
