@@ -12,6 +12,8 @@ from gearscan.core.phase import classical_result, phase_error, three_step
 from gearscan.core.recording import RecordingReader
 from gearscan.core.rig import default_rig
 from gearscan.inference.decoder import Decoder
+from gearscan.inference.predictor import Predictor
+from gearscan.inference.uncertainty import departure
 from gearscan.recon.fuse import CloudFuser
 from gearscan.recon.track import TrackRefiner
 from gearscan.twin.defects import GearDefects, true_mesh
@@ -57,6 +59,19 @@ def test_reversed_bursts_decode_to_the_true_phase(still_alternating):
     net = Decoder(still_span_deg=0.0)
     net_err = _rmse(bursts, lambda b: net(b).phase, truth_of)
     assert max(net_err) < 0.15, net_err
+    # the shipped sigma map reads the same departure in either order: the network's phase against
+    # three-step PS's with the burst's real shifts, both in capture order
+    shipped = Predictor.load(None)
+    cal = shipped.calibration["deterministic"]
+    assert cal.needs_departure
+    raw = Predictor.load(None)
+    raw.calibration = {}
+    for b in bursts:
+        r, r0, c = shipped.predict_burst(b), raw.predict_burst(b), classical_result(b)
+        lit = np.hypot(c.M, c.D) >= 0.05  # the keep test's modulation: unlit phase is noise either way
+        assert lit.mean() > 0.5
+        want = cal(r0.sigma_total, departure(r0.phase, c.phase))
+        np.testing.assert_allclose(r.sigma_total[lit], want[lit], rtol=1e-4)
 
 
 def _fit(tmp_path_factory, alternate: bool):
