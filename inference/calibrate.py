@@ -134,6 +134,26 @@ def fit_mode(px: PixelErrors, folders: Sequence[str]) -> tuple[SigmaCalibration,
     return cal, report
 
 
+def val_samples(folders: Sequence[str], items: int, seed: int, needs_angles: bool) -> list[tuple[int, object, list[int], bool]]:
+    """Per folder, a seeded sample of ``items`` moving bursts (both senses) and ``items // 2`` still
+    ones: ``(folder index, dataset, picked items, still)``, whole images."""
+    from gearscan.inference.data import MotionInput
+    from gearscan.twin.dataset import TwinBurstDataset
+
+    sets = []
+    for k, folder in enumerate(folders):
+        rng = np.random.default_rng([seed, k])
+        for still in (False, True):
+            ds = (TwinBurstDataset(folder, crop=None, static=True, motion="uniform", max_span=0) if still
+                  else TwinBurstDataset(folder, crop=None, reverse=True))
+            if needs_angles:
+                ds = MotionInput(ds)
+            n = min(items // 2 if still else items, len(ds))
+            if n:
+                sets.append((k, ds, sorted(rng.choice(len(ds), n, replace=False).tolist()), still))
+    return sets
+
+
 def calibrate_model(
     model: str | Path | None, val: str | Path | Sequence[str | Path], *, items: int = 64, mc: int = 20,
     seed: int = 0, output: str | Path | None = None, progress: Callable[[str], None] | None = None,
@@ -145,9 +165,6 @@ def calibrate_model(
     report into the model's JSON (or into ``output``'s JSON, copying the weights there); returns
     that report.
     """
-    from gearscan.inference.data import MotionInput
-    from gearscan.twin.dataset import TwinBurstDataset
-
     path = model_path(model)
     if items < 2:
         raise ValueError(f"items: expected >= 2 validation bursts, got {items}")
@@ -156,17 +173,7 @@ def calibrate_model(
         raise ValueError("val: expected at least one validation folder")
     predictor = Predictor.load(path)
     predictor.calibration = {}  # fit on the uncalibrated sigma (var_scale stays applied)
-    sets = []  # (folder index, dataset, picked items, still)
-    for k, folder in enumerate(folders):
-        rng = np.random.default_rng([seed, k])
-        for still in (False, True):
-            ds = (TwinBurstDataset(folder, crop=None, static=True, motion="uniform", max_span=0) if still
-                  else TwinBurstDataset(folder, crop=None, reverse=True))
-            if predictor.needs_angles:
-                ds = MotionInput(ds)
-            n = min(items // 2 if still else items, len(ds))
-            if n:
-                sets.append((k, ds, sorted(rng.choice(len(ds), n, replace=False).tolist()), still))
+    sets = val_samples(folders, items, seed, predictor.needs_angles)
     modes = [("deterministic", 0)] + ([("mc", mc)] if mc > 0 and predictor.has_dropout else [])
     calibration = {}
     report = {"data": folders, "items": {"moving": sum(len(p) for _, _, p, s in sets if not s),

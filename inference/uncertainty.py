@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from scipy.special import erf
 
+from gearscan.core.phase import wrap
 from gearscan.core.types import PhaseResult
 from gearscan.inference.concrete_dropout import set_stochastic
 from gearscan.inference.models import PhaseNet
@@ -187,7 +188,7 @@ def departure(phase: np.ndarray, classical_phase: np.ndarray) -> np.ndarray:
     A run-time witness of the network's error: on a still burst three-step PS is right and this is
     the network's error; on a moving one it is the correction the network dared.
     """
-    return np.abs(np.angle(np.exp(1j * (np.asarray(phase, np.float64) - classical_phase)))).astype(np.float32)
+    return np.abs(wrap(np.asarray(phase, np.float64) - classical_phase)).astype(np.float32)
 
 
 @dataclass(frozen=True, slots=True)

@@ -19,11 +19,9 @@ import json
 import numpy as np
 import torch
 
-from gearscan.inference.calibrate import PixelErrors, collect_errors
-from gearscan.inference.data import MotionInput
+from gearscan.inference.calibrate import PixelErrors, collect_errors, val_samples
 from gearscan.inference.predictor import Predictor
 from gearscan.inference.uncertainty import fit_sigma_calibration, reliability
-from gearscan.twin.dataset import TwinBurstDataset
 
 CANDIDATES = {  # name: (uses the departure, fit score)
     "a sigma^b, NLL": (False, "nll"),
@@ -31,19 +29,6 @@ CANDIDATES = {  # name: (uses the departure, fit score)
     "a sigma^b (dep + d0)^c, NLL": (True, "nll"),
     "a sigma^b (dep + d0)^c, event score": (True, "event"),
 }
-
-
-def collect(predictor: Predictor, folder: str, k: int, items: int, mc: int) -> PixelErrors:
-    parts = []
-    for still in (False, True):
-        ds = (TwinBurstDataset(folder, crop=None, static=True, motion="uniform", max_span=0) if still
-              else TwinBurstDataset(folder, crop=None, reverse=True))
-        if predictor.needs_angles:
-            ds = MotionInput(ds)
-        n = min(items // 2 if still else items, len(ds))
-        pick = sorted(np.random.default_rng([0, k, still]).choice(len(ds), n, replace=False).tolist())
-        parts.append(collect_errors(predictor, ds, pick, mc, folder=k, still=still))
-    return PixelErrors.concat(parts)
 
 
 def main() -> None:
@@ -59,7 +44,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     predictor = Predictor.load(args.model)
     predictor.calibration = {}
-    px = PixelErrors.concat([collect(predictor, f, k, args.items, args.mc) for k, f in enumerate(args.val)])
+    # the bursts calibrate_model fits the shipped map on (same sample, seed 0)
+    px = PixelErrors.concat([collect_errors(predictor, ds, pick, args.mc, folder=k, still=still)
+                             for k, ds, pick, still in val_samples(args.val, args.items, 0, predictor.needs_angles)])
     rows = []
     for name, (use_dep, score) in CANDIDATES.items():
         for k, folder in enumerate(args.val):
