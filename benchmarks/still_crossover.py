@@ -1,9 +1,9 @@
 """Three-step PS against the shipped network by burst span: where the correction starts to pay.
 
-    .venv/bin/python benchmarks/still_crossover.py [--per-motion 2]
+    .venv/bin/python benchmarks/still_crossover.py [--scenes 4 --per-motion 3]
 
-Uniform bursts with frame steps from 0 (a still gear) to 0.2 deg on the validation scenes
-(tooth count 25, never trained on): the default rig and randomised rigs. The span below which
+Uniform bursts with frame steps from 0 (a still gear) to 0.2 deg on validation scenes (val-split
+gears and rigs, never trained on): radial rigs and any-view rigs. The span below which
 three-step PS wins sets the Decoder's ``still_span_deg`` (bursts the encoder sees spanning
 less go to three-step PS). Writes benchmarks/still_crossover_report.{md,json}.
 """
@@ -16,6 +16,7 @@ import os
 from pathlib import Path
 
 import torch
+from inspect_bench import commit, host  # same folder: the host and commit lines of every report
 
 from gearscan.evaluate import (
     classical_method,
@@ -33,12 +34,15 @@ STEPS_DEG = (0.0, 0.0125, 0.025, 0.05, 0.1, 0.2)
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--val", nargs="+", default=["data/val_default", "data/val"])
-    ap.add_argument("--scenes", type=int, default=3)
-    ap.add_argument("--per-motion", type=int, default=2)
+    ap.add_argument("--val", nargs="+", default=["data/repro/val_radial", "data/repro/val_views"],
+                    help="twin validation folders (scripts/reproduce_model.py renders these)")
+    ap.add_argument("--scenes", type=int, default=4)
+    ap.add_argument("--per-motion", type=int, default=3)
+    ap.add_argument("--model", default="inference/weights/default.safetensors")
     args = ap.parse_args()
     torch.set_num_threads(2)
-    methods = {"three-step PS": classical_method, "CD-DCU-Net": network_method(Predictor.load())}
+    predictor = Predictor.load(args.model)
+    methods = {"three-step PS": classical_method, "CD-DCU-Net": network_method(predictor)}
     motions = {f"{d:g}": (d, d) for d in STEPS_DEG}
     rows = []
     for root in args.val:
@@ -53,7 +57,10 @@ def main() -> None:
         "",
         f"`python benchmarks/still_crossover.py --per-motion {args.per_motion}`: uniform bursts (frame 1 to 2 "
         "and 2 to 3 the same step), wrapped-phase RMSE on the truth's valid pixels, validation scenes "
-        f"({args.scenes} per dataset, tooth count 25 never trained on), shipped model deterministic.",
+        f"(the first {args.scenes} gears of each folder: val-split gears and rigs, never trained on), network deterministic.",
+        "",
+        f"- Commit `{commit()}`; host: {host()}.",
+        f"- Model: `{args.model}` ({predictor.model.config.name}), precision {predictor.precision}.",
         "",
         "| data | step deg | span deg | three-step PS rad | CD-DCU-Net rad | better |",
         "|---|---|---|---|---|---|",
@@ -63,18 +70,29 @@ def main() -> None:
             r = {x["method"]: x["rmse_rad"] for x in rows if x["data"] == root and x["step_deg"] == d}
             best = min(r, key=r.get)
             lines.append(f"| {root} | {d:g} | {2 * d:g} | {r['three-step PS']:.3f} | {r['CD-DCU-Net']:.3f} | {best} |")
+    lines += ["", "Where the network starts to win (the smallest span from which it beats three-step PS at every",
+              "larger span of the grid):", ""]
+    for root in args.val:
+        wins = [2 * d for d in STEPS_DEG if _rmse(rows, root, d, "CD-DCU-Net") < _rmse(rows, root, d, "three-step PS")]
+        from_span = next((s for s in sorted(2 * d for d in STEPS_DEG) if all(w in wins for w in
+                          [2 * d for d in STEPS_DEG if 2 * d >= s])), None)
+        lines.append(f"- {root}: " + ("never on this grid" if from_span is None else
+                     "at every span, a still gear included" if from_span == 0 else f"from {from_span:g} deg"))
     lines += [
         "",
         "Three-step PS has no motion error on a still gear, only noise (and the projector's residual",
-        "gamma on the randomised rigs); the network's regression error is larger than that floor. The",
-        "two cross between spans of about 0.05 and 0.1 deg on both kinds of rig, so the pipeline's",
-        f"Decoder sends bursts whose encoder span is below {STILL_SPAN_DEG} deg to three-step PS",
-        "(`model.still_span_deg`, `gearscan replay --still-span-deg`; 0 turns it off). The crossing",
-        "depends on the rig (image motion per degree grows with gear radius and magnification):",
-        "re-measure it on your rig with this script's method before changing the setting.",
+        "gamma on the randomised rigs); where the network's regression error is larger than that floor,",
+        f"three-step PS wins. The pipeline's Decoder sends bursts whose encoder span is below {STILL_SPAN_DEG} deg",
+        "to three-step PS (`model.still_span_deg`, `gearscan replay --still-span-deg`; 0 turns it off).",
+        "The crossing depends on the rig (image motion per degree grows with gear radius and",
+        "magnification): re-measure it on your rig with this script's method before changing the setting.",
     ]
     (HERE / "still_crossover_report.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+
+
+def _rmse(rows: list[dict], root: str, step: float, method: str) -> float:
+    return next(x["rmse_rad"] for x in rows if x["data"] == root and x["step_deg"] == step and x["method"] == method)
 
 
 if __name__ == "__main__":

@@ -33,10 +33,10 @@ class Decoder:
     pipeline runs the infer stage with this many workers. None: 2 on a CPU with >= 2 cores, else 1.
 
     Bursts whose encoder angles span less than ``still_span_deg`` (frame 1 to 3) go to
-    three-step PS instead of the network: without motion it has no motion error, and below
-    about 0.075 deg it beat the shipped network on twin validation gears (static: 0.018 vs
-    0.053 rad on the default rig, 0.064 vs 0.070 on randomised rigs; the network wins from
-    0.1 deg on; benchmarks/still_crossover_report.md). 0 sends every burst to the network.
+    three-step PS instead of the network: without motion it has no motion error. On the val
+    split's radial rigs it beat the shipped network (v6) up to 0.05 deg (still: 0.056 vs 0.064 rad),
+    the network wins from 0.1 deg on; on the any-view val rigs the network won even on a still
+    gear (0.073 vs 0.078; benchmarks/still_crossover_report.md). 0 sends every burst to the network.
     """
 
     def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
