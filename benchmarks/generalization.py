@@ -8,7 +8,7 @@ sense and split) and two still bursts. Scored with :mod:`gearscan.generalization
 twin's analytic phase at the first frame: per family and motion group RMSE of the network
 (deterministic; MC T=20 on the first ``--mc-scenes`` scenes of each family) and of three-step PS,
 their ratio, ECE and coverage, and the error by stratum of camera fringe period, modulation,
-distance to the mask edge, burst span and image motion (px). Writes benchmarks/generalization_report.{md,json,png}
+distance to the mask edge, burst span, image motion (px) and fringe phase change (periods). Writes benchmarks/generalization_report.{md,json,png}
 (``--quick``: a tiny run into the temp folder).
 """
 
@@ -253,7 +253,8 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         f"pixels of its family and motion kind (checked: {'yes' if counts_ok else 'NO'}). The camera fringe "
         "period is 2 pi / |grad phi| of the truth's absolute phase; the edge distance is the Euclidean distance "
         "to the nearest pixel outside the truth mask; the image motion is how far the surface point seen at frame 1 "
-        "moves in the camera by frame 3. Figure: "
+        "moves in the camera by frame 3; the fringe phase change is |phi_3 - phi_1| / 2 pi of the truth at each pixel "
+        "(what three-step PS suffers; NaN: the pixel does not see the lit surface in frame 3). Figure: "
         f"`{png.name}`.",
         "",
         strata_tables(strata, fams),

@@ -105,6 +105,15 @@ class BurstCase:
     frames: np.ndarray  # (3, H, W) raw
     truth: Truth
     angles_deg: tuple[float, float, float]
+    last_phase_abs: np.ndarray | None = None  # the truth's absolute phase at the third frame's pose
+
+    def fringe_phase_change(self) -> np.ndarray:
+        """``|phi_3 - phi_1|`` (rad) per pixel: how far the fringe phase seen at a camera pixel moves
+        from frame 1 to frame 3, the physical cause of three-step PS's motion error (NaN where either
+        frame does not see the lit surface, or unknown)."""
+        if self.last_phase_abs is None:
+            return np.full(self.truth.mask.shape, np.nan)
+        return np.abs(self.last_phase_abs - self.truth.phase_abs)
 
     @property
     def full_scale(self) -> float:
@@ -127,7 +136,7 @@ def render_cases(scene: Scene, motions: dict[str, tuple[float, float]], per_moti
             a0 = float(rng.uniform(0, pitch))
             angles = (a0, a0 + d1, a0 + d1 + d2)
             frames, truths = scene.renderer.render_sequence([math.radians(a) for a in angles], ps, [0, 1, 2], rng)
-            cases.append(BurstCase(scene, name, frames, truths[0], angles))
+            cases.append(BurstCase(scene, name, frames, truths[0], angles, truths[2].phase_abs))
     return cases
 
 

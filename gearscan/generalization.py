@@ -2,14 +2,18 @@
 
 Per burst, every method's wrapped phase is compared with the twin's analytic phase at the first
 frame's pose over its valid mask (DESIGN.md). The squared errors are summed per family, per
-motion group and per stratum of five pixel properties:
+motion group and per stratum of six pixel properties:
 
 - camera fringe period (px): ``2 pi / |grad phi|`` of the truth's absolute phase;
 - modulation: the truth's ``2B/S``;
 - distance to the mask edge (px): Euclidean distance transform of the truth mask;
 - burst span (deg, frame 1 to 3; moving bursts only);
 - image motion (px): how far the surface point seen at frame 1 moves in the camera by frame 3
-  (moving bursts only; the same span moves a large gear's rim further).
+  (moving bursts only; the same span moves a large gear's rim further);
+- fringe phase change (periods): how far the fringe phase seen at a camera pixel moves from
+  frame 1 to frame 3, ``|phi_3 - phi_1| / 2 pi`` of the truth (moving bursts only): the cause of
+  three-step PS's motion error; image motion along the fringes does not change it, and near 1
+  period the three frames no longer tell the shift from the phase.
 
 Strata of one axis partition the pixels of their group (a last ``n/a`` bin takes non-finite
 values), so their counts add up to the pooled count. A stratum where the network's RMSE is above
@@ -118,10 +122,12 @@ AXES: tuple[Axis, ...] = (
     Axis("distance to mask edge", "px", (2.0, 4.0, 8.0, 16.0)),
     Axis("burst span", "deg", (0.25, 0.75, 1.25, 1.5, 1.75)),
     Axis("image motion", "px", (1.0, 2.0, 4.0, 8.0, 16.0)),
+    Axis("fringe phase change", "periods", (0.05, 0.1, 0.25, 0.5, 1.0)),
 )
 SPAN_AXIS = AXES[3].name
 MOTION_AXIS = AXES[4].name
-MOVING_ONLY = (SPAN_AXIS, MOTION_AXIS)
+SHIFT_AXIS = AXES[5].name
+MOVING_ONLY = (SPAN_AXIS, MOTION_AXIS, SHIFT_AXIS)
 
 
 def camera_period_px(phase_abs: np.ndarray) -> np.ndarray:
@@ -157,6 +163,7 @@ def pixel_strata(case: BurstCase, span_deg: float) -> dict[str, np.ndarray]:
         AXES[2].name: distance_transform_edt(m)[m],
         SPAN_AXIS: np.full(int(m.sum()), span_deg),
         MOTION_AXIS: image_motion_px(case) if span_deg > 0 else np.zeros(int(m.sum())),
+        SHIFT_AXIS: case.fringe_phase_change()[m] / (2 * np.pi),
     }
 
 

@@ -142,3 +142,18 @@ def test_image_motion_is_the_rim_displacement(scene: FamilyScene, cases) -> None
     px = image_motion_px(cases[1])
     assert 1.5 < float(np.median(px)) < 3.5
     assert float(np.median(image_motion_px(cases[2]))) == pytest.approx(1.2 * float(np.median(px)), rel=0.1)
+
+
+def test_fringe_phase_change_is_zero_still_and_orders_the_three_step_error(cases) -> None:
+    """The stratum's physics: a still burst moves no fringe; on a moving one, three-step PS's error
+    (noise-free scene) grows with how far the fringe phase at the pixel moved across the burst."""
+    from gearscan.core.phase import phase_error
+
+    still, moving, _ = cases
+    m = still.truth.mask
+    np.testing.assert_allclose(still.fringe_phase_change()[m], 0.0, atol=1e-9)
+    change = moving.fringe_phase_change()[moving.truth.mask] / (2 * np.pi)
+    err = np.abs(phase_error(classical_method(moving.frames, moving.full_scale).phase, moving.truth.phase))[moving.truth.mask]
+    small, large = change < 0.05, (change > 0.1) & (change < 0.5)
+    assert small.sum() > 50 and large.sum() > 50, (small.sum(), large.sum())
+    assert np.median(err[large]) > 3 * np.median(err[small]), (np.median(err[large]), np.median(err[small]))
