@@ -22,6 +22,7 @@ scores them. Writes ``runs/adaptation/<family>/result.json``; ``--report`` gathe
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
@@ -64,6 +65,11 @@ def host() -> dict[str, object]:
     return {"cpu": cpu, "cores": os.cpu_count(), "avx512f": "avx512f" in flags,
             "avx512_bf16": "avx512_bf16" in flags, "amx_bf16": "amx_bf16" in flags,
             "loadavg_start": os.getloadavg()}
+
+
+def file_sha256(path: Path) -> str:
+    """Which weights a run fine-tuned (the shipped default changes between sessions)."""
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def git(*args: str) -> str:
@@ -171,6 +177,8 @@ def run_family(args) -> None:
         "period_px": scene.period_px, "resolution": f"{w}x{h}", "commit": git("rev-parse", "--short", "HEAD"),
         "working_tree_dirty": bool(git("status", "--porcelain", "--untracked-files=no")), "host": machine,
         "torch_threads": args.threads, "precision": Predictor.load(DEFAULT_MODEL).precision,
+        "model": {"path": str(DEFAULT_MODEL.relative_to(REPO) if DEFAULT_MODEL.is_relative_to(REPO) else DEFAULT_MODEL),
+                  "sha256": file_sha256(DEFAULT_MODEL)[:12]},
         "adaptation": {"seed": spec.seed, "seed_split": "train" if SPLITS["train"].has_seed(spec.seed) else "val",
                        "start_points": args.start_points, "start_step_deg": spec.start_step_deg,
                        "poses": spec.poses, "pose_step_deg": spec.pose_step_deg, "steps": spec.steps,
@@ -298,6 +306,10 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         + f"; {r0['torch_threads']} torch threads. Training autocast **{r0['training']['precision']}** (measured "
         "before the runs on this host, w8, 8x128^2: 1.2 CPU s per step in fp32, 1.7 in bf16: no AMX); the test "
         f"scoring in **{r0['precision']}**, the Predictor's automatic choice, as in `generalization_report.md`.",
+        "- **Model** fine-tuned and scored at 0 minutes: "
+        + "; ".join(f"{r['family']}: `{r['model']['path']}` sha256 `{r['model']['sha256']}`" if "model" in r
+                    else f"{r['family']}: not recorded" for r in results)
+        + " (the shipped default when the run was made).",
         "- **CPU minutes** are `time.process_time()` of the training process (all its threads), counted from the "
         "start of fine-tuning: validation included, rendering and the closing sigma calibration not. Other load on "
         "the shared cores does not eat the budget directly, but it is not neutral either: the same step (w8, batch 8, "
@@ -309,7 +321,7 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         "- **What chose what**: the adaptation data's own held-out start points (val) chose the weights at every "
         "mark (best-on-val so far, the shipped weights included: the 0-minute row); nothing was chosen on the test "
         "bursts. Learning rate, batch, crop and the mix (static bursts x20, both rotation senses) are the shipped "
-        "recipe's (`scripts/train_default.py`, v5), set before any run; a constant learning rate so that the "
+        "CPU recipe's (`scripts/train_default.py`: batch 8, 128^2 crops), set before any run; a constant learning rate so that the "
         "10-minute mark is where a `--budget-cpu-min 10` run stops.",
         f"- **Split**: the scenes are the first scene of each unseen-rig test family (`twin/families.py`, test seeds; "
         f"test split: {describe('test')}). The adaptation data are the user's workflow on that rig and gear: "

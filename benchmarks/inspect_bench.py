@@ -38,10 +38,13 @@ def host() -> str:
 
 
 def commit() -> str:
+    """HEAD, marked when tracked files carry uncommitted edits (the report then ran code HEAD lacks)."""
     try:
-        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True).strip()
+        head = subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True).strip()
+        dirty = subprocess.check_output(["git", "status", "--porcelain", "--untracked-files=no"], cwd=HERE, text=True)
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+    return f"{head} + uncommitted edits" if dirty.strip() else head
 
 
 def main() -> None:

@@ -51,7 +51,10 @@ def main() -> None:
         for s in score(methods, cases):
             rows.append({"data": root, "step_deg": float(s.motion), "method": s.method, "rmse_rad": s.rmse_rad,
                          "bursts": s.bursts})
-    (HERE / "still_crossover_report.json").write_text(json.dumps({"rows": rows, "loadavg": os.getloadavg()}, indent=2))
+    wins_from = {root: _wins_from(rows, root) for root in args.val}
+    (HERE / "still_crossover_report.json").write_text(json.dumps(
+        {"rows": rows, "network_wins_from_span_deg": wins_from, "commit": commit(), "host": host(),
+         "model": args.model, "loadavg": os.getloadavg()}, indent=2))
     lines = [
         "# Still and slow bursts: three-step PS against the network",
         "",
@@ -73,10 +76,8 @@ def main() -> None:
     lines += ["", "Where the network starts to win (the smallest span from which it beats three-step PS at every",
               "larger span of the grid):", ""]
     for root in args.val:
-        wins = [2 * d for d in STEPS_DEG if _rmse(rows, root, d, "CD-DCU-Net") < _rmse(rows, root, d, "three-step PS")]
-        from_span = next((s for s in sorted(2 * d for d in STEPS_DEG) if all(w in wins for w in
-                          [2 * d for d in STEPS_DEG if 2 * d >= s])), None)
-        lines.append(f"- {root}: " + ("never on this grid" if from_span is None else
+        from_span = wins_from[root]
+        lines.append(f"- {root}: " + ("no span from which it wins at every larger one" if from_span is None else
                      "at every span, a still gear included" if from_span == 0 else f"from {from_span:g} deg"))
     lines += [
         "",
@@ -89,6 +90,13 @@ def main() -> None:
     ]
     (HERE / "still_crossover_report.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+
+
+def _wins_from(rows: list[dict], root: str) -> float | None:
+    """The smallest burst span (deg) from which the network beats three-step PS at every larger span of the grid."""
+    spans = sorted(2 * d for d in STEPS_DEG)
+    wins = {2 * d for d in STEPS_DEG if _rmse(rows, root, d, "CD-DCU-Net") < _rmse(rows, root, d, "three-step PS")}
+    return next((s for s in spans if all(x in wins for x in spans if x >= s)), None)
 
 
 def _rmse(rows: list[dict], root: str, step: float, method: str) -> float:

@@ -136,7 +136,7 @@ def render_cases(scene: Scene, motions: dict[str, tuple[float, float]], per_moti
             a0 = float(rng.uniform(0, pitch))
             angles = (a0, a0 + d1, a0 + d1 + d2)
             frames, truths = scene.renderer.render_sequence([math.radians(a) for a in angles], ps, [0, 1, 2], rng)
-            cases.append(BurstCase(scene, name, frames, truths[0], angles, truths[2].phase_abs))
+            cases.append(BurstCase(scene, name, frames, truths[0], angles, truths[2].phase_abs.astype(np.float32)))
     return cases
 
 

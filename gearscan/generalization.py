@@ -12,8 +12,10 @@ motion group and per stratum of six pixel properties:
   (moving bursts only; the same span moves a large gear's rim further);
 - fringe phase change (periods): how far the fringe phase seen at a camera pixel moves from
   frame 1 to frame 3, ``|phi_3 - phi_1| / 2 pi`` of the truth (moving bursts only): the cause of
-  three-step PS's motion error; image motion along the fringes does not change it, and near 1
-  period the three frames no longer tell the shift from the phase.
+  three-step PS's motion error (image motion along the fringes does not change it). For a steady
+  drift three-step PS's error grows about as half the change; its solve is singular at a change
+  of 1/3 period (drift with the shifts) or 2/3 period (against them), and from about half a period
+  on its phase is no better than a random one.
 
 Strata of one axis partition the pixels of their group (a last ``n/a`` bin takes non-finite
 values), so their counts add up to the pooled count. A stratum where the network's RMSE is above

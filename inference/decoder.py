@@ -14,7 +14,7 @@ from pathlib import Path
 from gearscan.core.phase import classical_result
 from gearscan.core.types import Burst, PhaseResult
 
-STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beats the network (Decoder)
+STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beat the network on radial val rigs (Decoder)
 
 
 def turned_less_than(angles, span_deg: float) -> bool:
@@ -36,7 +36,8 @@ class Decoder:
     three-step PS instead of the network: without motion it has no motion error. On the val
     split's radial rigs it beat the shipped network (v6) up to 0.05 deg (still: 0.056 vs 0.064 rad),
     the network wins from 0.1 deg on; on the any-view val rigs the network won even on a still
-    gear (0.073 vs 0.078; benchmarks/still_crossover_report.md). 0 sends every burst to the network.
+    gear (0.073 vs 0.078; benchmarks/still_crossover_report.md), so there the route costs a little on
+    still gears: a compromise for the radial rigs. 0 sends every burst to the network.
     """
 
     def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
