@@ -151,7 +151,7 @@ def test_fringe_phase_change_is_zero_still_and_orders_the_three_step_error(cases
 
     still, moving, _ = cases
     m = still.truth.mask
-    np.testing.assert_allclose(still.fringe_phase_change()[m], 0.0, atol=1e-9)
+    np.testing.assert_allclose(still.fringe_phase_change()[m], 0.0, atol=1e-4)  # float32 storage of the phase
     change = moving.fringe_phase_change()[moving.truth.mask] / (2 * np.pi)
     err = np.abs(phase_error(classical_method(moving.frames, moving.full_scale).phase, moving.truth.phase))[moving.truth.mask]
     small, large = change < 0.05, (change > 0.1) & (change < 0.5)
