@@ -142,7 +142,13 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=16, help="scenes per family (generalization.py: 16)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=HERE / "training_curve_report")
+    ap.add_argument("--report-only", action="store_true", help="rewrite the .md and .png from the .json")
     args = ap.parse_args()
+    if args.report_only:
+        rep = json.loads(args.out.with_suffix(".json").read_text())
+        plot(args.out.with_suffix(".png"), rep["runs"], rep["power_law_w8_pair"], rep["val_curves"])
+        args.out.with_suffix(".md").write_text(markdown(rep, args) + "\n")
+        return
     if args.scenes < 1:
         ap.error(f"--scenes: expected >= 1 scene per family, got {args.scenes}")
     torch.set_num_threads(args.threads)
@@ -292,8 +298,14 @@ def markdown(rep: dict, args) -> str:
             if f["times_v6"] <= 1:
                 out.append(f"- **{key}**, target {f['target']} rad (paper motions): met by v6.")
                 continue
-            reach = (f"about {need:.2g} crops, {f['times_v6']:.0f}x what v6 saw" if math.isfinite(need)
-                     else "never on this trend (the pair does not improve)")
+            per_doubling = 1 - 2 ** f["b"]
+            if not math.isfinite(need):
+                reach = "never on this trend (the pair does not improve)"
+            elif f["times_v6"] > 1e3:
+                reach = (f"more than 1000x what v6 saw ({per_doubling:.1%} less error per doubling of the crops): "
+                         "not reachable by more steps on this data")
+            else:
+                reach = f"about {need:.2g} crops, {f['times_v6']:.0f}x what v6 saw"
             out.append(f"- **{key}**, target {f['target']} rad (paper motions): RMSE = {f['a']:.3g} * crops^{f['b']:.3f} "
                        f"through the w8 first run and its continuation (v6) on the same data; the target at {reach}. "
                        "An extrapolation from two points, not a measurement: the continuation restarted the learning "
