@@ -223,11 +223,11 @@ def plot(path: Path, rows: list[dict], fits: dict, curves: dict) -> None:
 
     fig, (ax, av) = plt.subplots(1, 2, figsize=(11, 4.2))
     for key, color in ((UNSEEN, "tab:blue"), ("default", "tab:red")):
-        for row in rows:
+        for i, row in enumerate(rows):
             marker = "s" if row["width"] == 32 else "o"
             ax.scatter(row["crops"], row["paper_rmse"][key], color=color, marker=marker, zorder=3)
             ax.annotate(row["label"].split(",")[0].split(" (")[0], (row["crops"], row["paper_rmse"][key]),
-                        textcoords="offset points", xytext=(4, 4), fontsize=7)
+                        textcoords="offset points", xytext=(6, 10 - 9 * i), fontsize=7)  # apart: runs share x
         if key in fits:
             f = fits[key]
             xs = np.geomspace(1e5, max(1e6, min(f["crops_needed"], 1e10)), 50)
