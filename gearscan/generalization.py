@@ -183,6 +183,7 @@ class _Sums:
     pixels: int = 0
     sse: dict[str, float] = field(default_factory=dict)
     covered: dict[str, int] = field(default_factory=dict)
+    sse_kept: dict[str, float] = field(default_factory=dict)  # over the pixels the keep test passes
     errors: dict[str, list[np.ndarray]] = field(default_factory=dict)  # for ECE, methods with a sigma
     sigmas: dict[str, list[np.ndarray]] = field(default_factory=dict)
 
@@ -206,6 +207,7 @@ class CellScore:
     rmse: dict[str, float]
     coverage: dict[str, float]
     ece: dict[str, float]
+    rmse_kept: dict[str, float] = field(default_factory=dict)  # over the pixels each method's keep test passes
 
     def gain(self, method: str, baseline: str = BASELINE) -> float:
         """Baseline RMSE over the method's: > 1 where the method is better."""
@@ -263,6 +265,7 @@ class GeneralizationScorer:
         if n == 0:
             return
         errs = {k: phase_error(results[k].phase, case.truth.phase)[m].astype(np.float64) for k in self.methods}
+        kept = {k: covered(results[k])[m] for k in self.methods}
         groups = [motion.group] + ([MOVING] if motion.kind == MOVING else [])
         for fam in (family, ALL):
             for grp in groups:
@@ -270,8 +273,10 @@ class GeneralizationScorer:
                 c.bursts += 1
                 c.pixels += n
                 for k in self.methods:
+                    keep = kept[k]
                     c.sse[k] = c.sse.get(k, 0.0) + float(np.sum(errs[k] ** 2))
-                    c.covered[k] = c.covered.get(k, 0) + int(np.count_nonzero(covered(results[k])[m]))
+                    c.covered[k] = c.covered.get(k, 0) + int(np.count_nonzero(keep))
+                    c.sse_kept[k] = c.sse_kept.get(k, 0.0) + float(np.sum(errs[k][keep] ** 2))
                     sig = results[k].sigma_total[m]
                     if k != self.baseline and np.all(np.isfinite(sig)) and np.any(sig > 0):
                         c.errors.setdefault(k, []).append(errs[k].astype(np.float32))
@@ -304,7 +309,9 @@ class GeneralizationScorer:
             ece = {k: reliability(np.concatenate(c.errors[k]), np.concatenate(c.sigmas[k])).ece for k in c.errors}
             out.append(CellScore(fam, grp, c.bursts, c.pixels,
                                  {k: math.sqrt(c.sse[k] / c.pixels) for k in self.methods},
-                                 {k: c.covered[k] / c.pixels for k in self.methods}, ece))
+                                 {k: c.covered[k] / c.pixels for k in self.methods}, ece,
+                                 {k: math.sqrt(c.sse_kept[k] / c.covered[k]) if c.covered[k] else math.nan
+                                  for k in self.methods}))
         return out
 
     def strata(self) -> list[StratumScore]:
@@ -337,15 +344,16 @@ def _f(v: float | None, digits: int = 3) -> str:
 
 
 def cells_table(cells: list[CellScore], network: str = NETWORK, baseline: str = BASELINE) -> str:
-    """Markdown: per family and motion group, RMSE of both, gain, ECE and coverage."""
+    """Markdown: per family and motion group, RMSE of both, gain, ECE, coverage and the RMSE of the kept pixels."""
     lines = [f"| family | motions | bursts | pixels | {network} RMSE (rad) | {baseline} RMSE (rad) | "
-             f"gain ({baseline} / net) | ECE net | coverage net / 3-step | |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             f"gain ({baseline} / net) | ECE net | coverage net / 3-step | RMSE of the kept pixels net / 3-step | |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cells:
         g = c.gain(network, baseline)
         lines.append(
             f"| {c.family} | {c.group} | {c.bursts} | {c.pixels} | {_f(c.rmse[network], 4)} | {_f(c.rmse[baseline], 4)} | "
             f"{g:.2f}x | {_f(c.ece.get(network))} | {_f(c.coverage[network], 3)} / {_f(c.coverage[baseline], 3)} | "
+            f"{_f(c.rmse_kept.get(network, math.nan), 4)} / {_f(c.rmse_kept.get(baseline, math.nan), 4)} | "
             f"{'**net worse**' if g < 1 else ''} |")
     return "\n".join(lines)
 

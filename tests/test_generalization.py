@@ -157,3 +157,31 @@ def test_fringe_phase_change_is_zero_still_and_orders_the_three_step_error(cases
     small, large = change < 0.05, (change > 0.1) & (change < 0.5)
     assert small.sum() > 50 and large.sum() > 50, (small.sum(), large.sum())
     assert np.median(err[large]) > 3 * np.median(err[small]), (np.median(err[large]), np.median(err[small]))
+
+
+def test_kept_rmse_is_the_error_of_the_pixels_the_keep_test_passes(cases) -> None:
+    """RMSE of the kept pixels: over the truth-mask pixels whose own keep test passes (a method that
+    marks its bad pixels uncertain is scored on the rest), checked against a direct computation."""
+    from gearscan.core.phase import phase_error
+    from gearscan.generalization import covered
+
+    def flag_half(frames, full_scale, angles=None):  # three-step PS, its left half declared useless
+        r = classical_method(frames, full_scale, angles)
+        sigma = r.sigma_total.copy()
+        sigma[:, : sigma.shape[1] // 2] = 10.0
+        return dataclasses.replace(r, sigma_total=sigma)
+
+    scorer = GeneralizationScorer([BASELINE, NETWORK])
+    sse = n = 0.0
+    for motion, case in zip([STILL_M, ONE_DEG, BACK], cases, strict=True):
+        res = run_methods(case, {BASELINE: classical_method, NETWORK: flag_half})
+        scorer.add("tiny", motion, case, res)
+        if motion.kind == MOVING:
+            keep = covered(res[NETWORK]) & case.truth.mask
+            sse += float(np.sum(phase_error(res[NETWORK].phase, case.truth.phase)[keep].astype(np.float64) ** 2))
+            n += int(keep.sum())
+    cell = {(c.family, c.group): c for c in scorer.cells()}[("tiny", MOVING)]
+    assert 0 < n < cell.pixels
+    assert cell.rmse_kept[NETWORK] == pytest.approx(np.sqrt(sse / n), rel=1e-9)
+    assert cell.coverage[NETWORK] == pytest.approx(n / cell.pixels)
+    assert cell.rmse[NETWORK] == pytest.approx(cell.rmse[BASELINE])  # same phase: only what is kept differs
