@@ -1,4 +1,4 @@
-"""Per-rig adaptation (the paper's digital-twin workflow) on unseen-rig test scenes: zero-shot vs fine-tuned.
+"""Per-rig adaptation (the paper's digital-twin workflow) on test scenes: zero-shot vs fine-tuned.
 
     nice -n 10 .venv/bin/python benchmarks/adaptation.py --family side          # one scene, ~35 CPU min
     nice -n 10 .venv/bin/python benchmarks/adaptation.py --family radial-wide
@@ -293,7 +293,7 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
     r0 = results[0]
     h = r0["host"]
     lines = [
-        "# Per-rig adaptation on unseen-rig test scenes: zero-shot vs 10 and 30 CPU minutes of fine-tuning",
+        "# Per-rig adaptation on test scenes: zero-shot vs 10 and 30 CPU minutes of fine-tuning",
         "",
         "`nice -n 10 python benchmarks/adaptation.py --family F` per family, then `--report`; "
         + "; ".join(f"{r['family']}: commit `{r['commit']}`{' (uncommitted edits in the tree)' if r['working_tree_dirty'] else ''}"
@@ -323,7 +323,8 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         "bursts. Learning rate, batch, crop and the mix (static bursts x20, both rotation senses) are the shipped "
         "CPU recipe's (`scripts/train_default.py`: batch 8, 128^2 crops), set before any run; a constant learning rate so that the "
         "10-minute mark is where a `--budget-cpu-min 10` run stops.",
-        f"- **Split**: the scenes are the first scene of each unseen-rig test family (`twin/families.py`, test seeds; "
+        f"- **Split**: the scenes are the first scene of each test family run (`twin/families.py`, test seeds: the "
+        "product's default rig with a test gear, or a rig never trained on; "
         f"test split: {describe('test')}). The adaptation data are the user's workflow on that rig and gear: "
         "`purpose: adaptation` (a test tooth count is the user's gear, allowed there), a **non-test seed** and start "
         "angles on a grid that the test bursts' random angles miss (the smallest gap, modulo a pitch, is stated; "
@@ -391,7 +392,7 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--family", help="unseen-rig test family to adapt to (side, radial-wide, oblique, face)")
+    ap.add_argument("--family", help="test family to adapt to (default, radial-wide, side, oblique, face)")
     ap.add_argument("--scene", type=int, default=0, help="which scene of the family (0: the first)")
     ap.add_argument("--budget", type=float, default=30.0, help="CPU minutes of fine-tuning")
     ap.add_argument("--marks", type=lambda s: [float(v) for v in s.split(",")], default=[5.0, 10.0, 20.0])
