@@ -48,6 +48,7 @@ def main() -> None:
     ap.add_argument("--model", type=Path, default=None, help="network weights (.safetensors); default: the shipped model")
     ap.add_argument("--out", type=Path, default=HERE.parent / "out" / "frame_fit_heldout")
     args = ap.parse_args()
+    commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     import open3d as o3d
 

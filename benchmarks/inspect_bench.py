@@ -16,6 +16,7 @@ unless ``--fixed-order``; ``--compare`` also fits the same revolution recorded t
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -37,8 +38,11 @@ def host() -> str:
     return f"{cpu}, {len(os.sched_getaffinity(0))} cores ({isa}), 1-min load {os.getloadavg()[0]:.2f} at start"
 
 
+@functools.cache
 def commit() -> str:
-    """HEAD, marked when tracked files carry uncommitted edits (the report then ran code HEAD lacks)."""
+    """HEAD, marked when tracked files carry uncommitted edits (the report then ran code HEAD lacks).
+
+    Cached: the first call (before a report writes its own files) is the one that counts."""
     try:
         head = subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True).strip()
         dirty = subprocess.check_output(["git", "status", "--porcelain", "--untracked-files=no"], cwd=HERE, text=True)
@@ -61,6 +65,7 @@ def main() -> None:
     ap.add_argument("--voxel-mm", type=float, default=0.1)
     ap.add_argument("--min-bursts", type=int, default=3)
     args = ap.parse_args()
+    commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     import open3d as o3d
 

@@ -40,6 +40,7 @@ def main() -> None:
     ap.add_argument("--per-motion", type=int, default=3)
     ap.add_argument("--model", default="inference/weights/default.safetensors")
     args = ap.parse_args()
+    commit()  # before this run writes its report: a tree dirty with it is not an edit
     torch.set_num_threads(2)
     predictor = Predictor.load(args.model)
     methods = {"three-step PS": classical_method, "CD-DCU-Net": network_method(predictor)}
