@@ -104,7 +104,7 @@ def run_family(args) -> None:
     torch.set_num_threads(args.threads)
     machine = host()
     scene = family_scenes(args.family, args.scene + 1)[args.scene]
-    out = args.runs / args.family
+    out = args.runs / (args.family if args.min_span_deg is None else f"{args.family}-span{args.min_span_deg:g}")
     gear, pitch = scene.gear, 360.0 / scene.gear.teeth
     w, h = scene.rig.camera.width, scene.rig.camera.height
     # adaptation data: the scene's rig and gear, a non-test seed, start points on a grid within one pitch
@@ -128,9 +128,11 @@ def run_family(args) -> None:
         raise SystemExit(f"a test burst angle lies on an adaptation pose (gap {gap:.2g} deg): change --start-points")
     val_groups = [k for k in range(args.start_points) if k % args.val_every == args.val_every - 1]
     train_groups = [k for k in range(args.start_points) if k not in val_groups]
+    # the user's speed (optional): only bursts spanning at least --min-span-deg, as the turntable turns in use
+    min_span = None if args.min_span_deg is None else max(1, round(args.min_span_deg / spec.pose_step_deg))
     train_set = TwinBurstDataset(data, groups=train_groups, static=True, static_repeat=20, reverse=True,
-                                 crop=args.crop, seed=0)
-    val_full = TwinBurstDataset(data, groups=val_groups, static=True, reverse=True)
+                                 crop=args.crop, seed=0, min_span=min_span)
+    val_full = TwinBurstDataset(data, groups=val_groups, static=True, reverse=True, min_span=min_span)
     pick = np.random.default_rng(0).choice(len(val_full), args.val_items, replace=False)
     val_set = Subset(val_full, sorted(pick.tolist()))
     meta = read_config(DEFAULT_MODEL)
@@ -173,14 +175,16 @@ def run_family(args) -> None:
               f"rad (three-step {baseline[MOVING]:.4f} / {baseline[STILL]:.4f})", flush=True)
     machine["loadavg_end"] = os.getloadavg()
     res = {
-        "family": args.family, "scene": scene.name, "scene_seed": scene.seed, "params": dict(scene.params),
+        "family": args.family, "scene_seed": scene.seed, "params": dict(scene.params),
+        "scene": scene.name + ("" if args.min_span_deg is None else f", adapted on spans >= {args.min_span_deg:g} deg"),
         "period_px": scene.period_px, "resolution": f"{w}x{h}", "commit": git("rev-parse", "--short", "HEAD"),
         "working_tree_dirty": bool(git("status", "--porcelain", "--untracked-files=no")), "host": machine,
         "torch_threads": args.threads, "precision": Predictor.load(DEFAULT_MODEL).precision,
         "model": {"path": str(DEFAULT_MODEL.relative_to(REPO) if DEFAULT_MODEL.is_relative_to(REPO) else DEFAULT_MODEL),
                   "sha256": file_sha256(DEFAULT_MODEL)[:12]},
         "adaptation": {"seed": spec.seed, "seed_split": "train" if SPLITS["train"].has_seed(spec.seed) else "val",
-                       "start_points": args.start_points, "start_step_deg": spec.start_step_deg,
+                       "start_points": args.start_points, "min_span_deg": args.min_span_deg,
+                       "moving_train_bursts_per_start_point": sum(1 for c in train_set.combos if c[0] != c[2]), "start_step_deg": spec.start_step_deg,
                        "poses": spec.poses, "pose_step_deg": spec.pose_step_deg, "steps": spec.steps,
                        "train_start_points": train_groups, "val_start_points": val_groups,
                        "train_items": len(train_set), "val_items": len(val_set), "render_s": render_s,
@@ -405,6 +409,9 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--steps-per-epoch", type=int, default=40)
+    ap.add_argument("--min-span-deg", type=float, default=None,
+                    help="adaptation bursts spanning at least this (frame 1 to 3): the user's turntable speed; "
+                         "default: every span the poses give (0.1-1.7 deg)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--precision", default="fp32", choices=["auto", "fp32", "bf16"],
                     help="training autocast (fp32: on this AVX512-BF16 host without AMX a bf16 step cost 1.7 CPU s "

@@ -115,6 +115,19 @@ def test_reverse_plays_moving_bursts_backwards(small_dataset):
     assert rev["span_deg"] == pytest.approx(-(k - i) * spec.pose_step_deg)
 
 
+def test_min_span_keeps_the_bursts_that_turn_at_least_that_far(small_dataset):
+    """The user's turntable speed: only bursts spanning >= min_span poses (both senses), still ones kept."""
+    root, spec = small_dataset
+    ds = TwinBurstDataset(root, groups=[0], reverse=True, static=True, min_span=10)
+    moving = [c for c in ds.combos if c[0] != c[2]]
+    assert moving and all(abs(c[2] - c[0]) >= 10 for c in moving)
+    assert len(moving) == 2 * sum((18 - s) * (s - 1) for s in range(10, 18))  # every i<j<k with k-i >= 10, twice
+    assert sum(1 for c in ds.combos if c[0] == c[2]) == 18
+    assert all(abs(ds[ds.combos.index(c)]["span_deg"]) >= 10 * spec.pose_step_deg - 1e-9 for c in moving[:3])
+    with pytest.raises(DatasetError, match="spans 18"):
+        TwinBurstDataset(root, groups=[0], min_span=18)
+
+
 def test_view_randomised_scenes_span_views_modules_and_fringe_periods():
     """random_view_scene draws every view, modules 0.5-5 mm and camera periods 5-60 px (median over
     the lit pixels, measured here on the rendered surface), keeping the gear's tooth count."""

@@ -236,6 +236,7 @@ class TwinBurstDataset:
         *,
         motion: Motion = "all",
         max_span: int | None = None,
+        min_span: int | None = None,
         static: bool = False,
         static_repeat: int = 1,
         crop: int | None = None,
@@ -265,6 +266,10 @@ class TwinBurstDataset:
             raise DatasetError(f"motion must be all, uniform or nonuniform, got {motion!r}")
         if max_span is not None:
             combos = [c for c in combos if c[2] - c[0] <= max_span]
+        if min_span is not None:
+            combos = [c for c in combos if c[2] - c[0] >= min_span]
+        if not combos and not static:
+            raise DatasetError(f"no moving burst of {self.spec.poses} poses spans {min_span or 0}..{max_span} poses")
         if static_repeat < 1:
             raise DatasetError(f"static_repeat must be >= 1, got {static_repeat}")
         if reverse:  # the turntable turning the other way: poses k > j > i, label at pose k
