@@ -15,7 +15,7 @@ that were best on val at 5, 10 and 20 CPU minutes are saved on the way (with a c
 a 10-minute budget run stops on the same trajectory). Each checkpoint is then scored on the
 scene's **test** bursts (test seed, rendered on the fly: the paper's three motions both ways and
 still bursts, ``--reps`` bursts each) against three-step PS, as ``benchmarks/generalization.py``
-scores them. Writes ``runs/adaptation/<family>/result.json``; ``--report`` gathers them into
+scores them. Writes ``runs/adaptation/<family>[-span<deg>]/result.json``; ``--report`` gathers them into
 ``benchmarks/adaptation_report.{md,json,png}``.
 """
 
@@ -129,7 +129,7 @@ def run_family(args) -> None:
     val_groups = [k for k in range(args.start_points) if k % args.val_every == args.val_every - 1]
     train_groups = [k for k in range(args.start_points) if k not in val_groups]
     # the user's speed (optional): only bursts spanning at least --min-span-deg, as the turntable turns in use
-    min_span = None if args.min_span_deg is None else max(1, round(args.min_span_deg / spec.pose_step_deg))
+    min_span = None if args.min_span_deg is None else math.ceil(args.min_span_deg / spec.pose_step_deg - 1e-9)
     train_set = TwinBurstDataset(data, groups=train_groups, static=True, static_repeat=20, reverse=True,
                                  crop=args.crop, seed=0, min_span=min_span)
     val_full = TwinBurstDataset(data, groups=val_groups, static=True, reverse=True, min_span=min_span)
@@ -184,7 +184,8 @@ def run_family(args) -> None:
                   "sha256": file_sha256(DEFAULT_MODEL)[:12]},
         "adaptation": {"seed": spec.seed, "seed_split": "train" if SPLITS["train"].has_seed(spec.seed) else "val",
                        "start_points": args.start_points, "min_span_deg": args.min_span_deg,
-                       "moving_train_bursts_per_start_point": sum(1 for c in train_set.combos if c[0] != c[2]), "start_step_deg": spec.start_step_deg,
+                       "moving_train_bursts_per_start_point": sum(1 for c in train_set.combos if c[0] != c[2]),
+                       "still_share": sum(1 for c in train_set.combos if c[0] == c[2]) / len(train_set.combos), "start_step_deg": spec.start_step_deg,
                        "poses": spec.poses, "pose_step_deg": spec.pose_step_deg, "steps": spec.steps,
                        "train_start_points": train_groups, "val_start_points": val_groups,
                        "train_items": len(train_set), "val_items": len(val_set), "render_s": render_s,
@@ -261,11 +262,13 @@ def _extrapolation(r: dict) -> str:
 
 
 def write_report(prefix: Path, runs: Path = RUNS) -> None:
-    results = [json.loads(p.read_text()) for p in sorted(runs.glob("*/result.json"))]
+    paths = sorted(runs.glob("*/result.json"))
+    results = [json.loads(p.read_text()) for p in paths]
     if not results:
         raise SystemExit(f"no results under {runs}: run with --family first")
-    for r in results:
-        r["label_floor"] = label_floor(runs / r["family"] / "data", r["adaptation"]["val_start_points"])
+    for p, r in zip(paths, results, strict=True):
+        r["run"] = p.parent.name  # the family, or family-spanX: two runs of one family stay apart
+        r["label_floor"] = label_floor(p.parent / "data", r["adaptation"]["val_start_points"])
     gen = json.loads((HERE / "generalization_report.json").read_text())
     fam_zero = {(c["family"], c["group"]): c for c in gen["cells"]}
     import matplotlib
@@ -300,25 +303,25 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         "# Per-rig adaptation on test scenes: zero-shot vs 10 and 30 CPU minutes of fine-tuning",
         "",
         "`nice -n 10 python benchmarks/adaptation.py --family F` per family, then `--report`; "
-        + "; ".join(f"{r['family']}: commit `{r['commit']}`{' (uncommitted edits in the tree)' if r['working_tree_dirty'] else ''}"
+        + "; ".join(f"{r['run']}: commit `{r['commit']}`{' (uncommitted edits in the tree)' if r['working_tree_dirty'] else ''}"
                     for r in results) + ".",
         "",
         f"- **Host**: {h['cpu']}, {h['cores']} cores shared with other work, AVX-512 {'yes' if h['avx512f'] else 'no'}, "
         f"AVX512-BF16 {'yes' if h['avx512_bf16'] else 'no'}, AMX-BF16 {'yes' if h['amx_bf16'] else 'no'}; load average "
-        + "; ".join(f"{r['family']} {r['host']['loadavg_start'][0]:.1f} at start, {r['host']['loadavg_end'][0]:.1f} at the end"
+        + "; ".join(f"{r['run']} {r['host']['loadavg_start'][0]:.1f} at start, {r['host']['loadavg_end'][0]:.1f} at the end"
                     for r in results)
-        + f"; {r0['torch_threads']} torch threads. Training autocast **{r0['training']['precision']}** (measured "
-        "before the runs on this host, w8, 8x128^2: 1.2 CPU s per step in fp32, 1.7 in bf16: no AMX); the test "
+        + f"; {r0['torch_threads']} torch threads. Training autocast **{r0['training']['precision']}** (chosen in "
+        "session 21 on this host, w8, 8x128^2: 1.2 CPU s per step in fp32, 1.7 in bf16 under that day's load: no AMX); the test "
         f"scoring in **{r0['precision']}**, the Predictor's automatic choice, as in `generalization_report.md`.",
         "- **Model** fine-tuned and scored at 0 minutes: "
-        + "; ".join(f"{r['family']}: `{r['model']['path']}` sha256 `{r['model']['sha256']}`" if "model" in r
-                    else f"{r['family']}: not recorded" for r in results)
+        + "; ".join(f"{r['run']}: `{r['model']['path']}` sha256 `{r['model']['sha256']}`" if "model" in r
+                    else f"{r['run']}: not recorded" for r in results)
         + " (the shipped default when the run was made).",
         "- **CPU minutes** are `time.process_time()` of the training process (all its threads), counted from the "
         "start of fine-tuning: validation included, rendering and the closing sigma calibration not. Other load on "
         "the shared cores does not eat the budget directly, but it is not neutral either: the same step (w8, batch 8, "
         "128^2 crops) cost "
-        + ", ".join(f"{60 * r['training']['cpu_min'] / max(r['training']['steps'], 1):.2f} CPU s in the {r['family']} run"
+        + ", ".join(f"{60 * r['training']['cpu_min'] / max(r['training']['steps'], 1):.2f} CPU s in the {r['run']} run"
                     for r in results)
         + " (load averages under Host; torch's threads burn CPU time waiting for a descheduled peer), so a busy host "
         "buys fewer steps per CPU minute. Wall time is stated per run.",
@@ -382,10 +385,10 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
             f"{'yes' if t['budget_hit'] else 'no'} | {a['min_gap_to_test_angles_deg']:.4f} |")
     lines += ["", "Zero-shot numbers of the whole family (16 scenes, `generalization_report.md`, same model) for scale:", "",
               "| family | moving net / three-step (rad) | still net / three-step (rad) |", "|---|---|---|"]
-    for r in results:
-        mv, st = fam_zero.get((r["family"], MOVING)), fam_zero.get((r["family"], STILL))
+    for fam in dict.fromkeys(r["family"] for r in results):
+        mv, st = fam_zero.get((fam, MOVING)), fam_zero.get((fam, STILL))
         if mv and st:
-            lines.append(f"| {r['family']} | {mv['rmse']['CD-DCU-Net']:.4f} / {mv['rmse']['three-step PS']:.4f} | "
+            lines.append(f"| {fam} | {mv['rmse']['CD-DCU-Net']:.4f} / {mv['rmse']['three-step PS']:.4f} | "
                          f"{st['rmse']['CD-DCU-Net']:.4f} / {st['rmse']['three-step PS']:.4f} |")
     lines += ["", "Scene parameters:", ""]
     lines += [f"- {r['scene']}: " + ", ".join(f"{k} {v}" for k, v in r["params"].items()) for r in results]
@@ -411,7 +414,7 @@ def main() -> None:
     ap.add_argument("--steps-per-epoch", type=int, default=40)
     ap.add_argument("--min-span-deg", type=float, default=None,
                     help="adaptation bursts spanning at least this (frame 1 to 3): the user's turntable speed; "
-                         "default: every span the poses give (0.1-1.7 deg)")
+                         "default: every span the poses give (0.2-1.7 deg)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--precision", default="fp32", choices=["auto", "fp32", "bf16"],
                     help="training autocast (fp32: on this AVX512-BF16 host without AMX a bf16 step cost 1.7 CPU s "
@@ -422,6 +425,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE / "adaptation_report")
     ap.add_argument("--runs", type=Path, default=RUNS, help="folder of the per-family runs (data, weights, result.json)")
     args = ap.parse_args()
+    if args.min_span_deg is not None and not args.min_span_deg > 0:
+        ap.error(f"--min-span-deg: expected > 0 degrees, got {args.min_span_deg}")
     if args.report:
         write_report(args.out, args.runs)
     elif args.family:

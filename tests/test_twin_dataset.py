@@ -124,8 +124,9 @@ def test_min_span_keeps_the_bursts_that_turn_at_least_that_far(small_dataset):
     assert len(moving) == 2 * sum((18 - s) * (s - 1) for s in range(10, 18))  # every i<j<k with k-i >= 10, twice
     assert sum(1 for c in ds.combos if c[0] == c[2]) == 18
     assert all(abs(ds[ds.combos.index(c)]["span_deg"]) >= 10 * spec.pose_step_deg - 1e-9 for c in moving[:3])
-    with pytest.raises(DatasetError, match="spans 18"):
-        TwinBurstDataset(root, groups=[0], min_span=18)
+    for static in (False, True):  # with still bursts too: an impossible speed is an error, not a still-only set
+        with pytest.raises(DatasetError, match="spans 18..17"):
+            TwinBurstDataset(root, groups=[0], min_span=18, static=static)
 
 
 def test_view_randomised_scenes_span_views_modules_and_fringe_periods():

@@ -268,8 +268,9 @@ class TwinBurstDataset:
             combos = [c for c in combos if c[2] - c[0] <= max_span]
         if min_span is not None:
             combos = [c for c in combos if c[2] - c[0] >= min_span]
-        if not combos and not static:
-            raise DatasetError(f"no moving burst of {self.spec.poses} poses spans {min_span or 0}..{max_span} poses")
+        if not combos and (min_span is not None or not static):
+            raise DatasetError(f"no moving burst of {self.spec.poses} poses spans {min_span or 0}.."
+                               f"{self.spec.poses - 1 if max_span is None else max_span} poses")
         if static_repeat < 1:
             raise DatasetError(f"static_repeat must be >= 1, got {static_repeat}")
         if reverse:  # the turntable turning the other way: poses k > j > i, label at pose k
