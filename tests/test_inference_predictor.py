@@ -376,3 +376,20 @@ def test_predict_cli_sends_a_still_burst_to_three_step(saved, tmp_path):
     for name in ("n.npz", "m.npz"):  # --still-span-deg 0, or a turning burst: the network
         with np.load(tmp_path / name) as z:
             assert str(z["mode"]) == "deterministic"
+
+
+def test_dim_steep_pixels_do_not_outvote_the_fringe_direction():
+    """The orientation vote is weighted by modulation: a bright region with fringes rising along
+    the columns outweighs a larger dim region whose phase steps fall (steep flanks, shadows)."""
+    from gearscan.inference.predictor import fringe_phase_decreases_along_columns
+
+    cols = np.arange(64, dtype=np.float64)
+    shifts = np.array([0.0, 2 * np.pi / 3, 4 * np.pi / 3])[:, None, None]
+    rising = np.broadcast_to(2 * np.pi * cols / 12.0, (64, 64))  # 12 px fringes, increasing
+    falling = -rising
+    phase = np.where(np.arange(64)[:, None] < 24, rising, falling)  # 24 bright rows up, 40 dim rows down
+    amp = np.where(np.arange(64)[:, None] < 24, 0.4, 0.08)[None]
+    frames = (0.5 + amp * np.cos(phase[None] + shifts)).astype(np.float32)
+    x = torch.from_numpy(frames)[None]
+    assert not fringe_phase_decreases_along_columns(x)  # an unweighted count would say "decreasing" (40 of 64 rows)
+    assert fringe_phase_decreases_along_columns(torch.flip(x, dims=[-1]))
