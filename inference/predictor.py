@@ -119,7 +119,7 @@ def fringe_phase_decreases_along_columns(x: torch.Tensor, min_modulation: float 
     steps means the fringes run the other way. Unweighted, the vote flipped 3 of 60 bursts of the
     default rig with a 69-tooth gear (the adaptation data of benchmarks/adaptation.py: large gear,
     5-12 px fringes, steep dim flanks whose steps reverse) into errors of about 1.9 rad; weighted,
-    none. On val (72 bursts per folder, and the same mirrored) the two votes differ by one burst:
+    none. On val (72 bursts per folder, and the same mirrored) the two votes differ by one burst per set:
     val_radial 0/72 misread and 72/72 mirrored found by both; val_views 2/72 misread and 70/72 found
     weighted, 1/72 and 71/72 unweighted.
     """
