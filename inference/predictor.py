@@ -109,7 +109,8 @@ def frames_to_tensor(frames: np.ndarray, full_scale: float | None = None) -> tor
 
 
 def fringe_phase_decreases_along_columns(x: torch.Tensor, min_modulation: float = 0.05) -> bool:
-    """True when the three-step phase of ``x`` (1, C, H, W) mostly decreases with the column index.
+    """True when more than half of the modulation-weighted column steps of the three-step phase of
+    ``x`` (1, C, H, W: one burst; a batch would be decided as one) decrease.
 
     The twin rigs (and so the training data) have the projector's phase increasing along the
     camera's columns; a camera or projector mounted mirrored reverses it, and the network, which
@@ -258,6 +259,8 @@ class Predictor:
             raise ValueError(
                 f"mc={mc}: this model ({self.model.config.name}) has no Concrete Dropout layers; use mc=0"
             )
+        if x.ndim != 4 or x.shape[0] != 1:
+            raise ValueError(f"x: expected one burst (1, C, H, W), got shape {tuple(x.shape)}")
         x = x.to(self.device)
         calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
         needs_classical = self.still_gate_rad > 0 or (calibration is not None and calibration.needs_departure)
