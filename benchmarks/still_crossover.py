@@ -26,9 +26,9 @@ from gearscan.evaluate import (
     score,
 )
 from gearscan.inference.decoder import STILL_SPAN_DEG
-from gearscan.inference.predictor import Predictor
+from gearscan.inference.predictor import Predictor, model_path
 
-HERE = Path(__file__).parent
+HERE = Path(__file__).resolve().parent
 STEPS_DEG = (0.0, 0.0125, 0.025, 0.05, 0.1, 0.2)
 
 
@@ -38,11 +38,13 @@ def main() -> None:
                     help="twin validation folders (scripts/reproduce_model.py renders these)")
     ap.add_argument("--scenes", type=int, default=4)
     ap.add_argument("--per-motion", type=int, default=3)
-    ap.add_argument("--model", default="inference/weights/default.safetensors")
+    ap.add_argument("--model", default=None, help="network weights (.safetensors); default: the shipped one")
     args = ap.parse_args()
     commit()  # before this run writes its report: a tree dirty with it is not an edit
     torch.set_num_threads(2)
     predictor = Predictor.load(args.model)
+    weights = model_path(args.model)
+    weights = str(weights.relative_to(HERE.parent) if weights.is_relative_to(HERE.parent) else weights)
     methods = {"three-step PS": classical_method, "CD-DCU-Net": network_method(predictor)}
     motions = {f"{d:g}": (d, d) for d in STEPS_DEG}
     rows = []
@@ -55,7 +57,7 @@ def main() -> None:
     wins_from = {root: _wins_from(rows, root) for root in args.val}
     (HERE / "still_crossover_report.json").write_text(json.dumps(
         {"rows": rows, "network_wins_from_span_deg": wins_from, "commit": commit(), "host": host(),
-         "model": args.model, "loadavg": os.getloadavg()}, indent=2))
+         "model": weights, "loadavg": os.getloadavg()}, indent=2))
     lines = [
         "# Still and slow bursts: three-step PS against the network",
         "",
@@ -64,7 +66,7 @@ def main() -> None:
         f"(the first {args.scenes} gears of each folder: val-split gears and rigs, never trained on), network deterministic.",
         "",
         f"- Commit `{commit()}`; host: {host()}.",
-        f"- Model: `{args.model}` ({predictor.model.config.name}), precision {predictor.precision}.",
+        f"- Model: `{weights}` ({predictor.model.config.name}), precision {predictor.precision}.",
         "",
         "| data | step deg | span deg | three-step PS rad | CD-DCU-Net rad | better |",
         "|---|---|---|---|---|---|",

@@ -22,7 +22,6 @@ first runs' ``metrics.csv``) is drawn beside it: finer in steps, on val. Writes
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import time
@@ -31,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from adaptation import file_sha256  # same folder: which weights a report measured
 from inspect_bench import commit, host  # same folder: the host and commit lines of every report
 
 from gearscan.evaluate import classical_method, network_method
@@ -88,10 +88,6 @@ RUNS = (
         "w8 first run continued, same data", REPO / "inference/weights/v6_training_metrics.csv",
         continues="w8, GPU first run"),
 )
-
-
-def sha12(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()[:12]
 
 
 def by_label(label: str) -> Run:
@@ -176,7 +172,7 @@ def main() -> None:
         still = {f: cells[(f, "still")] for f in FAMILIES if (f, "still") in cells}
         worst = max(still, key=lambda f: still[f].rmse[r.label] / still[f].rmse[BASELINE])
         rows.append({
-            "label": r.label, "weights": str(r.weights.relative_to(REPO)), "sha256": sha12(r.weights),
+            "label": r.label, "weights": str(r.weights.relative_to(REPO)), "sha256": file_sha256(r.weights)[:12],
             "width": r.width, "steps": r.steps, "batch": r.batch, "crops": r.crops, "recipe": r.recipe,
             "continues": r.continues,
             "moving_rmse": {UNSEEN: pool(cells, (MOVING,), r.label),

@@ -14,8 +14,7 @@ motion group and per stratum of six pixel properties:
   frame 1 to frame 3, ``|phi_3 - phi_1| / 2 pi`` of the truth (moving bursts only): the cause of
   three-step PS's motion error (image motion along the fringes does not change it). For a steady
   drift three-step PS's error grows about as half the change; its solve is singular at a change
-  of 1/3 period (drift with the shifts) or 2/3 period (against them), and from about half a period
-  on its phase is no better than a random one.
+  of 1/3 period (drift with the shifts) or 2/3 period (against them).
 
 Strata of one axis partition the pixels of their group (a last ``n/a`` bin takes non-finite
 values), so their counts add up to the pooled count. A stratum where the network's RMSE is above
