@@ -14,6 +14,10 @@ set that does early stopping and the sigma calibration; nothing from the test sp
 - ``views``: any view (radial/side/oblique/face), module 0.5-5 mm, camera period 5-60 px, train
   tooth counts 11-76;
 - ``val``: the same two randomisers on val tooth counts and seeds.
+- ``--dense-radial`` adds ``radial_dense``: the radial randomiser with train tooth counts 11-80 and
+  camera periods 5-40 px (log-uniform), where large gears move their fringes a period and more
+  per degree (the default rig's test family lives there: 11 px fringes at 256 px, gears to 80
+  teeth), and its val twin ``val_radial_dense`` (val tooth counts 25-78, seed 10003).
 
 Every item set is a folder of its own (one render process each), so the render runs in parallel
 and resumes where it stopped. Training is ``scripts/train_default.py`` (deterministic stage,
@@ -48,32 +52,42 @@ def _teeth(split: str, lo: int, hi: int) -> list[int]:
     return [t for t in range(lo, hi + 1) if split_of_teeth(t) == split]
 
 
-# a render job: (folder name, teeth, repeats, max start points, any view?, seed); one seed per
-# folder so no two folders share a scene, each checked against its split in plan()
+# a render job: (folder name, teeth, repeats, max start points, any view?, seed, radial camera period
+# range or None); one seed per folder so no two folders share a scene, each checked against its split in plan()
 _RADIAL_TEETH = _teeth("train", 11, 40)  # the default's family: the shipped model's tooth range
 _VIEW_TEETH = _teeth("train", 11, 76)
-_VAL_SETS = [("val_radial", _teeth("val", 11, 40), 2, 2, False, 10002),
-             ("val_views", _teeth("val", 41, 78), 1, 2, True, 10001)]
+_DENSE_TEETH = _teeth("train", 11, 80)
+DENSE_PERIOD_PX = (5.0, 40.0)
+_VAL_SETS = [("val_radial", _teeth("val", 11, 40), 2, 2, False, 10002, None),
+             ("val_views", _teeth("val", 41, 78), 1, 2, True, 10001, None)]
+_VAL_DENSE = ("val_radial_dense", _teeth("val", 11, 80), 1, 2, False, 10003, DENSE_PERIOD_PX)
 
 
 def _chunks(values: list[int], n: int) -> list[list[int]]:
     return [values[i::n] for i in range(n) if values[i::n]]
 
 
-def plan(scale: float) -> tuple[list[tuple], list[tuple]]:
-    """The render jobs (train, val) for a data ``scale`` (1.0: about 420 train start points, 18 GB at 256x256; 0.7: 300)."""
+def plan(scale: float, dense: int = 0) -> tuple[list[tuple], list[tuple]]:
+    """The render jobs (train, val) for a data ``scale`` (1.0: about 420 train start points, 18 GB at 256x256; 0.7: 300).
+
+    ``dense`` > 0 adds that many repeats of the dense radial set (34 train gears each) and its val set.
+    """
     repeats_radial = max(1, round(6 * scale))
     repeats_views = max(1, round(4 * scale))
     train = []
     for i, teeth in enumerate(_chunks(_RADIAL_TEETH, 6)):
-        train.append((f"radial_{i}", teeth, repeats_radial, 1, False, 3001 + i))
+        train.append((f"radial_{i}", teeth, repeats_radial, 1, False, 3001 + i, None))
     for i, teeth in enumerate(_chunks(_VIEW_TEETH, 10)):
-        train.append((f"views_{i}", teeth, repeats_views, 2, True, 4001 + i))
-    for name, jobs in (("train", train), ("val", _VAL_SETS)):
+        train.append((f"views_{i}", teeth, repeats_views, 2, True, 4001 + i, None))
+    if dense:
+        for i, teeth in enumerate(_chunks(_DENSE_TEETH, 4)):
+            train.append((f"radial_dense_{i}", teeth, dense, 1, False, 3101 + i, DENSE_PERIOD_PX))
+    val = [*_VAL_SETS, *([_VAL_DENSE] if dense else [])]
+    for name, jobs in (("train", train), ("val", val)):
         wrong = [j[0] for j in jobs if split_of_seed(j[5]) != name]
         if wrong:
             raise SplitError(f"render jobs {wrong}: seed outside the {name} split")
-    return train, list(_VAL_SETS)
+    return train, val
 
 
 def _render(job: tuple, root: Path, size: int) -> str:
@@ -81,10 +95,10 @@ def _render(job: tuple, root: Path, size: int) -> str:
     from gearscan.core.gear import GearSpec
     from gearscan.twin.dataset import DatasetSpec, generate_dataset
 
-    name, teeth, repeats, points, views, seed = job
+    name, teeth, repeats, points, views, seed, period = job
     gears = [GearSpec(teeth=t) for t in teeth for _ in range(repeats)]
     spec = DatasetSpec(gears=gears, width=size, height=size, randomize=True, views=views, seed=seed,
-                       max_start_points=points)
+                       max_start_points=points, radial_period_px=period)
     t0 = time.time()
     generate_dataset(root / name, spec)
     return f"{name}: {len(gears)} scenes, {time.time() - t0:.0f} s"
@@ -106,7 +120,8 @@ def _train_cmd(args, train_dirs: list[Path], val_dirs: list[Path], out: Path, ep
             "--steps-per-epoch", str(steps), "--epochs-det", str(epochs_det), "--epochs-drop", str(epochs_drop),
             "--lr", str(args.lr), "--val-items", str(val_items), "--patience", "1000", "--reverse",
             "--static-repeat", str(args.static_repeat), "--dropout-init", "0.02,0.1", "--device", args.device,
-            "--workers", str(args.workers), "--threads", str(args.threads)]
+            "--workers", str(args.workers), "--threads", str(args.threads),
+            *(["--init", str(args.init)] if args.init else [])]
 
 
 def main() -> None:
@@ -127,11 +142,16 @@ def main() -> None:
     ap.add_argument("--train-minutes", type=float, default=120.0, help="wall-clock training budget")
     ap.add_argument("--workers", type=int, default=0, help="DataLoader workers")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--dense-radial", type=int, default=0, metavar="N",
+                    help="add N repeats of the dense radial set (train gears 11-80, camera period 5-40 px) and its val set")
+    ap.add_argument("--init", type=Path, default=None, help="fine-tune from these weights (.safetensors)")
     ap.add_argument("--skip-render", action="store_true", help="the renders are already in --data")
     ap.add_argument("--render-only", action="store_true", help="stop after rendering")
     args = ap.parse_args()
 
-    train_jobs, val_jobs = plan(args.scale)
+    if args.init is not None and not args.init.is_file():
+        raise SystemExit(f"--init {args.init}: no such weights file")
+    train_jobs, val_jobs = plan(args.scale, args.dense_radial)
     t0 = time.time()
     if not args.skip_render:
         render(train_jobs + val_jobs, args.data, args.size, args.jobs)

@@ -166,3 +166,47 @@ def test_dataloader_workers_draw_their_own_crops(small_dataset):
     a, b = (item["input"][0, 0].numpy() for item in loader)
     assert ds.combos[0][0] == ds.combos[1][0]  # same first pose
     assert np.ptp(a) > 0 and not np.array_equal(a, b)
+
+
+def test_dense_radial_scenes_keep_the_rig_and_draw_the_wider_fringe_period():
+    """``radial_period_px`` changes only the fringe period of the radial randomiser (its last draw):
+    the rig, optics and gear of a seed stay those of the default range, and the camera period on the
+    rim spans the wider range, dense fringes included, as measured on the rendered surface."""
+    from gearscan.core.gear import GearSpec
+    from gearscan.twin.randomize import projector_period_for, random_scene
+    from gearscan.twin.render import TwinRenderer
+
+    cam_periods = []
+    for seed in range(16):
+        base = random_scene(np.random.default_rng(seed), GearSpec(teeth=60), 96, 96)
+        rig, optics, g, period = random_scene(np.random.default_rng(seed), GearSpec(teeth=60), 96, 96,
+                                              camera_period_px=(5.0, 40.0))
+        assert g == base[2] and optics == base[1]
+        assert rig.to_json() == base[0].to_json()
+        cam = period / projector_period_for(rig, 1.0, g.pitch_radius)
+        assert 5.0 <= cam <= 40.0
+        cam_periods.append(cam)
+        if seed < 4:  # the rendered fringes agree with the drawn period (median over lit pixels)
+            surf = TwinRenderer(rig, g, optics).surface(0.0)
+            gy, gx = np.gradient(surf.u_proj)
+            grad = np.hypot(gx, gy)[surf.lit]
+            measured = period / np.median(grad[np.isfinite(grad) & (grad > 0)])
+            assert 0.6 * cam <= measured <= 1.6 * cam, (seed, cam, measured)
+    assert min(cam_periods) < 12.0 < max(cam_periods)  # below the default range's floor, and inside it
+
+
+def test_radial_period_spec_is_checked_and_old_indexes_still_resume(small_dataset, tmp_path):
+    with pytest.raises(ValueError, match="radial randomiser only"):
+        DatasetSpec(randomize=True, views=True, radial_period_px=(5.0, 40.0))
+    with pytest.raises(ValueError, match="radial randomiser only"):
+        DatasetSpec(radial_period_px=(5.0, 40.0))
+    with pytest.raises(ValueError, match="4 <= LO < HI"):
+        DatasetSpec(randomize=True, radial_period_px=(40.0, 5.0))
+    # an index written before the field existed resumes (the field at its default matches)
+    root, spec = small_dataset
+    index = json.loads((root / "index.json").read_text())
+    index["spec"].pop("radial_period_px")
+    (root / "index.json").write_text(json.dumps(index))
+    generate_dataset(root, spec)
+    with pytest.raises(DatasetError, match="written for another spec"):
+        generate_dataset(root, spec.model_copy(update={"randomize": True, "radial_period_px": (5.0, 40.0)}))

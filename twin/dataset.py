@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from gearscan.core.gear import GearSpec
 from gearscan.core.patterns import DEFAULT_PERIOD_PX, PatternSet
@@ -68,6 +68,9 @@ class DatasetSpec(BaseModel):
     randomize: bool = Field(False, description="randomise rig, optics and fringe period per gear")
     views: bool = Field(False, description="with randomize: any view (radial, side, oblique, face), module "
                         "0.5-5 mm, camera fringe period 5-60 px (twin.randomize.random_view_scene)")
+    radial_period_px: tuple[float, float] | None = Field(
+        None, description="with randomize (radial view): camera fringe period range LO, HI in px, drawn "
+        "log-uniformly; None: the radial randomiser's own range (twin.randomize.RANGES, uniform 12-40)")
     seed: int = 0
     max_start_points: int | None = Field(None, ge=1, description="per gear, for quick sets")
 
@@ -77,6 +80,19 @@ class DatasetSpec(BaseModel):
         if v % 3:
             raise ValueError(f"steps must be a multiple of 3 so patterns 0, N/3, 2N/3 form a three-step set, got {v}")
         return v
+
+    @field_validator("radial_period_px")
+    @classmethod
+    def _period_range(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and not 4.0 <= v[0] < v[1]:
+            raise ValueError(f"radial_period_px: expected 4 <= LO < HI (camera px), got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _period_needs_radial(self) -> DatasetSpec:
+        if self.radial_period_px is not None and (not self.randomize or self.views):
+            raise ValueError("radial_period_px applies to the radial randomiser only: set randomize=True, views=False")
+        return self
 
 
 def start_points(gear: GearSpec, step_deg: float) -> list[float]:
@@ -105,7 +121,7 @@ def _scene_for(spec: DatasetSpec, gear_index: int) -> tuple[Rig, Optics, GearSpe
             if renderer.truth(renderer.surface(0.0), period).mask.mean() >= 0.03:
                 return rig, optics, g, period
         raise DatasetError(f"gear {gear_index}: no random view in 20 draws sees the gear")
-    return random_scene(rng, gear, spec.width, spec.height)
+    return random_scene(rng, gear, spec.width, spec.height, camera_period_px=spec.radial_period_px)
 
 
 def generate_dataset(
@@ -143,7 +159,11 @@ def generate_dataset(
     index_path = root / INDEX
     if index_path.exists():
         index = json.loads(index_path.read_text())
-        if index.get("spec") != json.loads(spec.model_dump_json()):
+        try:  # compared as specs, so a field added since (at its default) still matches
+            same = DatasetSpec.model_validate(index.get("spec", {})) == spec
+        except ValueError:
+            same = False
+        if not same:
             raise DatasetError(f"{index_path} was written for another spec; use a new folder or the same spec")
         if index.get("purpose", "protocol") != purpose:
             raise DatasetError(f"{index_path} is a {index.get('purpose', 'protocol')} dataset, not {purpose}; "

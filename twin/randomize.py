@@ -53,9 +53,15 @@ def random_optics(rng: np.random.Generator) -> Optics:
 
 
 def random_scene(
-    rng: np.random.Generator, gear: GearSpec, width: int, height: int
+    rng: np.random.Generator, gear: GearSpec, width: int, height: int,
+    camera_period_px: tuple[float, float] | None = None,
 ) -> tuple[Rig, Optics, GearSpec, float]:
-    """A random rig aimed at a randomly scaled copy of ``gear``, random optics and fringe period."""
+    """A random rig aimed at a randomly scaled copy of ``gear``, random optics and fringe period.
+
+    ``camera_period_px`` (LO, HI) widens the fringe period in the camera, drawn log-uniformly (dense
+    fringes of large gears on short-period rigs); None draws it uniformly from :data:`RANGES`. Either
+    way it is the last draw, so the rest of the scene is the same for a seed.
+    """
 
     def u(key: str) -> float:
         lo, hi = RANGES[key]
@@ -80,7 +86,12 @@ def random_scene(
         projector_field_mm=field * 1.4,
     )
     optics = random_optics(rng)
-    period = projector_period_for(rig, u("camera_period_px"), g.pitch_radius)
+    if camera_period_px is None:
+        cam_period = u("camera_period_px")
+    else:
+        lo, hi = camera_period_px
+        cam_period = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+    period = projector_period_for(rig, cam_period, g.pitch_radius)
     return rig, optics, g, period
 
 
