@@ -210,3 +210,24 @@ def test_radial_period_spec_is_checked_and_old_indexes_still_resume(small_datase
     generate_dataset(root, spec)
     with pytest.raises(DatasetError, match="written for another spec"):
         generate_dataset(root, spec.model_copy(update={"randomize": True, "radial_period_px": (5.0, 40.0)}))
+
+
+def test_fringe_drift_per_degree_follows_the_rim_motion():
+    """scripts/fringe_drift_stats: on the default rig the pitch circle moves r * dtheta mm per degree,
+    about width / field_mm px per mm at the image centre, and the drift in periods scales as 1/period."""
+    import importlib.util
+    from pathlib import Path
+
+    from gearscan.core.rig import default_rig
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "fringe_drift_stats.py"
+    spec = importlib.util.spec_from_file_location("fringe_drift_stats", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    gear = GearSpec(teeth=60)
+    rig = default_rig(256, 256, working_radius=gear.pitch_radius)
+    drift, cam_period = mod.periods_per_degree(rig, gear, 40.0)
+    expected_px = gear.pitch_radius * np.radians(1.0) * 256 / 26.0  # field_mm 26 at the stand-off
+    assert drift * cam_period == pytest.approx(expected_px, rel=0.05)
+    assert 8.0 < cam_period < 16.0  # 40 projector px over 36 mm, seen over 26 mm at 256 px, obliquely
+    assert mod.periods_per_degree(rig, gear, 20.0)[0] == pytest.approx(2 * drift, rel=1e-9)
