@@ -260,6 +260,7 @@ def replay_cmd(
     truth: Annotated[bool, typer.Option(help="score against the recording's truth when it has one (--no-truth: what a live run does per burst)")] = True,
     workers: Annotated[int | None, typer.Option(min=1, help="bursts decoded at once (default: 2 on a CPU, 1 on a GPU)")] = None,
     still_span_deg: Annotated[float | None, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never; default 0.075)")] = None,
+    orientation: Annotated[str, typer.Option(help="the rig's fringe phase along the camera columns: normal (rising, the twin's rigs), mirrored, or auto (a vote per burst; misreads fast bursts)")] = "auto",
     strict: Annotated[bool, typer.Option(help="exit 1 when the recording has damage (default: skip it, measure the rest, exit 0)")] = False,
     unwrap: Annotated[str, typer.Option(help="fringe orders from the gear's CAD ('cad'), or CAD-free from its envelope ('envelope') or from the recording's coarse bursts ('coarse')")] = "cad",
     fuse: Annotated[Path | None, typer.Option(help="fuse every burst's cloud in the gear frame and write it here (.ply/.pcd/.csv: x y z mm, sigma, deviation from CAD, bursts)")] = None,
@@ -280,7 +281,9 @@ def replay_cmd(
     from gearscan.replay import replay
 
     span = {} if still_span_deg is None else {"still_span_deg": still_span_deg}
-    decoder = _decoder(classical, mc, model, workers=workers, **span)
+    if orientation not in ("auto", "normal", "mirrored"):
+        raise typer.BadParameter(f"expected auto, normal or mirrored, got {orientation!r}", param_hint="--orientation")
+    decoder = _decoder(classical, mc, model, workers=workers, orientation=orientation, **span)
     web = None
     if serve:
         web = _serve(bind, grpc_port, web_port)
@@ -521,7 +524,8 @@ def _live_run(cfg, *, record, overwrite, bursts, duration, save, max_save_mb, co
     from gearscan.pipeline import PipelineError
 
     decoder = _decoder(False, cfg.model.mc, cfg.model.path, precision=cfg.model.precision,
-                       workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg)
+                       workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg,
+                       orientation=cfg.model.orientation)
     save = save or cfg.viewer.save
     connect = connect or cfg.viewer.connect
     cap = cfg.viewer.max_save_mb if max_save_mb is None else max_save_mb

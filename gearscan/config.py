@@ -72,6 +72,8 @@ mc = 0                       # Monte Carlo passes for model uncertainty (0: one 
 precision = "auto"           # "auto", "fp32" or "bf16"
 # workers = 2                # bursts decoded at once; default: 2 on a CPU (faster than 1), 1 on a GPU
 still_span_deg = 0.075       # bursts spanning less turntable angle go to three-step PS (0: never)
+orientation = "auto"         # fringe phase along the camera's columns: "normal" (rising, as the twin's
+                             # rigs), "mirrored", or "auto" (a vote per burst; it misreads fast bursts)
 
 [recon]
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S
@@ -108,6 +110,7 @@ class ModelSection(BaseModel):
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     workers: int | None = Field(None, ge=1, le=16)
     still_span_deg: float = Field(STILL_SPAN_DEG, ge=0, le=10)
+    orientation: Literal["auto", "normal", "mirrored"] = "auto"
 
 
 class ReconSection(BaseModel):

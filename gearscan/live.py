@@ -175,7 +175,8 @@ def run_live(
 
     rig = cfg.load_rig()
     decoder = decoder or Decoder(cfg.model.path, mc=cfg.model.mc, precision=cfg.model.precision,
-                                 workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg)
+                                 workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg,
+                                 orientation=cfg.model.orientation)
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
                                    unwrap=cfg.recon.unwrap)

@@ -165,6 +165,11 @@ def predict(
             "as live and replay do (no motion, no motion error; 0: always the network)",
         ),
     ] = STILL_SPAN_DEG,
+    orientation: Annotated[
+        str,
+        typer.Option(help="the rig's fringe phase along the camera columns: normal (rising, as on the twin's rigs), "
+                     "mirrored, or auto (a vote on this burst; it misreads fast bursts on large gears)"),
+    ] = "auto",
 ) -> None:
     """Predict wrapped phase and its uncertainty from one three-step burst.
 
@@ -175,11 +180,13 @@ def predict(
 
     from gearscan.core.phase import three_step_result
     from gearscan.inference.model_io import ModelFileError
-    from gearscan.inference.predictor import PRECISIONS, Predictor, resolve_full_scale
+    from gearscan.inference.predictor import ORIENTATIONS, PRECISIONS, Predictor, resolve_full_scale
 
     if precision not in PRECISIONS:
         raise typer.BadParameter(f"expected one of {', '.join(PRECISIONS)}, got {precision!r}", param_hint="--precision")
     check_device(device)
+    if orientation not in ORIENTATIONS:
+        raise typer.BadParameter(f"expected one of {', '.join(ORIENTATIONS)}, got {orientation!r}", param_hint="--orientation")
     frames, full_scale, npz_angles = load_frames(inputs)
     if np.array_equal(frames.min(axis=0), frames.max(axis=0)):  # no pixel changes between the three steps
         what = "all zero" if not frames.any() else "the same at every pixel"
@@ -187,7 +194,7 @@ def predict(
                     "so the phase is meaningless (projector off, lens cap on, or exposure far too short?)",
                     fg=typer.colors.YELLOW, err=True)
     try:
-        predictor = Predictor.load(model, device=device, precision=precision)
+        predictor = Predictor.load(model, device=device, precision=precision, orientation=orientation)
     except ModelFileError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

@@ -38,11 +38,14 @@ class Decoder:
     the network wins from 0.1 deg on; on the any-view val rigs the network won even on a still
     gear (0.073 vs 0.078; benchmarks/still_crossover_report.md), so there the route costs a little on
     still gears: a compromise for the radial rigs. 0 sends every burst to the network.
+
+    ``orientation``: the rig's fringe direction for the network (:class:`Predictor`): ``"auto"``
+    votes per burst, ``"normal"``/``"mirrored"`` fix it for the whole run.
     """
 
     def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
                  precision: str = "auto", workers: int | None = None,
-                 still_span_deg: float = STILL_SPAN_DEG) -> None:
+                 still_span_deg: float = STILL_SPAN_DEG, orientation: str = "auto") -> None:
         if workers is not None and workers < 1:
             raise ValueError(f"model.workers: expected >= 1, got {workers}")
         if not still_span_deg >= 0:
@@ -56,7 +59,7 @@ class Decoder:
         if not classical:
             from gearscan.inference.predictor import Predictor
 
-            self.predictor = Predictor.load(model, precision=precision)
+            self.predictor = Predictor.load(model, precision=precision, orientation=orientation)
             cpu, cores = self.predictor.device.type == "cpu", len(os.sched_getaffinity(0))
             self.workers = workers if workers is not None else (2 if cpu and cores >= 2 else 1)
             for _ in range(self.workers - 1):  # own copies: MC switches the dropout masks per call

@@ -108,6 +108,9 @@ def frames_to_tensor(frames: np.ndarray, full_scale: float | None = None) -> tor
     return x.unsqueeze(0)
 
 
+ORIENTATIONS = ("auto", "normal", "mirrored")
+
+
 def fringe_phase_decreases_along_columns(x: torch.Tensor, min_modulation: float = 0.05) -> bool:
     """True when more than half of the modulation-weighted column steps of the three-step phase of
     ``x`` (1, C, H, W: one burst; a batch would be decided as one) decrease.
@@ -152,6 +155,12 @@ class Predictor:
         three-step PS's (0: off). A correction that small is what the network invents on a still
         gear (where three-step has no motion error and beats it); a real motion correction is larger.
         Chosen per model on the val split and stored in its JSON (``still_gate``); None: the model's.
+    orientation : which way the fringe phase runs along the camera's columns: ``"auto"`` votes per
+        burst (:func:`fringe_phase_decreases_along_columns`); ``"normal"`` (rising, as on every twin
+        rig) or ``"mirrored"`` fix it, a property of the rig that a user sets once. The vote misreads
+        fast bursts (val, large radial gears, spans of 1.1 deg and more:
+        ``benchmarks/orientation_report.md``); the likely cause: fringes drifting a third of a period
+        per frame turn the three frames into the reversed three-step set, whose phase is mirrored.
     """
 
     def __init__(
@@ -166,7 +175,11 @@ class Predictor:
         channels_last: bool | None = None,
         calibration: dict[str, SigmaCalibration] | None = None,
         still_gate_rad: float | None = None,
+        orientation: str = "auto",
     ) -> None:
+        if orientation not in ORIENTATIONS:
+            raise ValueError(f"orientation: expected one of {', '.join(ORIENTATIONS)}, got {orientation!r}")
+        self.orientation = orientation
         self.device = torch.device(device)
         self.calibration = dict(calibration or {})
         unknown = set(self.calibration) - set(CALIBRATION_MODES)
@@ -200,6 +213,7 @@ class Predictor:
         precision: str = "auto",
         mc_chunk: int | None = None,
         still_gate_rad: float | None = None,
+        orientation: str = "auto",
     ) -> Predictor:
         """Load ``path`` (.safetensors + .json); default: the shipped model."""
         path = model_path(path)
@@ -232,6 +246,7 @@ class Predictor:
             meta=meta,
             calibration=calibration,
             still_gate_rad=still_gate_rad,
+            orientation=orientation,
         )
 
     def replica(self) -> Predictor:
@@ -265,7 +280,7 @@ class Predictor:
         calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
         needs_classical = self.still_gate_rad > 0 or (calibration is not None and calibration.needs_departure)
         classical = classical_md(x[:, :3].float())[0].cpu().numpy() if needs_classical else None
-        mirror = fringe_phase_decreases_along_columns(x)
+        mirror = fringe_phase_decreases_along_columns(x) if self.orientation == "auto" else self.orientation == "mirrored"
         if mirror:  # the nets were trained on phase increasing along the columns: mirror in and out
             x = torch.flip(x, dims=[-1])
         if self.channels_last:

@@ -86,3 +86,20 @@ def test_output_is_written_under_exactly_the_name_given(tmp_path):
     assert phase.shape == (32, 32) and np.isfinite(phase).all()
     res = runner.invoke(app, ["predict", str(_frames(tmp_path, _fringes())), "-o", "/proc/nope/out.npz"])
     assert res.exit_code == 2 and "--output: cannot write /proc/nope/out.npz" in res.output, res.output
+
+
+def test_orientation_is_checked_and_mirrored_flips_the_decode(tmp_path):
+    frames = _fringes()
+    path = _frames(tmp_path, frames)
+    res = runner.invoke(app, ["predict", str(path), "--orientation", "sideways", "-o", str(tmp_path / "x.npz")])
+    assert res.exit_code == 2 and "--orientation" in res.output and "sideways" in res.output, res.output
+    assert not (tmp_path / "x.npz").exists()
+    for o in ("normal", "mirrored"):
+        res = runner.invoke(app, ["predict", str(path), "--orientation", o, "-o", str(tmp_path / f"{o}.npz")])
+        assert res.exit_code == 0, res.output
+    (tmp_path / "m").mkdir()
+    mirrored_in = _frames(tmp_path / "m", np.ascontiguousarray(frames[:, :, ::-1]))
+    res = runner.invoke(app, ["predict", str(mirrored_in), "--orientation", "mirrored", "-o", str(tmp_path / "mm.npz")])
+    assert res.exit_code == 0, res.output
+    with np.load(tmp_path / "normal.npz") as a, np.load(tmp_path / "mm.npz") as b:
+        np.testing.assert_allclose(b["phase"][:, ::-1], a["phase"], atol=1e-5)

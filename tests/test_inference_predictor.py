@@ -393,3 +393,25 @@ def test_dim_steep_pixels_do_not_outvote_the_fringe_direction():
     x = torch.from_numpy(frames)[None]
     assert not fringe_phase_decreases_along_columns(x)  # an unweighted count would say "decreasing" (40 of 64 rows)
     assert fringe_phase_decreases_along_columns(torch.flip(x, dims=[-1]))
+
+
+def test_fast_drift_fools_the_vote_and_a_set_orientation_does_not(saved):
+    """Fringes drifting a third of a period per frame make the three frames the reversed three-step set
+    (shifts 0, 4pi/3, 8pi/3 = 2pi/3): their phase runs backwards and the per-burst vote reads the rig as
+    mirrored. ``orientation="normal"`` decodes the burst as the rig is; ``"mirrored"`` flips every burst."""
+    from gearscan.inference.predictor import fringe_phase_decreases_along_columns
+
+    _, path = saved
+    h, w = 24, 40
+    xx = np.arange(w)[None, :] + 0.02 * np.arange(h)[:, None] ** 2
+    drift = 2 * np.pi / 3  # phase drift per frame: a third of a period
+    frames = np.stack([127 + 100 * np.cos(2 * np.pi * xx / 11 + k * (2 * np.pi / 3 + drift))
+                       for k in range(3)]).astype(np.uint8)
+    assert fringe_phase_decreases_along_columns(frames_to_tensor(frames))  # rising fringes, read as mirrored
+    auto, normal, flipped = (Predictor.load(path, orientation=o) for o in ("auto", "normal", "mirrored"))
+    a, n, f = auto.predict(frames), normal.predict(frames), flipped.predict(frames)
+    np.testing.assert_allclose(a.phase, f.phase, atol=1e-6)  # the vote flipped it
+    mirrored_in = np.ascontiguousarray(frames[:, :, ::-1])
+    np.testing.assert_allclose(flipped.predict(mirrored_in).phase[:, ::-1], n.phase, atol=1e-6)
+    with pytest.raises(ValueError, match="orientation: expected one of auto, normal, mirrored"):
+        Predictor.load(path, orientation="sideways")

@@ -75,6 +75,10 @@ def test_template_is_valid_and_errors_name_the_key(tmp_path):
     msg = str(err.value)
     assert "camera.exposure_us" in msg and "(got -1)" in msg
     assert "projector.backend" in msg and "'laser'" in msg
+    assert cfg.model.orientation == "auto"
+    with pytest.raises(ValueError, match="model.orientation"):
+        LiveConfig.from_toml(TEMPLATE.replace('orientation = "auto"', 'orientation = "upside"'), "rig.toml")
+    assert LiveConfig.from_toml(TEMPLATE.replace('orientation = "auto"', 'orientation = "mirrored"')).model.orientation == "mirrored"
     res = runner.invoke(app, ["config", "init", str(tmp_path / "rig.toml")])
     assert res.exit_code == 0 and (tmp_path / "rig.toml").read_text() == TEMPLATE
 
