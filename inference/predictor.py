@@ -159,7 +159,7 @@ class Predictor:
         burst (:func:`fringe_phase_decreases_along_columns`); ``"normal"`` (rising, as on every twin
         rig) or ``"mirrored"`` fix it, a property of the rig that a user sets once. The vote misreads
         fast bursts (val, large radial gears, spans of 1.1 deg and more:
-        ``benchmarks/orientation_report.md``); the likely cause: fringes drifting a third of a period
+        ``benchmarks/dense_finetune_report.md``; test: ``generalization_report.md``); the likely cause: fringes drifting a third of a period
         per frame turn the three frames into the reversed three-step set, whose phase is mirrored.
     """
 

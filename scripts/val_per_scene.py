@@ -20,7 +20,7 @@ import torch
 from gearscan.core.gear import GearSpec
 from gearscan.core.phase import phase_error, three_step
 from gearscan.core.rig import Rig
-from gearscan.inference.predictor import Predictor
+from gearscan.inference.predictor import Predictor, fringe_phase_decreases_along_columns
 from gearscan.twin.dataset import TwinBurstDataset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -31,23 +31,32 @@ def _rms(errors: list[np.ndarray]) -> float:
     return float(np.sqrt(np.mean(np.concatenate(errors) ** 2)))
 
 
-def scene_rows(pred: Predictor, folder: Path, bursts: int) -> list[dict]:
+def scene_rows(pred: Predictor, rig_pred: Predictor, folder: Path, bursts: int) -> list[dict]:
+    """Per start point: RMSE with the per-burst orientation vote (``pred``) and with the orientation
+    set from the start point's still burst (``rig_pred``, as a user sets it once), and the bursts the vote misreads."""
     index = json.loads((folder / "index.json").read_text())
     rows = []
     for g, entry in enumerate(index["entries"]):
         gear = GearSpec(**entry["gear"])
         drift, cam_period = periods_per_degree(Rig.from_json(entry["rig"]), gear, entry["period_px"])
+        still = TwinBurstDataset(folder, groups=[g], static=True, motion="uniform", max_span=0)[0]
+        rig_mirrored = fringe_phase_decreases_along_columns(torch.from_numpy(np.asarray(still["input"], np.float32))[None])
+        rig_pred.orientation = "mirrored" if rig_mirrored else "normal"
         ds = TwinBurstDataset(folder, groups=[g], reverse=True)
         pick = np.random.default_rng(g).choice(len(ds), min(bursts, len(ds)), replace=False)
-        net, ps = [], []
+        net, net_rig, ps, misread_spans = [], [], [], []
         for i in pick:
             it = ds[int(i)]
-            r = pred.predict_tensor(torch.from_numpy(np.asarray(it["input"], np.float32))[None])
-            net.append(phase_error(r.phase, it["phase"])[it["mask"]])
+            x = torch.from_numpy(np.asarray(it["input"], np.float32))[None]
+            if fringe_phase_decreases_along_columns(x) != rig_mirrored:
+                misread_spans.append(round(float(it["span_deg"]), 2))
+            net.append(phase_error(pred.predict_tensor(x).phase, it["phase"])[it["mask"]])
+            net_rig.append(phase_error(rig_pred.predict_tensor(x).phase, it["phase"])[it["mask"]])
             ps.append(phase_error(three_step(it["input"][:3], 1.0)[0], it["phase"])[it["mask"]])
         rows.append({"folder": folder.name, "start_point": entry["id"], "teeth": gear.teeth,
                      "module": gear.module, "periods_per_deg": drift, "camera_period_px": cam_period,
-                     "net": _rms(net), "three_step": _rms(ps)})
+                     "net": _rms(net), "net_rig_orientation": _rms(net_rig), "three_step": _rms(ps),
+                     "rig_orientation": rig_pred.orientation, "bursts": len(pick), "misread_spans_deg": misread_spans})
     return rows
 
 
@@ -60,8 +69,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    pred = Predictor.load(args.model) if args.model else Predictor.load()
-    rows = [r for folder in args.val for r in scene_rows(pred, folder, args.bursts)]
+    pred = Predictor.load(args.model)
+    rig_pred = Predictor.load(args.model, orientation="normal")
+    rows = [r for folder in args.val for r in scene_rows(pred, rig_pred, folder, args.bursts)]
     print(json.dumps(rows, indent=1))
 
 
