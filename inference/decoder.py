@@ -9,12 +9,14 @@ from __future__ import annotations
 import math
 import os
 import queue
+import threading
 from pathlib import Path
 
 from gearscan.core.phase import classical_result
 from gearscan.core.types import Burst, PhaseResult
 
 STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beat the network on radial val rigs (Decoder)
+ORIENTATION_VOTES = 3  # still bursts whose agreeing votes set the rig's fringe orientation (Decoder, "auto")
 
 
 def turned_less_than(angles, span_deg: float) -> bool:
@@ -39,8 +41,12 @@ class Decoder:
     gear (0.073 vs 0.078; benchmarks/still_crossover_report.md), so there the route costs a little on
     still gears: a compromise for the radial rigs. 0 sends every burst to the network.
 
-    ``orientation``: the rig's fringe direction for the network (:class:`Predictor`): ``"auto"``
-    votes per burst, ``"normal"``/``"mirrored"`` fix it for the whole run.
+    ``orientation``: the rig's fringe direction for the network (:class:`Predictor`):
+    ``"normal"``/``"mirrored"`` fix it for the whole run. ``"auto"`` votes per burst until
+    :data:`ORIENTATION_VOTES` still bursts (routed to three-step PS, where no motion can fool the
+    vote) agree and none disagrees; from then on theirs is the rig's (:attr:`rig_orientation`). The
+    per-burst vote misreads fast bursts (a drift of a third of a period per frame reverses the
+    three-step set): on the test split 35 of 800 bursts, on large gears and side views.
     """
 
     def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
@@ -52,6 +58,11 @@ class Decoder:
             raise ValueError(f"model.still_span_deg: expected >= 0 degrees, got {still_span_deg}")
         self.still_span_deg = float(still_span_deg)
         self.still_bursts = 0
+        self.orientation = orientation
+        self.rig_orientation: str | None = None if orientation == "auto" else orientation
+        self._votes = {"normal": 0, "mirrored": 0}
+        self._lock = threading.Lock()
+        self._predictors: list = []
         self.mc = mc
         self.workers = 1
         self.predictor = None
@@ -62,9 +73,9 @@ class Decoder:
             self.predictor = Predictor.load(model, precision=precision, orientation=orientation)
             cpu, cores = self.predictor.device.type == "cpu", len(os.sched_getaffinity(0))
             self.workers = workers if workers is not None else (2 if cpu and cores >= 2 else 1)
-            for _ in range(self.workers - 1):  # own copies: MC switches the dropout masks per call
-                self._pool.put(self.predictor.replica())
-            self._pool.put(self.predictor)
+            self._predictors = [self.predictor.replica() for _ in range(self.workers - 1)] + [self.predictor]
+            for p in self._predictors:  # own copies: MC switches the dropout masks per call
+                self._pool.put(p)
             if cpu:
                 self.use_threads(self.workers)
         self.mode = "three-step" if classical else (f"mc{mc}" if mc else "deterministic")
@@ -81,9 +92,30 @@ class Decoder:
             return classical_result(burst)
         if turned_less_than(burst.angles, self.still_span_deg):
             self.still_bursts += 1
+            self._vote_orientation(burst)
             return classical_result(burst)
         predictor = self._pool.get()
         try:
             return predictor.predict_burst(burst, mc=self.mc)
         finally:
             self._pool.put(predictor)
+
+    def _vote_orientation(self, burst: Burst) -> None:
+        """Count a still burst's fringe orientation; set the rig's once :data:`ORIENTATION_VOTES` agree."""
+        if self.rig_orientation is not None or self.predictor is None:
+            return
+        from gearscan.inference.predictor import falling_phase_share, frames_to_tensor
+
+        share = falling_phase_share(frames_to_tensor(burst.images, burst.full_scale))
+        if share is None:  # no fringes seen: no vote
+            return
+        # a reversed-order burst shows the negated phase: it falls along the columns of a normal rig
+        mirrored = (share > 0.5) != burst.reversed_order
+        with self._lock:
+            self._votes["mirrored" if mirrored else "normal"] += 1
+            for side, other in (("normal", "mirrored"), ("mirrored", "normal")):
+                if self._votes[side] >= ORIENTATION_VOTES and self._votes[other] == 0:
+                    self.rig_orientation = side
+                    for p in self._predictors:
+                        p.orientation = side
+

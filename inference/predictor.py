@@ -127,6 +127,13 @@ def fringe_phase_decreases_along_columns(x: torch.Tensor, min_modulation: float 
     val_radial 0/72 misread and 72/72 mirrored found by both; val_views 2/72 misread and 70/72 found
     weighted, 1/72 and 71/72 unweighted.
     """
+    share = falling_phase_share(x, min_modulation)
+    return share is not None and share > 0.5
+
+
+def falling_phase_share(x: torch.Tensor, min_modulation: float = 0.05) -> float | None:
+    """The modulation-weighted share of falling column steps of the three-step phase of ``x``
+    (:func:`fringe_phase_decreases_along_columns`); None where no pixel pair is modulated."""
     md = classical_md(x[:, :3].float())
     phase = torch.atan2(md[:, 0], md[:, 1])
     mod = torch.hypot(md[:, 0], md[:, 1])
@@ -134,7 +141,7 @@ def fringe_phase_decreases_along_columns(x: torch.Tensor, min_modulation: float 
     weight = torch.minimum(mod[..., 1:], mod[..., :-1])
     weight = torch.where(weight >= min_modulation, weight, torch.zeros_like(weight))
     total = float(weight.sum())
-    return bool(total > 0 and 2 * float(weight[step < 0].sum()) > total)
+    return float(weight[step < 0].sum()) / total if total > 0 else None
 
 
 class Predictor:
@@ -266,8 +273,12 @@ class Predictor:
         return contextlib.nullcontext()
 
     @torch.inference_mode()
-    def predict_tensor(self, x: torch.Tensor, mc: int = 0) -> PhaseResult:
-        """``(1, C, H, W)`` float32 in [0, 1] -> :class:`PhaseResult` (deterministic if ``mc == 0``)."""
+    def predict_tensor(self, x: torch.Tensor, mc: int = 0, *, mirror: bool | None = None) -> PhaseResult:
+        """``(1, C, H, W)`` float32 in [0, 1] -> :class:`PhaseResult` (deterministic if ``mc == 0``).
+
+        ``mirror``: decode the burst mirrored along the columns (its phase falls along them); None:
+        as :attr:`orientation` says (a vote on this burst for ``"auto"``).
+        """
         if mc < 0:
             raise ValueError(f"mc: expected >= 0 passes, got {mc}")
         if mc > 0 and not self.has_dropout:
@@ -280,7 +291,8 @@ class Predictor:
         calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
         needs_classical = self.still_gate_rad > 0 or (calibration is not None and calibration.needs_departure)
         classical = classical_md(x[:, :3].float())[0].cpu().numpy() if needs_classical else None
-        mirror = fringe_phase_decreases_along_columns(x) if self.orientation == "auto" else self.orientation == "mirrored"
+        if mirror is None:
+            mirror = fringe_phase_decreases_along_columns(x) if self.orientation == "auto" else self.orientation == "mirrored"
         if mirror:  # the nets were trained on phase increasing along the columns: mirror in and out
             x = torch.flip(x, dims=[-1])
         if self.channels_last:
@@ -310,11 +322,12 @@ class Predictor:
         *,
         full_scale: float | None = None,
         angles: np.ndarray | None = None,
+        mirror: bool | None = None,
     ) -> PhaseResult:
         """Raw frames ``(3, H, W)`` uint8/uint16 -> :class:`PhaseResult` at the input size.
 
         ``angles``: the three frames' turntable angles (rad); required by a ``motion_input``
-        network, ignored otherwise.
+        network, ignored otherwise. ``mirror``: as in :meth:`predict_tensor`.
         """
         x = frames_to_tensor(frames, full_scale)
         if self.needs_angles:
@@ -325,7 +338,7 @@ class Predictor:
                 )
             motion = motion_channels(angles, *x.shape[-2:])
             x = torch.cat([x, torch.from_numpy(motion)[None]], dim=1)
-        return self.predict_tensor(x, mc)
+        return self.predict_tensor(x, mc, mirror=mirror)
 
     def predict_burst(self, burst: Burst, mc: int = 0) -> PhaseResult:
         """Predict a :class:`Burst` (full scale from its bit depth; angle = first frame's).
@@ -333,7 +346,10 @@ class Predictor:
         A burst shown in reversed order (shifts 0, 4pi/3, 2pi/3) is a forward burst of the negated
         phase: the network decodes it as such and the result is turned back (:func:`in_capture_order`).
         """
-        result = self.predict(burst.images, mc, full_scale=burst.full_scale, angles=np.asarray(burst.angles))
+        # a set orientation is the rig's; a reversed-order burst shows the negated phase, which runs the other way
+        mirror = None if self.orientation == "auto" else (self.orientation == "mirrored") != burst.reversed_order
+        result = self.predict(burst.images, mc, full_scale=burst.full_scale, angles=np.asarray(burst.angles),
+                              mirror=mirror)
         result = in_capture_order(result, burst)
         return dataclasses.replace(result, burst_index=burst.index, angle=float(burst.angles[0]))
 

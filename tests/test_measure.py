@@ -212,3 +212,43 @@ def test_live_check_states_the_unambiguous_range(rig256, gear):
     assert line.startswith("unambiguous depth range at 40 px fringes: -1.") and "mm around the CAD" in line
     free = unambiguous_range_line(rig256, PERIOD, gear, "envelope")
     assert "CAD-free unwrapping resolves every pixel from" in free and "counted, not guessed" in free
+
+
+def test_auto_orientation_is_set_by_agreeing_still_bursts_and_honours_the_pattern_order(noisy_renderer):
+    """In "auto" the Decoder takes the rig's fringe orientation from still bursts (three-step PS's
+    bursts, where no motion fools the vote) once 3 agree; a reversed-order burst (shifts 0, 4pi/3,
+    2pi/3) shows the negated phase and counts the same way; a disagreeing still burst keeps the vote
+    per burst. With the orientation set, a reversed-order moving burst decodes as the vote decodes it."""
+    from gearscan.core.phase import wrapped_rmse
+    from gearscan.inference.decoder import ORIENTATION_VOTES, Decoder
+
+    ps = PatternSet.three_step(PERIOD)
+
+    def burst(start_deg, step_deg, order=(0, 1, 2), mirror=False):
+        angles = [math.radians(start_deg + step_deg * i) for i in range(3)]
+        images = noisy_renderer.render_sequence(angles, ps, list(order), rng=1)[0]
+        if mirror:
+            images = [np.ascontiguousarray(im[:, ::-1]) for im in images]
+        fr = tuple(Frame(im, i, 1000 * i, p) for i, (im, p) in enumerate(zip(images, order, strict=True)))
+        return Burst(fr, tuple(angles))
+
+    dec = Decoder(workers=1)
+    assert dec.rig_orientation is None
+    for k in range(ORIENTATION_VOTES):
+        order = (0, 2, 1) if k % 2 else (0, 1, 2)
+        b = burst(3.0 + k, 0.01, order)
+        assert b.reversed_order == bool(k % 2)
+        dec(b)
+    assert dec.rig_orientation == "normal" and dec.predictor.orientation == "normal"
+    mirrored = Decoder(workers=1)
+    for k in range(ORIENTATION_VOTES):
+        mirrored(burst(3.0 + k, 0.01, mirror=True))
+    assert mirrored.rig_orientation == "mirrored"
+    mixed = Decoder(workers=1)
+    for k in range(ORIENTATION_VOTES + 1):
+        mixed(burst(3.0 + k, 0.01, mirror=k == 0))
+    assert mixed.rig_orientation is None and mixed.predictor.orientation == "auto"
+    # a slow reversed-order moving burst: the set orientation decodes it as the per-burst vote does
+    slow = burst(5.0, 0.1, (0, 2, 1))
+    set_result, vote_result = dec(slow), mixed(slow)
+    assert wrapped_rmse(set_result.phase, vote_result.phase) < 1e-5
