@@ -39,6 +39,7 @@ class ReplayMetrics:
     damage: dict = field(default_factory=dict)  # RecordingReader.damage_summary(): skipped damage
     fused: FusedCloud | None = None  # the revolution fused in the gear frame (replay(fuse=...))
     refine: dict = field(default_factory=dict)  # replay(refine=True): what the frame fit refined
+    decoder: dict = field(default_factory=dict)  # mode, still bursts, the fringe orientation used (Decoder)
 
     @property
     def bursts(self) -> int:
@@ -61,7 +62,7 @@ class ReplayMetrics:
 
     def to_json(self) -> dict:
         out = {"summary": self.summary(), "bursts": self.per_burst, "pipeline": self.pipeline,
-               "assembler": self.assembler, "damage": self.damage}
+               "assembler": self.assembler, "damage": self.damage, "decoder": self.decoder}
         if self.refine:
             out["refine"] = self.refine
         return out
@@ -348,6 +349,8 @@ def replay(
     metrics.pipeline = report.stages
     metrics.assembler = assembler.stats.as_dict() | {"coarse_bursts": coarse.bursts}
     metrics.damage = reader.damage_summary()
+    if isinstance(decoder, Decoder):
+        metrics.decoder = decoder.summary()
     if metrics_path:
         Path(metrics_path).write_text(json.dumps(metrics.to_json(), indent=2))
     return metrics

@@ -100,6 +100,12 @@ class Decoder:
         finally:
             self._pool.put(predictor)
 
+    def summary(self) -> dict:
+        """What decoded the run: mode, bursts sent to three-step PS as still, the fringe orientation
+        asked for and the rig's as adopted (None: voted per burst throughout)."""
+        return {"mode": self.mode, "still_bursts": self.still_bursts, "orientation": self.orientation,
+                "rig_orientation": self.rig_orientation, "orientation_votes": dict(self._votes)}
+
     def _vote_orientation(self, burst: Burst) -> None:
         """Count a still burst's fringe orientation; set the rig's once :data:`ORIENTATION_VOTES` agree."""
         if self.rig_orientation is not None or self.predictor is None:

@@ -59,6 +59,19 @@ def test_reversed_bursts_decode_to_the_true_phase(still_alternating):
     net = Decoder(still_span_deg=0.0)
     net_err = _rmse(bursts, lambda b: net(b).phase, truth_of)
     assert max(net_err) < 0.15, net_err
+    # a set orientation is the rig's: the reversed bursts, whose phase runs the other way, still decode
+    rig_set = Decoder(still_span_deg=0.0, orientation="normal")
+    assert max(_rmse(bursts, lambda b: rig_set(b).phase, truth_of)) < 0.15
+    # "auto" adopts the rig's orientation from still bursts of either order (3 agreeing)
+    auto = Decoder()
+    for b in bursts:
+        auto(b)
+    assert auto.summary()["rig_orientation"] == "normal" and auto.summary()["orientation_votes"] == {"normal": 3, "mirrored": 0}  # decided at 3
+    # and a replay reports it in its metrics
+    from gearscan.replay import replay
+
+    m = replay(still_alternating, decoder=Decoder(), reconstruct=False, truth=False).to_json()
+    assert m["decoder"]["rig_orientation"] == "normal" and m["decoder"]["still_bursts"] == 4, m["decoder"]
     # the shipped sigma map reads the same departure in either order: the network's phase against
     # three-step PS's with the burst's real shifts, both in capture order
     shipped = Predictor.load(None)
