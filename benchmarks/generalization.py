@@ -93,6 +93,21 @@ def orientation_misreads(scenes: list[dict]) -> str:
     return ", ".join(out)
 
 
+def rig_weak_strata(strata) -> str:
+    """One line per motion kind: strata (any family, axis, bin) where each network decode is worse than three-step PS."""
+    out = []
+    for kind in (MOVING, STILL):
+        rows = [s for s in strata if s.kind == kind and s.pixels > 0]
+        vote = sum(s.rmse[NETWORK] > s.rmse[BASELINE] for s in rows)
+        rig = [s for s in rows if s.rmse[RIG_NAME] > s.rmse[BASELINE]]
+        worst = max(rig, key=lambda s: s.rmse[RIG_NAME] / s.rmse[BASELINE], default=None)
+        tail = "" if worst is None else (f"; the worst: {worst.family}, {worst.axis} {worst.label}, "
+                                         f"{worst.rmse[RIG_NAME] / worst.rmse[BASELINE]:.2f}x")
+        out.append(f"- {kind} bursts: of {len(rows)} strata, the network is worse than three-step PS in {vote} with "
+                   f"the per-burst vote and in {len(rig)} with the rig orientation{tail}.")
+    return "\n".join(out)
+
+
 def gate_table(cells, other: str) -> str:
     """Markdown: the shipped network next to the same network with the other still-gate setting."""
     lines = [f"| family | motions | {NETWORK} as shipped (rad) | {other} | {BASELINE} | shipped / three-step | "
@@ -273,6 +288,8 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         f"Bursts whose vote disagrees with their scene's still-burst orientation: {orientation_misreads(scenes_json)}.",
         "",
         gate_table(cells, RIG_NAME),
+        "",
+        rig_weak_strata(strata),
         "",
         f"## MC dropout T={args.mc} (first {args.mc_scenes} scenes of each family: paper motions forwards and still, test split)",
         "",
