@@ -39,7 +39,8 @@ def main() -> None:
         "",
         "`python benchmarks/dense_finetune_report.py` (tabulates `benchmarks/dense_finetune/`). Host: AMD EPYC, 2 cores, "
         "AVX512-BF16, no AMX (training precision chosen by the CPU: fp32). Code: commit 53b8088 (the run started "
-        "from its working tree); scores at 9b6dbe0 plus `scripts/val_per_scene.py`. **Val split only**: nothing here "
+        "from its working tree); val_compare scores at 9b6dbe0, per-scene scores at a2ac7f2 (v6, with the orientation "
+        "columns) and 9b6dbe0 plus `scripts/val_per_scene.py` (fine-tuned). **Val split only**: nothing here "
         "touched the test split.",
         "",
         "## Why",
@@ -71,7 +72,7 @@ def main() -> None:
         "`val_radial_dense` (12 val gears 25-78, seed 10003). Rendered in 162 s on this host's 2 cores.",
         f"- **Training**: {steps} steps of 8 crops (128 px) from v6's weights, lr 3e-4 cosine, then "
         f"{sum(1 for r in rows if r['stage'] == '2')} Concrete Dropout epochs; {rep['train_seconds'] / 60:.0f} min wall "
-        f"(about 145 CPU min). Val RMSE of the 96 training-val bursts: {val_rmse[0]:.3f} at the start, "
+        f"({float(rows[-1]['cpu_min']):.0f} CPU min). Val RMSE of the 96 training-val bursts: {val_rmse[0]:.3f} at the start, "
         f"{min(val_rmse):.3f} at best, {val_rmse[-1]:.3f} at the end.",
         "- **Rule** (written before any result, `dense_finetune/choice_rule.md`): adopt only if moving RMSE falls on "
         "each of the three val folders and still RMSE rises by at most 0.005 rad on each.",

@@ -45,8 +45,8 @@ class Decoder:
     ``"normal"``/``"mirrored"`` fix it for the whole run. ``"auto"`` votes per burst until
     :data:`ORIENTATION_VOTES` still bursts (routed to three-step PS, where no motion can fool the
     vote) agree and none disagrees; from then on theirs is the rig's (:attr:`rig_orientation`). The
-    per-burst vote misreads fast bursts (a drift of a third of a period per frame reverses the
-    three-step set): on the test split 35 of 800 bursts, on large gears and side views.
+    per-burst vote misreads fast bursts (likely because a drift of a third of a period per frame
+    reverses the three-step set): on the test split 35 of 800 bursts, on large gears and side views.
     """
 
     def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,

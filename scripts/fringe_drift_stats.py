@@ -23,7 +23,7 @@ import numpy as np
 
 from gearscan.core.gear import GearSpec
 from gearscan.core.rig import Rig
-from gearscan.twin.dataset import DatasetSpec, _scene_for
+from gearscan.twin.dataset import DatasetSpec, scene_for
 from gearscan.twin.randomize import projector_period_for
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -51,7 +51,7 @@ def job_rows(job: tuple, size: int = 256) -> list[tuple[float, float]]:
                        radial_period_px=period_range)
     rows = []
     for i in range(len(gears)):
-        rig, _optics, gear, period = _scene_for(spec, i)
+        rig, _optics, gear, period = scene_for(spec, i)
         rows.append(periods_per_degree(rig, gear, period))
     return rows
 

@@ -107,7 +107,8 @@ def combinations(poses: int) -> list[tuple[int, int, int]]:
     return list(itertools.combinations(range(poses), 3))
 
 
-def _scene_for(spec: DatasetSpec, gear_index: int) -> tuple[Rig, Optics, GearSpec, float]:
+def scene_for(spec: DatasetSpec, gear_index: int) -> tuple[Rig, Optics, GearSpec, float]:
+    """The rig, optics, gear and projector period the spec renders for gear ``gear_index`` (seeded)."""
     gear = spec.gears[gear_index]
     if not spec.randomize:
         return default_rig(spec.width, spec.height), Optics(), gear, spec.period_px
@@ -188,7 +189,7 @@ def generate_dataset(
                 progress(n + 1, len(jobs))
             continue
         if g not in renderers:
-            rig, optics, gear, period = scene if scene is not None else _scene_for(spec, g)
+            rig, optics, gear, period = scene if scene is not None else scene_for(spec, g)
             renderers = {g: (TwinRenderer(rig, gear, optics), period, rig, optics, gear)}
         renderer, period, rig, optics, gear = renderers[g]
         ps = PatternSet.n_step(spec.steps, period)
