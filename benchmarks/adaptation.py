@@ -38,7 +38,7 @@ from torch.utils.data import Subset
 
 from gearscan.core.phase import phase_error
 from gearscan.evaluate import Scene, classical_method, network_method, render_cases
-from gearscan.generalization import MOVING, STILL, scene_motions
+from gearscan.generalization import MOVING, STILL, rig_orientation, scene_motions
 from gearscan.inference.losses import LossConfig
 from gearscan.inference.model_io import read_config
 from gearscan.inference.models import ModelConfig
@@ -166,9 +166,11 @@ def run_family(args) -> None:
             points.append((f"{m:g}", p, float(read_config(p)["cpu_min"])))
     points.append((f"{budget:g}", run / "best.safetensors", result.cpu_seconds / 60.0))
     baseline = score(None, cases, motions)
+    # the fringe orientation as the user sets it for the rig (from a still burst), or the per-burst vote
+    orientation = rig_orientation(motions, cases) if args.orientation == "rig" else "auto"
     curve = []
     for label, path, cpu_min in points:
-        net = score(Predictor.load(path), cases, motions)
+        net = score(Predictor.load(path, orientation=orientation), cases, motions)
         curve.append({"mark_cpu_min": float(label), "cpu_min": cpu_min, "weights": str(path.relative_to(REPO) if path.is_relative_to(REPO) else path),
                       "rmse": net, "ratio_to_three_step": {k: net[k] / baseline[k] for k in net}})
         print(f"{args.family} {label:>3} CPU min (at {cpu_min:.1f}): moving {net[MOVING]:.4f} still {net[STILL]:.4f} "
@@ -180,6 +182,7 @@ def run_family(args) -> None:
         "period_px": scene.period_px, "resolution": f"{w}x{h}", "commit": git("rev-parse", "--short", "HEAD"),
         "working_tree_dirty": bool(git("status", "--porcelain", "--untracked-files=no")), "host": machine,
         "torch_threads": args.threads, "precision": Predictor.load(DEFAULT_MODEL).precision,
+        "orientation": {"mode": args.orientation, "set": orientation},
         "model": {"path": str(DEFAULT_MODEL.relative_to(REPO) if DEFAULT_MODEL.is_relative_to(REPO) else DEFAULT_MODEL),
                   "sha256": file_sha256(DEFAULT_MODEL)[:12]},
         "adaptation": {"seed": spec.seed, "seed_split": "train" if SPLITS["train"].has_seed(spec.seed) else "val",
@@ -317,6 +320,11 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         + "; ".join(f"{r['run']}: `{r['model']['path']}` sha256 `{r['model']['sha256']}`" if "model" in r
                     else f"{r['run']}: not recorded" for r in results)
         + " (the shipped default when the run was made).",
+        "- **Fringe orientation** in the test scoring: "
+        + "; ".join(f"{r['run']}: " + (f"set once for the rig, `{r['orientation']['set']}` (the vote on the scene's "
+                                       "first still test burst, as a user sets it per rig)"
+                                       if r.get("orientation", {}).get("mode") == "rig"
+                                       else "the Predictor's per-burst vote (`auto`)") for r in results) + ".",
         "- **CPU minutes** are `time.process_time()` of the training process (all its threads), counted from the "
         "start of fine-tuning: validation included, rendering and the closing sigma calibration not. Other load on "
         "the shared cores does not eat the budget directly, but it is not neutral either: the same step (w8, batch 8, "
@@ -421,6 +429,9 @@ def main() -> None:
                          "vs 1.2 in fp32, w8 8x128^2)")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--score-only", action="store_true", help="score a finished run's checkpoints (no training)")
+    ap.add_argument("--orientation", choices=("rig", "auto"), default="rig",
+                    help="scoring: rig = set once from the scene's first still test burst, as a user sets it per rig; "
+                         "auto = the Predictor's per-burst vote (reports before session 26)")
     ap.add_argument("--report", action="store_true", help="gather runs/adaptation/*/result.json into the report")
     ap.add_argument("--out", type=Path, default=HERE / "adaptation_report")
     ap.add_argument("--runs", type=Path, default=RUNS, help="folder of the per-family runs (data, weights, result.json)")

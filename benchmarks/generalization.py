@@ -40,17 +40,14 @@ from gearscan.generalization import (
     cells_table,
     plot_strata,
     render_family_cases,
+    rig_orientation,
     run_methods,
     scene_motions,
     strata_tables,
+    vote_mirrored,
     weak_strata_table,
 )
-from gearscan.inference.predictor import (
-    Predictor,
-    frames_to_tensor,
-    fringe_phase_decreases_along_columns,
-    model_path,
-)
+from gearscan.inference.predictor import Predictor, model_path
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import SHIPPED, SHIPPED_V5, describe
 
@@ -72,11 +69,6 @@ def shipped_saw(model: str | None) -> str:
 
 
 RIG_NAME = f"{NETWORK}, rig orientation from a still burst"
-
-
-def mirrored(case) -> bool:
-    """The Predictor's per-burst orientation vote on this burst's frames."""
-    return fringe_phase_decreases_along_columns(frames_to_tensor(case.frames, case.full_scale))
 
 
 def gate_name(rad: float) -> str:
@@ -182,9 +174,8 @@ def main() -> None:
             t0 = time.perf_counter()
             cases = render_family_cases(scene, motions)
             timing["render_s"] += time.perf_counter() - t0
-            still = [c for m, c in zip(motions, cases, strict=True) if m.group == "still"]
-            rig.orientation = "mirrored" if still and mirrored(still[0]) else "normal"
-            votes = [mirrored(c) for c in cases]
+            rig.orientation = rig_orientation(motions, cases)
+            votes = [vote_mirrored(c) for c in cases]
             for motion, case in zip(motions, cases, strict=True):
                 t0 = time.perf_counter()
                 res = run_methods(case, methods)

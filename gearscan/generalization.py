@@ -42,6 +42,7 @@ from gearscan.evaluate import (
     Scene,
     render_cases,
 )
+from gearscan.inference.predictor import frames_to_tensor, fringe_phase_decreases_along_columns
 from gearscan.twin.families import FamilyScene
 
 BASELINE = "three-step PS"
@@ -94,6 +95,20 @@ def render_family_cases(scene: FamilyScene, motions: list[Motion]) -> list[Burst
     """One burst per motion at a random start angle, noise and angles from the scene's test seed."""
     sc = Scene(scene.name, scene.rig, scene.optics, scene.gear, scene.period_px, _renderer=scene.renderer)
     return render_cases(sc, {m.name: m.steps_deg for m in motions}, 1, seed=scene.seed)
+
+
+def vote_mirrored(case: BurstCase) -> bool:
+    """The Predictor's per-burst orientation vote on this burst's frames (``orientation="auto"``)."""
+    return fringe_phase_decreases_along_columns(frames_to_tensor(case.frames, case.full_scale))
+
+
+def rig_orientation(motions: list[Motion], cases: list[BurstCase]) -> str:
+    """The scene's fringe orientation as a user would set it at set-up: the vote on its first still burst.
+
+    A still burst has no motion to fool the vote; without one the twin's own orientation ("normal",
+    every family's rig has the fringe phase rising along the columns) is assumed."""
+    still = [c for m, c in zip(motions, cases, strict=True) if m.group == STILL]
+    return "mirrored" if still and vote_mirrored(still[0]) else "normal"
 
 
 # --- strata ---------------------------------------------------------------------------------
