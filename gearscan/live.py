@@ -63,11 +63,14 @@ class LiveStatus:
     rrd: Path | None
     rrd_mb: float | None
     rrd_full: bool = False
+    fringes: str | None = None  # the network's fringe orientation (Decoder.orientation_status); None: not known
 
     def line(self) -> str:
         parts = [f"{self.elapsed_s:4.0f} s {self.measured} bursts {self.rate_per_s:.1f}/s",
                  "drops " + (", ".join(f"{n} {c}" for c, n in self.drops.items()) or "none"),
                  "no encoder" if self.encoder_hz is None else f"encoder {self.encoder_hz:.0f} Hz"]
+        if self.fringes:
+            parts.append(self.fringes)
         if self.rrd is not None:
             parts.append(f"{self.rrd} {self.rrd_mb or 0:.0f} MB" + (" FULL" if self.rrd_full else ""))
         return " | ".join(parts)
@@ -108,6 +111,8 @@ class LiveReport:
             lines.append(f"encoder: {e['samples']} samples, {e['lost']} lost, {e['corrupt']} corrupt, "
                          f"{e['disconnects']} disconnects"
                          + (f", last {self.status.encoder_hz:.0f} samples/s" if self.status and self.status.encoder_hz else ""))
+        if self.status is not None and self.status.fringes:
+            lines.append(f"network: {self.status.fringes}")
         if self.status is not None and self.status.rrd is not None:
             full = "; size cap reached, the stream stops there" if self.status.rrd_full else ""
             lines.append(f"viewer stream: {self.status.rrd} ({self.status.rrd_mb or 0:.1f} MB{full}; "
@@ -238,6 +243,7 @@ def run_live(
         source_name="acquisition",
         on_stats=None if on_status is None else lambda stats: on_status(snapshot()),
     )
+    orientation_status = getattr(decoder, "orientation_status", None)  # a stand-in decoder may not say
     window: collections.deque[tuple[float, int, int]] = collections.deque()  # (t, measured, encoder samples)
     t_start = time.monotonic()
 
@@ -256,6 +262,7 @@ def run_live(
             encoder_hz=None if session.encoder is None else ((samples - window[0][2]) / span if len(window) > 1 else 0.0),
             rrd_mb=save.stat().st_size / 1e6 if save is not None and save.exists() else None,
             rrd_full=state["full"],
+            fringes=orientation_status() if orientation_status else None,
         )
 
     def drops() -> dict[str, int]:

@@ -106,6 +106,21 @@ class Decoder:
         return {"mode": self.mode, "still_bursts": self.still_bursts, "orientation": self.orientation,
                 "rig_orientation": self.rig_orientation, "orientation_votes": dict(self._votes)}
 
+    def orientation_status(self) -> str | None:
+        """The fringe orientation the network decodes with, in a few words for a status line
+        (None in three-step mode, where it does not matter)."""
+        if self.predictor is None:
+            return None
+        with self._lock:
+            n, m = self._votes["normal"], self._votes["mirrored"]
+        if self.orientation != "auto":
+            return f"fringes {self.orientation} (set)"
+        if self.rig_orientation is not None:
+            return f"fringes {self.rig_orientation} (from {max(n, m)} still bursts)"
+        if n and m:
+            return f"fringes voted per burst: still bursts disagree ({n} normal, {m} mirrored); set model.orientation"
+        return f"fringes voted per burst ({max(n, m)} of {ORIENTATION_VOTES} still bursts)"
+
     def _vote_orientation(self, burst: Burst) -> None:
         """Count a still burst's fringe orientation; set the rig's once :data:`ORIENTATION_VOTES` agree."""
         if self.rig_orientation is not None or self.predictor is None:

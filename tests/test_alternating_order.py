@@ -4,6 +4,8 @@ model fits the points that a fixed order shows at only two opposite fringe phase
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -64,9 +66,23 @@ def test_reversed_bursts_decode_to_the_true_phase(still_alternating):
     assert max(_rmse(bursts, lambda b: rig_set(b).phase, truth_of)) < 0.15
     # "auto" adopts the rig's orientation from still bursts of either order (3 agreeing)
     auto = Decoder()
+    assert auto.orientation_status() == "fringes voted per burst (0 of 3 still bursts)"
     for b in bursts:
         auto(b)
     assert auto.summary()["rig_orientation"] == "normal" and auto.summary()["orientation_votes"] == {"normal": 3, "mirrored": 0}  # decided at 3
+    # the live status line says which orientation the network decodes with, and whence
+    assert auto.orientation_status() == "fringes normal (from 3 still bursts)"
+    assert rig_set.orientation_status() == "fringes normal (set)"
+    assert Decoder(classical=True).orientation_status() is None  # three-step PS: no orientation to choose
+    # still bursts that disagree (here a camera image flipped left-right) never set it, and the status says so
+    split = Decoder()
+    flipped = dataclasses.replace(bursts[0], frames=tuple(
+        dataclasses.replace(f, image=np.ascontiguousarray(f.image[:, ::-1])) for f in bursts[0].frames))
+    for b in (bursts[0], flipped, bursts[2]):
+        split(b)
+    assert split.rig_orientation is None
+    assert split.orientation_status() == ("fringes voted per burst: still bursts disagree (2 normal, 1 mirrored); "
+                                          "set model.orientation")
     # and a replay reports it in its metrics
     from gearscan.replay import replay
 

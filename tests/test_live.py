@@ -131,6 +131,7 @@ def test_ctrl_c_leaves_a_recording_that_replays(twin, tmp_path):
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0, out
     assert "stopped by Ctrl-C (SIGINT)" in out
+    assert "network: fringes " in out  # the end summary says which fringe orientation the network decoded with
     reader = RecordingReader(tmp_path / "rec")
     assert reader.finished and len(reader) >= 6 and len(reader) % 3 == 0
     res = runner.invoke(app, ["replay", str(tmp_path / "rec"), "--classical", "--save", str(tmp_path / "r.rrd")])
@@ -264,10 +265,11 @@ def test_an_error_stops_with_what_was_measured_and_the_status_prints_without_a_t
     # without a terminal (a log file, a service) the status comes as a plain line every every_s seconds
     out = io.StringIO()
     st = LiveStatus(elapsed_s=12.0, acquired=30, measured=28, rate_per_s=2.5, drops={"decoder busy": 2},
-                    encoder_hz=1000.0, rrd=Path("out/live.rrd"), rrd_mb=42.0)
+                    encoder_hz=1000.0, rrd=Path("out/live.rrd"), rrd_mb=42.0, fringes="fringes normal (set)")
     with StatusLine(Console(file=out, width=200), every_s=0.0) as line:
         line.update(st)
-    assert out.getvalue() == "  12 s 28 bursts 2.5/s | drops 2 decoder busy | encoder 1000 Hz | out/live.rrd 42 MB\n"
+    assert out.getvalue() == ("  12 s 28 bursts 2.5/s | drops 2 decoder busy | encoder 1000 Hz | fringes normal (set) "
+                              "| out/live.rrd 42 MB\n")
     res = runner.invoke(app, ["live"])
     assert res.exit_code == 2 and "--config: a live configuration is needed" in res.output and "--simulate" in res.output
 
