@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from gearscan.core.phase import phase_error, three_step
-from gearscan.inference.predictor import Predictor
+from gearscan.inference.predictor import ORIENTATIONS, Predictor
 from gearscan.twin.dataset import TwinBurstDataset
 
 
@@ -27,6 +27,9 @@ def main() -> None:
     ap.add_argument("models", nargs="+")
     ap.add_argument("--items", type=int, default=96, help="moving bursts sampled (still: all start points)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--orientation", choices=ORIENTATIONS, default="auto",
+                    help="the Predictor's fringe orientation: auto votes per burst (the shipped default; it misreads "
+                         "some fast bursts); normal is every twin rig's, as a user sets it for the rig")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     moving = TwinBurstDataset(args.val, reverse=True)
@@ -42,13 +45,13 @@ def main() -> None:
         err = [phase_error(three_step(it["input"][:3], 1.0)[0], it["phase"])[it["mask"]] for it in items]
         row["three-step"] = float(np.sqrt(np.mean(np.concatenate(err) ** 2)))
         for path in args.models:
-            pred = Predictor.load(path)
+            pred = Predictor.load(path, orientation=args.orientation)
             err = []
             for it in items:
                 r = pred.predict_tensor(torch.from_numpy(np.asarray(it["input"], np.float32))[None])
                 err.append(phase_error(r.phase, it["phase"])[it["mask"]])
             row[path] = float(np.sqrt(np.mean(np.concatenate(err) ** 2)))
-        out[name] = {"bursts": len(items), **row}
+        out[name] = {"bursts": len(items), "orientation": args.orientation, **row}
     print(json.dumps(out, indent=1))
 
 
