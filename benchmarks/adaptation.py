@@ -176,10 +176,14 @@ def run_family(args) -> None:
         print(f"{args.family} {label:>3} CPU min (at {cpu_min:.1f}): moving {net[MOVING]:.4f} still {net[STILL]:.4f} "
               f"rad (three-step {baseline[MOVING]:.4f} / {baseline[STILL]:.4f})", flush=True)
     machine["loadavg_end"] = os.getloadavg()
+    # a rescore keeps the commit its weights were trained at
+    before = json.loads((out / "result.json").read_text()) if args.score_only and (out / "result.json").is_file() else {}
+    trained_at = before.get("training_commit", before.get("commit")) if args.score_only else None
     res = {
         "family": args.family, "scene_seed": scene.seed, "params": dict(scene.params),
         "scene": scene.name + ("" if args.min_span_deg is None else f", adapted on spans >= {args.min_span_deg:g} deg"),
         "period_px": scene.period_px, "resolution": f"{w}x{h}", "commit": git("rev-parse", "--short", "HEAD"),
+        "training_commit": trained_at or git("rev-parse", "--short", "HEAD"),
         "working_tree_dirty": bool(git("status", "--porcelain", "--untracked-files=no")), "host": machine,
         "torch_threads": args.threads, "precision": Predictor.load(DEFAULT_MODEL).precision,
         "orientation": {"mode": args.orientation, "set": orientation},
@@ -307,6 +311,8 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         "",
         "`nice -n 10 python benchmarks/adaptation.py --family F` per family, then `--report`; "
         + "; ".join(f"{r['run']}: commit `{r['commit']}`{' (uncommitted edits in the tree)' if r['working_tree_dirty'] else ''}"
+                    + (f", fine-tuned at `{r['training_commit']}` and rescored (`--score-only`)"
+                       if r.get("training_commit", r["commit"]) != r["commit"] else "")
                     for r in results) + ".",
         "",
         f"- **Host**: {h['cpu']}, {h['cores']} cores shared with other work, AVX-512 {'yes' if h['avx512f'] else 'no'}, "
