@@ -174,13 +174,20 @@ def predict(
     """Predict wrapped phase and its uncertainty from one three-step burst.
 
     OUT.npz holds phase, M, D, sigma_model, sigma_data, sigma_total (float32, H x W, radians
-    for phase and sigmas) and the mode used.
+    for phase and sigmas), the mode used and the fringe orientation the network decoded with.
     """
     import numpy as np
 
     from gearscan.core.phase import three_step_result
     from gearscan.inference.model_io import ModelFileError
-    from gearscan.inference.predictor import ORIENTATIONS, PRECISIONS, Predictor, resolve_full_scale
+    from gearscan.inference.predictor import (
+        ORIENTATIONS,
+        PRECISIONS,
+        Predictor,
+        frames_to_tensor,
+        fringe_phase_decreases_along_columns,
+        resolve_full_scale,
+    )
 
     if precision not in PRECISIONS:
         raise typer.BadParameter(f"expected one of {', '.join(PRECISIONS)}, got {precision!r}", param_hint="--precision")
@@ -204,11 +211,21 @@ def predict(
             angles = np.radians([float(v) for v in angles_deg.split(",")])
         except ValueError as exc:
             raise typer.BadParameter(f"--angles-deg: expected three numbers 'A,B,C', got {angles_deg!r}") from exc
+    fringes = "not used (three-step PS)"
     try:
         if angles is not None and turned_less_than(angles, still_span_deg):  # the pipeline's still rule
             result = three_step_result(frames, resolve_full_scale(frames, full_scale))
         else:
-            result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles)
+            # the orientation decided here, so that the output can say which one decoded the burst
+            mirror = (fringe_phase_decreases_along_columns(frames_to_tensor(frames, full_scale))
+                      if orientation == "auto" else orientation == "mirrored")
+            result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles, mirror=mirror)
+            fringes = ("mirrored" if mirror else "normal") + (" (voted on this burst)" if orientation == "auto" else " (set)")
+            if orientation == "auto":
+                typer.secho("note: the fringe orientation was voted on this burst (--orientation auto); the vote "
+                            "misreads some fast bursts (fringes drifting about a third of a period per frame), and a "
+                            "misread burst decodes about 1.9 rad off: set --orientation normal|mirrored for your rig",
+                            fg=typer.colors.YELLOW, err=True)
     except ValueError as exc:  # a motion-input model without angles, or bad angles
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -216,12 +233,14 @@ def predict(
         output.parent.mkdir(parents=True, exist_ok=True)
         with open(output, "wb") as fh:
             fields = ("phase", "M", "D", "sigma_model", "sigma_data", "sigma_total")
-            np.savez_compressed(fh, mode=np.array(result.mode), **{k: getattr(result, k) for k in fields})
+            np.savez_compressed(fh, mode=np.array(result.mode), fringes=np.array(fringes),
+                                **{k: getattr(result, k) for k in fields})
     except OSError as exc:
         typer.echo(f"error: --output: cannot write {output} ({exc.strerror or exc})", err=True)
         raise typer.Exit(2) from exc
     typer.echo(
-        f"{output}: {frames.shape[2]}x{frames.shape[1]} phase, mode {result.mode}, median sigma_total {float(np.median(result.sigma_total)):.4f} rad"
+        f"{output}: {frames.shape[2]}x{frames.shape[1]} phase, mode {result.mode}, fringes {fringes}, "
+        f"median sigma_total {float(np.median(result.sigma_total)):.4f} rad"
     )
 
 

@@ -103,3 +103,13 @@ def test_orientation_is_checked_and_mirrored_flips_the_decode(tmp_path):
     assert res.exit_code == 0, res.output
     with np.load(tmp_path / "normal.npz") as a, np.load(tmp_path / "mm.npz") as b:
         np.testing.assert_allclose(b["phase"][:, ::-1], a["phase"], atol=1e-5)
+        assert str(a["fringes"]) == "normal (set)" and str(b["fringes"]) == "mirrored (set)"  # what decoded it
+    # auto votes on the burst, says what it chose, and warns that the vote can misread fast bursts
+    res = runner.invoke(app, ["predict", str(mirrored_in), "-o", str(tmp_path / "auto.npz")])
+    assert res.exit_code == 0 and "fringes mirrored (voted on this burst)" in res.output, res.output
+    assert "set --orientation normal|mirrored for your rig" in res.output
+    with np.load(tmp_path / "auto.npz") as c, np.load(tmp_path / "mm.npz") as b:
+        np.testing.assert_array_equal(c["phase"], b["phase"])
+    # a burst the encoder saw standing still goes to three-step PS: no orientation, no note
+    res = runner.invoke(app, ["predict", str(path), "--angles-deg", "0,0,0", "-o", str(tmp_path / "s.npz")])
+    assert res.exit_code == 0 and "fringes not used (three-step PS)" in res.output and "note:" not in res.output
