@@ -92,6 +92,30 @@ def main() -> None:
         m, s = d["moving"], d["still"]
         lines.append(f"| {folder} (a **train** folder) | {m['three-step']:.3f} | {m[V6]:.3f} | {m[V7]:.3f} | "
                      f"{s['three-step']:.3f} | {s[V6]:.3f} | {s[V7]:.3f} |")
+    lines += [
+        "",
+        "### Rescored with the rig's fringe orientation set (session 26; `choice_rule_rig.md`, written before)",
+        "",
+        "The table above used the per-burst orientation vote, which misreads some fast bursts (below) for either "
+        "network. Every val rig is `normal`; `scripts/val_compare.py --orientation normal` at 8ae13ee (this host), same bursts:",
+        "",
+        "| folder | moving: three-step | v6 | fine-tuned | still: three-step | v6 | fine-tuned |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for folder in ("val_radial_dense", "val_views", "val_radial"):
+        d = _load(f"val_rig_{folder}.json")
+        m, s = d["moving"], d["still"]
+        lines.append(f"| {folder} | {m['three-step']:.3f} | {m[V6]:.3f} | {m[V7]:.3f} | {s['three-step']:.3f} | "
+                     f"{s[V6]:.3f} | {s[V7]:.3f} |")
+    rig = {f: _load(f"val_rig_{f}.json")["moving"] for f in ("val_radial_dense", "val_views", "val_radial")}
+    worse = [f for f, m in rig.items() if m[V7] >= m[V6]]
+    lines += ["", (f"Same verdict: the fine-tuned network's moving RMSE is higher on {', '.join(worse)}; v6 stays."
+                   if worse else "The fine-tuned network's moving RMSE is lower on every folder.")
+              + " The vote's misreads had inflated v6's moving val error most on the any-view folder "
+              f"(val_views {_load('val_val_views.json')['moving'][V6]:.3f} with the vote, "
+              f"{rig['val_views'][V6]:.3f} with the orientation set) and on the large gears "
+              f"(val_radial_dense {_load('val_val_radial_dense.json')['moving'][V6]:.3f} -> "
+              f"{rig['val_radial_dense'][V6]:.3f})."]
     small = [(a["net"], b["net"]) for a, b in zip(per6, per7, strict=True) if a["teeth"] <= 40]
     large = [(a["net"], b["net"]) for a, b in zip(per6, per7, strict=True) if a["teeth"] > 40]
     lines += [
