@@ -157,13 +157,16 @@ def val_samples(folders: Sequence[str], items: int, seed: int, needs_angles: boo
 def calibrate_model(
     model: str | Path | None, val: str | Path | Sequence[str | Path], *, items: int = 64, mc: int = 20,
     seed: int = 0, output: str | Path | None = None, progress: Callable[[str], None] | None = None,
+    orientation: str = "normal",
 ) -> dict:
     """Fit and store the sigma calibration of ``model`` (default: the shipped one) on ``val``.
 
     ``val``: one or more twin validation folders; per folder ``items`` moving bursts and
     ``items // 2`` still ones. Writes ``sigma_calibration`` and an ``uncertainty_calibration``
     report into the model's JSON (or into ``output``'s JSON, copying the weights there); returns
-    that report.
+    that report. ``orientation``: the Predictor's fringe orientation on the val bursts; every twin
+    rig's is ``"normal"``, as a user sets it for the rig (``"auto"``'s per-burst vote misreads some
+    fast bursts, and their mirrored decode would enter the fit).
     """
     path = model_path(model)
     if items < 2:
@@ -171,13 +174,14 @@ def calibrate_model(
     folders = [str(v) for v in ([val] if isinstance(val, str | Path) else val)]
     if not folders:
         raise ValueError("val: expected at least one validation folder")
-    predictor = Predictor.load(path)
+    predictor = Predictor.load(path, orientation=orientation)
     predictor.calibration = {}  # fit on the uncalibrated sigma (var_scale stays applied)
     sets = val_samples(folders, items, seed, predictor.needs_angles)
     modes = [("deterministic", 0)] + ([("mc", mc)] if mc > 0 and predictor.has_dropout else [])
     calibration = {}
     report = {"data": folders, "items": {"moving": sum(len(p) for _, _, p, s in sets if not s),
-                                         "still": sum(len(p) for _, _, p, s in sets if s)}, "seed": seed}
+                                         "still": sum(len(p) for _, _, p, s in sets if s)}, "seed": seed,
+              "orientation": orientation}
     for name, passes in modes:
         parts = []
         for k, ds, pick, still in sets:

@@ -464,6 +464,11 @@ def calibrate_uncertainty(
         Path | None,
         typer.Option("--output", "-o", help="write a calibrated copy here (.safetensors) instead of in place"),
     ] = None,
+    orientation: Annotated[
+        str,
+        typer.Option(help="the val bursts' fringe orientation (normal: every twin rig's; auto: the per-burst vote, "
+                     "which misreads some fast bursts)"),
+    ] = "normal",
 ) -> None:
     """Fit the uncertainty calibration (sigma' = a sigma^b (departure + d0)^c per mode, by the log
     score of the ECE's event) and store it in the model's JSON; prints the ECE before and after on
@@ -474,7 +479,7 @@ def calibrate_uncertainty(
 
     try:
         report = calibrate_model(model, val, items=items, mc=mc, seed=seed, output=output,
-                                 progress=lambda s: typer.echo(f"- {s}"))
+                                 progress=lambda s: typer.echo(f"- {s}"), orientation=orientation)
     except (ModelFileError, DatasetError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

@@ -42,6 +42,7 @@ def test_calibration_is_fitted_on_truth_stored_and_applied(val_set, model_path, 
     meta = json.loads(out.with_suffix(".json").read_text())
     assert set(meta["sigma_calibration"]) == {"deterministic", "mc"}
     assert report["items"] == {"moving": 8, "still": 4}
+    assert report["orientation"] == "normal"  # every twin rig's: no per-burst vote misreads enter the fit
     for mode in ("deterministic", "mc"):
         r = report[mode]
         assert r["all"]["event_score_after"] <= r["all"]["event_score_before"] and r["all"]["pixels"] > 1500
@@ -80,3 +81,5 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
     not_a_dataset.mkdir()
     res = runner.invoke(app, ["calibrate-uncertainty", str(not_a_dataset), "--model", str(model_path)])
     assert res.exit_code == 2 and "empty" in res.output
+    res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--orientation", "up"])
+    assert res.exit_code == 2 and "orientation: expected one of auto, normal, mirrored, got 'up'" in res.output, res.output
