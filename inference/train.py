@@ -315,10 +315,15 @@ class Trainer:
             bar = Progress(*Progress.get_default_columns(), "{task.fields[loss]}", transient=True)
             task = bar.add_task(f"stage {stage} epoch {epoch + 1}", total=total, loss="")
             bar.start()
-        sums = {"total": 0.0, "nll": 0.0, "mse": 0.0, "reg": 0.0}
-        n = 0
-        for i, batch in enumerate(loader):
-            if i >= total:
+        keys = ("total", "nll", "mse", "reg")
+        acc = torch.zeros(len(keys), device=self.device)  # summed on the device: no host sync per step
+        n, wait_s, t_epoch = 0, 0.0, time.perf_counter()
+        batches = iter(loader)
+        for _ in range(total):
+            t_wait = time.perf_counter()
+            batch = next(batches, None)
+            wait_s += time.perf_counter() - t_wait  # blocked on the loader: where a starved device shows
+            if batch is None:
                 break
             batch = _crop(batch, self.config.crop, gen)
             x = batch["input"].to(self.device, non_blocking=True)
@@ -334,8 +339,7 @@ class Trainer:
             self.optimizer.zero_grad(set_to_none=True)
             losses["total"].backward()
             self.optimizer.step()
-            for k in sums:
-                sums[k] += float(losses[k].detach())
+            acc += torch.stack([losses[k].detach().float() for k in keys])
             n += 1
             if bar is not None:
                 bar.update(task, advance=1, loss=f"loss {float(losses['total'].detach()):.4g}")
@@ -344,8 +348,11 @@ class Trainer:
         if bar is not None:
             bar.stop()
         set_stochastic(self.model, False)
-        vals = all_reduce_sum([sums[k] for k in sums] + [n], self.dist, self.device)
-        return {f"train_{k}": vals[j] / max(vals[-1], 1) for j, k in enumerate(sums)} | {"steps": n}
+        sums = acc.tolist()  # the one host sync of the epoch
+        train_s = time.perf_counter() - t_epoch
+        vals = all_reduce_sum(sums + [n], self.dist, self.device)
+        return ({f"train_{k}": vals[j] / max(vals[-1], 1) for j, k in enumerate(keys)} | {"steps": n}
+                | {"train_s": train_s, "data_wait_s": wait_s})
 
     @torch.no_grad()
     def _validate(self) -> dict:

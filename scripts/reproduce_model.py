@@ -170,12 +170,17 @@ def main() -> None:
     total_epochs = max(2, int(args.train_minutes * 60 * 0.85 / (per_step * args.steps_per_epoch)))
     epochs_drop = max(1, total_epochs // 10)
     epochs_det = total_epochs - epochs_drop
-    print(f"probe: {per_step * 1000:.0f} ms/step -> {epochs_det} + {epochs_drop} epochs of {args.steps_per_epoch}",
-          flush=True)
+    # how much of a step waited on the loader: a large share means more workers (or GPU-side bursts), not a
+    # wider or faster network, would buy steps (the session-22 lease had 58 ms/step at w8 and at w32 alike)
+    wait = last.get("data_wait_s", float("nan")) / last["steps"]
+    print(f"probe: {per_step * 1000:.0f} ms/step ({wait * 1000:.0f} ms of it waiting on the loader, "
+          f"{last.get('train_s', float('nan')) / last['steps'] * 1000:.0f} ms training) -> {epochs_det} + {epochs_drop} "
+          f"epochs of {args.steps_per_epoch}", flush=True)
     t2 = time.time()
     subprocess.run(_train_cmd(args, train_dirs, val_dirs, args.out, epochs_det, epochs_drop, args.steps_per_epoch,
                               args.val_items), check=True)
     info = {"render_seconds": render_s, "train_seconds": time.time() - t2, "probe_ms_per_step": per_step * 1000,
+            "probe_ms_data_wait_per_step": wait * 1000,
             "epochs": [epochs_det, epochs_drop], "args": {k: str(v) for k, v in vars(args).items()},
             "train_sets": train_jobs, "val_sets": val_jobs}
     (args.out / "reproduce.json").write_text(json.dumps(info, indent=2))

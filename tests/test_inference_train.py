@@ -72,6 +72,9 @@ def test_tiny_model_overfits_tiny_twin_set(tmp_path):
     )
     result = train(cfg, ds, ds)
     final = result.history[-1]["val_rmse"]
+    # each epoch says how long it trained and how much of that it waited on the loader
+    row = result.history[-1]
+    assert 0 <= row["data_wait_s"] <= row["train_s"] <= row["seconds"] and row["steps"] > 0
     # three-step PS on these moving bursts is ~0.4 rad off; the net must fit them to < 0.05 rad
     assert classical > 0.2
     assert final < 0.05, f"did not overfit: RMSE {final:.3f} rad (three-step {classical:.3f})"
