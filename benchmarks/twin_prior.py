@@ -34,7 +34,7 @@ from gearscan.core.phase import classical_result, phase_error
 from gearscan.core.rig import default_rig
 from gearscan.core.types import Burst, Frame
 from gearscan.evaluate import Scene, render_cases
-from gearscan.generalization import PAPER, PAPER_REVERSED, scene_motions
+from gearscan.generalization import PAPER, PAPER_REVERSED, rig_orientation, scene_motions
 from gearscan.inference.predictor import Predictor
 from gearscan.recon.deviation import CadScorer
 from gearscan.recon.measure import Reconstructor
@@ -97,6 +97,8 @@ def families_part(args, net: Predictor, sums: Sums, timing: dict) -> list[dict]:
             motions = scene_motions(np.random.default_rng([scene.seed, 1]), sweeps=0, stills=2)
             sc = Scene(scene.name, scene.rig, scene.optics, scene.gear, scene.period_px, _renderer=scene.renderer)
             cases = render_cases(sc, {m.name: m.steps_deg for m in motions}, 1, seed=scene.seed)
+            if args.orientation == "rig":  # set once per rig, as a user does, from the scene's first still burst
+                net.orientation = rig_orientation(motions, cases)
             for motion, case in zip(motions, cases, strict=True):
                 t0 = time.perf_counter()
                 results, usable = decode_all(case, prior, net)
@@ -194,7 +196,8 @@ def write_report(args, sums: Sums, scenes: list, dev_rows: list, timing: dict, t
     lines = [
         "# The twin as a run-time prior (issue 13, item 6)",
         "",
-        f"`python benchmarks/twin_prior.py --scenes {args.scenes} --families {','.join(args.families)}`; commit "
+        f"`python benchmarks/twin_prior.py --scenes {args.scenes} --families {','.join(args.families)} "
+        f"--orientation {args.orientation}`; commit "
         f"`{commit}`{' (working tree had uncommitted edits by others)' if dirty else ''}; {total_s / 60:.1f} min.",
         "",
         f"- **Host**: {machine}; 2 torch threads; network precision {timing['precision']}.",
@@ -202,7 +205,9 @@ def write_report(args, sums: Sums, scenes: list, dev_rows: list, timing: dict, t
         f"prior has one setting, `max_gain = {MAX_GAIN}`, fixed before this run).",
         f"- **Bursts**: {timing['bursts']} ({args.scenes} scenes per family; per scene the paper's three motions both "
         "ways and 2 still bursts). RMSE over the truth mask (analytic wrapped phase at the first frame's pose).",
-        "- **Methods**: three-step PS; CD-DCU-Net (shipped, deterministic, with the burst angles); *twin prior*: "
+        "- **Methods**: three-step PS; CD-DCU-Net (shipped, deterministic, with the burst angles; fringe orientation "
+        + ("set once per scene from the vote on its first still burst, as a user sets it per rig" if args.orientation == "rig"
+           else "voted per burst") + "); *twin prior*: "
         "the three frames solved per pixel with the shifts and shading changes that the CAD at the encoder angles "
         "predicts (`gearscan.twin.prior`); *prior + net*: the prior where it is usable (the CAD sees one smooth lit "
         f"surface in every frame's blur footprint and the solve's noise gain is <= {MAX_GAIN}), the network elsewhere.",
@@ -263,6 +268,9 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=3, help="test scenes per family")
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--size", type=int, default=256, help="default-rig resolution (the other families draw theirs)")
+    ap.add_argument("--orientation", choices=("rig", "auto"), default="rig",
+                    help="the network's fringe orientation: rig = set once per scene from its first still burst (as a "
+                         "user sets it per rig); auto = the per-burst vote (reports before session 26)")
     args = ap.parse_args()
     args.families = [f.strip() for f in args.families.split(",") if f.strip()]
     bad = [f for f in args.families if f not in FAMILIES]
@@ -271,7 +279,8 @@ def main() -> None:
     torch.set_num_threads(2)
     machine = host()
     t0 = time.perf_counter()
-    net = Predictor.load(None)
+    # rig: the default rig of the deviation part is the twin's, "normal"; the families set theirs per scene
+    net = Predictor.load(None, orientation="normal" if args.orientation == "rig" else "auto")
     timing = {"decode_s": 0.0, "bursts": 0, "precision": net.precision, "prior_s": timing_prior(args.size)}
     sums = Sums()
     scenes = families_part(args, net, sums, timing)
