@@ -62,6 +62,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("out/inspect_bench/report"))
     ap.add_argument("--classical", action="store_true", help="three-step PS instead of the network")
     ap.add_argument("--model", type=Path, default=None, help="network weights (.safetensors); default: the shipped model")
+    ap.add_argument("--orientation", choices=("auto", "normal", "mirrored"), default="auto",
+                    help="the network's fringe orientation (the Decoder's; auto: the shipped default, voted per burst "
+                         "as this revolution has no still burst to adopt it from; normal: the twin rig's, set)")
     ap.add_argument("--voxel-mm", type=float, default=0.1)
     ap.add_argument("--min-bursts", type=int, default=3)
     args = ap.parse_args()
@@ -93,7 +96,7 @@ def main() -> None:
     args.recording = recording(alternate)
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
-    decoder = Decoder(args.model, classical=args.classical)
+    decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
 
@@ -179,11 +182,14 @@ def main() -> None:
     fp_err, plain_fp_err = fp_error(insp), fp_error(plain.inspection)
     ok = lambda t, m: abs(m - t) <= 5 + 0.05 * abs(t)  # noqa: E731
     decoder = "three-step PS" if args.classical else (
-        f"network `{args.model}` (deterministic)" if args.model else "shipped network (deterministic)")
+        (f"network `{args.model}` (deterministic" if args.model else "shipped network (deterministic")
+        + (", fringe orientation voted per burst: the shipped default; no still burst to adopt it from)"
+           if args.orientation == "auto" else f", fringe orientation set: {args.orientation})"))
     lines = [
         "# Inspection benchmark (issue 14: fused revolution, ISO 1328-1 pitch and runout)",
         "",
-        f"`python benchmarks/inspect_bench.py` — commit {commit()}, host: {started}.",
+        f"`python benchmarks/inspect_bench.py{'' if args.orientation == 'auto' else ' --orientation ' + args.orientation}`"
+        f" — commit {commit()}, host: {started}.",
         "",
         f"Twin: default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, 200 bursts ({report.revolution_deg:.0f}° of encoder "
         f"angle), eccentricity 50 µm, tooth 3 +30 µm pitch error, tooth 7 tip chipped 0.3 mm; pattern order "
