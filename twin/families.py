@@ -77,19 +77,29 @@ def _either(rng: np.random.Generator, low: tuple[float, float], high: tuple[floa
     return float(rng.uniform(lo, hi))
 
 
-def draw_gear(rng: np.random.Generator, module: float | None = None) -> GearSpec:
-    """A gear with a test-split tooth count; module log-uniform in 0.5-5 mm unless given."""
-    teeth = int(rng.choice(sorted(SPLITS["test"].teeth)))
+def draw_gear(rng: np.random.Generator, module: float | None = None, teeth: int | None = None) -> GearSpec:
+    """A gear with a test-split tooth count (or ``teeth``); module log-uniform in 0.5-5 mm unless given."""
+    teeth = int(rng.choice(sorted(SPLITS["test"].teeth))) if teeth is None else int(teeth)
     m = round(_log_uniform(rng, *MODULE_MM), 3) if module is None else module
     root_d = m * (teeth - 2.5)
     return GearSpec(teeth=teeth, module=m, pressure_angle_deg=float(rng.uniform(17.5, 25.0)),
                     face_width=float(np.clip(10 * m, 4.0, 40.0)), bore=round(min(10.0, 0.5 * root_d), 3))
 
 
-def _default_draw(rng: np.random.Generator, size: tuple[int, int]) -> tuple[Rig, Optics, GearSpec, float | None, dict]:
-    gear = draw_gear(rng, module=2.0)
+DEFAULT_RIG_MODULE = 2.0  # the product's default rig is set up for module-2 gears
+DEFAULT_RIG_PERIOD_PX = 40.0  # its projector fringe period
+
+
+def default_rig_scene(gear: GearSpec, size: tuple[int, int] = (256, 256)) -> tuple[Rig, Optics]:
+    """The product's default rig aimed at ``gear`` (working radius at its pitch circle), balanced optics."""
     rig = default_rig(*size, working_radius=gear.pitch_radius)
-    return rig, balance_projector_power(rig, Optics()), gear, None, {"teeth": gear.teeth, "module": gear.module}
+    return rig, balance_projector_power(rig, Optics())
+
+
+def _default_draw(rng: np.random.Generator, size: tuple[int, int]) -> tuple[Rig, Optics, GearSpec, float | None, dict]:
+    gear = draw_gear(rng, module=DEFAULT_RIG_MODULE)
+    rig, optics = default_rig_scene(gear, size)
+    return rig, optics, gear, None, {"teeth": gear.teeth, "module": gear.module}
 
 
 def _view_draw(view: View, wide: bool) -> Callable:
@@ -156,7 +166,7 @@ def make_scene(family: str, seed: int, size: tuple[int, int] = (256, 256), attem
             last = str(exc)
             continue
         surface = renderer.surface(0.0)
-        period = 40.0 if cam_period is None else projector_period_for_surface(surface, cam_period)
+        period = DEFAULT_RIG_PERIOD_PX if cam_period is None else projector_period_for_surface(surface, cam_period)
         share = float(renderer.truth(surface, period).mask.mean())
         if share < MIN_MASK_SHARE:
             last = f"truth mask covers {100 * share:.1f}% of the image"
