@@ -99,3 +99,11 @@ def test_dataset_generation_refuses_the_test_split(tmp_path) -> None:
     with pytest.raises(DatasetError, match=r"tooth counts \[37\] belong to the test split"):
         generate_dataset(tmp_path / "d", spec)
     assert not (tmp_path / "d").exists()
+    # the default rig aimed at a test gear (the test family's scene) is refused as stored data as well
+    from gearscan.twin.families import DEFAULT_RIG_PERIOD_PX, default_rig_scene, draw_gear
+
+    gear = draw_gear(np.random.default_rng(0), module=2.0, teeth=37)
+    rig, optics = default_rig_scene(gear, (32, 32))
+    with pytest.raises(DatasetError, match=r"tooth counts \[37\] belong to the test split"):
+        generate_dataset(tmp_path / "r", spec, scene=(rig, optics, gear, DEFAULT_RIG_PERIOD_PX))
+    assert draw_gear(np.random.default_rng(0), module=2.0, teeth=20).teeth == 20  # a train gear drawn the family's way
