@@ -37,6 +37,7 @@ from gearscan.twin.families import (
 from gearscan.twin.splits import SPLITS
 
 VAL_TEETH = (25, 32, 46, 62)  # val-split tooth counts from small to large
+TEETH = (10, 80)  # the test families' tooth range (twin/splits.py)
 
 
 def render(root: Path, teeth: list[int], seed: int, start_points: int, size: int) -> list[Path]:
@@ -78,8 +79,10 @@ def main() -> None:
     if not SPLITS["val"].has_seed(args.val_seed) or not SPLITS["val"].has_seed(args.val_seed + len(VAL_TEETH) - 1):
         ap.error(f"--val-seed: expected val seeds, got {args.val_seed}")
     torch.set_num_threads(args.threads)
-    pool = sorted(SPLITS["train"].teeth)
-    train_teeth = sorted({pool[round(i)] for i in np.linspace(0, len(pool) - 1, args.gears)})
+    # the tooth counts users bring to this rig: the families' range (10-80), train split only
+    pool = sorted(z for z in SPLITS["train"].teeth if TEETH[0] <= z <= TEETH[1])
+    # spread evenly in tooth count (the pool is dense among small gears, the test family is not)
+    train_teeth = sorted({min(pool, key=lambda z: abs(z - t)) for t in np.linspace(pool[0], pool[-1], args.gears)})
     t0 = time.perf_counter()
     train_dirs = render(args.data / "train", train_teeth, args.seed, args.start_points, args.size)
     val_dirs = render(args.data / "val", list(VAL_TEETH), args.val_seed, args.val_start_points, args.size)
