@@ -49,7 +49,7 @@ from gearscan.generalization import (
 )
 from gearscan.inference.predictor import Predictor, model_path
 from gearscan.twin.families import FAMILIES, family_scenes
-from gearscan.twin.splits import SHIPPED, SHIPPED_V5, describe
+from gearscan.twin.splits import SHIPPED, SHIPPED_DEFAULT_RIG, SHIPPED_V5, describe
 
 HERE = Path(__file__).parent
 REPO = HERE.parent
@@ -65,6 +65,8 @@ def shipped_saw(model: str | None) -> str:
         return SHIPPED.summary()
     if path.name == "v5.safetensors":
         return SHIPPED_V5.summary()
+    if path.name == "default_rig.safetensors":
+        return SHIPPED_DEFAULT_RIG.summary()
     return f"{path} (not a shipped model: its training data is its own record)"
 
 

@@ -13,6 +13,7 @@ from gearscan.twin.families import FAMILIES, SEED_BLOCK, draw_gear, family_seed
 from gearscan.twin.randomize import aim_point, view_rig
 from gearscan.twin.splits import (
     SHIPPED,
+    SHIPPED_DEFAULT_RIG,
     SHIPPED_V5,
     SHIPPED_V6,
     SPLITS,
@@ -41,7 +42,7 @@ def test_splits_are_disjoint_by_gear_rig_and_seed() -> None:
         split_of_seed(seed)  # exactly one owner, or it raises
 
 
-@pytest.mark.parametrize("shipped", [SHIPPED_V5, SHIPPED_V6], ids=["v5", "v6"])
+@pytest.mark.parametrize("shipped", [SHIPPED_V5, SHIPPED_V6, SHIPPED_DEFAULT_RIG], ids=["v5", "v6", "default-rig"])
 def test_shipped_models_saw_only_train_and_val(shipped) -> None:
     assert shipped.train_teeth <= SPLITS["train"].teeth
     assert shipped.val_teeth <= SPLITS["val"].teeth
@@ -56,6 +57,20 @@ def test_v6_record_matches_the_plan_that_rendered_it() -> None:
     assert {t for _, teeth, *_ in meta["train_sets"] for t in teeth} == SHIPPED_V6.train_teeth
     assert {t for _, teeth, *_ in meta["val_sets"] for t in teeth} == SHIPPED_V6.val_teeth
     assert {s[-1] for s in meta["train_sets"]} == set(SHIPPED_V6.train_dataset_seeds)
+
+
+def test_default_rig_record_matches_the_run_that_made_it() -> None:
+    """The default-rig option's record (what its reports say it saw) is its run's own, gears and seeds."""
+    import json
+    from pathlib import Path
+
+    run = json.loads((Path(__file__).resolve().parents[1] / "benchmarks/default_rig/run.json").read_text())
+    assert set(run["train_teeth"]) <= SHIPPED_DEFAULT_RIG.train_teeth and set(run["val_teeth"]) <= SHIPPED_DEFAULT_RIG.val_teeth
+    seeds = set(SHIPPED_DEFAULT_RIG.train_dataset_seeds) - set(SHIPPED_V6.train_dataset_seeds)
+    assert "--seed 3201 " in run["command"] and "--val-seed 10005 " in run["command"]
+    assert seeds == set(range(3201, 3201 + len(run["train_teeth"])))  # scripts/default_rig_model.py: seed + k
+    assert all(split_of_teeth(z) == "train" for z in run["train_teeth"])
+    assert all(split_of_teeth(z) == "val" for z in run["val_teeth"])
 
 
 def test_families_draw_test_gears_rigs_and_seeds_only() -> None:
