@@ -232,7 +232,8 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "# Generalization on the test split: families a user would bring, stratified",
         "",
         f"`python benchmarks/generalization.py --scenes {args.scenes} --mc-scenes {args.mc_scenes} --mc {args.mc}"
-        f"{' --quick' if args.quick else ''}`; commit `{commit}`{' (working tree had uncommitted edits by others)' if dirty else ''}; "
+        f"{' --quick' if args.quick else ''}{f' --model {args.model}' if args.model else ''}"
+        f"{f' --out {args.out}' if args.out else ''}`; commit `{commit}`{' (working tree had uncommitted edits)' if dirty else ''}; "
         f"{total_s / 60:.1f} min.",
         "",
         f"- **Host**: {h['cpu']}, {h['cores']} cores, AVX-512 {'yes' if h['avx512f'] else 'no'}, "
