@@ -221,11 +221,6 @@ def predict(
                       if orientation == "auto" else orientation == "mirrored")
             result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles, mirror=mirror)
             fringes = ("mirrored" if mirror else "normal") + (" (voted on this burst)" if orientation == "auto" else " (set)")
-            if orientation == "auto":
-                typer.secho("note: the fringe orientation was voted on this burst (--orientation auto); the vote "
-                            "misreads some fast bursts (fringes drifting about a third of a period per frame), and a "
-                            "misread burst decodes about 1.9 rad off: set --orientation normal|mirrored for your rig",
-                            fg=typer.colors.YELLOW, err=True)
     except ValueError as exc:  # a motion-input model without angles, or bad angles
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -242,6 +237,11 @@ def predict(
         f"{output}: {frames.shape[2]}x{frames.shape[1]} phase, mode {result.mode}, fringes {fringes}, "
         f"median sigma_total {float(np.median(result.sigma_total)):.4f} rad"
     )
+    if fringes.endswith("(voted on this burst)"):
+        typer.secho("note: the fringe orientation was voted on this burst (--orientation auto); the vote "
+                    "misreads some fast bursts (fringes drifting about a third of a period per frame), and a "
+                    "misread burst decodes about 1.9 rad off: set --orientation normal|mirrored for your rig",
+                    fg=typer.colors.YELLOW, err=True)
 
 
 def _load_dataset(spec: str, max_items: int | None = None, motion_input: bool = False,
