@@ -284,6 +284,8 @@ def main() -> None:
     timing = {"decode_s": 0.0, "bursts": 0, "precision": net.precision, "prior_s": timing_prior(args.size)}
     sums = Sums()
     scenes = families_part(args, net, sums, timing)
+    if args.orientation == "rig":
+        net.orientation = "normal"  # the deviation part's default rig is the twin's (families_part set the last scene's)
     dev_rows = deviation_part(args, net)
     write_report(args, sums, scenes, dev_rows, timing, time.perf_counter() - t0, machine)
 
