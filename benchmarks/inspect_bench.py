@@ -62,6 +62,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("out/inspect_bench/report"))
     ap.add_argument("--classical", action="store_true", help="three-step PS instead of the network")
     ap.add_argument("--model", type=Path, default=None, help="network weights (.safetensors); default: the shipped model")
+    ap.add_argument("--report", type=Path, default=HERE / "inspect_report",
+                    help="path prefix of the report (.md, .json); default benchmarks/inspect_report")
     ap.add_argument("--orientation", choices=("auto", "normal", "mirrored"), default="auto",
                     help="the network's fringe orientation (the Decoder's; auto: the shipped default, voted per burst "
                          "as this revolution has no still burst to adopt it from; normal: the twin rig's, set)")
@@ -188,7 +190,8 @@ def main() -> None:
     lines = [
         "# Inspection benchmark (issue 14: fused revolution, ISO 1328-1 pitch and runout)",
         "",
-        f"`python benchmarks/inspect_bench.py{'' if args.orientation == 'auto' else ' --orientation ' + args.orientation}`"
+        f"`python benchmarks/inspect_bench.py{'' if args.orientation == 'auto' else ' --orientation ' + args.orientation}"
+        f"{f' --model {args.model}' if args.model else ''}`"
         f" — commit {commit()}, host: {started}.",
         "",
         f"Twin: default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, 200 bursts ({report.revolution_deg:.0f}° of encoder "
@@ -276,8 +279,8 @@ def main() -> None:
         "errors common to all teeth cancel.",
         "",
     ]
-    (HERE / "inspect_report.md").write_text("\n".join(lines))
-    (HERE / "inspect_report.json").write_text(json.dumps({
+    args.report.with_suffix(".md").write_text("\n".join(lines))
+    args.report.with_suffix(".json").write_text(json.dumps({
         "commit": commit(), "host": started, "seconds": seconds, "decoder": decoder,
         "fused_rms_mm": rms, "fused_p95_mm": float(np.percentile(dist, 95)), "coverage": coverage,
         "fused_only_rms_mm": plain_rms, "refined_fraction": float(refined.mean()), "refined_rms_mm": rms_refined,
