@@ -65,7 +65,8 @@ def main() -> None:
     ap.add_argument("--val-start-points", type=int, default=2)
     ap.add_argument("--seed", type=int, default=3201, help="first train seed (one per gear)")
     ap.add_argument("--val-seed", type=int, default=10005)
-    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--sizes", type=lambda v: [int(x) for x in v.split(",")], default=[256],
+                    help="camera resolutions (square) to render the rig at, e.g. 256,512: the same gears and seeds at each")
     ap.add_argument("--budget", type=float, default=40.0, help="CPU minutes of fine-tuning")
     ap.add_argument("--lr", type=float, default=3e-4)
     ap.add_argument("--batch", type=int, default=8)
@@ -84,8 +85,11 @@ def main() -> None:
     # spread evenly in tooth count (the pool is dense among small gears, the test family is not)
     train_teeth = sorted({min(pool, key=lambda z: abs(z - t)) for t in np.linspace(pool[0], pool[-1], args.gears)})
     t0 = time.perf_counter()
-    train_dirs = render(args.data / "train", train_teeth, args.seed, args.start_points, args.size)
-    val_dirs = render(args.data / "val", list(VAL_TEETH), args.val_seed, args.val_start_points, args.size)
+    train_dirs, val_dirs = [], []
+    for size in args.sizes:  # one size keeps the flat layout of the first run (data/default_rig/train/zNN)
+        sub = "" if len(args.sizes) == 1 else f"{size}"
+        train_dirs += render(args.data / "train" / sub, train_teeth, args.seed, args.start_points, size)
+        val_dirs += render(args.data / "val" / sub, list(VAL_TEETH), args.val_seed, args.val_start_points, size)
     render_s = time.perf_counter() - t0
     train_set = ConcatDataset([TwinBurstDataset(d, static=True, static_repeat=20, reverse=True, crop=args.crop, seed=i)
                                for i, d in enumerate(train_dirs)])
