@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import ConcatDataset, Subset
+from torch.utils.data import ConcatDataset, Dataset, Subset
 
 from gearscan.inference.losses import LossConfig
 from gearscan.inference.model_io import read_config
@@ -38,6 +38,25 @@ from gearscan.twin.splits import SPLITS
 
 VAL_TEETH = (25, 32, 46, 62)  # val-split tooth counts from small to large
 TEETH = (10, 80)  # the test families' tooth range (twin/splits.py)
+
+
+class CenterCrop(Dataset):
+    """A val dataset's items cut to their central ``size`` x ``size``: val batches of several resolutions."""
+
+    def __init__(self, dataset: Dataset, size: int) -> None:
+        self.dataset, self.size = dataset, size
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, i: int) -> dict:
+        item = dict(self.dataset[i])
+        for key, value in item.items():
+            if isinstance(value, np.ndarray) and value.ndim >= 2:
+                h, w = value.shape[-2:]
+                y, x = (h - self.size) // 2, (w - self.size) // 2
+                item[key] = np.ascontiguousarray(value[..., y:y + self.size, x:x + self.size])
+        return item
 
 
 def render(root: Path, teeth: list[int], seed: int, start_points: int, size: int) -> list[Path]:
@@ -93,7 +112,8 @@ def main() -> None:
     render_s = time.perf_counter() - t0
     train_set = ConcatDataset([TwinBurstDataset(d, static=True, static_repeat=20, reverse=True, crop=args.crop, seed=i)
                                for i, d in enumerate(train_dirs)])
-    val_full = ConcatDataset([TwinBurstDataset(d, static=True, reverse=True) for d in val_dirs])
+    val_full = ConcatDataset([CenterCrop(TwinBurstDataset(d, static=True, reverse=True), min(args.sizes))
+                              for d in val_dirs])
     pick = np.random.default_rng(0).choice(len(val_full), min(args.val_items, len(val_full)), replace=False)
     val_set = Subset(val_full, sorted(pick.tolist()))
     meta = read_config(DEFAULT_MODEL)
