@@ -31,6 +31,34 @@ def _pool(values: list[float]) -> float:
     return math.sqrt(sum(v * v for v in values) / len(values))
 
 
+def multi_section(multi: Path, v6: str) -> list[str]:
+    """The candidate fine-tuned at 256x256 and 512x512 (rule: ``choice_rule_multi.md``), on val at both sizes."""
+    run = _load(multi / "run.json")
+    first, cand = "inference/weights/default_rig.safetensors", "runs/default_rig_multi/best.safetensors"
+    out = ["", "## Candidate tuned at 256x256 and 512x512 (val; rule written before: `default_rig/choice_rule_multi.md`)",
+           "", f"`{run['command']}`; {run['steps']} steps of 8, {run['cpu_min']:.1f} CPU min. "
+           "`scripts/val_compare.py --orientation normal --items 48` per val gear and size (48 moving, 24 still); "
+           "*first*: the 256x256-only model above.", "",
+           "| size | gear | moving: three-step | v6 | first | candidate | still: three-step | v6 | first | candidate |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    verdict = []
+    for size in (256, 512):
+        rows = {z: _load(multi / f"val_{size}_{z}.json") for z in FOLDERS}
+        for z, d in rows.items():
+            m, s = d["moving"], d["still"]
+            out.append(f"| {size} | {z} | {m['three-step']:.3f} | {m[v6]:.3f} | {m[first]:.3f} | {m[cand]:.3f} | "
+                       f"{s['three-step']:.3f} | {s[v6]:.3f} | {s[first]:.3f} | {s[cand]:.3f} |")
+        pm = {k: _pool([rows[z]["moving"][k] for z in FOLDERS]) for k in ("three-step", v6, first, cand)}
+        ps = {k: _pool([rows[z]["still"][k] for z in FOLDERS]) for k in ("three-step", v6, first, cand)}
+        out.append(f"| {size} | **pooled** | {pm['three-step']:.3f} | {pm[v6]:.3f} | {pm[first]:.3f} | **{pm[cand]:.3f}** | "
+                   f"{ps['three-step']:.3f} | {ps[v6]:.3f} | {ps[first]:.3f} | {ps[cand]:.3f} |")
+        verdict.append(pm[cand] <= 0.9 * pm[v6] and ps[cand] <= ps[v6] + 0.005)
+        if size == 256:
+            verdict.append(pm[cand] <= 1.1 * pm[first])
+    out += ["", f"Rule: **{'passed: it replaces the first model as the option' if all(verdict) else 'failed: the first model stays'}**."]
+    return out
+
+
 def main() -> None:
     run = _load(RAW / "run.json")
     val = {f: _load(RAW / f"val_{f}.json") for f in FOLDERS}
@@ -75,6 +103,9 @@ def main() -> None:
               f"Training-time val RMSE (48 of the val items, `default_rig/training_metrics.csv`): "
               f"{float(rows[0]['val_rmse']):.3f} at the start (v6), {min(float(r['val_rmse']) for r in rows):.3f} at "
               f"best, {float(rows[-1]['val_rmse']):.3f} at the end."]
+    multi = RAW / "multi"
+    if (multi / "run.json").is_file():
+        lines += multi_section(multi, V6)
     gen_path = HERE / "generalization_default_rig.json"
     if gen_path.is_file():
         new, v6 = _load(gen_path), _load(HERE / "generalization_report.json")
