@@ -126,7 +126,8 @@ def main() -> None:
     )
     t1 = time.perf_counter()
     result = train(config, train_set, val_set)
-    info = {"command": "python scripts/default_rig_model.py " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()),
+    shown = {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in vars(args).items()}
+    info = {"command": "python scripts/default_rig_model.py " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in shown.items()),
             "train_teeth": train_teeth, "val_teeth": list(VAL_TEETH), "train_dirs": [str(d) for d in train_dirs],
             "val_dirs": [str(d) for d in val_dirs], "render_s": render_s, "train_wall_s": time.perf_counter() - t1,
             "cpu_min": result.cpu_seconds / 60.0, "budget_hit": result.budget_hit, "best": str(result.best_path),
