@@ -23,6 +23,13 @@ def _load(name: str):
     return json.loads((RAW / name).read_text())
 
 
+def _row(name: str, d: dict) -> str:
+    """One table row: moving and still RMSE of three-step PS, v6 and the fine-tuned network."""
+    m, s = d["moving"], d["still"]
+    return (f"| {name} | {m['three-step']:.3f} | {m[V6]:.3f} | {m[V7]:.3f} | {s['three-step']:.3f} | "
+            f"{s[V6]:.3f} | {s[V7]:.3f} |")
+
+
 def _rms(values: list[float]) -> float:
     return float(np.sqrt(np.mean(np.square(values))))
 
@@ -82,16 +89,8 @@ def main() -> None:
         "| folder | moving: three-step | v6 | fine-tuned | still: three-step | v6 | fine-tuned |",
         "|---|---|---|---|---|---|---|",
     ]
-    for folder in ("val_radial_dense", "val_views", "val_radial"):
-        d = _load(f"val_{folder}.json")
-        m, s = d["moving"], d["still"]
-        lines.append(f"| {folder} | {m['three-step']:.3f} | {m[V6]:.3f} | {m[V7]:.3f} | {s['three-step']:.3f} | "
-                     f"{s[V6]:.3f} | {s[V7]:.3f} |")
-    for folder in ("radial_dense_0", "views_0"):
-        d = _load(f"train_{folder}.json")
-        m, s = d["moving"], d["still"]
-        lines.append(f"| {folder} (a **train** folder) | {m['three-step']:.3f} | {m[V6]:.3f} | {m[V7]:.3f} | "
-                     f"{s['three-step']:.3f} | {s[V6]:.3f} | {s[V7]:.3f} |")
+    lines += [_row(folder, _load(f"val_{folder}.json")) for folder in ("val_radial_dense", "val_views", "val_radial")]
+    lines += [_row(f"{folder} (a **train** folder)", _load(f"train_{folder}.json")) for folder in ("radial_dense_0", "views_0")]
     lines += [
         "",
         "### Rescored with the rig's fringe orientation set (session 26; `choice_rule_rig.md`, written before)",
@@ -102,11 +101,7 @@ def main() -> None:
         "| folder | moving: three-step | v6 | fine-tuned | still: three-step | v6 | fine-tuned |",
         "|---|---|---|---|---|---|---|",
     ]
-    for folder in ("val_radial_dense", "val_views", "val_radial"):
-        d = _load(f"val_rig_{folder}.json")
-        m, s = d["moving"], d["still"]
-        lines.append(f"| {folder} | {m['three-step']:.3f} | {m[V6]:.3f} | {m[V7]:.3f} | {s['three-step']:.3f} | "
-                     f"{s[V6]:.3f} | {s[V7]:.3f} |")
+    lines += [_row(folder, _load(f"val_rig_{folder}.json")) for folder in ("val_radial_dense", "val_views", "val_radial")]
     rig = {f: _load(f"val_rig_{f}.json")["moving"] for f in ("val_radial_dense", "val_views", "val_radial")}
     worse = [f for f, m in rig.items() if m[V7] >= m[V6]]
     lines += ["", (f"Same verdict: the fine-tuned network's moving RMSE is higher on {', '.join(worse)}; v6 stays."
