@@ -12,6 +12,10 @@ prior must not pull the measurement toward the CAD, so the deviation vs CAD of t
 is compared with the true one.
 
     python benchmarks/twin_prior.py [--scenes 3] [--families default,side]
+
+With ``--prior-model`` (a ``prior_input`` network, fed the prior's phase changes and shading
+ratios as input channels) and ``--control`` (the same fine-tuning without them), both are decoded
+too and the report goes to ``prior_input_report.md`` instead.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from gearscan.core.rig import default_rig
 from gearscan.core.types import Burst, Frame
 from gearscan.evaluate import Scene, render_cases
 from gearscan.generalization import PAPER, PAPER_REVERSED, rig_orientation, scene_motions
+from gearscan.inference.models import prior_channels
 from gearscan.inference.predictor import Predictor
 from gearscan.recon.deviation import CadScorer
 from gearscan.recon.measure import Reconstructor
@@ -48,6 +53,8 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 METHODS = ("three-step PS", "CD-DCU-Net", "twin prior", "prior + net")
 MAX_GAIN = 2.0
+CONTROL_NET = "control net"
+PRIOR_NET = "net + prior input"
 
 
 def host() -> str:
@@ -65,13 +72,22 @@ def burst_of(case) -> Burst:
     return Burst(tuple(Frame(f, i, 0, i) for i, f in enumerate(case.frames)), tuple(case.angles_rad))
 
 
-def decode_all(case, prior: TwinPrior, net: Predictor):
-    """Every method's PhaseResult for one burst, and where the prior is usable."""
+def decode_all(case, prior: TwinPrior, net: Predictor, extra: dict[str, Predictor] | None = None):
+    """Every method's PhaseResult for one burst, and where the prior is usable. ``extra``: more
+    networks by name; a ``prior_input`` one is fed the prior's channels of the burst."""
     three = classical_result(burst_of(case))
-    network = replace(net.predict(case.frames, full_scale=case.full_scale, angles=case.angles_rad),
-                      angle=float(case.angles_rad[0]))
-    alone, usable = prior.decode(case.frames, case.full_scale, case.angles_rad, max_gain=MAX_GAIN)
-    return {METHODS[0]: three, METHODS[1]: network, METHODS[2]: alone, METHODS[3]: blend(alone, usable, network)}, usable
+    maps = prior.maps(case.angles_rad)
+    channels = prior_channels(maps.phase_change(), maps.ratio[1:], maps.clean)
+
+    def run(p: Predictor):
+        res = p.predict(case.frames, full_scale=case.full_scale, angles=case.angles_rad,
+                        prior=channels if p.needs_prior else None)
+        return replace(res, angle=float(case.angles_rad[0]))
+
+    network = run(net)
+    alone, usable = prior.decode(case.frames, case.full_scale, case.angles_rad, max_gain=MAX_GAIN, maps=maps)
+    out = {METHODS[0]: three, METHODS[1]: network, METHODS[2]: alone, METHODS[3]: blend(alone, usable, network)}
+    return out | {name: run(p) for name, p in (extra or {}).items()}, usable
 
 
 class Sums:
@@ -89,7 +105,7 @@ class Sums:
         return math.sqrt(self.sse[key] / self.n[key]) if self.n[key] else float("nan")
 
 
-def families_part(args, net: Predictor, sums: Sums, timing: dict) -> list[dict]:
+def families_part(args, net: Predictor, sums: Sums, timing: dict, extra: dict[str, Predictor]) -> list[dict]:
     scenes = []
     for fam in args.families:
         for scene in family_scenes(fam, args.scenes):
@@ -99,15 +115,17 @@ def families_part(args, net: Predictor, sums: Sums, timing: dict) -> list[dict]:
             cases = render_cases(sc, {m.name: m.steps_deg for m in motions}, 1, seed=scene.seed)
             if args.orientation == "rig":  # set once per rig, as a user does, from the scene's first still burst
                 net.orientation = rig_orientation(motions, cases)
+                for p in extra.values():
+                    p.orientation = net.orientation
             for motion, case in zip(motions, cases, strict=True):
                 t0 = time.perf_counter()
-                results, usable = decode_all(case, prior, net)
+                results, usable = decode_all(case, prior, net, extra)
                 timing["decode_s"] += time.perf_counter() - t0
                 timing["bursts"] += 1
                 m = case.truth.mask
                 for name, res in results.items():
                     err = phase_error(res.phase, case.truth.phase)
-                    for fam_key in (fam, "all"):
+                    for fam_key in (fam, "all", *(() if fam == "default" else ("unseen",))):
                         base = (fam_key, motion.kind, name)
                         sums.add(base + ("all",), err[m])
                         sums.add(base + ("usable",), err[m & usable])
@@ -125,7 +143,7 @@ DEVIATIONS = {
 DEV_GEAR = GearSpec(teeth=35, module=2.0)  # a test-split tooth count at the default rig's module
 
 
-def deviation_part(args, net: Predictor) -> list[dict]:
+def deviation_part(args, net: Predictor, extra: dict[str, Predictor]) -> list[dict]:
     """Default rig, a test gear built off its CAD: phase errors vs the as-built truth, and how the
     deviation vs CAD that each decode's cloud reports follows the true deviation on the same pixels
     (slope 1: the deviation survives; 0: the measurement was pulled onto the CAD)."""
@@ -143,7 +161,7 @@ def deviation_part(args, net: Predictor) -> list[dict]:
         sums, pairs = Sums(), defaultdict(list)
         for case in render_cases(scene, motions, 1, seed=int(rng.integers(1 << 30))):
             kind = "still" if case.motion == "still" else "moving"
-            results, usable = decode_all(case, prior, net)
+            results, usable = decode_all(case, prior, net, extra)
             m = case.truth.mask
             for name, res in results.items():
                 err = phase_error(res.phase, case.truth.phase)
@@ -158,7 +176,7 @@ def deviation_part(args, net: Predictor) -> list[dict]:
                 pairs[(name, kind)].append(np.stack([cad.distances(true_pts), cad.distances(meas.cloud.points[on])]))
         row = {"deviation": label, "gear": f"z={gear.teeth} m={gear.module:g}", "rmse": {}, "dev": {}}
         for kind in ("moving", "still"):
-            for name in METHODS:
+            for name in (*METHODS, *extra):
                 row["rmse"][f"{kind}/{name}"] = sums.rmse((kind, name, "all"))
                 row["rmse"][f"{kind}/{name} usable"] = sums.rmse((kind, name, "usable"))
                 if not pairs[(name, kind)]:
@@ -188,16 +206,20 @@ def timing_prior(size: int) -> float:
     return (time.perf_counter() - t0) / 3
 
 
-def write_report(args, sums: Sums, scenes: list, dev_rows: list, timing: dict, total_s: float, machine: str) -> None:
+def write_report(args, sums: Sums, scenes: list, dev_rows: list, timing: dict, total_s: float, machine: str,
+                 extra: dict[str, str]) -> None:
+    """``extra``: the further networks' names and weight files (``--prior-model``, ``--control``)."""
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True,
                            text=True).stdout.strip()
     fams = [*args.families, "all"]
+    methods = (*METHODS, *extra)
+    flags = "".join(f" --{'prior-model' if n == PRIOR_NET else 'control'} {f}" for n, f in extra.items())
     lines = [
         "# The twin as a run-time prior (issue 13, item 6)",
         "",
         f"`python benchmarks/twin_prior.py --scenes {args.scenes} --families {','.join(args.families)} "
-        f"--orientation {args.orientation}`; commit "
+        f"--orientation {args.orientation}{flags}`; commit "
         f"`{commit}`{' (working tree had uncommitted edits by others)' if dirty else ''}; {total_s / 60:.1f} min.",
         "",
         f"- **Host**: {machine}; 2 torch threads; network precision {timing['precision']}.",
@@ -213,7 +235,12 @@ def write_report(args, sums: Sums, scenes: list, dev_rows: list, timing: dict, t
         f"surface in every frame's blur footprint and the solve's noise gain is <= {MAX_GAIN}), the network elsewhere.",
         f"- **Cost**: the prior's three ray casts take {timing['prior_s'] * 1e3:.0f} ms per burst at "
         f"{args.size}x{args.size} on this host (on top of the network's pass for the blend).",
+        *([f"- **Further networks**: {', '.join(f'*{n}* `{f}`' for n, f in extra.items())}; *{PRIOR_NET}* is fed "
+           "the prior's phase changes and shading ratios (`inference.models.prior_channels` of "
+           "`TwinPrior.maps` at the burst's encoder angles) beside the frames; same orientation as the network."]
+          if extra else []),
         "",
+        *(_extra_table(sums, [*args.families, "unseen", "all"], extra) if extra else []),
         "## Test families: RMSE (rad) by where the prior is usable",
         "",
         "| family | motion | pixels usable | three-step | network | twin prior | prior + net "
@@ -248,7 +275,7 @@ def write_report(args, sums: Sums, scenes: list, dev_rows: list, timing: dict, t
     ]
     for row in dev_rows:
         for kind in ("moving", "still"):
-            for name in METHODS:
+            for name in methods:
                 d = row["dev"].get(f"{kind}/{name}")
                 if d is None:
                     continue
@@ -257,10 +284,36 @@ def write_report(args, sums: Sums, scenes: list, dev_rows: list, timing: dict, t
                     f"{d['true_p95_mm']:.3f} | {d['measured_p95_mm']:.3f} | {d['true_median_mm']:+.3f} / "
                     f"{d['measured_median_mm']:+.3f} | {d['slope']:.2f} | {d['rms_diff_mm']:.3f} |")
     lines += ["", "## Reading", "", "(written by hand after the run; see the closing note of issue 13)", ""]
-    (HERE / "twin_prior_report.md").write_text("\n".join(lines) + "\n")
+    stem = "prior_input_report" if extra else "twin_prior_report"
+    (HERE / f"{stem}.md").write_text("\n".join(lines) + "\n")
     data = {"scenes": scenes, "deviation": dev_rows, "timing": timing, "host": machine, "commit": commit,
             "rmse": {"|".join(k): sums.rmse(k) for k in sums.n}}
-    (HERE / "twin_prior_report.json").write_text(json.dumps(data, indent=1))
+    data["networks"] = {"CD-DCU-Net": "inference/weights/default.safetensors", **extra}
+    (HERE / f"{stem}.json").write_text(json.dumps(data, indent=1))
+
+
+def _extra_table(sums: Sums, fams: list[str], extra: dict[str, str]) -> list[str]:
+    """RMSE of the further networks beside three-step PS and the shipped one, by where the prior holds."""
+    names = [METHODS[0], METHODS[1], *extra]
+    head = " | ".join(names)
+    lines = [
+        "## Networks with and without the twin's prediction as input: RMSE (rad)",
+        "",
+        "*unseen*: every family but the default rig, pooled by pixels. *usable*: where the prior alone is usable.",
+        "",
+        f"| family | motion | {head} | " + " | ".join(f"{n}, usable" for n in names[1:]) + " | "
+        + " | ".join(f"{n}, not usable" for n in names[1:]) + " |",
+        "|---|---|" + "---|" * (3 * len(names) - 2),
+    ]
+    for fam in fams:
+        for kind in ("moving", "still"):
+            if not sums.n[(fam, kind, METHODS[0], "all")]:
+                continue
+            cells = [f"{sums.rmse((fam, kind, n, 'all')):.4f}" for n in names]
+            cells += [f"{sums.rmse((fam, kind, n, 'usable')):.4f}" for n in names[1:]]
+            cells += [f"{sums.rmse((fam, kind, n, 'not usable')):.4f}" for n in names[1:]]
+            lines.append(f"| {fam} | {kind} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
 
 
 def main() -> None:
@@ -271,6 +324,10 @@ def main() -> None:
     ap.add_argument("--orientation", choices=("rig", "auto"), default="rig",
                     help="the network's fringe orientation: rig = set once per scene from its first still burst (as a "
                          "user sets it per rig); auto = the per-burst vote (reports before session 26)")
+    ap.add_argument("--prior-model", type=Path, default=None,
+                    help="a prior_input network (.safetensors): decoded fed the prior's channels")
+    ap.add_argument("--control", type=Path, default=None,
+                    help="a plain network to compare it with (the same fine-tuning without the prior's channels)")
     args = ap.parse_args()
     args.families = [f.strip() for f in args.families.split(",") if f.strip()]
     bad = [f for f in args.families if f not in FAMILIES]
@@ -281,13 +338,19 @@ def main() -> None:
     t0 = time.perf_counter()
     # rig: the default rig of the deviation part is the twin's, "normal"; the families set theirs per scene
     net = Predictor.load(None, orientation="normal" if args.orientation == "rig" else "auto")
+    extra_files = {n: f for n, f in ((CONTROL_NET, args.control), (PRIOR_NET, args.prior_model)) if f is not None}
+    extra = {n: Predictor.load(f, orientation=net.orientation, precision=net.precision) for n, f in extra_files.items()}
+    if PRIOR_NET in extra and not extra[PRIOR_NET].needs_prior:
+        ap.error(f"--prior-model {args.prior_model}: not a prior_input network (its config has prior_input false)")
     timing = {"decode_s": 0.0, "bursts": 0, "precision": net.precision, "prior_s": timing_prior(args.size)}
     sums = Sums()
-    scenes = families_part(args, net, sums, timing)
+    scenes = families_part(args, net, sums, timing, extra)
     if args.orientation == "rig":
-        net.orientation = "normal"  # the deviation part's default rig is the twin's (families_part set the last scene's)
-    dev_rows = deviation_part(args, net)
-    write_report(args, sums, scenes, dev_rows, timing, time.perf_counter() - t0, machine)
+        for p in (net, *extra.values()):  # the deviation part's default rig is the twin's (families_part set the last scene's)
+            p.orientation = "normal"
+    dev_rows = deviation_part(args, net, extra)
+    write_report(args, sums, scenes, dev_rows, timing, time.perf_counter() - t0, machine,
+                 {n: str(f) for n, f in extra_files.items()})
 
 
 if __name__ == "__main__":

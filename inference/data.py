@@ -121,13 +121,9 @@ class NpzBurstDataset(TensorBurstDataset):
         return paths
 
 
-class MotionInput(Dataset):
-    """A dataset whose items also carry the encoder's rotation as input channels.
-
-    Appends :func:`~gearscan.inference.models.motion_channels` of each item's ``"angles"``
-    (the three frames' turntable angles, rad) to its ``"input"``: what a ``motion_input``
-    network is fed. ``groups`` passes through, so group-aware splits still work.
-    """
+class _ExtraChannels(Dataset):
+    """A dataset whose items' ``"input"`` gets more channels, computed per item by :meth:`channels`.
+    ``groups`` passes through, so group-aware splits still work."""
 
     def __init__(self, dataset: Dataset) -> None:
         self.dataset = dataset
@@ -139,12 +135,39 @@ class MotionInput(Dataset):
     def groups(self) -> Sequence[int] | None:
         return getattr(self.dataset, "groups", None)
 
+    def channels(self, item: dict, i: int, height: int, width: int) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
     def __getitem__(self, i: int) -> dict:
+        item = dict(self.dataset[i])
+        inp = np.asarray(item["input"], dtype=np.float32)
+        item["input"] = np.concatenate([inp, self.channels(item, i, *inp.shape[1:])])
+        return item
+
+
+class MotionInput(_ExtraChannels):
+    """Appends :func:`~gearscan.inference.models.motion_channels` of each item's ``"angles"``
+    (the three frames' turntable angles, rad) to its ``"input"``: what a ``motion_input``
+    network is fed."""
+
+    def channels(self, item: dict, i: int, height: int, width: int) -> np.ndarray:
         from gearscan.inference.models import motion_channels
 
-        item = dict(self.dataset[i])
         if "angles" not in item:
             raise KeyError(f"item {i}: a motion-input network needs the burst's 'angles' (rad); this dataset has none")
-        inp = np.asarray(item["input"], dtype=np.float32)
-        item["input"] = np.concatenate([inp, motion_channels(item["angles"], *inp.shape[1:])])
-        return item
+        return motion_channels(item["angles"], height, width)
+
+
+class PriorInput(_ExtraChannels):
+    """Appends :func:`~gearscan.inference.models.prior_channels` of each item's ``prior_change``,
+    ``prior_ratio`` and ``prior_known`` (``TwinBurstDataset(prior=True)``) to its ``"input"``:
+    what a ``prior_input`` network is fed. Wrap after :class:`MotionInput` (channel order)."""
+
+    def channels(self, item: dict, i: int, height: int, width: int) -> np.ndarray:
+        from gearscan.inference.models import prior_channels
+
+        missing = [k for k in ("prior_change", "prior_ratio", "prior_known") if k not in item]
+        if missing:
+            raise KeyError(f"item {i}: a prior-input network needs the twin's prediction {missing}; "
+                           "render items with TwinBurstDataset(prior=True)")
+        return prior_channels(item["prior_change"], item["prior_ratio"], item["prior_known"])

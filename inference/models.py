@@ -52,6 +52,8 @@ from gearscan.inference.concrete_dropout import ConcreteDropout2d
 MULTIPLE = 16
 VAR_FLOOR = 1e-3
 MOTION_CHANNELS = 2
+PRIOR_CHANNELS = 7
+PRIOR_LOG_RATIO_CLIP = 1.4  # |log| of a shading ratio beyond 4x is no longer one surface's shading
 MODEL_NAMES = ("cd-dcu-net", "unet", "ts-unet", "dr-unet")
 
 
@@ -65,6 +67,7 @@ class ModelConfig:
     classical_input: bool = False
     residual: bool = False
     motion_input: bool = False  # channels 3, 4 of the input: motion_channels() of the burst
+    prior_input: bool = False  # then PRIOR_CHANNELS of prior_channels(): the twin's per-pixel prediction
     dropout: bool | None = None  # None: Concrete Dropout for cd-dcu-net only
     channelwise: bool = True
     temperature: float | None = None
@@ -87,8 +90,18 @@ class ModelConfig:
             raise ValueError(
                 f"in_channels: motion_input needs >= {3 + MOTION_CHANNELS} (frames + motion), got {self.in_channels}"
             )
+        if self.prior_input and self.in_channels < 3 + MOTION_CHANNELS * self.motion_input + PRIOR_CHANNELS:
+            raise ValueError(
+                f"in_channels: prior_input needs >= {3 + MOTION_CHANNELS * self.motion_input + PRIOR_CHANNELS} "
+                f"(frames{' + motion' if self.motion_input else ''} + prior), got {self.in_channels}"
+            )
         if self.dropout is None:
             self.dropout = self.name == "cd-dcu-net"
+
+    @property
+    def extra_channels(self) -> int:
+        """Input channels after the three frames that this config's options account for."""
+        return MOTION_CHANNELS * self.motion_input + PRIOR_CHANNELS * self.prior_input
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -114,6 +127,28 @@ def motion_channels(angles_rad, height: int, width: int) -> np.ndarray:
         raise ValueError(f"angles: expected the 3 finite frame angles of a burst (rad), got {angles_rad!r}")
     deltas = np.degrees(np.abs(a[1:] - a[0])).astype(np.float32)
     return np.broadcast_to(deltas[:, None, None], (MOTION_CHANNELS, height, width)).copy()
+
+
+def prior_channels(change: np.ndarray, ratio: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``(PRIOR_CHANNELS, H, W)`` float32 network input from the twin's prediction for one burst.
+
+    ``change`` ``(2, H, W)``: the fringe phase change (rad) the CAD predicts at each pixel from the
+    first frame to the second and third; ``ratio`` ``(2, H, W)``: their irradiance over the first
+    frame's; ``known`` ``(H, W)`` bool: where the prediction holds (one smooth lit surface). Channels:
+    sin and 1 - cos of each change (continuous across the wrap, 0 for a still gear), the clipped log
+    ratios, and ``known``; all 0 where not known. Only phase *changes* enter, never the CAD's phase,
+    so a gear off its CAD keeps its deviation.
+    """
+    change, ratio, known = np.asarray(change, np.float64), np.asarray(ratio, np.float64), np.asarray(known, bool)
+    if change.ndim != 3 or change.shape[0] != 2 or ratio.shape != change.shape or known.shape != change.shape[1:]:
+        raise ValueError(f"prior maps: expected change and ratio (2, H, W) and known (H, W), got "
+                         f"{change.shape}, {ratio.shape}, {known.shape}")
+    ok = known & np.isfinite(change).all(0) & np.isfinite(ratio).all(0) & (ratio > 0).all(0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_ratio = np.clip(np.log(np.where(ratio > 0, ratio, 1.0)), -PRIOR_LOG_RATIO_CLIP, PRIOR_LOG_RATIO_CLIP)
+    ch = np.concatenate([np.sin(change[:1]), 1 - np.cos(change[:1]), np.sin(change[1:]), 1 - np.cos(change[1:]),
+                         log_ratio, np.ones((1, *known.shape))])
+    return np.where(ok[None], np.nan_to_num(ch), 0.0).astype(np.float32)
 
 
 def classical_md(frames: torch.Tensor) -> torch.Tensor:

@@ -24,7 +24,7 @@ from gearscan.core.phase import in_capture_order
 from gearscan.core.types import Burst, PhaseResult
 from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
-from gearscan.inference.models import classical_md, motion_channels
+from gearscan.inference.models import PRIOR_CHANNELS, classical_md, motion_channels
 from gearscan.inference.uncertainty import (
     MomentStats,
     SigmaCalibration,
@@ -323,11 +323,14 @@ class Predictor:
         full_scale: float | None = None,
         angles: np.ndarray | None = None,
         mirror: bool | None = None,
+        prior: np.ndarray | None = None,
     ) -> PhaseResult:
         """Raw frames ``(3, H, W)`` uint8/uint16 -> :class:`PhaseResult` at the input size.
 
         ``angles``: the three frames' turntable angles (rad); required by a ``motion_input``
-        network, ignored otherwise. ``mirror``: as in :meth:`predict_tensor`.
+        network, ignored otherwise. ``prior``: :func:`~gearscan.inference.models.prior_channels` of
+        the burst (the twin's prediction from the CAD at these angles, in the frames' pixel grid);
+        required by a ``prior_input`` network, ignored otherwise. ``mirror``: as in :meth:`predict_tensor`.
         """
         x = frames_to_tensor(frames, full_scale)
         if self.needs_angles:
@@ -338,7 +341,21 @@ class Predictor:
                 )
             motion = motion_channels(angles, *x.shape[-2:])
             x = torch.cat([x, torch.from_numpy(motion)[None]], dim=1)
+        if self.needs_prior:
+            expected = (PRIOR_CHANNELS, *x.shape[-2:])
+            if prior is None or tuple(np.shape(prior)) != expected:
+                got = "none" if prior is None else f"shape {tuple(np.shape(prior))}"
+                raise ValueError(
+                    f"prior: this model takes the twin's per-pixel prediction (prior_input); expected "
+                    f"prior_channels() of shape {expected}, got {got} (from gearscan.twin.prior.TwinPrior.maps)"
+                )
+            x = torch.cat([x, torch.from_numpy(np.asarray(prior, np.float32))[None]], dim=1)
         return self.predict_tensor(x, mc, mirror=mirror)
+
+    @property
+    def needs_prior(self) -> bool:
+        """The network takes the twin's per-pixel prediction of the burst (``prior_input``)."""
+        return bool(getattr(getattr(self.model, "config", None), "prior_input", False))
 
     def predict_burst(self, burst: Burst, mc: int = 0) -> PhaseResult:
         """Predict a :class:`Burst` (full scale from its bit depth; angle = first frame's).

@@ -50,9 +50,9 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, Subset
 
-from gearscan.inference.data import MotionInput
+from gearscan.inference.data import MotionInput, PriorInput
 from gearscan.inference.losses import LossConfig
-from gearscan.inference.models import ModelConfig
+from gearscan.inference.models import PRIOR_CHANNELS, ModelConfig
 from gearscan.inference.train import TrainConfig, train
 from gearscan.twin.dataset import TwinBurstDataset
 
@@ -84,6 +84,13 @@ def main() -> None:
     ap.add_argument("--motion-input", action="store_true",
                     help="feed the encoder's rotation within the burst (2 extra channels); with --init from a "
                          "model without them, they start zero-weighted")
+    ap.add_argument("--prior-input", action="store_true",
+                    help="feed the twin's per-pixel prediction of the burst (phase changes and shading ratios "
+                         "from the CAD; 7 extra channels, built here from the renders' truth); with --init from "
+                         "a model without them, they start zero-weighted")
+    ap.add_argument("--prior-jitter", type=float, default=0.05,
+                    help="with --prior-input: scale each training burst's predicted changes by 1 +- this "
+                         "(an encoder or calibration a little off)")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--init", type=Path, default=None, help="start from these weights (.safetensors)")
     ap.add_argument("--patience", type=int, default=12)
@@ -96,23 +103,29 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     parts = [TwinBurstDataset(root, crop=args.crop, static=True, static_repeat=args.static_repeat, seed=i,
-                              reverse=args.reverse)
+                              reverse=args.reverse, prior=args.prior_input, prior_jitter=args.prior_jitter)
              for i, root in enumerate(args.train)]
     if args.motion_input:
         parts = [MotionInput(p) for p in parts]
+    if args.prior_input:
+        parts = [PriorInput(p) for p in parts]
     train_set = parts[0] if len(parts) == 1 else ConcatDataset(parts)
     p_min, p_max = (float(v) for v in args.dropout_init.split(","))
-    val_parts = [TwinBurstDataset(root, crop=None, static=True, reverse=args.reverse) for root in args.val]
+    val_parts = [TwinBurstDataset(root, crop=None, static=True, reverse=args.reverse, prior=args.prior_input)
+                 for root in args.val]
     val_full = val_parts[0] if len(val_parts) == 1 else ConcatDataset(val_parts)
     if args.motion_input:
         val_full = MotionInput(val_full)
+    if args.prior_input:
+        val_full = PriorInput(val_full)
     rng = np.random.default_rng(0)
     val_set = Subset(val_full, sorted(rng.choice(len(val_full), args.val_items, replace=False).tolist()))
     residual = not args.no_residual
     config = TrainConfig(
         out_dir=str(args.out),
         model=ModelConfig(name=args.name, width=args.width, classical_input=residual, residual=residual,
-                          in_channels=3 + 2 * args.motion_input, motion_input=args.motion_input,
+                          in_channels=3 + 2 * args.motion_input + PRIOR_CHANNELS * args.prior_input,
+                          motion_input=args.motion_input, prior_input=args.prior_input,
                           init_min=p_min, init_max=p_max),
         loss=LossConfig(alpha=1e-4, mse_weight=1.0, mse_weighting=args.mse_weighting),
         epochs_deterministic=args.epochs_det,
@@ -124,7 +137,7 @@ def main() -> None:
         patience=args.patience,
         init=str(args.init) if args.init else None,
         reset_dropout=args.reset_dropout,
-        widen_inputs=args.motion_input,
+        widen_inputs=args.motion_input or args.prior_input,
         steps_per_epoch=args.steps_per_epoch,
         precision=args.precision,
         device=args.device,

@@ -200,3 +200,36 @@ def test_motion_channels_and_zero_widened_weights_compute_the_same_as_before():
     motion = torch.from_numpy(motion_channels(np.radians([0.0, 0.6, 1.2]), 32, 32))[None]
     with torch.no_grad():
         torch.testing.assert_close(new(torch.cat([frames, motion], 1)), old(frames))
+
+
+def test_prior_channels_and_zero_widened_weights_compute_the_same_as_before():
+    """The twin's prediction as input: still means zero, the wrap is continuous, unknown pixels are
+    zero; widening a trained net for it starts exactly where the net was."""
+    from gearscan.inference.model_io import load_into, widen_inputs
+    from gearscan.inference.models import PRIOR_CHANNELS, prior_channels
+
+    known = np.ones((2, 3), bool)
+    known[0, 0] = False
+    still = prior_channels(np.zeros((2, 2, 3)), np.ones((2, 2, 3)), known)
+    assert still.shape == (PRIOR_CHANNELS, 2, 3) and still.dtype == np.float32
+    assert np.abs(still[:-1]).max() == 0 and still[-1].sum() == 5 and still[:, 0, 0].max() == 0
+    near_pi = prior_channels(np.full((2, 1, 2), [np.pi - 1e-3, -np.pi + 1e-3]), np.ones((2, 1, 2)), np.ones((1, 2), bool))
+    np.testing.assert_allclose(near_pi[:4, 0, 0], near_pi[:4, 0, 1], atol=3e-3)  # no jump across the wrap
+    ratio = prior_channels(np.zeros((2, 1, 1)), np.array([2.0, 100.0]).reshape(2, 1, 1), np.ones((1, 1), bool))
+    np.testing.assert_allclose(ratio[4:6, 0, 0], [np.log(2.0), 1.4], rtol=1e-6)  # clipped far from one surface
+    with pytest.raises(ValueError, match="prior maps: expected"):
+        prior_channels(np.zeros((3, 2, 2)), np.ones((3, 2, 2)), np.ones((2, 2), bool))
+    with pytest.raises(ValueError, match="prior_input needs >= 10"):
+        ModelConfig(prior_input=True)
+
+    torch.manual_seed(0)
+    old = build_model("cd-dcu-net", width=WIDTH, classical_input=True, residual=True).eval()
+    new = build_model("cd-dcu-net", width=WIDTH, classical_input=True, residual=True,
+                      in_channels=3 + PRIOR_CHANNELS, prior_input=True).eval()
+    state = dict(old.state_dict())
+    assert widen_inputs(state, new) == ["encoder.stem.0.weight"]
+    load_into(new, state, "test")
+    frames = torch.rand(1, 3, 32, 32)
+    prior = torch.rand(1, PRIOR_CHANNELS, 32, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(new(torch.cat([frames, prior], 1)), old(frames))

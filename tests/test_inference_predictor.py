@@ -187,6 +187,30 @@ def test_motion_input_model_takes_the_burst_angles(tmp_path):
         _close_phase(z["phase"], r.phase, r.M, r.D, FP32_ATOL)
 
 
+def test_prior_input_model_takes_the_twin_prediction(tmp_path):
+    from gearscan.inference.models import PRIOR_CHANNELS, prior_channels
+
+    torch.manual_seed(0)
+    model = build_model("cd-dcu-net", width=4, classical_input=True, residual=True,
+                        in_channels=3 + PRIOR_CHANNELS, prior_input=True)
+    path = save_model(model.eval(), tmp_path / "p.safetensors")
+    pred = Predictor.load(path, precision="fp32")
+    assert pred.needs_prior and not pred.needs_angles
+    frames = _frames(hw=(20, 24))
+    with pytest.raises(ValueError, match="prior: this model takes the twin's per-pixel prediction"):
+        pred.predict(frames)
+    with pytest.raises(ValueError, match=r"expected prior_channels\(\) of shape \(7, 20, 24\), got shape \(7, 20, 20\)"):
+        pred.predict(frames, prior=np.zeros((PRIOR_CHANNELS, 20, 20), np.float32))
+    known = np.ones((20, 24), bool)
+    still = prior_channels(np.zeros((2, 20, 24)), np.ones((2, 20, 24)), known)
+    moving = prior_channels(np.full((2, 20, 24), [[[0.4]], [[0.9]]]), np.ones((2, 20, 24)), known)
+    assert not np.array_equal(pred.predict(frames, prior=still).phase, pred.predict(frames, prior=moving).phase)
+    # a burst through the pipeline path has no prior to give it: a clear error, not a guess
+    burst = Burst(tuple(Frame(f, i, i, i) for i, f in enumerate(frames)), (0.0, 0.01, 0.02))
+    with pytest.raises(ValueError, match="prior_input"):
+        pred.predict_burst(burst)
+
+
 def test_peer_model_refuses_mc(tmp_path):
     path = save_model(build_model("unet", width=4), tmp_path / "u.safetensors")
     with pytest.raises(ValueError, match="no Concrete Dropout layers"):

@@ -231,3 +231,63 @@ def test_fringe_drift_per_degree_follows_the_rim_motion():
     assert drift * cam_period == pytest.approx(expected_px, rel=0.05)
     assert 8.0 < cam_period < 16.0  # 40 projector px over 36 mm, seen over 26 mm at 256 px, obliquely
     assert mod.periods_per_degree(rig, gear, 20.0)[0] == pytest.approx(2 * drift, rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def prior_dataset(tmp_path_factory):
+    """Large enough for the twin prior's clean pixels (blur footprints away from edges and creases)."""
+    spec = DatasetSpec(gears=[GearSpec(teeth=20)], width=160, height=160, max_start_points=1, poses=8,
+                       pose_step_deg=0.25)
+    return generate_dataset(tmp_path_factory.mktemp("prior"), spec), spec
+
+
+def test_prior_items_are_what_the_twin_prior_predicts_at_run_time(prior_dataset):
+    """The training-time prior (from the stored truth) equals the run-time one (ray cast from the CAD)."""
+    from gearscan.core.rig import Rig
+    from gearscan.inference.data import PriorInput
+    from gearscan.inference.models import PRIOR_CHANNELS, prior_channels
+    from gearscan.twin.prior import TwinPrior
+    from gearscan.twin.render import Optics
+
+    root, spec = prior_dataset
+    ds = TwinBurstDataset(root, prior=True, reverse=True, static=True)
+    e = ds.entries[0]
+    optics = Optics(**e["optics"])
+    prior = TwinPrior(Rig.from_json(e["rig"]), GearSpec(**e["gear"]), e["period_px"],
+                      camera_defocus_px=optics.camera_defocus_px)
+    n_moving = len(combinations(spec.poses))
+    for idx in (3, 50, 2 * n_moving - 1, 2 * n_moving + 5):  # forward, forward, backward, still
+        item = ds[idx]
+        poses = np.array(item["poses"])
+        maps = prior.maps(np.radians(e["start_deg"] + poses * spec.pose_step_deg))
+        run_time = prior_channels(maps.phase_change(), maps.ratio[1:], maps.clean)
+        train_time = prior_channels(item["prior_change"], item["prior_ratio"], item["prior_known"])
+        known = run_time[-1] > 0
+        assert known.mean() > 0.05
+        np.testing.assert_array_equal(train_time[-1] > 0, known)
+        np.testing.assert_allclose(train_time[:, known], run_time[:, known], atol=1e-5)
+        if poses[0] == poses[2]:  # a still burst: the prior says nothing moved
+            assert np.abs(train_time[:-1]).max() < 1e-6
+        else:  # a moving one: the fringes move by a visible fraction of a period
+            assert np.abs(train_time[2, known]).max() > 0.05
+    fed = PriorInput(ds)[3]
+    assert fed["input"].shape == (3 + PRIOR_CHANNELS, 160, 160)
+    np.testing.assert_array_equal(fed["input"][:3], ds[3]["input"])
+    with pytest.raises(KeyError, match="TwinBurstDataset\\(prior=True\\)"):
+        PriorInput(TwinBurstDataset(root))[0]
+    with pytest.raises(DatasetError, match="prior_jitter"):
+        TwinBurstDataset(root, prior=True, prior_jitter=1.5)
+
+
+def test_prior_jitter_scales_each_bursts_changes_within_its_bound(prior_dataset):
+    root, _ = prior_dataset
+    exact = TwinBurstDataset(root, prior=True)[40]
+    factors = []
+    jittered = TwinBurstDataset(root, prior=True, prior_jitter=0.05, seed=3)
+    for _ in range(20):
+        item = jittered[40]
+        big = np.abs(exact["prior_change"]) > 0.1
+        ratio = item["prior_change"][big] / exact["prior_change"][big]
+        assert np.ptp(ratio) < 1e-5  # one factor per burst
+        factors.append(float(ratio.mean()))
+    assert 0.95 - 1e-6 <= min(factors) and max(factors) <= 1.05 + 1e-6 and np.ptp(factors) > 0.02

@@ -264,7 +264,12 @@ class TwinBurstDataset:
         groups: list[int] | None = None,
         seed: int = 0,
         reverse: bool = False,
+        prior: bool = False,
+        prior_jitter: float = 0.0,
     ) -> None:
+        if not 0.0 <= prior_jitter < 1.0:
+            raise DatasetError(f"prior_jitter: expected a fraction in [0, 1), got {prior_jitter}")
+        self.prior, self.prior_jitter = bool(prior), float(prior_jitter)
         self.root = Path(root)
         index_path = self.root / INDEX
         if not index_path.exists():
@@ -324,6 +329,24 @@ class TwinBurstDataset:
     def full_scale(self, g: int) -> float:
         return float((1 << int(self.entries[g]["optics"]["bit_depth"])) - 1)
 
+    def _prior(self, a: dict[str, np.ndarray], poses: tuple[int, int, int], sl: tuple) -> dict[str, np.ndarray]:
+        """What the twin prior (:class:`gearscan.twin.prior.TwinPrior`) predicts for this burst, from
+        the stored truth of the same renders: the fringe phase change from the first frame to the
+        others (wrapped; the fringes are periodic, so that is all an image shows), their irradiance
+        ratio (the analytic modulation's: the contrast is the rig's) and where every frame's truth is
+        valid. ``prior_jitter`` scales each burst's changes by a random factor in ``1 +- jitter``, an
+        encoder or calibration that is a little off."""
+        phase = np.stack([a["phase"][p][sl] for p in poses]).astype(np.float64)
+        mod = np.stack([np.hypot(*a["truth_md"][p][(slice(None), *sl)]) for p in poses]).astype(np.float64)
+        known = np.logical_and.reduce([a["mask"][p][sl] for p in poses])
+        change = np.angle(np.exp(1j * (phase[1:] - phase[:1])))
+        if self.prior_jitter:
+            change = change * (1.0 + self.prior_jitter * (2.0 * self._rng.random() - 1.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where((mod[:1] > 0) & (mod[1:] > 0), mod[1:] / mod[:1], 1.0)
+        return {"prior_change": change.astype(np.float32), "prior_ratio": ratio.astype(np.float32),
+                "prior_known": known}
+
     def __getitem__(self, item: int) -> dict[str, object]:
         if not 0 <= item < len(self):
             raise IndexError(item)
@@ -331,10 +354,10 @@ class TwinBurstDataset:
         i, j, k = self.combos[item % len(self.combos)]
         a = self._open(g)
         h, w = self.spec.height, self.spec.width
+        if os.getpid() != self._pid:  # a DataLoader worker: its own random stream, not a copy of the parent's
+            self._pid = os.getpid()
+            self._rng = np.random.default_rng([self._seed, self._pid])
         if self.crop:
-            if os.getpid() != self._pid:  # a DataLoader worker: its own crop stream, not a copy of the parent's
-                self._pid = os.getpid()
-                self._rng = np.random.default_rng([self._seed, self._pid])
             y = int(self._rng.integers(0, h - self.crop + 1))
             x = int(self._rng.integers(0, w - self.crop + 1))
             sl = (slice(y, y + self.crop), slice(x, x + self.crop))
@@ -342,7 +365,8 @@ class TwinBurstDataset:
             sl = (slice(None), slice(None))
         frames = np.stack([a["images"][p, s][sl] for p, s in zip((i, j, k), self._idx3, strict=True)])
         inp = frames.astype(np.float32) / self.full_scale(g)
-        return {
+        extra = self._prior(a, (i, j, k), sl) if self.prior else {}
+        return extra | {
             "input": inp,
             # copies: memory-mapped views are read-only and torch warns on them
             "target": np.array(a["label"][i][(slice(None), *sl)]),

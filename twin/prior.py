@@ -41,6 +41,10 @@ class PriorMaps:
     clean: np.ndarray  # (H, W) bool: one smooth lit CAD surface in every frame's blur footprint
     gain: np.ndarray  # (H, W) noise gain of the solve over three-step PS (inf where singular)
 
+    def phase_change(self, nominal: np.ndarray = THREE_STEP_SHIFTS) -> np.ndarray:
+        """``(2, H, W)`` rad: the CAD's fringe phase change from the first frame to the second and third."""
+        return self.shifts[1:] - np.asarray(nominal, np.float64)[1:, None, None]
+
     def usable(self, max_gain: float = 2.0) -> np.ndarray:
         """Pixels where the prior's model holds and the solve is well conditioned."""
         return self.clean & (self.gain <= max_gain)
@@ -84,17 +88,19 @@ class TwinPrior:
         return PriorMaps(shifts, ratio, clean, _noise_gain(shifts))
 
     def decode(self, frames: np.ndarray, full_scale: float, angles, *, max_gain: float = 2.0,
-               read_noise_dn: float = 1.0, nominal: np.ndarray = THREE_STEP_SHIFTS) -> tuple[PhaseResult, np.ndarray]:
+               read_noise_dn: float = 1.0, nominal: np.ndarray = THREE_STEP_SHIFTS,
+               maps: PriorMaps | None = None) -> tuple[PhaseResult, np.ndarray]:
         """Phase of a burst solved with the prior's shifts, and where the prior is usable.
 
         Each frame is first divided by its predicted shading ratio (so ``A`` and ``B`` stay put),
         then the three equations are solved per pixel. ``sigma`` is the noise-only sigma of
         three-step PS times the solve's noise gain, infinite where the prior is not usable.
+        ``maps``: this burst's :meth:`maps` if already rendered (the ray casts are the cost).
         """
         frames = np.asarray(frames)
         if frames.ndim != 3 or frames.shape[0] != 3:
             raise ValueError(f"frames: expected a three-step burst (3, H, W), got shape {frames.shape}")
-        prior = self.maps(angles, nominal)
+        prior = self.maps(angles, nominal) if maps is None else maps
         if frames.shape[1:] != prior.clean.shape:
             raise ValueError(f"frames: {frames.shape[1:]} do not match the rig's camera {prior.clean.shape}")
         usable = prior.usable(max_gain)
