@@ -121,7 +121,8 @@ def _train_cmd(args, train_dirs: list[Path], val_dirs: list[Path], out: Path, ep
             "--lr", str(args.lr), "--val-items", str(val_items), "--patience", "1000", "--reverse",
             "--static-repeat", str(args.static_repeat), "--dropout-init", "0.02,0.1", "--device", args.device,
             "--workers", str(args.workers), "--threads", str(args.threads),
-            *(["--init", str(args.init)] if args.init else [])]
+            *(["--init", str(args.init)] if args.init else []),
+            *(["--prior-input", "--prior-jitter", str(args.prior_jitter)] if args.prior_input else [])]
 
 
 def main() -> None:
@@ -145,6 +146,10 @@ def main() -> None:
     ap.add_argument("--dense-radial", type=int, default=0, metavar="N",
                     help="add N repeats of the dense radial set (train gears 11-80, camera period 5-40 px) and its val set")
     ap.add_argument("--init", type=Path, default=None, help="fine-tune from these weights (.safetensors)")
+    ap.add_argument("--prior-input", action="store_true",
+                    help="train a network fed the twin's prediction of each burst (phase changes and shading ratios "
+                         "from the CAD: benchmarks/prior_input_report.md); with --init from a plain one, widened")
+    ap.add_argument("--prior-jitter", type=float, default=0.05, help="with --prior-input: see train_default.py")
     ap.add_argument("--skip-render", action="store_true", help="the renders are already in --data")
     ap.add_argument("--render-only", action="store_true", help="stop after rendering")
     args = ap.parse_args()
