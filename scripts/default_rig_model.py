@@ -93,6 +93,8 @@ def main() -> None:
     ap.add_argument("--val-items", type=int, default=48)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--precision", default="fp32", choices=["auto", "fp32", "bf16"])
+    ap.add_argument("--init", type=Path, default=DEFAULT_MODEL,
+                    help="the weights fine-tuned (default: the shipped default, v6; the option itself to continue it)")
     args = ap.parse_args()
     if not SPLITS["train"].has_seed(args.seed) or not SPLITS["train"].has_seed(args.seed + args.gears - 1):
         ap.error(f"--seed: expected train seeds for all {args.gears} gears, got {args.seed}")
@@ -116,11 +118,13 @@ def main() -> None:
                               for d in val_dirs])
     pick = np.random.default_rng(0).choice(len(val_full), min(args.val_items, len(val_full)), replace=False)
     val_set = Subset(val_full, sorted(pick.tolist()))
-    meta = read_config(DEFAULT_MODEL)
+    if not args.init.is_file():
+        ap.error(f"--init {args.init}: no such weights file")
+    meta = read_config(args.init)
     config = TrainConfig(
         out_dir=str(args.out), model=ModelConfig.from_json(meta["model"]), loss=LossConfig(**meta["training"]["loss"]),
         epochs_deterministic=1_000_000, epochs_dropout=0, batch_size=args.batch, lr=args.lr, schedule="constant",
-        patience=1_000_000, steps_per_epoch=40, init=str(DEFAULT_MODEL), progress=False, calibrate=False,
+        patience=1_000_000, steps_per_epoch=40, init=str(args.init), progress=False, calibrate=False,
         budget_cpu_min=args.budget, checkpoints_cpu_min=tuple(m for m in (10.0, 20.0, 30.0) if m < args.budget),
         seed=0, precision=args.precision,
     )
