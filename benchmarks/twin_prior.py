@@ -216,7 +216,8 @@ def write_report(args, sums: Sums, scenes: list, dev_rows: list, timing: dict, t
     methods = (*METHODS, *extra)
     flags = "".join(f" --{'prior-model' if n == PRIOR_NET else 'control'} {f}" for n, f in extra.items())
     lines = [
-        "# The twin as a run-time prior (issue 13, item 6)",
+        "# The twin's prediction as network input, test split (issue 13, item 6)" if extra
+        else "# The twin as a run-time prior (issue 13, item 6)",
         "",
         f"`python benchmarks/twin_prior.py --scenes {args.scenes} --families {','.join(args.families)} "
         f"--orientation {args.orientation}{flags}`; commit "
