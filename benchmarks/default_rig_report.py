@@ -59,6 +59,31 @@ def multi_section(multi: Path, v6: str) -> list[str]:
     return out
 
 
+def continue_section(cont: Path, v6: str) -> list[str]:
+    """The option fine-tuned 40 CPU minutes more (rule: ``choice_rule_continue.md``), on val."""
+    run = _load(cont / "run.json")
+    first, cand = "inference/weights/default_rig.safetensors", "runs/default_rig_cont/best.safetensors"
+    rows = {z: _load(cont / f"val_{z}.json") for z in FOLDERS}
+    out = ["", "## The option continued (val; rule written before: `default_rig/choice_rule_continue.md`)", "",
+           f"`{run['command']}`; {run['steps']} more steps of 8, {run['cpu_min']:.1f} CPU min, from the option "
+           "(*first*). `scripts/val_compare.py --orientation normal` per val gear (96 moving, 36 still).", "",
+           "| gear | moving: three-step | v6 | first | continued | still: three-step | v6 | first | continued |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for z, d in rows.items():
+        m, s = d["moving"], d["still"]
+        out.append(f"| {z} | {m['three-step']:.3f} | {m[v6]:.3f} | {m[first]:.3f} | {m[cand]:.3f} | "
+                   f"{s['three-step']:.3f} | {s[v6]:.3f} | {s[first]:.3f} | {s[cand]:.3f} |")
+    pm = {k: _pool([rows[z]["moving"][k] for z in FOLDERS]) for k in ("three-step", v6, first, cand)}
+    ps = {k: _pool([rows[z]["still"][k] for z in FOLDERS]) for k in ("three-step", v6, first, cand)}
+    out.append(f"| **pooled** | {pm['three-step']:.3f} | {pm[v6]:.3f} | {pm[first]:.3f} | **{pm[cand]:.3f}** | "
+               f"{ps['three-step']:.3f} | {ps[v6]:.3f} | {ps[first]:.3f} | {ps[cand]:.3f} |")
+    gain = 1 - pm[cand] / pm[first]
+    ok = gain >= 0.05 and ps[cand] <= ps[first] + 0.003
+    out += ["", f"Rule: moving at least 5 % below the first model ({gain:.0%}) and still at most 0.003 rad above it "
+            f"({ps[cand] - ps[first]:+.3f}): **{'passed: it replaces the first model as the option' if ok else 'failed: the first model stays'}**."]
+    return out
+
+
 def main() -> None:
     run = _load(RAW / "run.json")
     val = {f: _load(RAW / f"val_{f}.json") for f in FOLDERS}
@@ -106,6 +131,9 @@ def main() -> None:
     multi = RAW / "multi"
     if (multi / "run.json").is_file():
         lines += multi_section(multi, V6)
+    cont = RAW / "continue"
+    if (cont / "run.json").is_file():
+        lines += continue_section(cont, V6)
     gen_path = HERE / "generalization_default_rig.json"
     if gen_path.is_file():
         new, v6 = _load(gen_path), _load(HERE / "generalization_report.json")
