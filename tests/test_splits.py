@@ -64,7 +64,11 @@ def test_default_rig_record_matches_the_run_that_made_it() -> None:
     import json
     from pathlib import Path
 
-    run = json.loads((Path(__file__).resolve().parents[1] / "benchmarks/default_rig/run.json").read_text())
+    raw = Path(__file__).resolve().parents[1] / "benchmarks/default_rig"
+    run = json.loads((raw / "run.json").read_text())
+    cont = json.loads((raw / "continue/run.json").read_text())  # the shipped option continues the first run
+    assert (cont["train_teeth"], cont["val_teeth"], cont["train_dirs"]) == (run["train_teeth"], run["val_teeth"], run["train_dirs"])
+    assert "--init inference/weights/default_rig.safetensors" in cont["command"] and "--seed 3201 " in cont["command"]
     assert set(run["train_teeth"]) <= SHIPPED_DEFAULT_RIG.train_teeth and set(run["val_teeth"]) <= SHIPPED_DEFAULT_RIG.val_teeth
     seeds = set(SHIPPED_DEFAULT_RIG.train_dataset_seeds) - set(SHIPPED_V6.train_dataset_seeds)
     assert "--seed 3201 " in run["command"] and "--val-seed 10005 " in run["command"]

@@ -267,6 +267,7 @@ SHIPPED_DEFAULT_RIG = ShippedData(
     val_teeth=frozenset({*SHIPPED_V6.val_teeth, 25, 32, 46, 62}),
     val_dataset_seeds=(*SHIPPED_V6.val_dataset_seeds, *range(10005, 10009)),
     val_rigs="v6's, then the default rig with teeth 25, 32, 46, 62, seeds 10005-10008",
-    val_used_for="its weights (best on val), the choice to ship it (benchmarks/default_rig/choice_rule.md) and "
-                 "its sigma calibration",
+    val_used_for="its weights (best on val, in each of its two runs), the choice to ship it and to replace it by "
+                 "its continuation (benchmarks/default_rig/choice_rule.md, choice_rule_continue.md) and its sigma "
+                 "calibration",
 )
