@@ -98,11 +98,6 @@ class ModelConfig:
         if self.dropout is None:
             self.dropout = self.name == "cd-dcu-net"
 
-    @property
-    def extra_channels(self) -> int:
-        """Input channels after the three frames that this config's options account for."""
-        return MOTION_CHANNELS * self.motion_input + PRIOR_CHANNELS * self.prior_input
-
     def to_json(self) -> dict:
         return asdict(self)
 
