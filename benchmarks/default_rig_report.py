@@ -31,6 +31,20 @@ def _pool(values: list[float]) -> float:
     return math.sqrt(sum(v * v for v in values) / len(values))
 
 
+def _val_table(rows: dict[str, dict], names: tuple[str, ...], lead: str = "") -> tuple[list[str], dict, dict]:
+    """Table rows per val gear and pooled (``lead``: cells before the gear's), and the pooled moving and still
+    RMSE per name; the last name is the candidate, in bold on the pooled row."""
+    out = []
+    for z, d in rows.items():
+        cells = [f"{d[kind][n]:.3f}" for kind in ("moving", "still") for n in names]
+        out.append(f"{lead}| {z} | " + " | ".join(cells) + " |")
+    pm = {n: _pool([rows[z]["moving"][n] for z in rows]) for n in names}
+    ps = {n: _pool([rows[z]["still"][n] for z in rows]) for n in names}
+    cells = [f"{pm[n]:.3f}" for n in names[:-1]] + [f"**{pm[names[-1]]:.3f}**"] + [f"{ps[n]:.3f}" for n in names]
+    out.append(f"{lead}| **pooled** | " + " | ".join(cells) + " |")
+    return out, pm, ps
+
+
 def multi_section(multi: Path, v6: str) -> list[str]:
     """The candidate fine-tuned at 256x256 and 512x512 (rule: ``choice_rule_multi.md``), on val at both sizes."""
     run = _load(multi / "run.json")
@@ -44,14 +58,8 @@ def multi_section(multi: Path, v6: str) -> list[str]:
     verdict = []
     for size in (256, 512):
         rows = {z: _load(multi / f"val_{size}_{z}.json") for z in FOLDERS}
-        for z, d in rows.items():
-            m, s = d["moving"], d["still"]
-            out.append(f"| {size} | {z} | {m['three-step']:.3f} | {m[v6]:.3f} | {m[first]:.3f} | {m[cand]:.3f} | "
-                       f"{s['three-step']:.3f} | {s[v6]:.3f} | {s[first]:.3f} | {s[cand]:.3f} |")
-        pm = {k: _pool([rows[z]["moving"][k] for z in FOLDERS]) for k in ("three-step", v6, first, cand)}
-        ps = {k: _pool([rows[z]["still"][k] for z in FOLDERS]) for k in ("three-step", v6, first, cand)}
-        out.append(f"| {size} | **pooled** | {pm['three-step']:.3f} | {pm[v6]:.3f} | {pm[first]:.3f} | **{pm[cand]:.3f}** | "
-                   f"{ps['three-step']:.3f} | {ps[v6]:.3f} | {ps[first]:.3f} | {ps[cand]:.3f} |")
+        table, pm, ps = _val_table(rows, ("three-step", v6, first, cand), f"| {size} ")
+        out += table
         verdict.append(pm[cand] <= 0.9 * pm[v6] and ps[cand] <= ps[v6] + 0.005)
         if size == 256:
             verdict.append(pm[cand] <= 1.1 * pm[first])
@@ -69,14 +77,8 @@ def continue_section(cont: Path, v6: str) -> list[str]:
            "(*first*). `scripts/val_compare.py --orientation normal` per val gear (96 moving, 36 still).", "",
            "| gear | moving: three-step | v6 | first | continued | still: three-step | v6 | first | continued |",
            "|---|---|---|---|---|---|---|---|---|"]
-    for z, d in rows.items():
-        m, s = d["moving"], d["still"]
-        out.append(f"| {z} | {m['three-step']:.3f} | {m[v6]:.3f} | {m[first]:.3f} | {m[cand]:.3f} | "
-                   f"{s['three-step']:.3f} | {s[v6]:.3f} | {s[first]:.3f} | {s[cand]:.3f} |")
-    pm = {k: _pool([rows[z]["moving"][k] for z in FOLDERS]) for k in ("three-step", v6, first, cand)}
-    ps = {k: _pool([rows[z]["still"][k] for z in FOLDERS]) for k in ("three-step", v6, first, cand)}
-    out.append(f"| **pooled** | {pm['three-step']:.3f} | {pm[v6]:.3f} | {pm[first]:.3f} | **{pm[cand]:.3f}** | "
-               f"{ps['three-step']:.3f} | {ps[v6]:.3f} | {ps[first]:.3f} | {ps[cand]:.3f} |")
+    table, pm, ps = _val_table(rows, ("three-step", v6, first, cand))
+    out += table
     gain = 1 - pm[cand] / pm[first]
     ok = gain >= 0.05 and ps[cand] <= ps[first] + 0.003
     out += ["", f"Rule: moving at least 5 % below the first model ({gain:.0%}) and still at most 0.003 rad above it "

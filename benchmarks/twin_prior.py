@@ -77,7 +77,8 @@ def decode_all(case, prior: TwinPrior, net: Predictor, extra: dict[str, Predicto
     networks by name; a ``prior_input`` one is fed the prior's channels of the burst."""
     three = classical_result(burst_of(case))
     maps = prior.maps(case.angles_rad)
-    channels = prior_channels(maps.phase_change(), maps.ratio[1:], maps.clean)
+    needed = any(p.needs_prior for p in (net, *(extra or {}).values()))
+    channels = prior_channels(maps.phase_change(), maps.ratio[1:], maps.clean) if needed else None
 
     def run(p: Predictor):
         res = p.predict(case.frames, full_scale=case.full_scale, angles=case.angles_rad,
