@@ -6,7 +6,8 @@ The paper's digital-twin workflow (per-rig adaptation, `benchmarks/adaptation.py
 product ships with, over many gears instead of one: the default rig (`twin.families.default_rig_scene`)
 aimed at train-split gears (module 2, random pressure angle and face width as the test family draws them,
 train seeds), the shipped model fine-tuned under a CPU budget (batch 8, 128^2 crops, lr 3e-4 constant,
-still bursts x20, both senses; the weights best on the val folders are kept). Val: the same rig with
+or annealed to 0 over ``--epochs`` with ``--schedule cosine``; still bursts x20, both senses; the weights
+best on the val folders are kept). Val: the same rig with
 val-split gears and a val seed. Test gears and seeds are refused by the dataset writer. Writes the
 datasets under ``--data`` and the run (weights, metrics, ``default_rig.json``) under ``--out``.
 """
@@ -88,6 +89,10 @@ def main() -> None:
                     help="camera resolutions (square) to render the rig at, e.g. 256,512: the same gears and seeds at each")
     ap.add_argument("--budget", type=float, default=40.0, help="CPU minutes of fine-tuning")
     ap.add_argument("--lr", type=float, default=3e-4)
+    ap.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
+                    help="constant lr until the budget, or cosine from lr to 0 over --epochs")
+    ap.add_argument("--epochs", type=int, default=None,
+                    help="epochs of 40 steps (cosine: the schedule's length; the budget still caps the run)")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--val-items", type=int, default=48)
@@ -100,6 +105,10 @@ def main() -> None:
         ap.error(f"--seed: expected train seeds for all {args.gears} gears, got {args.seed}")
     if not SPLITS["val"].has_seed(args.val_seed) or not SPLITS["val"].has_seed(args.val_seed + len(VAL_TEETH) - 1):
         ap.error(f"--val-seed: expected val seeds, got {args.val_seed}")
+    if args.schedule == "cosine" and args.epochs is None:
+        ap.error("--schedule cosine: expected --epochs (the length the learning rate anneals over)")
+    if args.epochs is not None and args.epochs < 1:
+        ap.error(f"--epochs: expected >= 1, got {args.epochs}")
     torch.set_num_threads(args.threads)
     # the tooth counts users bring to this rig: the families' range (10-80), train split only
     pool = sorted(z for z in SPLITS["train"].teeth if TEETH[0] <= z <= TEETH[1])
@@ -123,14 +132,15 @@ def main() -> None:
     meta = read_config(args.init)
     config = TrainConfig(
         out_dir=str(args.out), model=ModelConfig.from_json(meta["model"]), loss=LossConfig(**meta["training"]["loss"]),
-        epochs_deterministic=1_000_000, epochs_dropout=0, batch_size=args.batch, lr=args.lr, schedule="constant",
+        epochs_deterministic=args.epochs or 1_000_000, epochs_dropout=0, batch_size=args.batch, lr=args.lr,
+        schedule=args.schedule,
         patience=1_000_000, steps_per_epoch=40, init=str(args.init), progress=False, calibrate=False,
         budget_cpu_min=args.budget, checkpoints_cpu_min=tuple(m for m in (10.0, 20.0, 30.0) if m < args.budget),
         seed=0, precision=args.precision,
     )
     t1 = time.perf_counter()
     result = train(config, train_set, val_set)
-    shown = {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in vars(args).items()}
+    shown = {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in vars(args).items() if v is not None}
     info = {"command": "python scripts/default_rig_model.py " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in shown.items()),
             "train_teeth": train_teeth, "val_teeth": list(VAL_TEETH), "train_dirs": [str(d) for d in train_dirs],
             "val_dirs": [str(d) for d in val_dirs], "render_s": render_s, "train_wall_s": time.perf_counter() - t1,
