@@ -8,7 +8,7 @@ Per family, its first test scene (:func:`gearscan.twin.families.family_scenes`):
 an **adaptation dataset** of that scene's rig and gear (what ``gearscan twin dataset --rig`` does
 for a user: ``purpose: adaptation``), with a non-test seed and start angles on a grid the test
 bursts' random angles do not hit (both enforced below). Its start points are split into train and
-val (val: every ``--val-every``-th start point, never the test bursts). The shipped model is
+val (val: every ``--val-every``-th start point, never the test bursts). The shipped model (or ``--init``) is
 fine-tuned on it under a CPU budget of this process (``time.process_time()``: robust to other
 load on the shared cores), constant learning rate, keeping the best-on-val weights; the weights
 that were best on val at 5, 10 and 20 CPU minutes are saved on the way (with a constant schedule
@@ -104,7 +104,9 @@ def run_family(args) -> None:
     torch.set_num_threads(args.threads)
     machine = host()
     scene = family_scenes(args.family, args.scene + 1)[args.scene]
-    out = args.runs / (args.family if args.min_span_deg is None else f"{args.family}-span{args.min_span_deg:g}")
+    init = args.init.resolve()
+    start = "" if init == DEFAULT_MODEL.resolve() else f"-from-{init.stem}"  # another start than the shipped default
+    out = args.runs / ((args.family if args.min_span_deg is None else f"{args.family}-span{args.min_span_deg:g}") + start)
     gear, pitch = scene.gear, 360.0 / scene.gear.teeth
     w, h = scene.rig.camera.width, scene.rig.camera.height
     # adaptation data: the scene's rig and gear, a non-test seed, start points on a grid within one pitch
@@ -135,7 +137,7 @@ def run_family(args) -> None:
     val_full = TwinBurstDataset(data, groups=val_groups, static=True, reverse=True, min_span=min_span)
     pick = np.random.default_rng(0).choice(len(val_full), args.val_items, replace=False)
     val_set = Subset(val_full, sorted(pick.tolist()))
-    meta = read_config(DEFAULT_MODEL)
+    meta = read_config(init)
     budget = args.budget
     marks = tuple(m for m in args.marks if m < budget)
     run = out / "run"
@@ -144,7 +146,7 @@ def run_family(args) -> None:
     config = TrainConfig(
         out_dir=str(run), model=ModelConfig.from_json(meta["model"]), loss=LossConfig(**meta["training"]["loss"]),
         epochs_deterministic=1_000_000, epochs_dropout=0, batch_size=args.batch, lr=args.lr, schedule="constant",
-        patience=1_000_000, steps_per_epoch=args.steps_per_epoch, init=str(DEFAULT_MODEL), progress=False,
+        patience=1_000_000, steps_per_epoch=args.steps_per_epoch, init=str(init), progress=False,
         calibrate=True, calibrate_mc=0, budget_cpu_min=budget, checkpoints_cpu_min=marks, seed=0,
         resume=args.resume, precision=args.precision,
     )
@@ -159,7 +161,7 @@ def run_family(args) -> None:
         result = train(config, train_set, val_set)
         train_wall = time.perf_counter() - t0
     # score every checkpoint on the test bursts
-    points = [("0", DEFAULT_MODEL, 0.0)]
+    points = [("0", init, 0.0)]
     for m in marks:
         p = run / f"cpu_{m:g}min.safetensors"
         if p.is_file():
@@ -181,14 +183,15 @@ def run_family(args) -> None:
     trained_at = before.get("training_commit", before.get("commit")) if args.score_only else None
     res = {
         "family": args.family, "scene_seed": scene.seed, "params": dict(scene.params),
-        "scene": scene.name + ("" if args.min_span_deg is None else f", adapted on spans >= {args.min_span_deg:g} deg"),
+        "scene": scene.name + ("" if args.min_span_deg is None else f", adapted on spans >= {args.min_span_deg:g} deg")
+        + ("" if not start else f", from {init.stem}"),
         "period_px": scene.period_px, "resolution": f"{w}x{h}", "commit": git("rev-parse", "--short", "HEAD"),
         "training_commit": trained_at or git("rev-parse", "--short", "HEAD"),
         "working_tree_dirty": bool(git("status", "--porcelain", "--untracked-files=no")), "host": machine,
-        "torch_threads": args.threads, "precision": Predictor.load(DEFAULT_MODEL).precision,
+        "torch_threads": args.threads, "precision": Predictor.load(init).precision,
         "orientation": {"mode": args.orientation, "set": orientation},
-        "model": {"path": str(DEFAULT_MODEL.relative_to(REPO) if DEFAULT_MODEL.is_relative_to(REPO) else DEFAULT_MODEL),
-                  "sha256": file_sha256(DEFAULT_MODEL)[:12]},
+        "model": {"path": str(init.relative_to(REPO) if init.is_relative_to(REPO) else init),
+                  "sha256": file_sha256(init)[:12]},
         "adaptation": {"seed": spec.seed, "seed_split": "train" if SPLITS["train"].has_seed(spec.seed) else "val",
                        "start_points": args.start_points, "min_span_deg": args.min_span_deg,
                        "moving_train_bursts_per_start_point": sum(1 for c in train_set.combos if c[0] != c[2]),
@@ -325,7 +328,7 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         "- **Model** fine-tuned and scored at 0 minutes: "
         + "; ".join(f"{r['run']}: `{r['model']['path']}` sha256 `{r['model']['sha256']}`" if "model" in r
                     else f"{r['run']}: not recorded" for r in results)
-        + " (the shipped default when the run was made).",
+        + " (the shipped default when the run was made, unless the scene says `from` another; `--init`).",
         "- **Fringe orientation** in the test scoring: "
         + "; ".join(f"{r['run']}: " + (f"set once for the rig, `{r['orientation']['set']}` (the vote on the scene's "
                                        "first still test burst, as a user sets it per rig)"
@@ -416,6 +419,9 @@ def main() -> None:
     ap.add_argument("--family", help="test family to adapt to (default, radial-wide, side, oblique, face)")
     ap.add_argument("--scene", type=int, default=0, help="which scene of the family (0: the first)")
     ap.add_argument("--budget", type=float, default=30.0, help="CPU minutes of fine-tuning")
+    ap.add_argument("--init", type=Path, default=DEFAULT_MODEL,
+                    help="the weights fine-tuned and scored at 0 minutes (default: the shipped default; "
+                         "e.g. inference/weights/default_rig.safetensors, the default-rig option)")
     ap.add_argument("--marks", type=lambda s: [float(v) for v in s.split(",")], default=[5.0, 10.0, 20.0])
     ap.add_argument("--start-points", type=int, default=10)
     ap.add_argument("--val-every", type=int, default=5, help="every N-th start point is val")
@@ -444,6 +450,8 @@ def main() -> None:
     args = ap.parse_args()
     if args.min_span_deg is not None and not args.min_span_deg > 0:
         ap.error(f"--min-span-deg: expected > 0 degrees, got {args.min_span_deg}")
+    if not args.init.is_file():
+        ap.error(f"--init {args.init}: no such weights file (expected a .safetensors with its .json)")
     if args.report:
         write_report(args.out, args.runs)
     elif args.family:

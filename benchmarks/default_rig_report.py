@@ -67,22 +67,24 @@ def multi_section(multi: Path, v6: str) -> list[str]:
     return out
 
 
-def continue_section(cont: Path, v6: str) -> list[str]:
-    """The option fine-tuned 40 CPU minutes more (rule: ``choice_rule_continue.md``), on val."""
-    run = _load(cont / "run.json")
-    first, cand = "inference/weights/default_rig.safetensors", "runs/default_rig_cont/best.safetensors"
-    rows = {z: _load(cont / f"val_{z}.json") for z in FOLDERS}
-    out = ["", "## The option continued (val; rule written before: `default_rig/choice_rule_continue.md`)", "",
+def continuation_section(raw: Path, cand: str, rule: str, title: str, names: tuple[str, str]) -> list[str]:
+    """The option fine-tuned further (its rule: ``rule``, written before the run), on val against the option it
+    started from. ``names``: the start's and the candidate's column names."""
+    run = _load(raw / "run.json")
+    start = "inference/weights/default_rig.safetensors"  # the option the run started from, when it was scored
+    rows = {z: _load(raw / f"val_{z}.json") for z in FOLDERS}
+    a, b = names
+    out = ["", f"## {title} (val; rule written before: `default_rig/{rule}`)", "",
            f"`{run['command']}`; {run['steps']} more steps of 8, {run['cpu_min']:.1f} CPU min, from the option "
-           "(*first*). `scripts/val_compare.py --orientation normal` per val gear (96 moving, 36 still).", "",
-           "| gear | moving: three-step | v6 | first | continued | still: three-step | v6 | first | continued |",
+           f"(*{a}*). `scripts/val_compare.py --orientation normal` per val gear (96 moving, 36 still).", "",
+           f"| gear | moving: three-step | v6 | {a} | {b} | still: three-step | v6 | {a} | {b} |",
            "|---|---|---|---|---|---|---|---|---|"]
-    table, pm, ps = _val_table(rows, ("three-step", v6, first, cand))
+    table, pm, ps = _val_table(rows, ("three-step", V6, start, cand))
     out += table
-    gain = 1 - pm[cand] / pm[first]
-    ok = gain >= 0.05 and ps[cand] <= ps[first] + 0.003
-    out += ["", f"Rule: moving at least 5 % below the first model ({gain:.0%}) and still at most 0.003 rad above it "
-            f"({ps[cand] - ps[first]:+.3f}): **{'passed: it replaces the first model as the option' if ok else 'failed: the first model stays'}**."]
+    gain = 1 - pm[cand] / pm[start]
+    ok = gain >= 0.05 and ps[cand] <= ps[start] + 0.003
+    out += ["", f"Rule: moving at least 5 % below the {a} model ({gain:.0%}) and still at most 0.003 rad above it "
+            f"({ps[cand] - ps[start]:+.3f}): **{f'passed: it replaces the {a} model as the option' if ok else f'failed: the {a} model stays'}**."]
     return out
 
 
@@ -133,9 +135,14 @@ def main() -> None:
     multi = RAW / "multi"
     if (multi / "run.json").is_file():
         lines += multi_section(multi, V6)
-    cont = RAW / "continue"
-    if (cont / "run.json").is_file():
-        lines += continue_section(cont, V6)
+    for raw, cand, rule, title, names in (
+        ("continue", "runs/default_rig_cont/best.safetensors", "choice_rule_continue.md", "The option continued",
+         ("first", "continued")),
+        ("anneal", "runs/default_rig_anneal/best.safetensors", "choice_rule_anneal.md",
+         "The option continued again: the rate annealed, 4x the start points", ("continued", "annealed")),
+    ):
+        if (RAW / raw / "run.json").is_file():
+            lines += continuation_section(RAW / raw, cand, rule, title, names)
     gen_path = HERE / "generalization_default_rig.json"
     if gen_path.is_file():
         new, v6 = _load(gen_path), _load(HERE / "generalization_report.json")
