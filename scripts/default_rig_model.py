@@ -114,6 +114,9 @@ def main() -> None:
     pool = sorted(z for z in SPLITS["train"].teeth if TEETH[0] <= z <= TEETH[1])
     # spread evenly in tooth count (the pool is dense among small gears, the test family is not)
     train_teeth = sorted({min(pool, key=lambda z: abs(z - t)) for t in np.linspace(pool[0], pool[-1], args.gears)})
+    if len(train_teeth) < args.gears:  # two spread points fell on the same train tooth count
+        print(f"--gears {args.gears}: {len(train_teeth)} distinct train-split tooth counts in {TEETH[0]}-{TEETH[1]} "
+              f"at that spread: {train_teeth}", flush=True)
     t0 = time.perf_counter()
     train_dirs, val_dirs = [], []
     for size in args.sizes:  # one size keeps the flat layout of the first run (data/default_rig/train/zNN)

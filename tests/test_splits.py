@@ -66,15 +66,21 @@ def test_default_rig_record_matches_the_run_that_made_it() -> None:
 
     raw = Path(__file__).resolve().parents[1] / "benchmarks/default_rig"
     run = json.loads((raw / "run.json").read_text())
-    cont = json.loads((raw / "continue/run.json").read_text())  # the shipped option continues the first run
+    cont = json.loads((raw / "continue/run.json").read_text())  # the second run continued the first on its data
     assert (cont["train_teeth"], cont["val_teeth"], cont["train_dirs"]) == (run["train_teeth"], run["val_teeth"], run["train_dirs"])
     assert "--init inference/weights/default_rig.safetensors" in cont["command"] and "--seed 3201 " in cont["command"]
     assert set(run["train_teeth"]) <= SHIPPED_DEFAULT_RIG.train_teeth and set(run["val_teeth"]) <= SHIPPED_DEFAULT_RIG.val_teeth
     seeds = set(SHIPPED_DEFAULT_RIG.train_dataset_seeds) - set(SHIPPED_V6.train_dataset_seeds)
     assert "--seed 3201 " in run["command"] and "--val-seed 10005 " in run["command"]
-    assert seeds == set(range(3201, 3201 + len(run["train_teeth"])))  # scripts/default_rig_model.py: seed + k
     assert all(split_of_teeth(z) == "train" for z in run["train_teeth"])
     assert all(split_of_teeth(z) == "val" for z in run["val_teeth"])
+    # the third run (the shipped option) continued the second on new gears of the same rig: seed + k again
+    third = json.loads((raw / "anneal/run.json").read_text())
+    assert "--init inference/weights/default_rig.safetensors" in third["command"] and "--seed 3301 " in third["command"]
+    assert third["val_teeth"] == run["val_teeth"] and "--val-seed 10005 " in third["command"]
+    assert set(third["train_teeth"]) <= SHIPPED_DEFAULT_RIG.train_teeth
+    assert seeds == set(range(3201, 3201 + len(run["train_teeth"]))) | set(range(3301, 3301 + len(third["train_teeth"])))
+    assert all(split_of_teeth(z) == "train" for z in third["train_teeth"])
 
 
 def test_families_draw_test_gears_rigs_and_seeds_only() -> None:

@@ -254,20 +254,23 @@ SHIPPED_V6 = ShippedData(
     val_used_for="early stopping, v6 over the w = 32 run and v5, and the sigma calibration (its form too)",
 )
 SHIPPED = SHIPPED_V6  # what the shipped default model (inference/weights/default.*) saw
-_DEFAULT_RIG_TRAIN = (11, 15, 20, 24, 28, 33, 36, 40, 44, 48, 56, 60, 64, 68, 72, 76)
+_DEFAULT_RIG_TRAIN = (11, 15, 20, 24, 28, 33, 36, 40, 44, 48, 56, 60, 64, 68, 72, 76)  # its first two runs, seeds 3201-
+# its third run (session 28: the rate annealed), seeds 3301-
+_DEFAULT_RIG_TRAIN_3 = (11, 13, 15, 17, 19, 21, 24, 26, 28, 30, 31, 34, 36, 38, 40, 44, 48, 52, 56, 60, 64, 68, 72, 76)
 SHIPPED_DEFAULT_RIG = ShippedData(
     model="default-rig model (inference/weights/default_rig.*, an option: v6 fine-tuned on the product's rig)",
-    train_teeth=frozenset({*SHIPPED_V6.train_teeth, *_DEFAULT_RIG_TRAIN}),
-    train_dataset_seeds=(*SHIPPED_V6.train_dataset_seeds, *range(3201, 3201 + len(_DEFAULT_RIG_TRAIN))),
+    train_teeth=frozenset({*SHIPPED_V6.train_teeth, *_DEFAULT_RIG_TRAIN, *_DEFAULT_RIG_TRAIN_3}),
+    train_dataset_seeds=(*SHIPPED_V6.train_dataset_seeds, *range(3201, 3201 + len(_DEFAULT_RIG_TRAIN)),
+                         *range(3301, 3301 + len(_DEFAULT_RIG_TRAIN_3))),
     train_rig="v6's rigs, then the product's default rig (a test rig family: per-rig adaptation, its gears and "
               "seeds from the train split; scripts/default_rig_model.py) with teeth "
-              + ", ".join(map(str, _DEFAULT_RIG_TRAIN)) + " at module 2",
+              + ", ".join(map(str, sorted({*_DEFAULT_RIG_TRAIN, *_DEFAULT_RIG_TRAIN_3}))) + " at module 2",
     train_module_mm=(0.5, 5.0),
     train_camera_period_px=(5.0, 60.0),
     val_teeth=frozenset({*SHIPPED_V6.val_teeth, 25, 32, 46, 62}),
     val_dataset_seeds=(*SHIPPED_V6.val_dataset_seeds, *range(10005, 10009)),
     val_rigs="v6's, then the default rig with teeth 25, 32, 46, 62, seeds 10005-10008",
-    val_used_for="its weights (best on val, in each of its two runs), the choice to ship it and to replace it by "
-                 "its continuation (benchmarks/default_rig/choice_rule.md, choice_rule_continue.md) and its sigma "
-                 "calibration",
+    val_used_for="its weights (best on val, in each of its three runs), the choice to ship it and to replace it "
+                 "by each continuation (benchmarks/default_rig/choice_rule.md, choice_rule_continue.md, "
+                 "choice_rule_anneal.md) and its sigma calibration",
 )
