@@ -88,6 +88,29 @@ def continuation_section(raw: Path, cand: str, rule: str, title: str, names: tup
     return out
 
 
+def ablation_section(raw: Path) -> list[str]:
+    """The annealed run repeated on the first runs' 64 start points (``ablation_rule.md``): schedule or data?"""
+    run = _load(raw / "run.json")
+    cont, annealed, abl = ("runs/continued/default_rig.safetensors", "inference/weights/default_rig.safetensors",
+                           "runs/default_rig_anneal64/best.safetensors")
+    rows = {z: _load(raw / f"val_{z}.json") for z in FOLDERS}
+    out = ["", "## Ablation: the annealed run on the first runs' data (val; read-out written before: "
+           "`default_rig/ablation_rule.md`)", "",
+           f"`{run['command']}`; {run['steps']} steps of 8, {run['cpu_min']:.1f} CPU min, from the continued model "
+           "(the annealed run's start) with its schedule, on 64 start points instead of 192. Not a candidate.", "",
+           "| gear | moving: three-step | v6 | continued | annealed, 192 start points | annealed, 64 | still: three-step | v6 "
+           "| continued | annealed, 192 | annealed, 64 |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    table, pm, ps = _val_table(rows, ("three-step", V6, cont, annealed, abl))
+    out += table
+    a, b = pm[annealed], pm[abl]
+    verdict = ("the schedule bought the gain; 3x the data added nothing measurable at this budget" if b <= a + 0.003
+               else "the data bought most of it" if b >= 0.077 else "both did")
+    out += ["", f"Read-out: moving {b:.3f} on 64 start points against {a:.3f} on 192 (continued model "
+            f"{pm[cont]:.3f}): **{verdict}**."]
+    return out
+
+
 def main() -> None:
     run = _load(RAW / "run.json")
     val = {f: _load(RAW / f"val_{f}.json") for f in FOLDERS}
@@ -143,6 +166,8 @@ def main() -> None:
     ):
         if (RAW / raw / "run.json").is_file():
             lines += continuation_section(RAW / raw, cand, rule, title, names)
+    if (RAW / "ablation" / "run.json").is_file():
+        lines += ablation_section(RAW / "ablation")
     gen_path = HERE / "generalization_default_rig.json"
     if gen_path.is_file():
         new, v6 = _load(gen_path), _load(HERE / "generalization_report.json")
