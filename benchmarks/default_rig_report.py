@@ -163,6 +163,8 @@ def main() -> None:
          ("first", "continued")),
         ("anneal", "runs/default_rig_anneal/best.safetensors", "choice_rule_anneal.md",
          "The option continued again: the rate annealed, 4x the start points", ("continued", "annealed")),
+        ("cycle2", "runs/default_rig_cycle2/best.safetensors", "choice_rule_cycle2.md",
+         "A second cosine cycle (warm restart)", ("annealed", "second-cycle")),
     ):
         if (RAW / raw / "run.json").is_file():
             lines += continuation_section(RAW / raw, cand, rule, title, names)

@@ -81,6 +81,9 @@ def test_default_rig_record_matches_the_run_that_made_it() -> None:
     assert set(third["train_teeth"]) <= SHIPPED_DEFAULT_RIG.train_teeth
     assert seeds == set(range(3201, 3201 + len(run["train_teeth"]))) | set(range(3301, 3301 + len(third["train_teeth"])))
     assert all(split_of_teeth(z) == "train" for z in third["train_teeth"])
+    fourth = json.loads((raw / "cycle2/run.json").read_text())  # a second cycle on the third run's data
+    assert (fourth["train_teeth"], fourth["train_dirs"]) == (third["train_teeth"], third["train_dirs"])
+    assert "--init inference/weights/default_rig.safetensors" in fourth["command"] and "--seed 3301 " in fourth["command"]
 
 
 def test_families_draw_test_gears_rigs_and_seeds_only() -> None:

@@ -255,7 +255,7 @@ SHIPPED_V6 = ShippedData(
 )
 SHIPPED = SHIPPED_V6  # what the shipped default model (inference/weights/default.*) saw
 _DEFAULT_RIG_TRAIN = (11, 15, 20, 24, 28, 33, 36, 40, 44, 48, 56, 60, 64, 68, 72, 76)  # its first two runs, seeds 3201-
-# its third run (session 28: the rate annealed), seeds 3301-
+# its third and fourth runs (session 28: the rate annealed, twice), seeds 3301-
 _DEFAULT_RIG_TRAIN_3 = (11, 13, 15, 17, 19, 21, 24, 26, 28, 30, 31, 34, 36, 38, 40, 44, 48, 52, 56, 60, 64, 68, 72, 76)
 SHIPPED_DEFAULT_RIG = ShippedData(
     model="default-rig model (inference/weights/default_rig.*, an option: v6 fine-tuned on the product's rig)",
@@ -270,7 +270,8 @@ SHIPPED_DEFAULT_RIG = ShippedData(
     val_teeth=frozenset({*SHIPPED_V6.val_teeth, 25, 32, 46, 62}),
     val_dataset_seeds=(*SHIPPED_V6.val_dataset_seeds, *range(10005, 10009)),
     val_rigs="v6's, then the default rig with teeth 25, 32, 46, 62, seeds 10005-10008",
-    val_used_for="its weights (best on val, in each of its three runs), the choice to ship it and to replace it "
+    val_used_for="its weights (best on val, in each of its four runs), the choice to ship it and to replace it "
                  "by each continuation (benchmarks/default_rig/choice_rule.md, choice_rule_continue.md, "
-                 "choice_rule_anneal.md) and its sigma calibration",
+                 "choice_rule_anneal.md, choice_rule_cycle2.md), the ablation's read-out (ablation_rule.md) "
+                 "and its sigma calibration",
 )
