@@ -16,7 +16,9 @@ import pytest
 from gearscan.viewer.serve import ViewerError, check_port, serve_web
 
 PARENT = """
-import sys, time
+import signal, sys, time
+# a program started in a terminal dies on SIGINT, even when this test run ignores it (nohup, a background job)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 from gearscan.viewer.serve import serve_web
 viewer = serve_web()
 print(viewer.process.pid, viewer.grpc_port, viewer.web_port, flush=True)
