@@ -162,7 +162,7 @@ def main() -> None:
         ("continue", "runs/default_rig_cont/best.safetensors", "choice_rule_continue.md", "The option continued",
          ("first", "continued")),
         ("anneal", "runs/default_rig_anneal/best.safetensors", "choice_rule_anneal.md",
-         "The option continued again: the rate annealed, 4x the start points", ("continued", "annealed")),
+         "The option continued again: the rate annealed, 3x the start points", ("continued", "annealed")),
         ("cycle2", "runs/default_rig_cycle2/best.safetensors", "choice_rule_cycle2.md",
          "A second cosine cycle (warm restart)", ("annealed", "second-cycle")),
     ):

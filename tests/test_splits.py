@@ -74,7 +74,7 @@ def test_default_rig_record_matches_the_run_that_made_it() -> None:
     assert "--seed 3201 " in run["command"] and "--val-seed 10005 " in run["command"]
     assert all(split_of_teeth(z) == "train" for z in run["train_teeth"])
     assert all(split_of_teeth(z) == "val" for z in run["val_teeth"])
-    # the third run (the shipped option) continued the second on new gears of the same rig: seed + k again
+    # the third run continued the second on new gears of the same rig: seed + k again
     third = json.loads((raw / "anneal/run.json").read_text())
     assert "--init inference/weights/default_rig.safetensors" in third["command"] and "--seed 3301 " in third["command"]
     assert third["val_teeth"] == run["val_teeth"] and "--val-seed 10005 " in third["command"]
