@@ -77,6 +77,9 @@ def gate_name(rad: float) -> str:
     return f"{NETWORK} with a {rad:g} rad still gate" if rad > 0 else f"{NETWORK} without still gate"
 
 
+NO_BURST_GATE = f"{NETWORK}, rig orientation, no still-burst gate"
+
+
 def orientation_misreads(scenes: list[dict]) -> str:
     """Per family: bursts whose own vote disagrees with the scene's orientation, of all bursts."""
     out = []
@@ -102,17 +105,33 @@ def rig_weak_strata(strata) -> str:
     return "\n".join(out)
 
 
-def gate_table(cells, other: str) -> str:
-    """Markdown: the shipped network next to the same network with the other still-gate setting."""
-    lines = [f"| family | motions | {NETWORK} as shipped (rad) | {other} | {BASELINE} | shipped / three-step | "
-             "other / three-step | ECE shipped / other |", "|---|---|---|---|---|---|---|---|"]
+def gate_table(cells, other: str, shipped: str = NETWORK, names: tuple[str, str] = ("shipped", "other")) -> str:
+    """Markdown: the ``shipped`` network next to ``other``, moving and still bursts per family."""
+    a, o = names
+    head = f"{NETWORK} as shipped (rad)" if shipped == NETWORK else f"{shipped}, {a} (rad)"
+    lines = [f"| family | motions | {head} | {other} | {BASELINE} | {a} / three-step | "
+             f"{o} / three-step | ECE {a} / {o} |", "|---|---|---|---|---|---|---|---|"]
     for c in cells:
         if c.group not in ("moving", "still"):
             continue
-        g, u, b = c.rmse[NETWORK], c.rmse[other], c.rmse[BASELINE]
+        g, u, b = c.rmse[shipped], c.rmse[other], c.rmse[BASELINE]
         lines.append(f"| {c.family} | {c.group} | {g:.4f} | {u:.4f} | {b:.4f} | {g / b:.2f}x | {u / b:.2f}x | "
-                     f"{c.ece.get(NETWORK, float('nan')):.3f} / {c.ece.get(other, float('nan')):.3f} |")
+                     f"{c.ece.get(shipped, float('nan')):.3f} / {c.ece.get(other, float('nan')):.3f} |")
     return "\n".join(lines)
+
+
+def gate_section(predictor: Predictor, cells) -> list[str]:
+    """Markdown lines: the rig-orientation network with and without its still-burst gate."""
+    return [
+        f"## The still-burst gate (shipped: {predictor.still_burst_rad:g} rad, chosen on val by "
+        "`scripts/choose_still_burst_gate.py`, rule `benchmarks/still_burst_gate_rule.md`), test split",
+        "",
+        "A burst whose network phase departs from three-step PS's by a median below the gate over its interior "
+        "(`inference.predictor.still_burst_gate`) is decoded by three-step PS. The same bursts, the rig's "
+        "orientation set, with and without it (RMSE ratios to three-step PS: < 1 is better than three-step):",
+        "",
+        gate_table(cells, NO_BURST_GATE, RIG_NAME, ("gated", "not gated")),
+    ]
 
 
 def host() -> dict[str, object]:
@@ -158,10 +177,13 @@ def main() -> None:
     machine = host()
     t_start = time.perf_counter()
     predictor = Predictor.load(args.model)
-    other = Predictor.load(args.model, still_gate_rad=0.0 if predictor.still_gate_rad > 0 else PROBE_RAD)
-    other_name = gate_name(other.still_gate_rad)
     # the rig's orientation set once, as a user would from a still burst of the scene (Predictor orientation)
     rig = Predictor.load(args.model, orientation="normal")
+    if predictor.still_burst_rad > 0:  # the probe: the same rig-orientation network without its still-burst gate
+        other, other_name = Predictor.load(args.model, orientation="normal", still_burst_rad=0.0), NO_BURST_GATE
+    else:
+        other = Predictor.load(args.model, still_gate_rad=0.0 if predictor.still_gate_rad > 0 else PROBE_RAD)
+        other_name = gate_name(other.still_gate_rad)
     methods = {BASELINE: classical_method, NETWORK: network_method(predictor), other_name: network_method(other),
                RIG_NAME: network_method(rig)}
     mc_name = f"{NETWORK} MC T={args.mc}"
@@ -177,6 +199,8 @@ def main() -> None:
             cases = render_family_cases(scene, motions)
             timing["render_s"] += time.perf_counter() - t0
             rig.orientation = rig_orientation(motions, cases)
+            if other_name == NO_BURST_GATE:
+                other.orientation = rig.orientation
             votes = [vote_mirrored(c) for c in cases]
             for motion, case in zip(motions, cases, strict=True):
                 t0 = time.perf_counter()
@@ -242,7 +266,8 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         f"{args.threads} torch threads.",
         f"- **Model**: `{weights.relative_to(REPO) if weights.is_relative_to(REPO) else weights}` "
         f"(the shipped one unless named), precision **{predictor.precision}** (Predictor's automatic choice: bf16 "
-        f"on CPUs with native bf16), still gate {predictor.still_gate_rad:g} rad (from the model's JSON, chosen on val; 0: none).",
+        f"on CPUs with native bf16), still gate {predictor.still_gate_rad:g} rad per pixel and {predictor.still_burst_rad:g} "
+        "rad per burst (from the model's JSON, chosen on val; 0: none).",
         f"- **Split**: every number below is from the **test** split ({describe('test')}), rendered on the fly "
         "from fixed seeds; nothing here chose anything. Families: `twin/families.py`; splits: `twin/splits.py`.",
         f"- **What the model saw**: {shipped_saw(args.model)}. So every test gear and seed is unseen"
@@ -265,13 +290,15 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "",
         cells_table(cells),
         "",
-        f"## The still gate (shipped: {predictor.still_gate_rad:g} rad, chosen on val by `scripts/choose_still_gate.py`), test split",
-        "",
-        "A gate replaces, per pixel, the network's phase by three-step PS's where the two differ by less than "
-        "the gate (`inference.predictor.still_gate`). Same bursts with the shipped setting and the other one "
-        "(RMSE ratios to three-step PS: < 1 is better than three-step):",
-        "",
-        gate_table(cells, gate_name(PROBE_RAD if predictor.still_gate_rad == 0 else 0.0)),
+        *(gate_section(predictor, cells) if predictor.still_burst_rad > 0 else [
+            f"## The still gate (shipped: {predictor.still_gate_rad:g} rad, chosen on val by `scripts/choose_still_gate.py`), test split",
+            "",
+            "A gate replaces, per pixel, the network's phase by three-step PS's where the two differ by less than "
+            "the gate (`inference.predictor.still_gate`). Same bursts with the shipped setting and the other one "
+            "(RMSE ratios to three-step PS: < 1 is better than three-step):",
+            "",
+            gate_table(cells, gate_name(PROBE_RAD if predictor.still_gate_rad == 0 else 0.0)),
+        ]),
         "",
         "## The fringe orientation: voted per burst (shipped default) or set once per rig, test split",
         "",

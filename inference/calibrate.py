@@ -28,7 +28,7 @@ from gearscan.core.phase import phase_error
 from gearscan.inference.concrete_dropout import set_stochastic
 from gearscan.inference.model_io import read_config, write_config
 from gearscan.inference.models import PhaseNet, classical_md
-from gearscan.inference.predictor import Predictor, model_path, still_gate
+from gearscan.inference.predictor import Predictor, apply_still_gates, model_path
 from gearscan.inference.uncertainty import (
     SigmaCalibration,
     departure,
@@ -73,14 +73,17 @@ def collect_errors(
     the Predictor reads it at run time; the error is the gated output's.
     """
     ungated = copy.copy(predictor)
-    ungated.still_gate_rad = 0.0
+    ungated.still_gate_rad = ungated.still_burst_rad = 0.0
+    calibration = predictor.calibration.get("mc" if mc > 0 else "deterministic")
     parts = []
     for n, i in enumerate(items):
         item = dataset[int(i)]
         x = torch.from_numpy(np.asarray(item["input"], np.float32))[None]
         net = ungated.predict_tensor(x, mc)
         classical = classical_md(x[:, :3])[0].numpy()
-        r = still_gate(net, classical, predictor.still_gate_rad) if predictor.still_gate_rad > 0 else net
+        r = apply_still_gates(net, classical, pixel_rad=predictor.still_gate_rad,
+                              burst_rad=predictor.still_burst_rad, calibration=calibration,
+                              burst_sigma=predictor.still_burst_sigma)[0]
         mask = np.asarray(item["mask"], bool)
         k = int(mask.sum())
         parts.append(PixelErrors(

@@ -17,6 +17,7 @@ import dataclasses
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -43,6 +44,12 @@ CPUINFO = Path("/proc/cpuinfo")
 # to 20 in benchmarks/inference_speed.md; chunk 1 at 800x800 (2.65 s vs 2.73 for 2, 3.26 for 4)
 # and 1232x1360 (7.2 s vs 7.9 for 2, 12.9 for 4): bigger batches fall out of cache.
 MC_CHUNK_PIXELS = 2 * 512 * 512
+# The still-burst gate's interior: three-step modulation 2B/S at least this (the keep test's), this many
+# px from any pixel below it (a 7x7 erosion: chosen on val, session 29, over 3x3 and 11x11), and at least
+# this many such pixels for a verdict (fewer: the network's result stands).
+BURST_GATE_MODULATION = 0.05
+BURST_GATE_ERODE_PX = 3
+BURST_GATE_MIN_PIXELS = 256
 
 
 def auto_mc_chunk(height: int, width: int, passes: int) -> int:
@@ -162,6 +169,11 @@ class Predictor:
         three-step PS's (0: off). A correction that small is what the network invents on a still
         gear (where three-step has no motion error and beats it); a real motion correction is larger.
         Chosen per model on the val split and stored in its JSON (``still_gate``); None: the model's.
+    still_burst_rad : a whole burst is decoded by three-step PS when the network's median departure
+        from it over the burst's interior (:func:`burst_departure`) is below this (0: off). On a still
+        gear the network invents corrections in patches and at edges, but most of the interior stays
+        within the noise of three-step PS; on a moving one the interior moves too. Chosen per model on
+        the val split and stored in its JSON (``still_burst_gate``); None: the model's.
     orientation : which way the fringe phase runs along the camera's columns: ``"auto"`` votes per
         burst (:func:`fringe_phase_decreases_along_columns`); ``"normal"`` (rising, as on every twin
         rig) or ``"mirrored"`` fix it, a property of the rig that a user sets once. The vote misreads
@@ -183,6 +195,7 @@ class Predictor:
         calibration: dict[str, SigmaCalibration] | None = None,
         still_gate_rad: float | None = None,
         orientation: str = "auto",
+        still_burst_rad: float | None = None,
     ) -> None:
         if orientation not in ORIENTATIONS:
             raise ValueError(f"orientation: expected one of {', '.join(ORIENTATIONS)}, got {orientation!r}")
@@ -206,6 +219,12 @@ class Predictor:
         if not 0.0 <= still_gate_rad < math.pi:
             raise ValueError(f"still_gate_rad: expected 0 <= rad < pi, got {still_gate_rad}")
         self.still_gate_rad = float(still_gate_rad)
+        if still_burst_rad is None:
+            still_burst_rad = float((self.meta.get("still_burst_gate") or {}).get("rad", 0.0))
+        if not 0.0 <= still_burst_rad < math.pi:
+            raise ValueError(f"still_burst_rad: expected 0 <= rad < pi, got {still_burst_rad}")
+        self.still_burst_rad = float(still_burst_rad)
+        self.still_burst_sigma = burst_sigma_map(self.meta)
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
         if self.channels_last:
@@ -221,6 +240,7 @@ class Predictor:
         mc_chunk: int | None = None,
         still_gate_rad: float | None = None,
         orientation: str = "auto",
+        still_burst_rad: float | None = None,
     ) -> Predictor:
         """Load ``path`` (.safetensors + .json); default: the shipped model."""
         path = model_path(path)
@@ -254,6 +274,7 @@ class Predictor:
             calibration=calibration,
             still_gate_rad=still_gate_rad,
             orientation=orientation,
+            still_burst_rad=still_burst_rad,
         )
 
     def replica(self) -> Predictor:
@@ -289,7 +310,8 @@ class Predictor:
             raise ValueError(f"x: expected one burst (1, C, H, W), got shape {tuple(x.shape)}")
         x = x.to(self.device)
         calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
-        needs_classical = self.still_gate_rad > 0 or (calibration is not None and calibration.needs_departure)
+        needs_classical = (self.still_gate_rad > 0 or self.still_burst_rad > 0
+                           or (calibration is not None and calibration.needs_departure))
         classical = classical_md(x[:, :3].float())[0].cpu().numpy() if needs_classical else None
         if mirror is None:
             mirror = fringe_phase_decreases_along_columns(x) if self.orientation == "auto" else self.orientation == "mirrored"
@@ -308,7 +330,8 @@ class Predictor:
         mode = f"mc{mc}" if mc > 0 else "deterministic"
         result = to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale, calibration=calibration,
                                  classical_phase=None if classical is None else np.arctan2(*classical))
-        return result if self.still_gate_rad <= 0 else still_gate(result, classical, self.still_gate_rad)
+        return apply_still_gates(result, classical, pixel_rad=self.still_gate_rad, burst_rad=self.still_burst_rad,
+                                 calibration=calibration, burst_sigma=self.still_burst_sigma)[0]
 
     @property
     def needs_angles(self) -> bool:
@@ -382,3 +405,89 @@ def still_gate(result: PhaseResult, classical: np.ndarray, rad: float) -> PhaseR
         return np.where(small, b, a).astype(np.float32)
 
     return dataclasses.replace(result, phase=pick(result.phase, phase3), M=pick(result.M, m3), D=pick(result.D, d3))
+
+
+def burst_sigma_map(meta: dict) -> tuple[float, float, float] | None:
+    """The gated bursts' sigma map ``(a, b, c)`` from a model's JSON (``still_burst_gate.sigma``), if any."""
+    raw = (meta.get("still_burst_gate") or {}).get("sigma")
+    if raw is None:
+        return None
+    try:
+        a, b, c = (float(raw[k]) for k in ("a", "b", "c"))
+    except (TypeError, KeyError, ValueError) as exc:
+        raise ModelFileError(f"still_burst_gate.sigma: expected {{'a', 'b', 'c'}} numbers, got {raw!r}") from exc
+    if not (math.isfinite(a) and a > 0 and all(math.isfinite(v) and abs(v) <= 3 for v in (b, c))):
+        raise ModelFileError(f"still_burst_gate.sigma: expected a > 0 and |b|, |c| <= 3, got {raw!r}")
+    return a, b, c
+
+
+def burst_departure(phase: np.ndarray, classical: np.ndarray) -> float | None:
+    """Median ``|wrap(phase - three-step phase)|`` (rad) over the burst's interior: pixels whose
+    three-step modulation is at least :data:`BURST_GATE_MODULATION` and every pixel within
+    :data:`BURST_GATE_ERODE_PX` of them too. ``classical``: three-step M, D ``(2, H, W)``. None when
+    fewer than :data:`BURST_GATE_MIN_PIXELS` pixels qualify.
+
+    A median over the interior, not a mean over every modulated pixel: on still val bursts the
+    network departs 0.2 rad and more near edges and creases and in patches, which a mean counts
+    (session 24's gate failed on that); the interior's median stays at the noise (0.015-0.05 rad).
+    """
+    m3, d3 = classical
+    lit = (np.hypot(m3, d3) >= BURST_GATE_MODULATION).astype(np.uint8)
+    size = 2 * BURST_GATE_ERODE_PX + 1
+    inner = cv2.erode(lit, np.ones((size, size), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    inner = inner.astype(bool)
+    if int(inner.sum()) < BURST_GATE_MIN_PIXELS:
+        return None
+    diff = np.asarray(phase, np.float64)[inner] - np.arctan2(m3, d3)[inner]
+    return float(np.median(np.abs((diff + np.pi) % (2 * np.pi) - np.pi)))
+
+
+def still_burst_gate(
+    result: PhaseResult, classical: np.ndarray, rad: float, calibration: SigmaCalibration | None = None,
+    sigma_map: tuple[float, float, float] | None = None,
+) -> tuple[PhaseResult, bool]:
+    """``result`` decoded by three-step PS if its :func:`burst_departure` is below ``rad``, and whether it was.
+
+    The sigma of a gated burst: with ``sigma_map = (a, b, c)`` (fitted on val still bursts by
+    ``scripts/choose_still_burst_gate.py``), ``a * sigma**b * max(2B/S, 0.01)**c`` of the network's
+    sigma and the three-step modulation; without, what the model's map gives an output that agrees
+    with three-step PS (departure 0; a map without the departure term: unchanged).
+    """
+    score = burst_departure(result.phase, classical)
+    if score is None or score >= rad:
+        return result, False
+    m3, d3 = classical
+    f = None
+    if sigma_map is not None:
+        a, b, c = (np.float32(v) for v in sigma_map)
+        s = np.maximum(result.sigma_total.astype(np.float32), np.float32(1e-12))
+        mod = np.maximum(np.hypot(m3, d3).astype(np.float32), np.float32(0.01))
+        f = (a * np.power(s, b - 1) * np.power(mod, c)).astype(np.float32)
+    elif calibration is not None and calibration.needs_departure:
+        dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(m3, d3)))))
+        f = np.power(np.float32(calibration.d0) / (dep.astype(np.float32) + np.float32(calibration.d0)),
+                     np.float32(calibration.c)).astype(np.float32)
+    scale = {}
+    if f is not None:
+        scale = {name: (getattr(result, name) * f).astype(np.float32)
+                 for name in ("sigma_model", "sigma_data", "sigma_total")}
+        scale |= {name: (getattr(result, name) * f * f).astype(np.float32)
+                  for name in ("var_M", "var_D") if getattr(result, name) is not None}
+    gated = dataclasses.replace(result, phase=np.arctan2(m3, d3).astype(np.float32), M=np.asarray(m3, np.float32),
+                                D=np.asarray(d3, np.float32), **scale)
+    return gated, True
+
+
+def apply_still_gates(
+    result: PhaseResult, classical: np.ndarray | None, *, pixel_rad: float, burst_rad: float,
+    calibration: SigmaCalibration | None = None, burst_sigma: tuple[float, float, float] | None = None,
+) -> tuple[PhaseResult, bool]:
+    """The burst gate (:func:`still_burst_gate`) on the network's ``result``, then, if it left the
+    burst to the network, the per-pixel one (:func:`still_gate`); and whether the burst gate took it."""
+    if classical is None:
+        return result, False
+    if burst_rad > 0:
+        result, taken = still_burst_gate(result, classical, burst_rad, calibration, burst_sigma)
+        if taken:
+            return result, True
+    return (still_gate(result, classical, pixel_rad) if pixel_rad > 0 else result), False

@@ -1,0 +1,171 @@
+"""Choose a model's still-burst gate on the VAL split and store it in the model's JSON.
+
+    python scripts/choose_still_burst_gate.py data/repro/val_radial data/repro/val_views \\
+        data/default_rig/val/z25,data/default_rig/val/z32,data/default_rig/val/z46,data/default_rig/val/z62 \\
+        [--model inference/weights/default.safetensors] [--write]
+
+Each argument is a val family (comma-joined folders are pooled into one). The gate
+(:func:`gearscan.inference.predictor.still_burst_gate`) decodes a whole burst by three-step PS when
+the network's median departure from it over the burst's interior is below ``rad``. The rule
+(``benchmarks/still_burst_gate_rule.md``, written before the first run): within a moving and a slow
+cost of 3 % and an ECE bound in every family, the smallest ``rad`` that brings the still bursts to
+1.05 x three-step PS wherever the network is above that; none reaches it: the largest within cost;
+none within cost: 0. Val only: the test split reports it (``benchmarks/generalization.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import torch
+
+from gearscan.core.phase import phase_error
+from gearscan.inference.models import classical_md
+from gearscan.inference.predictor import (
+    Predictor,
+    burst_departure,
+    burst_sigma_map,
+    model_path,
+    still_burst_gate,
+)
+from gearscan.inference.uncertainty import event_log_score, reliability
+from gearscan.twin.dataset import TwinBurstDataset
+
+GRID = (0.015, 0.02, 0.025, 0.03, 0.035, 0.04)
+COST = 1.03
+STILL_TOLERANCE = 1.05
+ECE_SLACK, ECE_TARGET = 0.005, 0.05
+SETS = {"moving": (96, {"reverse": True}), "slow": (48, {"reverse": True, "max_span": 2}),
+        "still": (48, {"static": True, "motion": "uniform", "max_span": 0})}
+
+
+def family_bursts(predictor: Predictor, folders: list[str], seed: int, sigma_map: tuple[float, float, float] | None,
+                  kinds: tuple[str, ...] = tuple(SETS)) -> dict[str, list[dict]]:
+    """Per burst kind: the ungated network's and three-step PS's errors over the truth mask, the
+    network's sigma and the gated sigma there, the three-step modulation, and the burst's interior
+    departure."""
+    out: dict[str, list[dict]] = {}
+    for s, (name, (count, options)) in enumerate(SETS.items()):
+        if name not in kinds:
+            continue
+        rows = []
+        for f, folder in enumerate(folders):
+            ds = TwinBurstDataset(folder, **options)
+            n = min(count // len(folders), len(ds))
+            for i in sorted(np.random.default_rng([seed, s, f]).choice(len(ds), n, replace=False)):
+                it = ds[int(i)]
+                x = torch.from_numpy(np.asarray(it["input"], np.float32))[None]
+                net = predictor.predict_tensor(x)
+                classical = classical_md(x[:, :3])[0].numpy()
+                gated, _ = still_burst_gate(net, classical, np.inf, predictor.calibration.get("deterministic"), sigma_map)
+                m = np.asarray(it["mask"], bool)
+                rows.append({"score": burst_departure(net.phase, classical),
+                             "e_net": phase_error(net.phase, it["phase"])[m].astype(np.float32),
+                             "e_3": phase_error(gated.phase, it["phase"])[m].astype(np.float32),
+                             "s_net": net.sigma_total[m], "s_3": gated.sigma_total[m],
+                             "mod": np.hypot(*classical)[m].astype(np.float32)})
+        out[name] = rows
+    return out
+
+
+def scores(rows: list[dict], rad: float) -> dict[str, float]:
+    """RMSE and ECE of the gated outputs at ``rad`` (0: ungated), three-step RMSE, bursts taken."""
+    take = [r["score"] is not None and r["score"] < rad for r in rows]
+    err = np.concatenate([r["e_3"] if t else r["e_net"] for r, t in zip(rows, take, strict=True)])
+    sig = np.concatenate([r["s_3"] if t else r["s_net"] for r, t in zip(rows, take, strict=True)])
+    e3 = np.concatenate([r["e_3"] for r in rows]).astype(np.float64)
+    return {"rmse": float(np.sqrt(np.mean(err.astype(np.float64) ** 2))), "ece": float(reliability(err, sig).ece),
+            "three_step": float(np.sqrt(np.mean(e3**2))), "taken": int(sum(take)), "bursts": len(rows)}
+
+
+def fit_gated_sigma(rows: list[dict]) -> tuple[float, float, float]:
+    """``(a, b, c)`` of ``sigma = a * sigma_net**b * max(2B/S, 0.01)**c`` for bursts decoded by
+    three-step PS, by the event score (the ECE's event) on still val bursts' three-step errors."""
+    from scipy.optimize import minimize
+
+    err = np.concatenate([r["e_3"] for r in rows]).astype(np.float64)
+    sig = np.maximum(np.concatenate([r["s_net"] for r in rows]).astype(np.float64), 1e-6)
+    mod = np.maximum(np.concatenate([r["mod"] for r in rows]).astype(np.float64), 0.01)
+
+    def loss(v: np.ndarray) -> float:
+        return event_log_score(err, np.exp(v[0]) * sig ** v[1] * mod ** v[2])
+
+    res = minimize(loss, x0=np.array([np.log(0.5), 1.0, 0.0]), method="L-BFGS-B",
+                   bounds=[(-10.0, 5.0), (-3.0, 3.0), (-3.0, 3.0)])
+    return float(np.exp(res.x[0])), float(res.x[1]), float(res.x[2])
+
+
+def choose(table: dict[str, dict[str, dict[str, dict[str, float]]]]) -> float:
+    """The rule over ``table[family][rad][kind]`` (rad keys as ``f"{rad:g}"``, "0" ungated)."""
+    def within_cost(rad: float) -> bool:
+        for fam in table.values():
+            base, cur = fam["0"], fam[f"{rad:g}"]
+            if any(cur[k]["rmse"] > COST * base[k]["rmse"] for k in ("moving", "slow")):
+                return False
+            if any(cur[k]["ece"] > max(base[k]["ece"] + ECE_SLACK, ECE_TARGET) for k in ("moving", "still")):
+                return False
+        return True
+
+    def still_ok(rad: float) -> bool:
+        return all(fam[f"{rad:g}"]["still"]["rmse"] <= STILL_TOLERANCE * fam["0"]["still"]["three_step"]
+                   for fam in table.values()
+                   if fam["0"]["still"]["rmse"] > STILL_TOLERANCE * fam["0"]["still"]["three_step"])
+
+    ok = [r for r in GRID if within_cost(r)]
+    reaching = [r for r in ok if still_ok(r)]
+    return min(reaching) if reaching else (max(ok) if ok else 0.0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("families", nargs="+", help="val folders; comma-joined folders pool into one family")
+    ap.add_argument("--model", default=None)
+    ap.add_argument("--seed", type=int, default=29)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--fit-sigma", action="store_true",
+                    help="fit the gated bursts' sigma map on still val bursts drawn with seed + 1 (else: the model's, "
+                         "or none: the model's departure map at departure 0)")
+    ap.add_argument("--write", action="store_true", help="store the choice in the model's JSON")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    predictor = Predictor.load(args.model, orientation="normal", still_gate_rad=0.0, still_burst_rad=0.0)
+    sigma_map, sigma_entry = burst_sigma_map(predictor.meta), (predictor.meta.get("still_burst_gate") or {}).get("sigma")
+    if args.fit_sigma:
+        fit_rows = [r for fam in args.families
+                    for r in family_bursts(predictor, fam.split(","), args.seed + 1, None, ("still",))["still"]]
+        sigma_map = fit_gated_sigma(fit_rows)
+        sigma_entry = dict(zip("abc", sigma_map, strict=True)) | {
+            "fitted_on": f"val still bursts, seed {args.seed + 1}, the families below pooled", "score": "event"}
+        print(f"gated bursts' sigma map: a {sigma_map[0]:.4g}, b {sigma_map[1]:.4g}, c {sigma_map[2]:.4g}", flush=True)
+    table = {}
+    for fam in args.families:
+        rows = family_bursts(predictor, fam.split(","), args.seed, sigma_map)
+        table[fam] = {f"{rad:g}": {k: scores(v, rad) for k, v in rows.items()} for rad in (0.0, *GRID)}
+        print(f"{fam}: " + "; ".join(f"rad {r}: " + ", ".join(f"{k} {v['rmse']:.4f} (3-step {v['three_step']:.4f}, "
+                                                               f"ECE {v['ece']:.3f}, taken {v['taken']}/{v['bursts']})"
+                                                               for k, v in row.items())
+                                     for r, row in table[fam].items()), flush=True)
+    chosen = choose(table)
+    choice = {
+        "rad": chosen, "chosen_on": "val split: " + "; ".join(args.families), "grid": list(GRID),
+        "rule": "benchmarks/still_burst_gate_rule.md: within moving and slow RMSE <= 1.03 x ungated and ECE "
+                "<= max(ungated + 0.005, 0.05) in every family, the smallest rad with still RMSE <= 1.05 x "
+                "three-step where the network is above it; else the largest within cost; else 0",
+        "statistic": "median |network - three-step| phase over modulation >= 0.05, eroded 7x7, >= 256 px",
+        "orientation": "normal", "mode": "deterministic", "seed": args.seed, "val": table,
+    }
+    if sigma_entry is not None:
+        choice["sigma"] = sigma_entry
+    print(json.dumps({k: v for k, v in choice.items() if k != "val"}, indent=1))
+    if args.write:
+        meta_path = model_path(args.model).with_suffix(".json")
+        meta = json.loads(meta_path.read_text())
+        meta["still_burst_gate"] = choice
+        meta_path.write_text(json.dumps(meta, indent=2) + "\n")
+        print(f"wrote still_burst_gate to {meta_path}")
+
+
+if __name__ == "__main__":
+    main()

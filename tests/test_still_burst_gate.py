@@ -1,0 +1,96 @@
+"""The still-burst gate: a burst whose network phase stays within the noise of three-step PS over its
+interior is decoded by three-step PS, so a still gear is measured as well as three-step measures it.
+(Through the Predictor on a rendered still burst: tests/test_still_gate.py.)"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gearscan.core.types import PhaseResult
+from gearscan.inference.model_io import ModelFileError
+from gearscan.inference.predictor import (
+    DEFAULT_MODEL,
+    WEIGHTS_DIR,
+    Predictor,
+    burst_departure,
+    burst_sigma_map,
+    still_burst_gate,
+)
+
+OPTION = WEIGHTS_DIR / "default_rig.safetensors"
+
+
+def _lit_square(size: int = 48, lit: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """Three-step phase ramp and M, D: unit modulation on a centred square, none elsewhere."""
+    phase3 = np.tile(np.linspace(-3.0, 3.0, size, dtype=np.float32), (size, 1))
+    mod = np.zeros((size, size), np.float32)
+    a = (size - lit) // 2
+    mod[a:a + lit, a:a + lit] = 1.0
+    return phase3, np.stack([mod * np.sin(phase3), mod * np.cos(phase3)])
+
+
+def _result(phase: np.ndarray) -> PhaseResult:
+    z = np.zeros_like(phase)
+    return PhaseResult(phase.astype(np.float32), np.sin(phase), np.cos(phase), z, z + 0.1, z + 0.1)
+
+
+def test_the_interior_median_ignores_edges_and_patches():
+    """Wild departures on the lit square's rim and in one patch (what the network invents on a still
+    gear) leave the interior median at the small departure elsewhere: the burst is gated."""
+    phase3, classical = _lit_square()
+    bump = np.full_like(phase3, 0.01)
+    bump[8:12, :] = 0.8            # the rim, rows 8-11 of the lit square 8..39
+    bump[20:26, 20:26] = 0.5       # a patch inside
+    score = burst_departure(phase3 + bump, classical)
+    assert score == pytest.approx(0.01, abs=1e-4)
+    gated, taken = still_burst_gate(_result(phase3 + bump), classical, 0.025)
+    assert taken
+    lit = np.hypot(*classical) > 0
+    np.testing.assert_allclose(gated.phase[lit], phase3[lit], atol=1e-6)
+    np.testing.assert_array_equal(gated.sigma_total, np.full_like(phase3, 0.1))  # no map: sigma unchanged
+
+
+def test_a_coherent_correction_keeps_the_network_result():
+    phase3, classical = _lit_square()
+    res = _result(phase3 + 0.1)
+    out, taken = still_burst_gate(res, classical, 0.025)
+    assert not taken and out is res
+
+
+def test_too_few_interior_pixels_give_no_verdict():
+    phase3, classical = _lit_square(lit=16)  # 10 x 10 interior after the 7x7 erosion: 100 < 256 px
+    assert burst_departure(phase3, classical) is None
+    assert not still_burst_gate(_result(phase3), classical, 0.5)[1]
+
+
+def test_the_gated_sigma_map():
+    phase3, classical = _lit_square()
+    classical = classical * 0.5  # modulation 0.5 in the lit square
+    gated, taken = still_burst_gate(_result(phase3), classical, 0.025, sigma_map=(0.2, 0.5, -1.0))
+    assert taken
+    i = (24, 24)
+    assert gated.sigma_total[i] == pytest.approx(0.2 * 0.1**0.5 * 0.5**-1.0, rel=1e-5)
+    assert gated.sigma_data[i] == pytest.approx(gated.sigma_total[i], rel=1e-5)  # ratio kept
+
+
+def test_a_broken_sigma_map_in_the_json_is_named():
+    with pytest.raises(ModelFileError, match="still_burst_gate.sigma"):
+        burst_sigma_map({"still_burst_gate": {"rad": 0.025, "sigma": {"a": -1, "b": 1, "c": 0}}})
+    with pytest.raises(ModelFileError, match="still_burst_gate.sigma"):
+        burst_sigma_map({"still_burst_gate": {"rad": 0.025, "sigma": {"a": 1}}})
+    assert burst_sigma_map({}) is None
+
+
+@pytest.mark.parametrize("model", [DEFAULT_MODEL, OPTION], ids=["v6", "default-rig option"])
+def test_the_models_record_the_val_choice(model):
+    meta = Predictor.load(model).meta["still_burst_gate"]
+    assert meta["rad"] == 0.025 and "val split" in meta["chosen_on"] and "still_burst_gate_rule" in meta["rule"]
+    assert set(meta["sigma"]) >= {"a", "b", "c", "fitted_on"}
+    # the val table the rule read: the chosen gate brings every family's still bursts within 5 % of
+    # three-step PS where the network was above it, and costs moving bursts at most 3 %
+    for fam in meta["val"].values():
+        base, chosen = fam["0"], fam["0.025"]
+        assert chosen["moving"]["rmse"] <= 1.03 * base["moving"]["rmse"]
+        if base["still"]["rmse"] > 1.05 * base["still"]["three_step"]:
+            assert chosen["still"]["rmse"] <= 1.05 * chosen["still"]["three_step"]
