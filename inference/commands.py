@@ -170,6 +170,15 @@ def predict(
         typer.Option(help="the rig's fringe phase along the camera columns: normal (rising, as on the twin's rigs), "
                      "mirrored, or auto (a vote on this burst; it misreads fast bursts on large gears)"),
     ] = "auto",
+    still_burst_rad: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0, max=3.0,
+            help="decode the burst by three-step PS when the network's median departure from it over the burst's "
+            "interior is below this (rad): a still gear without angles. Default: the model's (chosen on val; "
+            "0 in v6, 0.025 in the default-rig option); 0: off",
+        ),
+    ] = None,
 ) -> None:
     """Predict wrapped phase and its uncertainty from one three-step burst.
 
@@ -201,7 +210,8 @@ def predict(
                     "so the phase is meaningless (projector off, lens cap on, or exposure far too short?)",
                     fg=typer.colors.YELLOW, err=True)
     try:
-        predictor = Predictor.load(model, device=device, precision=precision, orientation=orientation)
+        predictor = Predictor.load(model, device=device, precision=precision, orientation=orientation,
+                                   still_burst_rad=still_burst_rad)
     except ModelFileError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

@@ -78,16 +78,39 @@ def test_the_shipped_model_records_why_it_has_no_gate():
 
 
 def test_the_burst_gate_takes_a_still_burst_through_the_predictor_with_no_angles(val_scene_256):
-    """The shipped model as loaded: a still burst is decoded as well as three-step PS decodes it
-    (ungated, the network is worse), a 0.6 deg/frame burst keeps the network's correction. (The
-    default-rig option's gate does not take this still burst: its interior departure here is 0.034
-    rad, above its 0.025; see DEFAULT_RIG_MODEL_CARD.md.)"""
-    shipped = Predictor.load(DEFAULT_MODEL, orientation="normal")
-    ungated = Predictor.load(DEFAULT_MODEL, orientation="normal", still_burst_rad=0.0)
-    assert shipped.still_burst_rad > 0
-    still, three_still = _rmse(val_scene_256, (0.0, 0.0), shipped)
+    """v6 with the gate its val rule chose (0.025 rad; withdrawn from the shipped v6 for what it costs
+    face and oblique views on test, see its JSON): a still burst is decoded as well as three-step PS
+    decodes it (ungated, the network is worse), a 0.6 deg/frame burst keeps the network's correction.
+    (The default-rig option's gate does not take this still burst: its interior departure here is
+    0.034 rad, above its 0.025; see DEFAULT_RIG_MODEL_CARD.md.)"""
+    gated = Predictor.load(DEFAULT_MODEL, orientation="normal", still_burst_rad=0.025)
+    ungated = Predictor.load(DEFAULT_MODEL, orientation="normal")
+    assert ungated.still_burst_rad == 0.0
+    still, three_still = _rmse(val_scene_256, (0.0, 0.0), gated)
     still_net, _ = _rmse(val_scene_256, (0.0, 0.0), ungated)
     assert still <= 1.05 * three_still < still_net, (still, three_still, still_net)
-    move, three_move = _rmse(val_scene_256, (0.6, 0.6), shipped)
+    move, three_move = _rmse(val_scene_256, (0.6, 0.6), gated)
     move_net, _ = _rmse(val_scene_256, (0.6, 0.6), ungated)
     assert move == pytest.approx(move_net, rel=1e-6) and move < 0.2 * three_move, (move, move_net, three_move)
+
+
+def test_predict_takes_the_burst_gate_from_the_command_line(val_scene_256, tmp_path):
+    """`gearscan predict --still-burst-rad`: a still burst without angles comes out as three-step PS's
+    phase; without the flag v6 (gate off) gives the network's own."""
+    from typer.testing import CliRunner
+
+    from gearscan.cli import app
+
+    frames, _ = val_scene_256.render_sequence([np.radians(3.0)] * 3, PatternSet.three_step(40.0), [0, 1, 2], 5)
+    src = tmp_path / "still.npz"
+    np.savez(src, frames=frames)
+    phase3 = three_step(frames, 255)[0]
+    lit = np.hypot(*three_step(frames, 255)[1:]) >= 0.05
+    runner = CliRunner()
+    out = {}
+    for name, extra in (("gated", ["--still-burst-rad", "0.025"]), ("plain", [])):
+        res = runner.invoke(app, ["predict", str(src), "-o", str(tmp_path / f"{name}.npz"), "--orientation", "normal", *extra])
+        assert res.exit_code == 0, res.output
+        out[name] = np.load(tmp_path / f"{name}.npz")["phase"]
+    assert np.abs(phase_error(out["gated"], phase3))[lit].max() < 1e-3
+    assert np.median(np.abs(phase_error(out["plain"], phase3))[lit]) > 0.01
