@@ -319,6 +319,22 @@ class Predictor:
             x = torch.flip(x, dims=[-1])
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
+        if mc > 0 and self.still_burst_rad > 0:
+            # the burst gate decides on the deterministic phase, as it was chosen on val; a burst it takes
+            # needs no Monte Carlo passes (its phase is three-step PS's, its sigma the gate's map)
+            det_cal = self.calibration.get("deterministic")
+            det = self._result(x, 0, mirror, det_cal, classical)
+            gated, taken = still_burst_gate(det, classical, self.still_burst_rad, det_cal, self.still_burst_sigma)
+            if taken:
+                return gated
+        result = self._result(x, mc, mirror, calibration, classical)
+        burst_rad = self.still_burst_rad if mc == 0 else 0.0  # with mc > 0 the burst gate has spoken above
+        return apply_still_gates(result, classical, pixel_rad=self.still_gate_rad, burst_rad=burst_rad,
+                                 calibration=calibration, burst_sigma=self.still_burst_sigma)[0]
+
+    def _result(self, x: torch.Tensor, mc: int, mirror: bool, calibration: SigmaCalibration | None,
+                classical: np.ndarray | None) -> PhaseResult:
+        """The network's own :class:`PhaseResult` of the prepared input (``mc`` passes; 0: deterministic)."""
         with self._autocast():
             if mc > 0:
                 chunk = self.mc_chunk or auto_mc_chunk(*x.shape[-2:], mc)
@@ -328,10 +344,8 @@ class Predictor:
         if mirror:
             stats = MomentStats(*(torch.flip(getattr(stats, f.name), dims=[-1]) for f in dataclasses.fields(stats)))
         mode = f"mc{mc}" if mc > 0 else "deterministic"
-        result = to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale, calibration=calibration,
-                                 classical_phase=None if classical is None else np.arctan2(*classical))
-        return apply_still_gates(result, classical, pixel_rad=self.still_gate_rad, burst_rad=self.still_burst_rad,
-                                 calibration=calibration, burst_sigma=self.still_burst_sigma)[0]
+        return to_phase_result(stats, 0, mode=mode, var_scale=self.var_scale, calibration=calibration,
+                               classical_phase=None if classical is None else np.arctan2(*classical))
 
     @property
     def needs_angles(self) -> bool:
@@ -446,7 +460,8 @@ def still_burst_gate(
     result: PhaseResult, classical: np.ndarray, rad: float, calibration: SigmaCalibration | None = None,
     sigma_map: tuple[float, float, float] | None = None,
 ) -> tuple[PhaseResult, bool]:
-    """``result`` decoded by three-step PS if its :func:`burst_departure` is below ``rad``, and whether it was.
+    """``result`` decoded by three-step PS if its :func:`burst_departure` is below ``rad``, and whether it was
+    (its ``mode`` then says ``"three-step"``).
 
     The sigma of a gated burst: with ``sigma_map = (a, b, c)`` (fitted on val still bursts by
     ``scripts/choose_still_burst_gate.py``), ``a * sigma**b * max(2B/S, 0.01)**c`` of the network's
@@ -474,7 +489,7 @@ def still_burst_gate(
         scale |= {name: (getattr(result, name) * f * f).astype(np.float32)
                   for name in ("var_M", "var_D") if getattr(result, name) is not None}
     gated = dataclasses.replace(result, phase=np.arctan2(m3, d3).astype(np.float32), M=np.asarray(m3, np.float32),
-                                D=np.asarray(d3, np.float32), **scale)
+                                D=np.asarray(d3, np.float32), mode="three-step", **scale)
     return gated, True
 
 

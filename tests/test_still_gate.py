@@ -89,6 +89,12 @@ def test_the_burst_gate_takes_a_still_burst_through_the_predictor_with_no_angles
     still, three_still = _rmse(val_scene_256, (0.0, 0.0), gated)
     still_net, _ = _rmse(val_scene_256, (0.0, 0.0), ungated)
     assert still <= 1.05 * three_still < still_net, (still, three_still, still_net)
+    frames, _ = val_scene_256.render_sequence([np.radians(3.0)] * 3, PatternSet.three_step(40.0), [0, 1, 2], 5)
+    for mc in (0, 2):  # Monte Carlo too: the gate decides on the deterministic pass and skips the MC ones
+        res = gated.predict(frames, mc)
+        assert res.mode == "three-step", (mc, res.mode)
+        np.testing.assert_allclose(res.phase, gated.predict(frames).phase, atol=1e-6)
+    assert ungated.predict(frames, 2).mode == "mc2"
     move, three_move = _rmse(val_scene_256, (0.6, 0.6), gated)
     move_net, _ = _rmse(val_scene_256, (0.6, 0.6), ungated)
     assert move == pytest.approx(move_net, rel=1e-6) and move < 0.2 * three_move, (move, move_net, three_move)
