@@ -28,7 +28,7 @@ from gearscan.core.phase import phase_error
 from gearscan.inference.concrete_dropout import set_stochastic
 from gearscan.inference.model_io import read_config, write_config
 from gearscan.inference.models import PhaseNet, classical_md
-from gearscan.inference.predictor import Predictor, apply_still_gates, model_path
+from gearscan.inference.predictor import Predictor, apply_still_gates, model_path, still_burst_gate
 from gearscan.inference.uncertainty import (
     SigmaCalibration,
     departure,
@@ -70,7 +70,8 @@ def collect_errors(
     """Errors, sigmas (as ``predictor`` reports them) and departures over the truth masks.
 
     The departure is the network's own phase against three-step PS's, before any still gate, as
-    the Predictor reads it at run time; the error is the gated output's.
+    the Predictor reads it at run time; the error is the gated output's (both gates, as the Predictor
+    applies them).
     """
     ungated = copy.copy(predictor)
     ungated.still_gate_rad = ungated.still_burst_rad = 0.0
@@ -81,9 +82,13 @@ def collect_errors(
         x = torch.from_numpy(np.asarray(item["input"], np.float32))[None]
         net = ungated.predict_tensor(x, mc)
         classical = classical_md(x[:, :3])[0].numpy()
-        r = apply_still_gates(net, classical, pixel_rad=predictor.still_gate_rad,
-                              burst_rad=predictor.still_burst_rad, calibration=calibration,
-                              burst_sigma=predictor.still_burst_sigma)[0]
+        taken = False
+        if mc > 0 and predictor.still_burst_rad > 0:  # as the Predictor does: the deterministic pass decides
+            gated, taken = still_burst_gate(ungated.predict_tensor(x, 0), classical, predictor.still_burst_rad,
+                                            predictor.calibration.get("deterministic"), predictor.still_burst_sigma)
+        r = gated if taken else apply_still_gates(
+            net, classical, pixel_rad=predictor.still_gate_rad, burst_rad=predictor.still_burst_rad if mc == 0 else 0.0,
+            calibration=calibration, burst_sigma=predictor.still_burst_sigma)[0]
         mask = np.asarray(item["mask"], bool)
         k = int(mask.sum())
         parts.append(PixelErrors(

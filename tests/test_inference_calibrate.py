@@ -83,3 +83,20 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
     assert res.exit_code == 2 and "empty" in res.output
     res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--orientation", "up"])
     assert res.exit_code == 2 and "orientation: expected one of auto, normal, mirrored, got 'up'" in res.output, res.output
+
+
+def test_collected_errors_follow_the_burst_gate_as_the_predictor_applies_it(val_set, model_path):
+    """A gate wide enough to take every burst: the errors the calibration collects are three-step PS's,
+    in Monte Carlo mode too (where the Predictor decides on the deterministic pass)."""
+    from gearscan.core.phase import phase_error, three_step
+
+    ds = TwinBurstDataset(val_set, crop=None, reverse=True)
+    pick = [0, 5]
+    pred = Predictor.load(model_path, still_burst_rad=3.0)
+    expected = np.concatenate([phase_error(three_step(ds[i]["input"][:3], 1.0)[0], ds[i]["phase"])[ds[i]["mask"]]
+                               for i in pick])
+    for mc in (0, 2):
+        px = collect_errors(pred, ds, pick, mc)
+        np.testing.assert_allclose(px.error, expected, atol=1e-4)
+        x = torch.from_numpy(np.asarray(ds[0]["input"], np.float32))[None]
+        assert pred.predict_tensor(x, mc).mode == "three-step"
