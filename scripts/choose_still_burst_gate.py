@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -41,7 +42,23 @@ SETS = {"moving": (96, {"reverse": True}), "slow": (48, {"reverse": True, "max_s
         "still": (48, {"static": True, "motion": "uniform", "max_span": 0})}
 
 
-def family_bursts(predictor: Predictor, folders: list[str], seed: int, sigma_map: tuple[float, float, float] | None,
+Folders = list[tuple[str, list[int] | None]]  # (dataset folder, its start points; None: all)
+
+
+def by_view(folders: Folders) -> dict[str, Folders]:
+    """The same folders split by the rig's name of each start point ("face view", ...): one family each."""
+    views: dict[str, Folders] = {}
+    for folder, groups in folders:
+        entries = json.loads((Path(folder) / "index.json").read_text())["entries"]
+        names: dict[str, list[int]] = {}
+        for g in (range(len(entries)) if groups is None else groups):
+            names.setdefault(entries[g]["rig"].get("name", "unnamed rig"), []).append(g)
+        for name, gs in names.items():
+            views.setdefault(name, []).append((folder, gs))
+    return views
+
+
+def family_bursts(predictor: Predictor, folders: Folders, seed: int, sigma_map: tuple[float, float, float] | None,
                   kinds: tuple[str, ...] = tuple(SETS)) -> dict[str, list[dict]]:
     """Per burst kind: the ungated network's and three-step PS's errors over the truth mask, the
     network's sigma and the gated sigma there, the three-step modulation, and the burst's interior
@@ -51,8 +68,8 @@ def family_bursts(predictor: Predictor, folders: list[str], seed: int, sigma_map
         if name not in kinds:
             continue
         rows = []
-        for f, folder in enumerate(folders):
-            ds = TwinBurstDataset(folder, **options)
+        for f, (folder, groups) in enumerate(folders):
+            ds = TwinBurstDataset(folder, groups=groups, **options)
             n = min(count // len(folders), len(ds))
             for i in sorted(np.random.default_rng([seed, s, f]).choice(len(ds), n, replace=False)):
                 it = ds[int(i)]
@@ -127,21 +144,31 @@ def main() -> None:
     ap.add_argument("--fit-sigma", action="store_true",
                     help="fit the gated bursts' sigma map on still val bursts drawn with seed + 1 (else: the model's, "
                          "or none: the model's departure map at departure 0)")
+    ap.add_argument("--by-view", action="store_true",
+                    help="score each family's rig views (the rig name of each start point) as families of their own: "
+                         "a cost in one view cannot hide in a pooled number")
     ap.add_argument("--write", action="store_true", help="store the choice in the model's JSON")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     predictor = Predictor.load(args.model, orientation="normal", still_gate_rad=0.0, still_burst_rad=0.0)
     sigma_map, sigma_entry = burst_sigma_map(predictor.meta), (predictor.meta.get("still_burst_gate") or {}).get("sigma")
+    families: dict[str, Folders] = {}
+    for fam in args.families:
+        folders: Folders = [(f, None) for f in fam.split(",")]
+        if args.by_view:
+            families |= {f"{fam} [{view}]": part for view, part in by_view(folders).items()}
+        else:
+            families[fam] = folders
     if args.fit_sigma:
-        fit_rows = [r for fam in args.families
-                    for r in family_bursts(predictor, fam.split(","), args.seed + 1, None, ("still",))["still"]]
+        fit_rows = [r for folders in families.values()
+                    for r in family_bursts(predictor, folders, args.seed + 1, None, ("still",))["still"]]
         sigma_map = fit_gated_sigma(fit_rows)
         sigma_entry = dict(zip("abc", sigma_map, strict=True)) | {
             "fitted_on": f"val still bursts, seed {args.seed + 1}, the families below pooled", "score": "event"}
         print(f"gated bursts' sigma map: a {sigma_map[0]:.4g}, b {sigma_map[1]:.4g}, c {sigma_map[2]:.4g}", flush=True)
     table = {}
-    for fam in args.families:
-        rows = family_bursts(predictor, fam.split(","), args.seed, sigma_map)
+    for fam, folders in families.items():
+        rows = family_bursts(predictor, folders, args.seed, sigma_map)
         table[fam] = {f"{rad:g}": {k: scores(v, rad) for k, v in rows.items()} for rad in (0.0, *GRID)}
         print(f"{fam}: " + "; ".join(f"rad {r}: " + ", ".join(f"{k} {v['rmse']:.4f} (3-step {v['three_step']:.4f}, "
                                                                f"ECE {v['ece']:.3f}, taken {v['taken']}/{v['bursts']})"
@@ -149,12 +176,12 @@ def main() -> None:
                                      for r, row in table[fam].items()), flush=True)
     chosen = choose(table)
     choice = {
-        "rad": chosen, "chosen_on": "val split: " + "; ".join(args.families), "grid": list(GRID),
+        "rad": chosen, "chosen_on": "val split: " + "; ".join(families), "grid": list(GRID),
         "rule": "benchmarks/still_burst_gate_rule.md: within moving and slow RMSE <= 1.03 x ungated and ECE "
                 "<= max(ungated + 0.005, 0.05) in every family, the smallest rad with still RMSE <= 1.05 x "
                 "three-step where the network is above it; else the largest within cost; else 0",
         "statistic": "median |network - three-step| phase over modulation >= 0.05, eroded 7x7, >= 256 px",
-        "orientation": "normal", "mode": "deterministic", "seed": args.seed, "val": table,
+        "orientation": "normal", "mode": "deterministic", "seed": args.seed, "by_view": args.by_view, "val": table,
     }
     if sigma_entry is not None:
         choice["sigma"] = sigma_entry

@@ -102,3 +102,49 @@ def test_the_models_record_the_val_choice(model):
         assert gated["moving"]["rmse"] <= 1.03 * base["moving"]["rmse"]
         if base["still"]["rmse"] > 1.05 * base["still"]["three_step"]:
             assert gated["still"]["rmse"] <= 1.05 * gated["still"]["three_step"]
+
+
+def _chooser():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "choose_still_burst_gate.py"
+    spec = importlib.util.spec_from_file_location("choose_still_burst_gate", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _row(rmse: float, ece: float = 0.03, three: float = 0.03) -> dict[str, float]:
+    return {"rmse": rmse, "ece": ece, "three_step": three}
+
+
+def test_the_rule_takes_the_smallest_gate_that_fixes_still_within_cost():
+    """benchmarks/still_burst_gate_rule.md: the smallest rad that brings still bursts to 1.05x three-step
+    within a 3 % moving/slow cost; a family that pays more than 3 % caps the gate below it."""
+    choose = _chooser()
+    grid = choose.GRID
+
+    def fam(still_at, cost_from=None):
+        table = {}
+        for rad in (0.0, *grid):
+            still = 0.030 if rad >= still_at else 0.045
+            moving = 0.2 * (1.10 if cost_from is not None and rad >= cost_from else 1.0)
+            table[f"{rad:g}"] = {"moving": _row(moving), "slow": _row(0.1), "still": _row(still)}
+        return table
+
+    assert choose.choose({"a": fam(0.025)}) == 0.025
+    # a second family whose moving bursts pay 10 % from 0.02 on: the still target cannot be reached
+    # within cost, so the largest gate within cost (0.015)
+    assert choose.choose({"a": fam(0.025), "b": fam(0.025, cost_from=0.02)}) == 0.015
+    assert choose.choose({"a": fam(0.025, cost_from=0.015)}) == 0.0
+
+
+def test_by_view_splits_a_folder_by_its_rigs(tmp_path):
+    import json
+
+    choose = _chooser()
+    entries = [{"rig": {"name": n}} for n in ("face view", "side view", "face view")]
+    (tmp_path / "index.json").write_text(json.dumps({"entries": entries}))
+    views = choose.by_view([(str(tmp_path), None)])
+    assert views == {"face view": [(str(tmp_path), [0, 2])], "side view": [(str(tmp_path), [1])]}
