@@ -45,7 +45,7 @@ CPUINFO = Path("/proc/cpuinfo")
 # and 1232x1360 (7.2 s vs 7.9 for 2, 12.9 for 4): bigger batches fall out of cache.
 MC_CHUNK_PIXELS = 2 * 512 * 512
 # The still-burst gate's interior: three-step modulation 2B/S at least this (the keep test's), this many
-# px from any pixel below it (a 7x7 erosion: chosen on val, session 29, over 3x3 and 11x11), and at least
+# px from any pixel below it (a 7x7 erosion: a one-off val check in session 29 preferred it to 3x3 and 11x11), and at least
 # this many such pixels for a verdict (fewer: the network's result stands).
 BURST_GATE_MODULATION = 0.05
 BURST_GATE_ERODE_PX = 3

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from gearscan.core.phase import phase_error
+from gearscan.inference.model_io import read_config, write_config
 from gearscan.inference.models import classical_md
 from gearscan.inference.predictor import (
     Predictor,
@@ -187,11 +188,10 @@ def main() -> None:
         choice["sigma"] = sigma_entry
     print(json.dumps({k: v for k, v in choice.items() if k != "val"}, indent=1))
     if args.write:
-        meta_path = model_path(args.model).with_suffix(".json")
-        meta = json.loads(meta_path.read_text())
+        weights = model_path(args.model)
+        meta = read_config(weights)
         meta["still_burst_gate"] = choice
-        meta_path.write_text(json.dumps(meta, indent=2) + "\n")
-        print(f"wrote still_burst_gate to {meta_path}")
+        print(f"wrote still_burst_gate to {write_config(weights, meta)}")
 
 
 if __name__ == "__main__":

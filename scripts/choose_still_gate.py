@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from gearscan.core.phase import phase_error, three_step
+from gearscan.inference.model_io import read_config, write_config
 from gearscan.inference.predictor import Predictor, model_path
 from gearscan.inference.uncertainty import reliability
 from gearscan.twin.dataset import TwinBurstDataset
@@ -72,11 +73,10 @@ def main() -> None:
     }
     print(json.dumps(choice, indent=1))
     if args.write:
-        meta_path = model_path(args.model).with_suffix(".json")
-        meta = json.loads(meta_path.read_text())
+        weights = model_path(args.model)
+        meta = read_config(weights)
         meta["still_gate"] = choice
-        meta_path.write_text(json.dumps(meta, indent=2) + "\n")
-        print(f"wrote still_gate to {meta_path}")
+        print(f"wrote still_gate to {write_config(weights, meta)}")
 
 
 if __name__ == "__main__":
