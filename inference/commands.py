@@ -179,6 +179,14 @@ def predict(
             "0 in v6, 0.025 in the default-rig option); 0: off",
         ),
     ] = None,
+    still_burst_motion: Annotated[
+        float | None,
+        typer.Option(
+            help="and only when fewer than this share of the lit pixels swing more between the three frames than a "
+            "still fringe can (an outline or shadow border crossing them): a burst whose frames show motion keeps "
+            "the network. Default: the model's (chosen on val with --still-burst-rad); inf: no check",
+        ),
+    ] = None,
 ) -> None:
     """Predict wrapped phase and its uncertainty from one three-step burst.
 
@@ -193,6 +201,7 @@ def predict(
         ORIENTATIONS,
         PRECISIONS,
         Predictor,
+        check_motion_limit,
         frames_to_tensor,
         fringe_phase_decreases_along_columns,
         resolve_full_scale,
@@ -209,9 +218,14 @@ def predict(
         typer.secho(f"warning: {', '.join(map(str, inputs))}: the three frames are {what}: no fringe modulation, "
                     "so the phase is meaningless (projector off, lens cap on, or exposure far too short?)",
                     fg=typer.colors.YELLOW, err=True)
+    if still_burst_motion is not None:
+        try:
+            check_motion_limit(still_burst_motion, "--still-burst-motion")
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--still-burst-motion") from exc
     try:
         predictor = Predictor.load(model, device=device, precision=precision, orientation=orientation,
-                                   still_burst_rad=still_burst_rad)
+                                   still_burst_rad=still_burst_rad, still_burst_motion=still_burst_motion)
     except ModelFileError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 
-from gearscan.core.phase import in_capture_order
+from gearscan.core.phase import in_capture_order, still_frame_noise
 from gearscan.core.types import Burst, PhaseResult
 from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
@@ -50,6 +50,8 @@ MC_CHUNK_PIXELS = 2 * 512 * 512
 BURST_GATE_MODULATION = 0.05
 BURST_GATE_ERODE_PX = 3
 BURST_GATE_MIN_PIXELS = 256
+# no motion check on the frames: a model whose JSON names no ``still_burst_gate.max_motion_share``
+NO_MOTION_CHECK = math.inf
 
 
 def auto_mc_chunk(height: int, width: int, passes: int) -> int:
@@ -174,6 +176,11 @@ class Predictor:
         gear the network invents corrections in patches and at edges, but most of the interior stays
         within the noise of three-step PS; on a moving one the interior moves too. Chosen per model on
         the val split and stored in its JSON (``still_burst_gate``); None: the model's.
+    still_burst_motion : and only when the frames themselves show less motion than this:
+        :func:`frame_motion_share` below it (``inf``: no check). Where only part of the image moves
+        (a face view: the teeth's outlines sweep, the flat face does not) the interior median stays at
+        the noise although the network's correction at the outlines is real; the frames show those
+        outlines moving. Chosen with ``still_burst_rad``; None: the model's (no entry: ``inf``).
     orientation : which way the fringe phase runs along the camera's columns: ``"auto"`` votes per
         burst (:func:`fringe_phase_decreases_along_columns`); ``"normal"`` (rising, as on every twin
         rig) or ``"mirrored"`` fix it, a property of the rig that a user sets once. The vote misreads
@@ -196,6 +203,7 @@ class Predictor:
         still_gate_rad: float | None = None,
         orientation: str = "auto",
         still_burst_rad: float | None = None,
+        still_burst_motion: float | None = None,
     ) -> None:
         if orientation not in ORIENTATIONS:
             raise ValueError(f"orientation: expected one of {', '.join(ORIENTATIONS)}, got {orientation!r}")
@@ -225,6 +233,8 @@ class Predictor:
             raise ValueError(f"still_burst_rad: expected 0 <= rad < pi, got {still_burst_rad}")
         self.still_burst_rad = float(still_burst_rad)
         self.still_burst_sigma = burst_sigma_map(self.meta)
+        self.still_burst_motion = (burst_motion_limit(self.meta) if still_burst_motion is None
+                                   else check_motion_limit(still_burst_motion, "still_burst_motion"))
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
         if self.channels_last:
@@ -241,6 +251,7 @@ class Predictor:
         still_gate_rad: float | None = None,
         orientation: str = "auto",
         still_burst_rad: float | None = None,
+        still_burst_motion: float | None = None,
     ) -> Predictor:
         """Load ``path`` (.safetensors + .json); default: the shipped model."""
         path = model_path(path)
@@ -275,6 +286,7 @@ class Predictor:
             still_gate_rad=still_gate_rad,
             orientation=orientation,
             still_burst_rad=still_burst_rad,
+            still_burst_motion=still_burst_motion,
         )
 
     def replica(self) -> Predictor:
@@ -313,6 +325,7 @@ class Predictor:
         needs_classical = (self.still_gate_rad > 0 or self.still_burst_rad > 0
                            or (calibration is not None and calibration.needs_departure))
         classical = classical_md(x[:, :3].float())[0].cpu().numpy() if needs_classical else None
+        evidence = frame_evidence(x[0, :3].float().cpu().numpy()) if self.still_burst_rad > 0 else None
         if mirror is None:
             mirror = fringe_phase_decreases_along_columns(x) if self.orientation == "auto" else self.orientation == "mirrored"
         if mirror:  # the nets were trained on phase increasing along the columns: mirror in and out
@@ -324,13 +337,15 @@ class Predictor:
             # needs no Monte Carlo passes (its phase is three-step PS's, its sigma the gate's map)
             det_cal = self.calibration.get("deterministic")
             det = self._result(x, 0, mirror, det_cal, classical)
-            gated, taken = still_burst_gate(det, classical, self.still_burst_rad, det_cal, self.still_burst_sigma)
+            gated, taken = still_burst_gate(det, classical, self.still_burst_rad, det_cal, self.still_burst_sigma,
+                                            evidence=evidence, max_motion=self.still_burst_motion)
             if taken:
                 return gated
         result = self._result(x, mc, mirror, calibration, classical)
         burst_rad = self.still_burst_rad if mc == 0 else 0.0  # with mc > 0 the burst gate has spoken above
         return apply_still_gates(result, classical, pixel_rad=self.still_gate_rad, burst_rad=burst_rad,
-                                 calibration=calibration, burst_sigma=self.still_burst_sigma)[0]
+                                 calibration=calibration, burst_sigma=self.still_burst_sigma,
+                                 evidence=evidence, max_motion=self.still_burst_motion)[0]
 
     def _result(self, x: torch.Tensor, mc: int, mirror: bool, calibration: SigmaCalibration | None,
                 classical: np.ndarray | None) -> PhaseResult:
@@ -421,11 +436,20 @@ def still_gate(result: PhaseResult, classical: np.ndarray, rad: float) -> PhaseR
     return dataclasses.replace(result, phase=pick(result.phase, phase3), M=pick(result.M, m3), D=pick(result.D, d3))
 
 
-def burst_sigma_map(meta: dict) -> tuple[float, float, float] | None:
-    """The gated bursts' sigma map ``(a, b, c)`` from a model's JSON (``still_burst_gate.sigma``), if any."""
+THREE_STEP_NOISE = "three-step noise"
+BurstSigma = tuple[float, float, float] | str  # a fitted map (a, b, c), or THREE_STEP_NOISE
+
+
+def burst_sigma_map(meta: dict) -> BurstSigma | None:
+    """The gated bursts' sigma from a model's JSON (``still_burst_gate.sigma``), if any: a fitted map
+    ``(a, b, c)``, or :data:`THREE_STEP_NOISE` (``{"kind": "three-step noise"}``)."""
     raw = (meta.get("still_burst_gate") or {}).get("sigma")
     if raw is None:
         return None
+    if isinstance(raw, dict) and "kind" in raw:
+        if raw["kind"] != THREE_STEP_NOISE:
+            raise ModelFileError(f"still_burst_gate.sigma.kind: expected {THREE_STEP_NOISE!r}, got {raw['kind']!r}")
+        return THREE_STEP_NOISE
     try:
         a, b, c = (float(raw[k]) for k in ("a", "b", "c"))
     except (TypeError, KeyError, ValueError) as exc:
@@ -433,6 +457,74 @@ def burst_sigma_map(meta: dict) -> tuple[float, float, float] | None:
     if not (math.isfinite(a) and a > 0 and all(math.isfinite(v) and abs(v) <= 3 for v in (b, c))):
         raise ModelFileError(f"still_burst_gate.sigma: expected a > 0 and |b|, |c| <= 3, got {raw!r}")
     return a, b, c
+
+
+def check_motion_limit(value: float, name: str) -> float:
+    """``value`` as a limit on :func:`frame_motion_share` (> 0; ``inf``: no check), or a ValueError naming ``name``."""
+    try:
+        limit = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: expected a share > 0 (inf: no check), got {value!r}") from exc
+    if not limit > 0:  # also rejects nan
+        raise ValueError(f"{name}: expected a share > 0 (inf: no check), got {value!r}")
+    return limit
+
+
+def burst_motion_limit(meta: dict) -> float:
+    """The burst gate's limit on :func:`frame_motion_share` from a model's JSON
+    (``still_burst_gate.max_motion_share``); none there: :data:`NO_MOTION_CHECK`."""
+    raw = (meta.get("still_burst_gate") or {}).get("max_motion_share")
+    if raw is None:
+        return NO_MOTION_CHECK
+    try:
+        return check_motion_limit(raw, "still_burst_gate.max_motion_share")
+    except ValueError as exc:
+        raise ModelFileError(str(exc)) from exc
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class FrameEvidence:
+    """What a burst's frames say for the still-burst gate, without the network: the share of lit pixels
+    that swing like motion (:func:`frame_motion_share`) and the frames' noise if the burst is still
+    (:func:`~gearscan.core.phase.still_frame_noise`, over the lit pixels); None: too few lit pixels."""
+
+    motion_share: float | None
+    noise: float | None
+
+
+def frame_evidence(frames: np.ndarray) -> FrameEvidence:
+    """:class:`FrameEvidence` of ``(3, H, W)`` frames in [0, 1]."""
+    f = np.asarray(frames, np.float32)
+    share = frame_motion_share(f)
+    lit = 2.0 * frame_swing(f) >= BURST_GATE_MODULATION
+    return FrameEvidence(share, None if share is None else still_frame_noise(f, lit))
+
+
+def frame_swing(frames: np.ndarray) -> np.ndarray:
+    """Three-step amplitude B' of ``(3, H, W)`` frames (order-free: from the three pairwise differences)."""
+    f = frames
+    return np.sqrt(2.0 * ((f[0] - f[1]) ** 2 + (f[1] - f[2]) ** 2 + (f[0] - f[2]) ** 2)) / 3.0
+
+
+def frame_motion_share(frames: np.ndarray) -> float | None:
+    """Share of a burst's lit pixels whose three frames swing more than a still fringe can: the
+    three-step amplitude B' above the frames' mean A'. ``frames``: ``(3, H, W)`` in [0, 1]; lit: three-step
+    modulation ``2B'`` at least :data:`BURST_GATE_MODULATION`. None when fewer than
+    :data:`BURST_GATE_MIN_PIXELS` pixels are lit.
+
+    A still pixel sees ``A + B cos(phi + delta)`` with ``B <= A`` (light is not negative), so B' <= A' up
+    to noise; a pixel that an outline or shadow border crosses between the frames need not: dark,
+    dark, lit gives ``B' = 2 A'``. Evidence from the frames alone, not from the network.
+    """
+    f = np.asarray(frames, np.float32)
+    if f.ndim != 3 or f.shape[0] != 3:
+        raise ValueError(f"frames: expected (3, H, W), got shape {f.shape}")
+    swing = frame_swing(f)
+    lit = 2.0 * swing >= BURST_GATE_MODULATION
+    n = int(lit.sum())
+    if n < BURST_GATE_MIN_PIXELS:
+        return None
+    return float(np.count_nonzero(swing[lit] > f.mean(0)[lit]) / n)
 
 
 def burst_departure(phase: np.ndarray, classical: np.ndarray) -> float | None:
@@ -458,51 +550,74 @@ def burst_departure(phase: np.ndarray, classical: np.ndarray) -> float | None:
 
 def still_burst_gate(
     result: PhaseResult, classical: np.ndarray, rad: float, calibration: SigmaCalibration | None = None,
-    sigma_map: tuple[float, float, float] | None = None,
+    sigma_map: BurstSigma | None = None, *, evidence: FrameEvidence | None = None,
+    max_motion: float = NO_MOTION_CHECK,
 ) -> tuple[PhaseResult, bool]:
-    """``result`` decoded by three-step PS if its :func:`burst_departure` is below ``rad``, and whether it was
-    (its ``mode`` then says ``"three-step"``).
+    """``result`` decoded by three-step PS if its :func:`burst_departure` is below ``rad`` and, unless
+    ``max_motion`` is ``inf``, the frames' motion share (``evidence``; none: no verdict, so no gate) is below
+    ``max_motion``; and whether it was (its ``mode`` then says ``"three-step"``).
 
-    The sigma of a gated burst: with ``sigma_map = (a, b, c)`` (fitted on val still bursts by
-    ``scripts/choose_still_burst_gate.py``), ``a * sigma**b * max(2B/S, 0.01)**c`` of the network's
-    sigma and the three-step modulation; without, what the model's map gives an output that agrees
-    with three-step PS (departure 0; a map without the departure term: unchanged).
+    The sigma of a gated burst: with :data:`THREE_STEP_NOISE`, three-step's own noise propagation
+    ``sqrt(2/3) s_n / B'`` of the frames' measured noise ``s_n`` (``evidence.noise``; none: no gate) and
+    ``sigma_model`` 0; with a fitted map ``(a, b, c)``, ``a * sigma**b * max(2B/S, 0.01)**c`` of the
+    network's sigma and the three-step modulation; without either, what the model's map gives an output
+    that agrees with three-step PS (departure 0; a map without the departure term: unchanged).
     """
     score = burst_departure(result.phase, classical)
     if score is None or score >= rad:
         return result, False
+    motion = None if evidence is None else evidence.motion_share
+    if max_motion < NO_MOTION_CHECK and (motion is None or not motion < max_motion):
+        return result, False
     m3, d3 = classical
+    m3, d3 = np.asarray(m3, np.float32), np.asarray(d3, np.float32)
+    gated = dataclasses.replace(result, phase=np.arctan2(m3, d3).astype(np.float32), M=m3, D=d3, mode="three-step")
+    if sigma_map == THREE_STEP_NOISE:
+        if evidence is None or evidence.noise is None:
+            return result, False
+        return dataclasses.replace(gated, **three_step_noise_sigma(np.hypot(m3, d3), evidence.noise)), True
     f = None
     if sigma_map is not None:
         a, b, c = (np.float32(v) for v in sigma_map)
         s = np.maximum(result.sigma_total.astype(np.float32), np.float32(1e-12))
-        mod = np.maximum(np.hypot(m3, d3).astype(np.float32), np.float32(0.01))
+        mod = np.maximum(np.hypot(m3, d3), np.float32(0.01))
         f = (a * np.power(s, b - 1) * np.power(mod, c)).astype(np.float32)
     elif calibration is not None and calibration.needs_departure:
         dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(m3, d3)))))
         f = np.power(np.float32(calibration.d0) / (dep.astype(np.float32) + np.float32(calibration.d0)),
                      np.float32(calibration.c)).astype(np.float32)
-    scale = {}
-    if f is not None:
-        scale = {name: (getattr(result, name) * f).astype(np.float32)
-                 for name in ("sigma_model", "sigma_data", "sigma_total")}
-        scale |= {name: (getattr(result, name) * f * f).astype(np.float32)
-                  for name in ("var_M", "var_D") if getattr(result, name) is not None}
-    gated = dataclasses.replace(result, phase=np.arctan2(m3, d3).astype(np.float32), M=np.asarray(m3, np.float32),
-                                D=np.asarray(d3, np.float32), mode="three-step", **scale)
-    return gated, True
+    if f is None:
+        return gated, True
+    scale = {name: (getattr(result, name) * f).astype(np.float32)
+             for name in ("sigma_model", "sigma_data", "sigma_total")}
+    scale |= {name: (getattr(result, name) * f * f).astype(np.float32)
+              for name in ("var_M", "var_D") if getattr(result, name) is not None}
+    return dataclasses.replace(gated, **scale), True
+
+
+def three_step_noise_sigma(modulation: np.ndarray, noise: float) -> dict[str, np.ndarray]:
+    """Three-step PS's noise propagation for frames in [0, 1] with per-frame noise ``noise``: phase sigma
+    ``sqrt(2/3) noise / B'`` (B' = modulation / 2, floored at 0.005) as data sigma and total, model sigma 0,
+    and M, D variances ``8/3 noise**2`` (M, D normalised by ``N S / 4`` with S = 1)."""
+    b = np.maximum(np.asarray(modulation, np.float32) / 2, np.float32(0.005))
+    sigma = (np.float32(math.sqrt(2 / 3) * noise) / b).astype(np.float32)
+    var = np.full_like(sigma, np.float32(8 / 3 * noise**2))
+    return {"sigma_model": np.zeros_like(sigma), "sigma_data": sigma, "sigma_total": sigma.copy(),
+            "var_M": var, "var_D": var.copy()}
 
 
 def apply_still_gates(
     result: PhaseResult, classical: np.ndarray | None, *, pixel_rad: float, burst_rad: float,
-    calibration: SigmaCalibration | None = None, burst_sigma: tuple[float, float, float] | None = None,
+    calibration: SigmaCalibration | None = None, burst_sigma: BurstSigma | None = None,
+    evidence: FrameEvidence | None = None, max_motion: float = NO_MOTION_CHECK,
 ) -> tuple[PhaseResult, bool]:
     """The burst gate (:func:`still_burst_gate`) on the network's ``result``, then, if it left the
     burst to the network, the per-pixel one (:func:`still_gate`); and whether the burst gate took it."""
     if classical is None:
         return result, False
     if burst_rad > 0:
-        result, taken = still_burst_gate(result, classical, burst_rad, calibration, burst_sigma)
+        result, taken = still_burst_gate(result, classical, burst_rad, calibration, burst_sigma,
+                                         evidence=evidence, max_motion=max_motion)
         if taken:
             return result, True
     return (still_gate(result, classical, pixel_rad) if pixel_rad > 0 else result), False

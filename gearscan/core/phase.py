@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
 from gearscan.core.types import Burst, PhaseResult
@@ -53,6 +54,30 @@ def decode_phase(images: np.ndarray, shifts: np.ndarray, full_scale: float) -> t
     """Wrapped phase in (-pi, pi], normalised M and D of an N-step stack."""
     m, d = decode_md(images, shifts, full_scale)
     return np.arctan2(m, d), m, d
+
+
+# Immerkaer's noise operator: blind to planes and linear ramps, noise gain sqrt(36) = 6
+_NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+NOISE_MIN_PIXELS = 256
+
+
+def still_frame_noise(images: np.ndarray, where: np.ndarray | None = None) -> float | None:
+    """Per-frame noise standard deviation (the frames' units) of a still phase-shifting stack, measured on
+    the stack itself: on a still scene the frames' sum is free of fringes (the shifts cover the circle),
+    so what a Laplacian-like operator finds there is noise. Median-based over ``where`` (default: every
+    pixel), so outlines and creases count little; None with fewer than :data:`NOISE_MIN_PIXELS` pixels.
+    Not for a moving stack: its sum keeps part of the fringes and reads high.
+    """
+    images = np.asarray(images, np.float32)
+    if images.ndim != 3 or images.shape[0] < 3:
+        raise ValueError(f"images: expected (N >= 3, H, W), got shape {images.shape}")
+    response = np.abs(cv2.filter2D(images.sum(0), cv2.CV_32F, _NOISE_KERNEL, borderType=cv2.BORDER_REFLECT))
+    keep = np.ones(response.shape, bool) if where is None else np.asarray(where, bool)
+    keep[[0, -1], :] = keep[:, [0, -1]] = False  # the border's reflected rows are not independent noise
+    if int(keep.sum()) < NOISE_MIN_PIXELS:
+        return None
+    # median |N(0, s)| = 0.6745 s; the sum of N frames has sqrt(N) times one frame's noise
+    return float(np.median(response[keep]) / 0.6745 / 6.0 / np.sqrt(images.shape[0]))
 
 
 def three_step(images: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
