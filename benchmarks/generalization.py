@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import subprocess
@@ -47,7 +48,7 @@ from gearscan.generalization import (
     vote_mirrored,
     weak_strata_table,
 )
-from gearscan.inference.predictor import Predictor, model_path
+from gearscan.inference.predictor import THREE_STEP_NOISE, Predictor, model_path
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import SHIPPED, SHIPPED_DEFAULT_RIG, SHIPPED_V5, describe
 
@@ -122,13 +123,22 @@ def gate_table(cells, other: str, shipped: str = NETWORK, names: tuple[str, str]
 
 def gate_section(predictor: Predictor, cells) -> list[str]:
     """Markdown lines: the rig-orientation network with and without its still-burst gate."""
+    entry = predictor.meta.get("still_burst_gate") or {}
+    rule = str(entry.get("rule", "benchmarks/still_burst_gate_rule.md")).split(":")[0]
+    motion = ("" if predictor.still_burst_motion == math.inf else
+              f" and its frames show motion on fewer than {predictor.still_burst_motion:g} of the lit pixels "
+              "(`inference.predictor.frame_motion_share`: the three-step amplitude above the frames' mean)")
+    sigma = ("three-step's noise propagation of the frames' measured noise" if predictor.still_burst_sigma == THREE_STEP_NOISE
+             else "the gate's fitted map" if predictor.still_burst_sigma is not None else "the model's map at departure 0")
+    limit = "" if predictor.still_burst_motion == math.inf else f", motion share {predictor.still_burst_motion:g}"
     return [
-        f"## The still-burst gate (shipped: {predictor.still_burst_rad:g} rad, chosen on val by "
-        "`scripts/choose_still_burst_gate.py`, rule `benchmarks/still_burst_gate_rule.md`), test split",
+        f"## The still-burst gate (shipped: {predictor.still_burst_rad:g} rad{limit}, chosen on val by "
+        f"`scripts/choose_still_burst_gate.py`, rule `{rule}`), test split",
         "",
-        "A burst whose network phase departs from three-step PS's by a median below the gate over its interior "
-        "(`inference.predictor.still_burst_gate`) is decoded by three-step PS. The same bursts, the rig's "
-        "orientation set, with and without it (RMSE ratios to three-step PS: < 1 is better than three-step):",
+        "A burst whose network phase departs from three-step PS's by a median below the gate over its interior"
+        f"{motion} (`inference.predictor.still_burst_gate`) is decoded by three-step PS, with {sigma} as its sigma. "
+        "The same bursts, the rig's orientation set, with and without it (RMSE ratios to three-step PS: < 1 is "
+        "better than three-step):",
         "",
         gate_table(cells, NO_BURST_GATE, RIG_NAME, ("gated", "not gated")),
     ]
