@@ -31,7 +31,6 @@ from gearscan.inference.models import PhaseNet, classical_md
 from gearscan.inference.predictor import (
     Predictor,
     apply_still_gates,
-    frame_evidence,
     model_path,
     still_burst_gate,
 )
@@ -88,15 +87,15 @@ def collect_errors(
         x = torch.from_numpy(np.asarray(item["input"], np.float32))[None]
         net = ungated.predict_tensor(x, mc)
         classical = classical_md(x[:, :3])[0].numpy()
-        evidence = frame_evidence(x[0, :3].numpy()) if predictor.still_burst_rad > 0 else None
+        frames = x[0, :3].numpy()
         taken = False
         if mc > 0 and predictor.still_burst_rad > 0:  # as the Predictor does: the deterministic pass decides
             gated, taken = still_burst_gate(ungated.predict_tensor(x, 0), classical, predictor.still_burst_rad,
                                             predictor.calibration.get("deterministic"), predictor.still_burst_sigma,
-                                            evidence=evidence, max_motion=predictor.still_burst_motion)
+                                            frames=frames, max_motion=predictor.still_burst_motion)
         r = gated if taken else apply_still_gates(
             net, classical, pixel_rad=predictor.still_gate_rad, burst_rad=predictor.still_burst_rad if mc == 0 else 0.0,
-            calibration=calibration, burst_sigma=predictor.still_burst_sigma, evidence=evidence,
+            calibration=calibration, burst_sigma=predictor.still_burst_sigma, frames=frames,
             max_motion=predictor.still_burst_motion)[0]
         mask = np.asarray(item["mask"], bool)
         k = int(mask.sum())

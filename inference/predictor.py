@@ -325,7 +325,7 @@ class Predictor:
         needs_classical = (self.still_gate_rad > 0 or self.still_burst_rad > 0
                            or (calibration is not None and calibration.needs_departure))
         classical = classical_md(x[:, :3].float())[0].cpu().numpy() if needs_classical else None
-        evidence = frame_evidence(x[0, :3].float().cpu().numpy()) if self.still_burst_rad > 0 else None
+        frames = x[0, :3].float().cpu().numpy() if self.still_burst_rad > 0 else None
         if mirror is None:
             mirror = fringe_phase_decreases_along_columns(x) if self.orientation == "auto" else self.orientation == "mirrored"
         if mirror:  # the nets were trained on phase increasing along the columns: mirror in and out
@@ -338,14 +338,14 @@ class Predictor:
             det_cal = self.calibration.get("deterministic")
             det = self._result(x, 0, mirror, det_cal, classical)
             gated, taken = still_burst_gate(det, classical, self.still_burst_rad, det_cal, self.still_burst_sigma,
-                                            evidence=evidence, max_motion=self.still_burst_motion)
+                                            frames=frames, max_motion=self.still_burst_motion)
             if taken:
                 return gated
         result = self._result(x, mc, mirror, calibration, classical)
         burst_rad = self.still_burst_rad if mc == 0 else 0.0  # with mc > 0 the burst gate has spoken above
         return apply_still_gates(result, classical, pixel_rad=self.still_gate_rad, burst_rad=burst_rad,
                                  calibration=calibration, burst_sigma=self.still_burst_sigma,
-                                 evidence=evidence, max_motion=self.still_burst_motion)[0]
+                                 frames=frames, max_motion=self.still_burst_motion)[0]
 
     def _result(self, x: torch.Tensor, mc: int, mirror: bool, calibration: SigmaCalibration | None,
                 classical: np.ndarray | None) -> PhaseResult:
@@ -482,28 +482,17 @@ def burst_motion_limit(meta: dict) -> float:
         raise ModelFileError(str(exc)) from exc
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class FrameEvidence:
-    """What a burst's frames say for the still-burst gate, without the network: the share of lit pixels
-    that swing like motion (:func:`frame_motion_share`) and the frames' noise if the burst is still
-    (:func:`~gearscan.core.phase.still_frame_noise`, over the lit pixels); None: too few lit pixels."""
-
-    motion_share: float | None
-    noise: float | None
-
-
-def frame_evidence(frames: np.ndarray) -> FrameEvidence:
-    """:class:`FrameEvidence` of ``(3, H, W)`` frames in [0, 1]."""
-    f = np.asarray(frames, np.float32)
-    share = frame_motion_share(f)
-    lit = 2.0 * frame_swing(f) >= BURST_GATE_MODULATION
-    return FrameEvidence(share, None if share is None else still_frame_noise(f, lit))
-
-
 def frame_swing(frames: np.ndarray) -> np.ndarray:
     """Three-step amplitude B' of ``(3, H, W)`` frames (order-free: from the three pairwise differences)."""
     f = frames
     return np.sqrt(2.0 * ((f[0] - f[1]) ** 2 + (f[1] - f[2]) ** 2 + (f[0] - f[2]) ** 2)) / 3.0
+
+
+def still_burst_noise(frames: np.ndarray) -> float | None:
+    """Per-frame noise of ``(3, H, W)`` frames in [0, 1] of a burst taken as still
+    (:func:`~gearscan.core.phase.still_frame_noise` over its lit pixels, as :func:`frame_motion_share` counts them)."""
+    f = np.asarray(frames, np.float32)
+    return still_frame_noise(f, 2.0 * frame_swing(f) >= BURST_GATE_MODULATION)
 
 
 def frame_motion_share(frames: np.ndarray) -> float | None:
@@ -550,15 +539,16 @@ def burst_departure(phase: np.ndarray, classical: np.ndarray) -> float | None:
 
 def still_burst_gate(
     result: PhaseResult, classical: np.ndarray, rad: float, calibration: SigmaCalibration | None = None,
-    sigma_map: BurstSigma | None = None, *, evidence: FrameEvidence | None = None,
+    sigma_map: BurstSigma | None = None, *, frames: np.ndarray | None = None,
     max_motion: float = NO_MOTION_CHECK,
 ) -> tuple[PhaseResult, bool]:
     """``result`` decoded by three-step PS if its :func:`burst_departure` is below ``rad`` and, unless
-    ``max_motion`` is ``inf``, the frames' motion share (``evidence``; none: no verdict, so no gate) is below
-    ``max_motion``; and whether it was (its ``mode`` then says ``"three-step"``).
+    ``max_motion`` is ``inf``, the :func:`frame_motion_share` of ``frames`` (the burst's ``(3, H, W)`` in [0, 1];
+    none, or too few lit pixels: no verdict, so no gate) is below ``max_motion``; and whether it was (its
+    ``mode`` then says ``"three-step"``). Each test runs only if the ones before it passed.
 
     The sigma of a gated burst: with :data:`THREE_STEP_NOISE`, three-step's own noise propagation
-    ``sqrt(2/3) s_n / B'`` of the frames' measured noise ``s_n`` (``evidence.noise``; none: no gate) and
+    ``sqrt(2/3) s_n / B'`` of the frames' measured noise ``s_n`` (:func:`still_burst_noise`; none: no gate) and
     ``sigma_model`` 0; with a fitted map ``(a, b, c)``, ``a * sigma**b * max(2B/S, 0.01)**c`` of the
     network's sigma and the three-step modulation; without either, what the model's map gives an output
     that agrees with three-step PS (departure 0; a map without the departure term: unchanged).
@@ -566,16 +556,18 @@ def still_burst_gate(
     score = burst_departure(result.phase, classical)
     if score is None or score >= rad:
         return result, False
-    motion = None if evidence is None else evidence.motion_share
-    if max_motion < NO_MOTION_CHECK and (motion is None or not motion < max_motion):
-        return result, False
+    if max_motion < NO_MOTION_CHECK:
+        motion = None if frames is None else frame_motion_share(frames)
+        if motion is None or not motion < max_motion:
+            return result, False
     m3, d3 = classical
     m3, d3 = np.asarray(m3, np.float32), np.asarray(d3, np.float32)
     gated = dataclasses.replace(result, phase=np.arctan2(m3, d3).astype(np.float32), M=m3, D=d3, mode="three-step")
     if sigma_map == THREE_STEP_NOISE:
-        if evidence is None or evidence.noise is None:
+        noise = None if frames is None else still_burst_noise(frames)
+        if noise is None:
             return result, False
-        return dataclasses.replace(gated, **three_step_noise_sigma(np.hypot(m3, d3), evidence.noise)), True
+        return dataclasses.replace(gated, **three_step_noise_sigma(np.hypot(m3, d3), noise)), True
     f = None
     if sigma_map is not None:
         a, b, c = (np.float32(v) for v in sigma_map)
@@ -609,7 +601,7 @@ def three_step_noise_sigma(modulation: np.ndarray, noise: float) -> dict[str, np
 def apply_still_gates(
     result: PhaseResult, classical: np.ndarray | None, *, pixel_rad: float, burst_rad: float,
     calibration: SigmaCalibration | None = None, burst_sigma: BurstSigma | None = None,
-    evidence: FrameEvidence | None = None, max_motion: float = NO_MOTION_CHECK,
+    frames: np.ndarray | None = None, max_motion: float = NO_MOTION_CHECK,
 ) -> tuple[PhaseResult, bool]:
     """The burst gate (:func:`still_burst_gate`) on the network's ``result``, then, if it left the
     burst to the network, the per-pixel one (:func:`still_gate`); and whether the burst gate took it."""
@@ -617,7 +609,7 @@ def apply_still_gates(
         return result, False
     if burst_rad > 0:
         result, taken = still_burst_gate(result, classical, burst_rad, calibration, burst_sigma,
-                                         evidence=evidence, max_motion=max_motion)
+                                         frames=frames, max_motion=max_motion)
         if taken:
             return result, True
     return (still_gate(result, classical, pixel_rad) if pixel_rad > 0 else result), False

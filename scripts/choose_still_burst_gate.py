@@ -37,7 +37,7 @@ from gearscan.inference.predictor import (
     Predictor,
     burst_departure,
     burst_sigma_map,
-    frame_evidence,
+    frame_motion_share,
     model_path,
     still_burst_gate,
 )
@@ -87,11 +87,11 @@ def family_bursts(predictor: Predictor, folders: Folders, seed: int, sigma_map: 
                 x = torch.from_numpy(np.asarray(it["input"], np.float32))[None]
                 net = predictor.predict_tensor(x)
                 classical = classical_md(x[:, :3])[0].numpy()
-                evidence = frame_evidence(x[0, :3].numpy())
+                frames = x[0, :3].numpy()
                 gated, _ = still_burst_gate(net, classical, np.inf, predictor.calibration.get("deterministic"), sigma_map,
-                                            evidence=evidence)
+                                            frames=frames)
                 m = np.asarray(it["mask"], bool)
-                rows.append({"score": burst_departure(net.phase, classical), "motion": evidence.motion_share,
+                rows.append({"score": burst_departure(net.phase, classical), "motion": frame_motion_share(frames),
                              "e_net": phase_error(net.phase, it["phase"])[m].astype(np.float32),
                              "e_3": phase_error(gated.phase, it["phase"])[m].astype(np.float32),
                              "s_net": net.sigma_total[m], "s_3": gated.sigma_total[m],

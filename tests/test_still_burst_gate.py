@@ -166,7 +166,7 @@ def test_the_frames_show_an_outline_that_moves():
     """A still disc: no lit pixel swings beyond a still fringe; its outline moving 3 px per frame: some do,
     and the gate then keeps the network's result although the interior agrees with three-step PS."""
     from gearscan.inference.models import classical_md
-    from gearscan.inference.predictor import FrameEvidence, frame_evidence, frame_motion_share
+    from gearscan.inference.predictor import frame_motion_share
 
     still, moving = _disc_frames((0, 0, 0)), _disc_frames((0, 3, 6))
     assert frame_motion_share(still) < 0.001 < 0.01 < frame_motion_share(moving)
@@ -174,14 +174,13 @@ def test_the_frames_show_an_outline_that_moves():
     for frames, take in ((still, True), (moving, False)):
         classical = classical_md(torch.from_numpy(frames)[None])[0].numpy()
         phase3 = np.arctan2(*classical)
-        evidence = frame_evidence(frames)
-        _, taken = still_burst_gate(_result(phase3 + 0.005), classical, 0.025, evidence=evidence, max_motion=0.002)
+        _, taken = still_burst_gate(_result(phase3 + 0.005), classical, 0.025, frames=frames, max_motion=0.002)
         assert taken is take
         assert still_burst_gate(_result(phase3 + 0.005), classical, 0.025)[1]  # no motion check: taken either way
-    # no evidence with a motion check: no verdict, no gate
+    # no frames, or none lit, with a motion check: no verdict, no gate
     classical = classical_md(torch.from_numpy(still)[None])[0].numpy()
     assert not still_burst_gate(_result(np.arctan2(*classical)), classical, 0.025, max_motion=0.002)[1]
-    assert not still_burst_gate(_result(np.arctan2(*classical)), classical, 0.025, evidence=FrameEvidence(None, None),
+    assert not still_burst_gate(_result(np.arctan2(*classical)), classical, 0.025, frames=np.zeros_like(still),
                                 max_motion=0.002)[1]
 
 
@@ -189,19 +188,19 @@ def test_a_gated_burst_gets_three_steps_noise_sigma():
     """With the noise sigma, a gated burst's sigma is sqrt(2/3) s_n / B' of the frames' measured noise, the
     network's model sigma is dropped, and M, D carry 8/3 s_n^2."""
     from gearscan.inference.models import classical_md
-    from gearscan.inference.predictor import THREE_STEP_NOISE, frame_evidence
+    from gearscan.inference.predictor import THREE_STEP_NOISE, still_burst_noise
 
     frames = _disc_frames((0, 0, 0), noise=0.01)
     classical = classical_md(torch.from_numpy(frames)[None])[0].numpy()
-    evidence = frame_evidence(frames)
-    assert evidence.noise == pytest.approx(0.01, rel=0.1)
+    noise = still_burst_noise(frames)
+    assert noise == pytest.approx(0.01, rel=0.1)
     gated, taken = still_burst_gate(_result(np.arctan2(*classical)), classical, 0.025, sigma_map=THREE_STEP_NOISE,
-                                    evidence=evidence)
+                                    frames=frames)
     assert taken and gated.mode == "three-step" and not gated.sigma_model.any()
     i = (64, 64)
     b = np.hypot(*classical)[i] / 2
-    assert gated.sigma_total[i] == pytest.approx(np.sqrt(2 / 3) * evidence.noise / b, rel=1e-5)
-    assert gated.var_M[i] == pytest.approx(8 / 3 * evidence.noise**2, rel=1e-5)
+    assert gated.sigma_total[i] == pytest.approx(np.sqrt(2 / 3) * noise / b, rel=1e-5)
+    assert gated.var_M[i] == pytest.approx(8 / 3 * noise**2, rel=1e-5)
 
 
 def test_a_broken_motion_limit_is_named():
