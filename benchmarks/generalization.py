@@ -37,8 +37,10 @@ from gearscan.generalization import (
     MOVING_ONLY,
     NETWORK,
     STILL,
+    TIE_MARGIN,
     GeneralizationScorer,
     cells_table,
+    loses,
     plot_strata,
     render_family_cases,
     rig_orientation,
@@ -96,13 +98,16 @@ def rig_weak_strata(strata) -> str:
     out = []
     for kind in (MOVING, STILL):
         rows = [s for s in strata if s.kind == kind and s.pixels > 0]
-        vote = sum(s.rmse[NETWORK] > s.rmse[BASELINE] for s in rows)
-        rig = [s for s in rows if s.rmse[RIG_NAME] > s.rmse[BASELINE]]
+        vote = sum(loses(s.rmse[NETWORK], s.rmse[BASELINE]) for s in rows)
+        rig = [s for s in rows if loses(s.rmse[RIG_NAME], s.rmse[BASELINE])]
+        ties = sum(not loses(s.rmse[RIG_NAME], s.rmse[BASELINE]) and not loses(s.rmse[BASELINE], s.rmse[RIG_NAME])
+                   for s in rows)
         worst = max(rig, key=lambda s: s.rmse[RIG_NAME] / s.rmse[BASELINE], default=None)
         tail = "" if worst is None else (f"; the worst: {worst.family}, {worst.axis} {worst.label}, "
                                          f"{worst.rmse[RIG_NAME] / worst.rmse[BASELINE]:.2f}x")
         out.append(f"- {kind} bursts: of {len(rows)} strata, the network is worse than three-step PS in {vote} with "
-                   f"the per-burst vote and in {len(rig)} with the rig orientation{tail}.")
+                   f"the per-burst vote and in {len(rig)} with the rig orientation (tied within {TIE_MARGIN:.1%} with it: "
+                   f"{ties}){tail}.")
     return "\n".join(out)
 
 

@@ -185,3 +185,17 @@ def test_kept_rmse_is_the_error_of_the_pixels_the_keep_test_passes(cases) -> Non
     assert cell.rmse_kept[NETWORK] == pytest.approx(np.sqrt(sse / n), rel=1e-9)
     assert cell.coverage[NETWORK] == pytest.approx(n / cell.pixels)
     assert cell.rmse[NETWORK] == pytest.approx(cell.rmse[BASELINE])  # same phase: only what is kept differs
+
+
+def test_a_tie_between_two_three_step_routines_is_not_a_loss() -> None:
+    """A still burst the gate decodes by three-step PS and the baseline's three-step PS differ in float32's last
+    digits; the report must not call that stratum worse, but a 1 % loss it must."""
+    from gearscan.generalization import StratumScore, loses
+
+    def stratum(net: float) -> StratumScore:
+        return StratumScore("default", STILL, "modulation", "> 0.5", 1000, {NETWORK: net, "three-step PS": 0.0282},
+                            NETWORK, "three-step PS")
+
+    assert not stratum(0.0282 * (1 + 1e-6)).worse and not loses(0.0282, 0.0282)
+    assert stratum(0.0282 * 1.01).worse and loses(0.0285, 0.0282)
+    assert not stratum(0.0200).worse
