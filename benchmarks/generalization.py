@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gearscan.core.phase import phase_error, still_three_step_result
 from gearscan.evaluate import classical_method, network_method
 from gearscan.generalization import (
     ALL,
@@ -51,6 +52,7 @@ from gearscan.generalization import (
     weak_strata_table,
 )
 from gearscan.inference.predictor import THREE_STEP_NOISE, Predictor, model_path
+from gearscan.inference.uncertainty import reliability
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import SHIPPED, SHIPPED_DEFAULT_RIG, SHIPPED_V5, describe
 
@@ -205,6 +207,7 @@ def main() -> None:
     det = GeneralizationScorer([BASELINE, NETWORK, other_name, RIG_NAME])
     mc = GeneralizationScorer([BASELINE, NETWORK, mc_name])
     scenes_json, timing = [], {"render_s": 0.0, "decode_s": 0.0, "mc_s": 0.0, "bursts": 0, "mc_bursts": 0}
+    still_sigma: dict[str, dict[str, list[np.ndarray]]] = {}
     for fam in families:
         for k, scene in enumerate(family_scenes(fam, args.scenes)):
             rng = np.random.default_rng([scene.seed, 1])
@@ -223,6 +226,8 @@ def main() -> None:
                 timing["decode_s"] += time.perf_counter() - t0
                 det.add(fam, motion, case, res)
                 timing["bursts"] += 1
+                if motion.kind == STILL:
+                    add_still_sigma(still_sigma, fam, case, res[BASELINE])
                 if k < args.mc_scenes and motion.group in ("paper", "still"):
                     t0 = time.perf_counter()
                     res[mc_name] = predictor.predict(case.frames, args.mc, full_scale=case.full_scale,
@@ -237,12 +242,43 @@ def main() -> None:
             print(f"{scene.name}: {len(cases)} bursts, {time.perf_counter() - t_start:.0f} s", flush=True)
     machine["loadavg_end"] = os.getloadavg()
     total_s = time.perf_counter() - t_start
-    write_report(out, args, machine, predictor, det, mc, mc_name, scenes_json, timing, total_s, families)
+    write_report(out, args, machine, predictor, det, mc, mc_name, scenes_json, timing, total_s, families, still_sigma)
+
+
+def add_still_sigma(acc: dict, family: str, case, assumed) -> None:
+    """Accumulate a still burst's three-step errors over the truth mask with its sigma for an assumed 1 DN of noise
+    (``assumed``, what :func:`classical_method` gives) and for the noise measured on the burst (the pipeline's
+    still route, :func:`~gearscan.core.phase.still_three_step_result`)."""
+    m = case.truth.mask
+    measured = still_three_step_result(case.frames, case.full_scale)
+    for fam in (family, ALL):
+        a = acc.setdefault(fam, {"error": [], "assumed": [], "measured": []})
+        a["error"].append(phase_error(assumed.phase, case.truth.phase)[m].astype(np.float32))
+        a["assumed"].append(assumed.sigma_total[m])
+        a["measured"].append(measured.sigma_total[m])
+
+
+def still_sigma_section(acc: dict, order: list[str]) -> list[str]:
+    """Markdown lines: ECE of three-step PS's noise sigma on the still bursts, assumed vs measured noise."""
+    lines = ["## Three-step PS's sigma on still bursts: 1 DN assumed or the noise measured on the burst, test split", "",
+             "The pipeline decodes a burst the encoder saw standing still by three-step PS (`live`, `replay`, `predict` "
+             "with angles). Its sigma is the noise propagation `sqrt(2/3) s_n / B`; since session 30 `s_n` is measured "
+             "on the burst's own frame sum (`gearscan.core.phase.still_frame_noise`) instead of assumed to be 1 DN. "
+             "The same still bursts as above (three-step's phase; RMSE and ECE over the truth mask):", "",
+             "| family | bursts' pixels | three-step RMSE (rad) | ECE, 1 DN assumed | ECE, noise measured |",
+             "|---|---|---|---|---|"]
+    for fam in (f for f in order if f in acc):
+        a = acc[fam]
+        err = np.concatenate(a["error"])
+        ece = {k: reliability(err, np.maximum(np.concatenate(a[k]), 1e-6)).ece for k in ("assumed", "measured")}
+        lines.append(f"| {fam} | {err.size} | {np.sqrt(np.mean(err.astype(np.float64) ** 2)):.4f} | "
+                     f"{ece['assumed']:.3f} | {ece['measured']:.3f} |")
+    return [*lines, ""]
 
 
 def write_report(out: Path, args, machine: dict, predictor: Predictor, det: GeneralizationScorer,
                  mc: GeneralizationScorer, mc_name: str, scenes_json: list, timing: dict, total_s: float,
-                 families: list[str]) -> None:
+                 families: list[str], still_sigma: dict | None = None) -> None:
     cells, strata = det.cells(), det.strata()
     mc_cells = mc.cells()
     fams = [*families, ALL]
@@ -315,6 +351,7 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
             gate_table(cells, gate_name(PROBE_RAD if predictor.still_gate_rad == 0 else 0.0)),
         ]),
         "",
+        *(still_sigma_section(still_sigma, fams) if still_sigma else []),
         "## The fringe orientation: voted per burst (shipped default) or set once per rig, test split",
         "",
         "The Predictor mirrors a burst whose fringe phase falls along the camera's columns. Voted per burst "

@@ -195,7 +195,7 @@ def predict(
     """
     import numpy as np
 
-    from gearscan.core.phase import three_step_result
+    from gearscan.core.phase import still_three_step_result
     from gearscan.inference.model_io import ModelFileError
     from gearscan.inference.predictor import (
         ORIENTATIONS,
@@ -238,7 +238,7 @@ def predict(
     fringes = "not used (three-step PS)"
     try:
         if angles is not None and turned_less_than(angles, still_span_deg):  # the pipeline's still rule
-            result = three_step_result(frames, resolve_full_scale(frames, full_scale))
+            result = still_three_step_result(frames, resolve_full_scale(frames, full_scale))
         else:
             # the orientation decided here, so that the output can say which one decoded the burst
             mirror = (fringe_phase_decreases_along_columns(frames_to_tensor(frames, full_scale))

@@ -12,7 +12,7 @@ import queue
 import threading
 from pathlib import Path
 
-from gearscan.core.phase import classical_result
+from gearscan.core.phase import classical_result, still_result
 from gearscan.core.types import Burst, PhaseResult
 
 STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beat the network on radial val rigs (Decoder)
@@ -93,7 +93,7 @@ class Decoder:
         if turned_less_than(burst.angles, self.still_span_deg):
             self.still_bursts += 1
             self._vote_orientation(burst)
-            return classical_result(burst)
+            return still_result(burst)
         predictor = self._pool.get()
         try:
             return predictor.predict_burst(burst, mc=self.mc)

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 
-from gearscan.core.phase import in_capture_order, still_frame_noise
+from gearscan.core.phase import in_capture_order, noise_sigma, still_frame_noise
 from gearscan.core.types import Burst, PhaseResult
 from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
@@ -588,11 +588,10 @@ def still_burst_gate(
 
 
 def three_step_noise_sigma(modulation: np.ndarray, noise: float) -> dict[str, np.ndarray]:
-    """Three-step PS's noise propagation for frames in [0, 1] with per-frame noise ``noise``: phase sigma
-    ``sqrt(2/3) noise / B'`` (B' = modulation / 2, floored at 0.005) as data sigma and total, model sigma 0,
-    and M, D variances ``8/3 noise**2`` (M, D normalised by ``N S / 4`` with S = 1)."""
-    b = np.maximum(np.asarray(modulation, np.float32) / 2, np.float32(0.005))
-    sigma = (np.float32(math.sqrt(2 / 3) * noise) / b).astype(np.float32)
+    """Three-step PS's noise propagation (:func:`~gearscan.core.phase.noise_sigma`) for frames in [0, 1] with
+    per-frame noise ``noise``, the modulation floored at 0.01: data sigma and total, model sigma 0, and M, D
+    variances ``8/3 noise**2`` (M, D normalised by ``N S / 4`` with S = 1)."""
+    sigma = noise_sigma(np.maximum(np.asarray(modulation, np.float32), np.float32(0.01)), noise, 1.0)
     var = np.full_like(sigma, np.float32(8 / 3 * noise**2))
     return {"sigma_model": np.zeros_like(sigma), "sigma_data": sigma, "sigma_total": sigma.copy(),
             "var_M": var, "var_D": var.copy()}

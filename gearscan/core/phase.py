@@ -59,6 +59,7 @@ def decode_phase(images: np.ndarray, shifts: np.ndarray, full_scale: float) -> t
 # Immerkaer's noise operator: blind to planes and linear ramps, noise gain sqrt(36) = 6
 _NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 NOISE_MIN_PIXELS = 256
+NOISE_MODULATION = 0.05  # the pixels a still stack's noise is measured on: 2B/S at least this (the keep test's)
 
 
 def still_frame_noise(images: np.ndarray, where: np.ndarray | None = None) -> float | None:
@@ -137,13 +138,38 @@ def classical_result(burst: Burst, read_noise_dn: float = 1.0) -> PhaseResult:
     return replace(result, burst_index=burst.index, angle=float(burst.angles[0]))
 
 
+def still_result(burst: Burst) -> PhaseResult:
+    """:func:`classical_result` of a burst known to stand still (the encoder saw no turn), with the frames'
+    noise measured on the burst itself (:func:`still_frame_noise`) instead of an assumed 1 DN."""
+    result = still_three_step_result(burst.images, burst.full_scale, burst_shifts(burst))
+    return replace(result, burst_index=burst.index, angle=float(burst.angles[0]))
+
+
+def still_three_step_result(images: np.ndarray, full_scale: float,
+                            shifts: np.ndarray = THREE_STEP_SHIFTS) -> PhaseResult:
+    """:func:`three_step_result` of a still ``(3, H, W)`` stack whose noise sigma uses the noise measured on
+    its frame sum over the modulated pixels (2B/S >= :data:`NOISE_MODULATION`); 1 DN where too few are."""
+    result = three_step_result(images, full_scale, shifts, 1.0)
+    noise = still_frame_noise(images, result.modulation >= NOISE_MODULATION)
+    if noise is None:
+        return result
+    sigma = (result.sigma_data * np.float32(noise)).astype(np.float32)  # sigma is linear in the noise (1 DN above)
+    return replace(result, sigma_data=sigma, sigma_total=sigma.copy())
+
+
+def noise_sigma(modulation: np.ndarray, noise: float, full_scale: float) -> np.ndarray:
+    """Three-step PS's noise-only phase sigma ``sqrt(2/3) s_n / B`` from the normalised modulation ``2B/S`` and
+    a per-frame noise ``s_n`` in the frames' units (inf where there is no modulation)."""
+    mod = np.asarray(modulation, np.float32)
+    with np.errstate(divide="ignore"):
+        sigma = np.where(mod > 0, np.float32(2.0 * noise / full_scale * np.sqrt(2 / 3)) / mod, np.inf)
+    return sigma.astype(np.float32)
+
+
 def three_step_result(images: np.ndarray, full_scale: float, shifts: np.ndarray = THREE_STEP_SHIFTS,
                       read_noise_dn: float = 1.0) -> PhaseResult:
     """:func:`classical_result` of a ``(3, H, W)`` stack with these ``shifts`` (rad)."""
     phase, m, d = decode_phase(images, shifts, full_scale)
-    mod = np.hypot(m, d)  # 2B/S
-    with np.errstate(divide="ignore"):
-        sigma = np.where(mod > 0, (2.0 * read_noise_dn / full_scale) * np.sqrt(2 / 3) / mod, np.inf)
-    sigma = sigma.astype(np.float32)
+    sigma = noise_sigma(np.hypot(m, d), read_noise_dn, full_scale)
     return PhaseResult(phase=phase, M=m, D=d, sigma_model=np.zeros_like(sigma), sigma_data=sigma,
                        sigma_total=sigma, mode="three-step")
