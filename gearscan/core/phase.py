@@ -81,6 +81,72 @@ def still_frame_noise(images: np.ndarray, where: np.ndarray | None = None) -> fl
     return float(np.median(response[keep]) / 0.6745 / 6.0 / np.sqrt(images.shape[0]))
 
 
+# Three-step PS's error from non-sinusoidal fringes (residual projector/camera gamma): harmonics 2 and 4
+# alias onto the fundamental, so the decoded phase is ``phi - r sin(3 phi)`` (in-phase harmonics of a
+# pointwise non-linearity; r ~ B2/B1). Its gradient then ripples as ``1 - 3 r cos(3 phi)``, which the
+# phase map itself shows wherever the true phase is smooth (Pan et al., Opt. Lett. 2009, estimate the
+# same error from the phase map; here from its gradient).
+HARMONIC_BLUR_PX = 4.0  # the local mean gradient: Gaussian sigma, px
+HARMONIC_ITERATIONS = 4  # re-estimates on the corrected phase (each removes most of what the blur hid)
+HARMONIC_MIN_PIXELS = 2000
+HARMONIC_MAX_RATIO = 0.2  # |r| beyond this is no gamma residual: no correction
+
+
+def harmonic_ratio(phase: np.ndarray, where: np.ndarray) -> float | None:
+    """One estimate of ``r`` in ``phase = psi - r sin(3 psi)`` (:func:`correct_harmonics`) from the
+    ripple of the phase gradient over ``where`` (pixels with fringes; the true phase smooth there).
+    None with fewer than :data:`HARMONIC_MIN_PIXELS` usable pixels."""
+    phase = np.asarray(phase, np.float64)
+    where = np.asarray(where, bool)
+    if phase.ndim != 2 or where.shape != phase.shape:
+        raise ValueError(f"phase, where: expected two (H, W) arrays of one shape, got {phase.shape} and {where.shape}")
+    gx = wrap(np.diff(phase, axis=1, append=phase[:, -1:]))
+    gy = wrap(np.diff(phase, axis=0, append=phase[-1:, :]))
+    ok = where & np.roll(where, -1, 1) & np.roll(where, -1, 0)
+    ok[-1, :] = ok[:, -1] = False
+    ok = cv2.erode(ok.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    grad = np.hypot(gx, gy)
+    w = ok.astype(np.float64)
+    mean = cv2.GaussianBlur(grad * w, (0, 0), HARMONIC_BLUR_PX) / np.maximum(
+        cv2.GaussianBlur(w, (0, 0), HARMONIC_BLUR_PX), 1e-12)
+    use = ok & (mean > 0.05) & (mean < 1.2)  # a fringe period of 5 to 125 px: the ripple resolved, the noise small
+    if int(use.sum()) < HARMONIC_MIN_PIXELS:
+        return None
+    ripple = grad[use] / mean[use] - 1.0
+    mid = phase[use] + 0.5 * mean[use]  # the phase between the two pixels a difference spans
+    basis = np.stack([np.cos(3 * mid), np.sin(3 * mid)], 1)
+    coef, *_ = np.linalg.lstsq(basis, ripple, rcond=None)
+    return float(-coef[0] / 3.0)
+
+
+def correct_harmonics(phase: np.ndarray, r: float) -> np.ndarray:
+    """The phase ``psi`` with ``phase = psi - r sin(3 psi)`` (fixed-point solve; |r| < 1/3 converges), wrapped."""
+    phase = np.asarray(phase, np.float64)
+    psi = phase
+    for _ in range(4):
+        psi = phase + r * np.sin(3 * psi)
+    return wrap(psi)
+
+
+def harmonic_correction(phase: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, float]:
+    """``phase`` freed of three-step PS's non-sinusoidal-fringe error, and the ``r`` removed (0: none found).
+
+    For a still stack only: a moving one's phase carries its motion error, whose gradient ripples too.
+    ``where``: the pixels with fringes (e.g. 2B/S >= 0.05).
+    """
+    total = 0.0
+    current = np.asarray(phase, np.float64)
+    for _ in range(HARMONIC_ITERATIONS):
+        r = harmonic_ratio(current, where)
+        if r is None:
+            break
+        total += r
+        if abs(total) > HARMONIC_MAX_RATIO:
+            return np.asarray(phase, np.float64), 0.0
+        current = correct_harmonics(phase, total)
+    return current, total
+
+
 def three_step(images: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Three-step phase shifting (shifts 0, 2pi/3, 4pi/3): phase, M, D."""
     return decode_phase(images, THREE_STEP_SHIFTS, full_scale)
