@@ -87,15 +87,19 @@ def still_frame_noise(images: np.ndarray, where: np.ndarray | None = None) -> fl
 # phase map itself shows wherever the true phase is smooth (Pan et al., Opt. Lett. 2009, estimate the
 # same error from the phase map; here from its gradient).
 HARMONIC_BLUR_PX = 4.0  # the local mean gradient: Gaussian sigma, px
+HARMONIC_TILE_PX = 32  # r is fitted per tile and the median taken: tiles where the surface bends are outvoted
+HARMONIC_TILE_MIN_PIXELS = 200
+HARMONIC_MIN_TILES = 8
 HARMONIC_ITERATIONS = 4  # re-estimates on the corrected phase (each removes most of what the blur hid)
-HARMONIC_MIN_PIXELS = 2000
+HARMONIC_DEAD_ZONE = 0.006  # |r| shrunk by this: what the estimator finds on sinusoidal fringes (val, dev look)
 HARMONIC_MAX_RATIO = 0.2  # |r| beyond this is no gamma residual: no correction
 
 
 def harmonic_ratio(phase: np.ndarray, where: np.ndarray) -> float | None:
     """One estimate of ``r`` in ``phase = psi - r sin(3 psi)`` (:func:`correct_harmonics`) from the
-    ripple of the phase gradient over ``where`` (pixels with fringes; the true phase smooth there).
-    None with fewer than :data:`HARMONIC_MIN_PIXELS` usable pixels."""
+    ripple of the phase gradient over ``where`` (pixels with fringes; the true phase smooth there): the
+    median over tiles of :data:`HARMONIC_TILE_PX` of a least-squares fit per tile. None with fewer than
+    :data:`HARMONIC_MIN_TILES` tiles of :data:`HARMONIC_TILE_MIN_PIXELS` usable pixels."""
     phase = np.asarray(phase, np.float64)
     where = np.asarray(where, bool)
     if phase.ndim != 2 or where.shape != phase.shape:
@@ -110,13 +114,22 @@ def harmonic_ratio(phase: np.ndarray, where: np.ndarray) -> float | None:
     mean = cv2.GaussianBlur(grad * w, (0, 0), HARMONIC_BLUR_PX) / np.maximum(
         cv2.GaussianBlur(w, (0, 0), HARMONIC_BLUR_PX), 1e-12)
     use = ok & (mean > 0.05) & (mean < 1.2)  # a fringe period of 5 to 125 px: the ripple resolved, the noise small
-    if int(use.sum()) < HARMONIC_MIN_PIXELS:
-        return None
+    rows, cols = np.nonzero(use)
     ripple = grad[use] / mean[use] - 1.0
     mid = phase[use] + 0.5 * mean[use]  # the phase between the two pixels a difference spans
-    basis = np.stack([np.cos(3 * mid), np.sin(3 * mid)], 1)
-    coef, *_ = np.linalg.lstsq(basis, ripple, rcond=None)
-    return float(-coef[0] / 3.0)
+    c3, s3 = np.cos(3 * mid), np.sin(3 * mid)
+    tile = (rows // HARMONIC_TILE_PX) * (phase.shape[1] // HARMONIC_TILE_PX + 1) + cols // HARMONIC_TILE_PX
+    # per-tile normal equations of ripple ~ a cos(3 phi) + b sin(3 phi), by bincount
+    n_tiles = int(tile.max()) + 1 if tile.size else 0
+    sums = [np.bincount(tile, v, n_tiles) for v in (c3 * c3, c3 * s3, s3 * s3, c3 * ripple, s3 * ripple)]
+    count = np.bincount(tile, minlength=n_tiles)
+    cc, cs, ss, cy, sy = (v[count >= HARMONIC_TILE_MIN_PIXELS] for v in sums)
+    det = cc * ss - cs * cs
+    good = det > 1e-9 * np.maximum(cc * ss, 1e-300)
+    if int(good.sum()) < HARMONIC_MIN_TILES:
+        return None
+    a = (ss * cy - cs * sy)[good] / det[good]
+    return float(-np.median(a) / 3.0)
 
 
 def correct_harmonics(phase: np.ndarray, r: float) -> np.ndarray:
@@ -129,22 +142,26 @@ def correct_harmonics(phase: np.ndarray, r: float) -> np.ndarray:
 
 
 def harmonic_correction(phase: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, float]:
-    """``phase`` freed of three-step PS's non-sinusoidal-fringe error, and the ``r`` removed (0: none found).
+    """``phase`` freed of three-step PS's non-sinusoidal-fringe error, and the ``r`` removed (0: none).
 
-    For a still stack only: a moving one's phase carries its motion error, whose gradient ripples too.
-    ``where``: the pixels with fringes (e.g. 2B/S >= 0.05).
+    ``r`` is re-estimated :data:`HARMONIC_ITERATIONS` times on the corrected phase, then shrunk by
+    :data:`HARMONIC_DEAD_ZONE` toward 0. For a still stack only: a moving one's phase carries its motion
+    error. ``where``: the pixels with fringes (e.g. 2B/S >= 0.05).
     """
-    total = 0.0
-    current = np.asarray(phase, np.float64)
+    phase = np.asarray(phase, np.float64)
+    total, current = 0.0, phase
     for _ in range(HARMONIC_ITERATIONS):
         r = harmonic_ratio(current, where)
         if r is None:
             break
         total += r
         if abs(total) > HARMONIC_MAX_RATIO:
-            return np.asarray(phase, np.float64), 0.0
+            return phase, 0.0
         current = correct_harmonics(phase, total)
-    return current, total
+    used = math.copysign(max(abs(total) - HARMONIC_DEAD_ZONE, 0.0), total)
+    if used == 0.0:
+        return phase, 0.0
+    return correct_harmonics(phase, used), used
 
 
 def three_step(images: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
