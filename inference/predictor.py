@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import torch
 
-from gearscan.core.phase import in_capture_order, noise_sigma, still_frame_noise
+from gearscan.core.phase import in_capture_order, noise_sigma, still_frame_noise, still_phase
 from gearscan.core.types import Burst, PhaseResult
 from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
@@ -560,9 +560,8 @@ def still_burst_gate(
         motion = None if frames is None else frame_motion_share(frames)
         if motion is None or not motion < max_motion:
             return result, False
-    m3, d3 = classical
-    m3, d3 = np.asarray(m3, np.float32), np.asarray(d3, np.float32)
-    gated = dataclasses.replace(result, phase=np.arctan2(m3, d3).astype(np.float32), M=m3, D=d3, mode="three-step")
+    phase3, m3, d3 = still_phase(*classical)  # three-step PS of a still burst, non-sinusoidal-fringe error removed
+    gated = dataclasses.replace(result, phase=phase3, M=m3, D=d3, mode="three-step")
     if sigma_map == THREE_STEP_NOISE:
         noise = None if frames is None else still_burst_noise(frames)
         if noise is None:

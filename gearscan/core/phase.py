@@ -230,14 +230,31 @@ def still_result(burst: Burst) -> PhaseResult:
 
 def still_three_step_result(images: np.ndarray, full_scale: float,
                             shifts: np.ndarray = THREE_STEP_SHIFTS) -> PhaseResult:
-    """:func:`three_step_result` of a still ``(3, H, W)`` stack whose noise sigma uses the noise measured on
-    its frame sum over the modulated pixels (2B/S >= :data:`NOISE_MODULATION`); 1 DN where too few are."""
+    """:func:`three_step_result` of a still ``(3, H, W)`` stack: its phase freed of the non-sinusoidal-fringe
+    error (:func:`still_phase`), its noise sigma from the noise measured on its frame sum over the modulated
+    pixels (2B/S >= :data:`NOISE_MODULATION`; 1 DN where too few are)."""
     result = three_step_result(images, full_scale, shifts, 1.0)
+    phase, m, d = still_phase(result.M, result.D)
+    result = replace(result, phase=phase, M=m, D=d)
     noise = still_frame_noise(images, result.modulation >= NOISE_MODULATION)
     if noise is None:
         return result
     sigma = (result.sigma_data * np.float32(noise)).astype(np.float32)  # sigma is linear in the noise (1 DN above)
     return replace(result, sigma_data=sigma, sigma_total=sigma.copy())
+
+
+def still_phase(m: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Phase, M and D of a still burst's three-step M, D with the non-sinusoidal-fringe error removed
+    (:func:`harmonic_correction` over 2B/S >= :data:`NOISE_MODULATION`; adopted on val by
+    ``benchmarks/still_harmonic_rule.md``); the modulation is kept. float32."""
+    m = np.asarray(m, np.float32)
+    d = np.asarray(d, np.float32)
+    mod = np.hypot(m, d)
+    phase, r = harmonic_correction(np.arctan2(m, d), mod >= NOISE_MODULATION)
+    if r == 0.0:
+        return np.arctan2(m, d).astype(np.float32), m, d
+    return (phase.astype(np.float32), (mod * np.sin(phase)).astype(np.float32),
+            (mod * np.cos(phase)).astype(np.float32))
 
 
 def noise_sigma(modulation: np.ndarray, noise: float, full_scale: float) -> np.ndarray:
