@@ -172,7 +172,7 @@ def run_family(args) -> None:
     orientation = rig_orientation(motions, cases) if args.orientation == "rig" else "auto"
     curve = []
     for label, path, cpu_min in points:
-        net = score(Predictor.load(path, orientation=orientation), cases, motions)
+        net = score(Predictor.load(path, orientation=orientation, still_burst_rad=0.0), cases, motions)
         curve.append({"mark_cpu_min": float(label), "cpu_min": cpu_min, "weights": str(path.relative_to(REPO) if path.is_relative_to(REPO) else path),
                       "rmse": net, "ratio_to_three_step": {k: net[k] / baseline[k] for k in net}})
         print(f"{args.family} {label:>3} CPU min (at {cpu_min:.1f}): moving {net[MOVING]:.4f} still {net[STILL]:.4f} "

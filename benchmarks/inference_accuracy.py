@@ -56,13 +56,13 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    predictor = Predictor.load(args.model)
+    predictor = Predictor.load(args.model, still_burst_rad=0.0)  # networks compared as networks: no still-burst gate
     methods = {"three-step PS": classical_method, "CD-DCU-Net": network_method(predictor)}
     methods[f"CD-DCU-Net MC T={args.mc}"] = network_method(predictor, args.mc)
     for peer in ("cd-dcu-net", "unet", "ts-unet", "dr-unet"):  # the peers' equal, smaller budget
         path = Path(args.peers) / peer / "best.safetensors"
         if path.exists():
-            methods[f"{peer} (peer budget)" if peer == "cd-dcu-net" else peer] = network_method(Predictor.load(path))
+            methods[f"{peer} (peer budget)" if peer == "cd-dcu-net" else peer] = network_method(Predictor.load(path, still_burst_rad=0.0))
     scenes = [s for root in args.val for s in scenes_from_dataset(root)]
     motions = {**STATIC, **PAPER_MOTIONS, **REVERSED, **GENERALISATION}
     cases = [c for i, s in enumerate(scenes) for c in render_cases(s, motions, args.per_motion, seed=100 + i)]

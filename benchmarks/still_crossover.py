@@ -42,7 +42,7 @@ def main() -> None:
     args = ap.parse_args()
     commit()  # before this run writes its report: a tree dirty with it is not an edit
     torch.set_num_threads(2)
-    predictor = Predictor.load(args.model)
+    predictor = Predictor.load(args.model, still_burst_rad=0.0)  # the network itself, not the still-burst gate
     weights = model_path(args.model)
     weights = str(weights.relative_to(HERE.parent) if weights.is_relative_to(HERE.parent) else weights)
     methods = {"three-step PS": classical_method, "CD-DCU-Net": network_method(predictor)}

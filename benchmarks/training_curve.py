@@ -157,7 +157,8 @@ def main() -> None:
     host_line, at = host(), commit()
     runs = [r for r in RUNS if r.weights.is_file()]
     missing = [r for r in RUNS if not r.weights.is_file()]
-    predictors = {r.label: Predictor.load(r.weights, orientation="normal" if args.orientation == "rig" else "auto")
+    predictors = {r.label: Predictor.load(r.weights, orientation="normal" if args.orientation == "rig" else "auto",
+                                           still_burst_rad=0.0)
                   for r in runs}
     methods = {BASELINE: classical_method, **{label: network_method(p) for label, p in predictors.items()}}
     scorers = {r.label: GeneralizationScorer([BASELINE, r.label], network=r.label) for r in runs}

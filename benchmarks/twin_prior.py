@@ -339,9 +339,10 @@ def main() -> None:
     machine = host()
     t0 = time.perf_counter()
     # rig: the default rig of the deviation part is the twin's, "normal"; the families set theirs per scene
-    net = Predictor.load(None, orientation="normal" if args.orientation == "rig" else "auto")
+    net = Predictor.load(None, orientation="normal" if args.orientation == "rig" else "auto",
+                         still_burst_rad=0.0)  # every network without the still-burst gate, as the extra ones
     extra_files = {n: f for n, f in ((CONTROL_NET, args.control), (PRIOR_NET, args.prior_model)) if f is not None}
-    extra = {n: Predictor.load(f, orientation=net.orientation, precision=net.precision) for n, f in extra_files.items()}
+    extra = {n: Predictor.load(f, orientation=net.orientation, precision=net.precision, still_burst_rad=0.0) for n, f in extra_files.items()}
     if PRIOR_NET in extra and not extra[PRIOR_NET].needs_prior:
         ap.error(f"--prior-model {args.prior_model}: not a prior_input network (its config has prior_input false)")
     timing = {"decode_s": 0.0, "bursts": 0, "precision": net.precision, "prior_s": timing_prior(args.size)}

@@ -226,7 +226,7 @@ def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = No
     work = Path(tempfile.mkdtemp(prefix="gearscan-eval-"))  # datasets and checkpoints of parts 1, 3
     say = progress or (lambda s: None)
     t0 = time.perf_counter()
-    predictor = Predictor.load(opt.model)
+    predictor = Predictor.load(opt.model, still_burst_rad=0.0)  # the paper compares networks: no still-burst gate
     scenes = [s for d in opt.data for s in scenes_from_dataset(d, limit=1 if opt.quick else None)]
     if not scenes:
         scenes = builtin_scenes(160 if opt.quick else 256)[: 1 if opt.quick else None]
@@ -261,7 +261,7 @@ def run_evaluation(opt: EvalOptions, progress: Callable[[str], None] | None = No
     for name, run in peer_runs(opt.peers).items():  # the peers' equal, smaller budget
         p = run / "best.safetensors"
         if p.exists():
-            nets[PEER_LABELS.get(name, name)] = network_method(Predictor.load(p))
+            nets[PEER_LABELS.get(name, name)] = network_method(Predictor.load(p, still_burst_rad=0.0))
     results["networks"] = part_networks(opt, nets, cases)
     say("part 1: transfer learning")
     results["transfer"] = part_transfer(opt, work)

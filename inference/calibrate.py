@@ -51,7 +51,9 @@ from gearscan.inference.uncertainty import (
 @dataclass(frozen=True, slots=True)
 class PixelErrors:
     """Per truth-mask pixel: wrapped phase error, uncalibrated total sigma, departure from
-    three-step PS (rad), and the pixel's validation folder, start point and still flag."""
+    three-step PS (rad), the pixel's validation folder, start point and still flag, and whether the
+    still-burst gate decoded its burst by three-step PS (its sigma is then three-step's own, which the map
+    never touches at run time: such pixels are scored, not fitted)."""
 
     error: np.ndarray
     sigma: np.ndarray
@@ -59,6 +61,7 @@ class PixelErrors:
     folder: np.ndarray
     group: np.ndarray
     still: np.ndarray
+    gated: np.ndarray
 
     def take(self, keep: np.ndarray) -> PixelErrors:
         return PixelErrors(*(getattr(self, f)[keep] for f in self.__slots__))
@@ -102,7 +105,7 @@ def collect_errors(
         parts.append(PixelErrors(
             phase_error(r.phase, item["phase"])[mask].astype(np.float32), r.sigma_total[mask],
             departure(net.phase, np.arctan2(*classical))[mask], np.full(k, folder, np.int16),
-            np.full(k, int(item["group"]), np.int32), np.full(k, still, bool)))
+            np.full(k, int(item["group"]), np.int32), np.full(k, still, bool), np.full(k, r.mode == "three-step")))
         if progress:
             progress(n + 1, len(items))
     return PixelErrors.concat(parts)
@@ -121,7 +124,14 @@ def _scores(px: PixelErrors, sigma: np.ndarray) -> dict[str, float]:
 
 
 def _fit(px: PixelErrors) -> tuple[SigmaCalibration, dict]:
-    return fit_sigma_calibration(px.error, px.sigma, px.departure)
+    """The map fitted on the pixels it applies to at run time (not those of gated bursts)."""
+    fit = px.take(~px.gated) if px.gated.any() and not px.gated.all() else px
+    return fit_sigma_calibration(fit.error, fit.sigma, fit.departure)
+
+
+def _calibrated(cal: SigmaCalibration, px: PixelErrors) -> np.ndarray:
+    """Each pixel's sigma as the Predictor reports it with ``cal``: gated bursts keep three-step's."""
+    return np.where(px.gated, px.sigma, cal(px.sigma, px.departure)).astype(np.float32)
 
 
 def fit_mode(px: PixelErrors, folders: Sequence[str]) -> tuple[SigmaCalibration, dict]:
@@ -143,10 +153,10 @@ def fit_mode(px: PixelErrors, folders: Sequence[str]) -> tuple[SigmaCalibration,
         test = px.take(held)
         report["held_out"].append({
             "scored": name, "map": part.to_json(),
-            "before": _scores(test, test.sigma), "after": _scores(test, part(test.sigma, test.departure)),
+            "before": _scores(test, test.sigma), "after": _scores(test, _calibrated(part, test)),
         })
     cal, metrics = _fit(px)
-    report["all"] = metrics | {"after": _scores(px, cal(px.sigma, px.departure))}
+    report["all"] = metrics | {"after": _scores(px, _calibrated(cal, px)), "gated_pixels": int(px.gated.sum())}
     return cal, report
 
 

@@ -42,7 +42,7 @@ def main() -> None:
     if len(args.val) < 2:
         ap.error("val: expected two or more folders (each is scored by a map fitted on the others)")
     torch.set_num_threads(args.threads)
-    predictor = Predictor.load(args.model)
+    predictor = Predictor.load(args.model, still_burst_rad=0.0)  # the map's form for the network's own pixels
     predictor.calibration = {}
     # the bursts calibrate_model fits the shipped map on (same sample, seed 0)
     px = PixelErrors.concat([collect_errors(predictor, ds, pick, args.mc, folder=k, still=still)

@@ -40,7 +40,7 @@ def main() -> None:
         "moving": TwinBurstDataset(args.val, reverse=True),
         "still": TwinBurstDataset(args.val, static=True, motion="uniform", max_span=0),
     }
-    predictors = {rad: Predictor.load(args.model, still_gate_rad=rad) for rad in GRID}
+    predictors = {rad: Predictor.load(args.model, still_gate_rad=rad, still_burst_rad=0.0) for rad in GRID}
     table: dict[str, dict[str, float]] = {}
     ece: dict[str, dict[str, float]] = {}
     for seed, (name, ds) in enumerate(sets.items()):

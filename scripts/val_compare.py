@@ -45,7 +45,7 @@ def main() -> None:
         err = [phase_error(three_step(it["input"][:3], 1.0)[0], it["phase"])[it["mask"]] for it in items]
         row["three-step"] = float(np.sqrt(np.mean(np.concatenate(err) ** 2)))
         for path in args.models:
-            pred = Predictor.load(path, orientation=args.orientation)
+            pred = Predictor.load(path, orientation=args.orientation, still_burst_rad=0.0)
             err = []
             for it in items:
                 r = pred.predict_tensor(torch.from_numpy(np.asarray(it["input"], np.float32))[None])

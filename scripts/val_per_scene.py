@@ -69,8 +69,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    pred = Predictor.load(args.model)
-    rig_pred = Predictor.load(args.model, orientation="normal")
+    pred = Predictor.load(args.model, still_burst_rad=0.0)
+    rig_pred = Predictor.load(args.model, orientation="normal", still_burst_rad=0.0)
     rows = [r for folder in args.val for r in scene_rows(pred, rig_pred, folder, args.bursts)]
     print(json.dumps(rows, indent=1))
 

@@ -88,15 +88,38 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
 def test_collected_errors_follow_the_burst_gate_as_the_predictor_applies_it(val_set, model_path):
     """A gate wide enough to take every burst: the errors the calibration collects are three-step PS's,
     in Monte Carlo mode too (where the Predictor decides on the deterministic pass)."""
-    from gearscan.core.phase import phase_error, three_step
+    from gearscan.core.phase import phase_error, still_phase, three_step
 
     ds = TwinBurstDataset(val_set, crop=None, reverse=True)
     pick = [0, 5]
     pred = Predictor.load(model_path, still_burst_rad=3.0)
-    expected = np.concatenate([phase_error(three_step(ds[i]["input"][:3], 1.0)[0], ds[i]["phase"])[ds[i]["mask"]]
-                               for i in pick])
+    expected = np.concatenate([phase_error(still_phase(*three_step(ds[i]["input"][:3], 1.0)[1:])[0],
+                                           ds[i]["phase"])[ds[i]["mask"]] for i in pick])
     for mc in (0, 2):
         px = collect_errors(pred, ds, pick, mc)
         np.testing.assert_allclose(px.error, expected, atol=1e-4)
+        assert px.gated.all()  # scored, never fitted (the map does not touch them at run time)
         x = torch.from_numpy(np.asarray(ds[0]["input"], np.float32))[None]
         assert pred.predict_tensor(x, mc).mode == "three-step"
+
+
+def test_the_sigma_map_is_fitted_without_the_gated_bursts():
+    """Pixels of bursts the still-burst gate decoded keep three-step's sigma at run time, so the map is fitted
+    on the others only, and scored with the gated pixels' own sigma."""
+    from gearscan.inference.calibrate import PixelErrors, fit_mode
+
+    rng = np.random.default_rng(3)
+    n = 4000
+    sigma = rng.uniform(0.02, 0.2, n).astype(np.float32)
+    error = (rng.normal(0, 1, n) * 0.5 * sigma).astype(np.float32)  # the network's sigma is 2x too wide
+    dep = np.abs(rng.normal(0, 0.05, n)).astype(np.float32)
+    base = PixelErrors(error, sigma, dep, np.zeros(n, np.int16), np.arange(n, dtype=np.int32) % 8, np.zeros(n, bool),
+                       np.zeros(n, bool))
+    # gated pixels: tiny errors with a huge sigma, which would drag a map fitted on them
+    g = 2000
+    gated = PixelErrors(np.full(g, 1e-3, np.float32), np.full(g, 5.0, np.float32), np.zeros(g, np.float32),
+                        np.zeros(g, np.int16), np.arange(g, dtype=np.int32) % 8, np.ones(g, bool), np.ones(g, bool))
+    alone, _ = fit_mode(base, ["val"])
+    mixed, report = fit_mode(PixelErrors.concat([base, gated]), ["val"])
+    np.testing.assert_allclose(mixed(sigma, dep), alone(sigma, dep), rtol=1e-6)
+    assert report["all"]["gated_pixels"] == g

@@ -73,7 +73,7 @@ def still_frame_noise(images: np.ndarray, where: np.ndarray | None = None) -> fl
     if images.ndim != 3 or images.shape[0] < 3:
         raise ValueError(f"images: expected (N >= 3, H, W), got shape {images.shape}")
     response = np.abs(cv2.filter2D(images.sum(0), cv2.CV_32F, _NOISE_KERNEL, borderType=cv2.BORDER_REFLECT))
-    keep = np.ones(response.shape, bool) if where is None else np.asarray(where, bool)
+    keep = np.ones(response.shape, bool) if where is None else np.array(where, bool)  # a copy: edited below
     keep[[0, -1], :] = keep[:, [0, -1]] = False  # the border's reflected rows are not independent noise
     if int(keep.sum()) < NOISE_MIN_PIXELS:
         return None
