@@ -252,8 +252,9 @@ def add_still_sigma(acc: dict, family: str, case, assumed) -> None:
     m = case.truth.mask
     measured = still_three_step_result(case.frames, case.full_scale)
     for fam in (family, ALL):
-        a = acc.setdefault(fam, {"error": [], "assumed": [], "measured": []})
+        a = acc.setdefault(fam, {"error": [], "assumed": [], "measured": [], "route": []})
         a["error"].append(phase_error(assumed.phase, case.truth.phase)[m].astype(np.float32))
+        a["route"].append(phase_error(measured.phase, case.truth.phase)[m].astype(np.float32))
         a["assumed"].append(assumed.sigma_total[m])
         a["measured"].append(measured.sigma_total[m])
 
@@ -264,15 +265,22 @@ def still_sigma_section(acc: dict, order: list[str]) -> list[str]:
              "The pipeline decodes a burst the encoder saw standing still by three-step PS (`live`, `replay`, `predict` "
              "with angles). Its sigma is the noise propagation `sqrt(2/3) s_n / B`; since session 30 `s_n` is measured "
              "on the burst's own frame sum (`gearscan.core.phase.still_frame_noise`) instead of assumed to be 1 DN. "
-             "The same still bursts as above (three-step's phase; RMSE and ECE over the truth mask):", "",
-             "| family | bursts' pixels | three-step RMSE (rad) | ECE, 1 DN assumed | ECE, noise measured |",
-             "|---|---|---|---|---|"]
+             "The same still bursts as above (three-step's phase; RMSE and ECE over the truth mask). Since session 31 the "
+             "still route also removes three-step's non-sinusoidal-fringe error (`gearscan.core.phase.still_phase`, "
+             "adopted on val: `benchmarks/still_harmonic_rule.md`); its phase with the measured-noise sigma in the last "
+             "columns:", "",
+             "| family | bursts' pixels | three-step RMSE (rad) | ECE, 1 DN assumed | ECE, noise measured | "
+             "still route RMSE (rad) | still route / three-step | still route ECE |",
+             "|---|---|---|---|---|---|---|---|"]
     for fam in (f for f in order if f in acc):
         a = acc[fam]
         err = np.concatenate(a["error"])
         ece = {k: reliability(err, np.maximum(np.concatenate(a[k]), 1e-6)).ece for k in ("assumed", "measured")}
-        lines.append(f"| {fam} | {err.size} | {np.sqrt(np.mean(err.astype(np.float64) ** 2)):.4f} | "
-                     f"{ece['assumed']:.3f} | {ece['measured']:.3f} |")
+        route = np.concatenate(a["route"])
+        r3, rr = (float(np.sqrt(np.mean(v.astype(np.float64) ** 2))) for v in (err, route))
+        ece_route = reliability(route, np.maximum(np.concatenate(a["measured"]), 1e-6)).ece
+        lines.append(f"| {fam} | {err.size} | {r3:.4f} | {ece['assumed']:.3f} | {ece['measured']:.3f} | {rr:.4f} | "
+                     f"{rr / r3:.3f}x | {ece_route:.3f} |")
     return [*lines, ""]
 
 
