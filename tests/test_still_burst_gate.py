@@ -102,6 +102,8 @@ def test_the_models_record_the_val_choice(model):
             assert gated[kind]["rmse"] <= 1.03 * base[kind]["rmse"]
         if base["still"]["rmse"] > 1.05 * base["still"]["three_step"]:
             assert gated["still"]["rmse"] < base["still"]["rmse"]
+    # and the rule, replayed on that table, gives the stored setting
+    assert _chooser().choose_with_motion(meta["val"]) == (pred.still_burst_rad, pred.still_burst_motion)
 
 
 def _chooser():
@@ -237,3 +239,14 @@ def test_the_motion_rule_picks_the_setting_that_fixes_still_within_cost():
     flat = {"default": fam(1.0)}  # no setting changes the still bursts
     assert choose.choose_with_motion(flat) == (0.0, np.inf)
     assert choose.setting_key(0.025) == "0.025" and choose.setting_key(0.025, 0.002) == "0.025@0.002"
+
+
+@pytest.mark.parametrize("mc", [0, 2])
+def test_the_predictor_keeps_the_network_where_an_outline_moves(mc):
+    """Through the Predictor (any departure passes at 3 rad): the still disc is decoded by three-step PS, the disc
+    whose outline moves 3 px per frame by the network, with its Monte Carlo passes when asked for."""
+    pred = Predictor.load(DEFAULT_MODEL, orientation="normal", still_burst_rad=3.0, still_burst_motion=0.002)
+    still = np.round(255 * _disc_frames((0, 0, 0))).astype(np.uint8)
+    moving = np.round(255 * _disc_frames((0, 3, 6))).astype(np.uint8)
+    assert pred.predict(still, mc).mode == "three-step"
+    assert pred.predict(moving, mc).mode == ("mc2" if mc else "deterministic")
