@@ -125,16 +125,17 @@ def _three_step_harmonic_ratio(gamma: float) -> float:
     return float((c[2].real - c[4].real) / c[1].real)
 
 
-@pytest.mark.parametrize("gamma, mirrored", [(0.8, False), (1.2, False), (1.3, False), (1.2, True)])
-def test_harmonic_correction_removes_three_steps_gamma_error(gamma, mirrored):
+@pytest.mark.parametrize("gamma, mirrored, size", [(0.8, False, 256), (1.2, False, 256), (1.3, False, 256),
+                                                   (1.2, True, 256), (1.2, False, 640)])
+def test_harmonic_correction_removes_three_steps_gamma_error(gamma, mirrored, size):
     """Non-sinusoidal fringes (a projector gamma) give three-step PS an error ``-r sin(3 phi)``; the ratio read
     off the phase map's own gradient matches the fringe's Fourier harmonics, and removing it brings the phase
-    to the noise floor of sinusoidal fringes."""
+    to the noise floor of sinusoidal fringes. Beyond 512 x 512 px the ratio is read in windows spread over the image."""
     from gearscan.core.phase import harmonic_correction
 
     rng = np.random.default_rng(11)
-    frames, truth = _gamma_stack(gamma, 1.5, rng)
-    floor = wrapped_rmse(three_step(_gamma_stack(1.0, 1.5, np.random.default_rng(11))[0], 255)[0], truth)
+    frames, truth = _gamma_stack(gamma, 1.5, rng, size)
+    floor = wrapped_rmse(three_step(_gamma_stack(1.0, 1.5, np.random.default_rng(11), size)[0], 255)[0], truth)
     if mirrored:  # the phase falling along the columns (a mirrored rig)
         frames, truth = np.ascontiguousarray(frames[:, :, ::-1]), np.ascontiguousarray(truth[:, ::-1])
     phase, m, d = three_step(frames, 255)

@@ -91,73 +91,118 @@ HARMONIC_TILE_PX = 32  # r is fitted per tile and the median taken: tiles where 
 HARMONIC_TILE_MIN_PIXELS = 200
 HARMONIC_MIN_TILES = 8
 HARMONIC_ITERATIONS = 4  # re-estimates on the corrected phase (each removes most of what the blur hid)
+HARMONIC_SETTLED = 0.001  # an iteration that moves r less than this ends them
 HARMONIC_DEAD_ZONE = 0.006  # |r| shrunk by this: what the estimator finds on sinusoidal fringes (val, dev look)
 HARMONIC_MAX_RATIO = 0.2  # |r| beyond this is no gamma residual: no correction
 
 
-def harmonic_ratio(phase: np.ndarray, where: np.ndarray) -> float | None:
-    """One estimate of ``r`` in ``phase = psi - r sin(3 psi)`` (:func:`correct_harmonics`) from the
-    ripple of the phase gradient over ``where`` (pixels with fringes; the true phase smooth there): the
-    median over tiles of :data:`HARMONIC_TILE_PX` of a least-squares fit per tile. None with fewer than
-    :data:`HARMONIC_MIN_TILES` tiles of :data:`HARMONIC_TILE_MIN_PIXELS` usable pixels."""
-    phase = np.asarray(phase, np.float64)
-    where = np.asarray(where, bool)
-    if phase.ndim != 2 or where.shape != phase.shape:
-        raise ValueError(f"phase, where: expected two (H, W) arrays of one shape, got {phase.shape} and {where.shape}")
-    gx = wrap(np.diff(phase, axis=1, append=phase[:, -1:]))
-    gy = wrap(np.diff(phase, axis=0, append=phase[-1:, :]))
+HARMONIC_WINDOW_PX = 128  # larger images: r is read in windows of this size spread over the image ...
+HARMONIC_MAX_WINDOWS = 16  # ... at most this many (about 512 x 512 px read, whatever the sensor)
+
+
+def _wrap_fast(x: np.ndarray) -> np.ndarray:
+    return (x + np.pi) % (2 * np.pi) - np.pi
+
+
+def _tile_ripples(phase: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """Per tile of :data:`HARMONIC_TILE_PX` with :data:`HARMONIC_TILE_MIN_PIXELS` usable pixels: the cos(3 phi)
+    coefficient of the gradient ripple ``|grad phase| / local mean - 1`` (least squares with the sin term)."""
+    gx = _wrap_fast(np.diff(phase, axis=1, append=phase[:, -1:]))
+    gy = _wrap_fast(np.diff(phase, axis=0, append=phase[-1:, :]))
     ok = where & np.roll(where, -1, 1) & np.roll(where, -1, 0)
     ok[-1, :] = ok[:, -1] = False
     ok = cv2.erode(ok.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     grad = np.hypot(gx, gy)
-    w = ok.astype(np.float64)
+    w = ok.astype(phase.dtype)
     mean = cv2.GaussianBlur(grad * w, (0, 0), HARMONIC_BLUR_PX) / np.maximum(
-        cv2.GaussianBlur(w, (0, 0), HARMONIC_BLUR_PX), 1e-12)
+        cv2.GaussianBlur(w, (0, 0), HARMONIC_BLUR_PX), phase.dtype.type(1e-12))
     use = ok & (mean > 0.05) & (mean < 1.2)  # a fringe period of 5 to 125 px: the ripple resolved, the noise small
     rows, cols = np.nonzero(use)
-    ripple = grad[use] / mean[use] - 1.0
+    if rows.size == 0:
+        return np.zeros(0)
+    ripple = (grad[use] / mean[use] - 1.0).astype(np.float64)
     mid = phase[use] + 0.5 * mean[use]  # the phase between the two pixels a difference spans
-    c3, s3 = np.cos(3 * mid), np.sin(3 * mid)
+    c3, s3 = np.cos(3 * mid).astype(np.float64), np.sin(3 * mid).astype(np.float64)
     tile = (rows // HARMONIC_TILE_PX) * (phase.shape[1] // HARMONIC_TILE_PX + 1) + cols // HARMONIC_TILE_PX
     # per-tile normal equations of ripple ~ a cos(3 phi) + b sin(3 phi), by bincount
-    n_tiles = int(tile.max()) + 1 if tile.size else 0
+    n_tiles = int(tile.max()) + 1
     sums = [np.bincount(tile, v, n_tiles) for v in (c3 * c3, c3 * s3, s3 * s3, c3 * ripple, s3 * ripple)]
     count = np.bincount(tile, minlength=n_tiles)
     cc, cs, ss, cy, sy = (v[count >= HARMONIC_TILE_MIN_PIXELS] for v in sums)
     det = cc * ss - cs * cs
     good = det > 1e-9 * np.maximum(cc * ss, 1e-300)
-    if int(good.sum()) < HARMONIC_MIN_TILES:
+    return ((ss * cy - cs * sy)[good] / det[good]).astype(np.float64)
+
+
+def _windows(shape: tuple[int, int]) -> list[tuple[slice, slice]]:
+    """The whole image up to 512 x 512 px; beyond, up to :data:`HARMONIC_MAX_WINDOWS` windows of
+    :data:`HARMONIC_WINDOW_PX` on a regular grid over it."""
+    h, w = shape
+    if h * w <= 512 * 512:
+        return [(slice(None), slice(None))]
+    side = HARMONIC_WINDOW_PX
+    per_axis = max(1, int(math.sqrt(HARMONIC_MAX_WINDOWS)))
+    ys = np.linspace(0, max(h - side, 0), per_axis).astype(int)
+    xs = np.linspace(0, max(w - side, 0), per_axis).astype(int)
+    return [(slice(y, y + side), slice(x, x + side)) for y in ys for x in xs]
+
+
+def _ratio(crops: list[tuple[np.ndarray, np.ndarray]]) -> float | None:
+    a = np.concatenate([_tile_ripples(p, m) for p, m in crops])
+    if a.size < HARMONIC_MIN_TILES:
         return None
-    a = (ss * cy - cs * sy)[good] / det[good]
     return float(-np.median(a) / 3.0)
 
 
-def correct_harmonics(phase: np.ndarray, r: float) -> np.ndarray:
-    """The phase ``psi`` with ``phase = psi - r sin(3 psi)`` (fixed-point solve; |r| < 1/3 converges), wrapped."""
+def harmonic_ratio(phase: np.ndarray, where: np.ndarray) -> float | None:
+    """One estimate of ``r`` in ``phase = psi - r sin(3 psi)`` (:func:`correct_harmonics`) from the
+    ripple of the phase gradient over ``where`` (pixels with fringes; the true phase smooth there): the
+    median over tiles of :data:`HARMONIC_TILE_PX` of a least-squares fit per tile (over windows spread on a
+    large image, :func:`_windows`). None with fewer than :data:`HARMONIC_MIN_TILES` tiles of
+    :data:`HARMONIC_TILE_MIN_PIXELS` usable pixels."""
     phase = np.asarray(phase, np.float64)
+    where = np.asarray(where, bool)
+    if phase.ndim != 2 or where.shape != phase.shape:
+        raise ValueError(f"phase, where: expected two (H, W) arrays of one shape, got {phase.shape} and {where.shape}")
+    return _ratio([(phase[win].astype(np.float32), where[win]) for win in _windows(phase.shape)])
+
+
+def correct_harmonics(phase: np.ndarray, r: float) -> np.ndarray:
+    """The phase ``psi`` with ``phase = psi - r sin(3 psi)`` (fixed-point solve; |r| < 1/3 converges), wrapped;
+    in ``phase``'s float precision."""
+    phase = np.asarray(phase)
+    if phase.dtype != np.float32:
+        phase = phase.astype(np.float64)
+    r = phase.dtype.type(r)
     psi = phase
     for _ in range(4):
         psi = phase + r * np.sin(3 * psi)
-    return wrap(psi)
+    return _wrap_fast(psi)
 
 
 def harmonic_correction(phase: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, float]:
     """``phase`` freed of three-step PS's non-sinusoidal-fringe error, and the ``r`` removed (0: none).
 
-    ``r`` is re-estimated :data:`HARMONIC_ITERATIONS` times on the corrected phase, then shrunk by
-    :data:`HARMONIC_DEAD_ZONE` toward 0. For a still stack only: a moving one's phase carries its motion
-    error. ``where``: the pixels with fringes (e.g. 2B/S >= 0.05).
+    ``r`` is re-estimated :data:`HARMONIC_ITERATIONS` times on the corrected phase (of the windows it is read
+    in), then shrunk by :data:`HARMONIC_DEAD_ZONE` toward 0. For a still stack only: a moving one's phase
+    carries its motion error. ``where``: the pixels with fringes (e.g. 2B/S >= 0.05).
     """
     phase = np.asarray(phase, np.float64)
-    total, current = 0.0, phase
+    where = np.asarray(where, bool)
+    if phase.ndim != 2 or where.shape != phase.shape:
+        raise ValueError(f"phase, where: expected two (H, W) arrays of one shape, got {phase.shape} and {where.shape}")
+    crops = [(phase[win].astype(np.float32), where[win]) for win in _windows(phase.shape)]  # float32: speed
+    total, current = 0.0, crops
     for _ in range(HARMONIC_ITERATIONS):
-        r = harmonic_ratio(current, where)
+        r = _ratio(current)
         if r is None:
             break
         total += r
         if abs(total) > HARMONIC_MAX_RATIO:
             return phase, 0.0
-        current = correct_harmonics(phase, total)
+        if abs(r) < HARMONIC_SETTLED:
+            break
+        current = [(correct_harmonics(p, total), m) for p, m in crops]
     used = math.copysign(max(abs(total) - HARMONIC_DEAD_ZONE, 0.0), total)
     if used == 0.0:
         return phase, 0.0
@@ -250,11 +295,12 @@ def still_phase(m: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     m = np.asarray(m, np.float32)
     d = np.asarray(d, np.float32)
     mod = np.hypot(m, d)
-    phase, r = harmonic_correction(np.arctan2(m, d), mod >= NOISE_MODULATION)
+    plain = np.arctan2(m, d)
+    _, r = harmonic_correction(plain, mod >= NOISE_MODULATION)
     if r == 0.0:
-        return np.arctan2(m, d).astype(np.float32), m, d
-    return (phase.astype(np.float32), (mod * np.sin(phase)).astype(np.float32),
-            (mod * np.cos(phase)).astype(np.float32))
+        return plain.astype(np.float32), m, d
+    phase = correct_harmonics(plain.astype(np.float32), r)
+    return phase, (mod * np.sin(phase)).astype(np.float32), (mod * np.cos(phase)).astype(np.float32)
 
 
 def noise_sigma(modulation: np.ndarray, noise: float, full_scale: float) -> np.ndarray:
