@@ -154,17 +154,22 @@ def _ratio(crops: list[tuple[np.ndarray, np.ndarray]]) -> float | None:
     return float(-np.median(a) / 3.0)
 
 
+def _crops(phase: np.ndarray, where: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The windows :func:`_windows` reads ``r`` in, as float32 phase (speed) and bool mask; shapes checked."""
+    phase = np.asarray(phase)
+    where = np.asarray(where, bool)
+    if phase.ndim != 2 or where.shape != phase.shape:
+        raise ValueError(f"phase, where: expected two (H, W) arrays of one shape, got {phase.shape} and {where.shape}")
+    return [(phase[win].astype(np.float32), where[win]) for win in _windows(phase.shape)]
+
+
 def harmonic_ratio(phase: np.ndarray, where: np.ndarray) -> float | None:
     """One estimate of ``r`` in ``phase = psi - r sin(3 psi)`` (:func:`correct_harmonics`) from the
     ripple of the phase gradient over ``where`` (pixels with fringes; the true phase smooth there): the
     median over tiles of :data:`HARMONIC_TILE_PX` of a least-squares fit per tile (over windows spread on a
     large image, :func:`_windows`). None with fewer than :data:`HARMONIC_MIN_TILES` tiles of
     :data:`HARMONIC_TILE_MIN_PIXELS` usable pixels."""
-    phase = np.asarray(phase, np.float64)
-    where = np.asarray(where, bool)
-    if phase.ndim != 2 or where.shape != phase.shape:
-        raise ValueError(f"phase, where: expected two (H, W) arrays of one shape, got {phase.shape} and {where.shape}")
-    return _ratio([(phase[win].astype(np.float32), where[win]) for win in _windows(phase.shape)])
+    return _ratio(_crops(phase, where))
 
 
 def correct_harmonics(phase: np.ndarray, r: float) -> np.ndarray:
@@ -180,18 +185,14 @@ def correct_harmonics(phase: np.ndarray, r: float) -> np.ndarray:
     return _wrap_fast(psi)
 
 
-def harmonic_correction(phase: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, float]:
-    """``phase`` freed of three-step PS's non-sinusoidal-fringe error, and the ``r`` removed (0: none).
+def harmonic_estimate(phase: np.ndarray, where: np.ndarray) -> float:
+    """The ``r`` of three-step PS's non-sinusoidal-fringe error ``phase = psi - r sin(3 psi)`` (0: none found).
 
-    ``r`` is re-estimated :data:`HARMONIC_ITERATIONS` times on the corrected phase (of the windows it is read
-    in), then shrunk by :data:`HARMONIC_DEAD_ZONE` toward 0. For a still stack only: a moving one's phase
-    carries its motion error. ``where``: the pixels with fringes (e.g. 2B/S >= 0.05).
+    :func:`harmonic_ratio` re-estimated up to :data:`HARMONIC_ITERATIONS` times on the corrected phase (of the
+    windows it is read in), then shrunk by :data:`HARMONIC_DEAD_ZONE` toward 0. For a still stack only: a
+    moving one's phase carries its motion error. ``where``: the pixels with fringes (e.g. 2B/S >= 0.05).
     """
-    phase = np.asarray(phase, np.float64)
-    where = np.asarray(where, bool)
-    if phase.ndim != 2 or where.shape != phase.shape:
-        raise ValueError(f"phase, where: expected two (H, W) arrays of one shape, got {phase.shape} and {where.shape}")
-    crops = [(phase[win].astype(np.float32), where[win]) for win in _windows(phase.shape)]  # float32: speed
+    crops = _crops(phase, where)
     total, current = 0.0, crops
     for _ in range(HARMONIC_ITERATIONS):
         r = _ratio(current)
@@ -199,14 +200,18 @@ def harmonic_correction(phase: np.ndarray, where: np.ndarray) -> tuple[np.ndarra
             break
         total += r
         if abs(total) > HARMONIC_MAX_RATIO:
-            return phase, 0.0
+            return 0.0
         if abs(r) < HARMONIC_SETTLED:
             break
         current = [(correct_harmonics(p, total), m) for p, m in crops]
-    used = math.copysign(max(abs(total) - HARMONIC_DEAD_ZONE, 0.0), total)
-    if used == 0.0:
-        return phase, 0.0
-    return correct_harmonics(phase, used), used
+    return math.copysign(max(abs(total) - HARMONIC_DEAD_ZONE, 0.0), total)
+
+
+def harmonic_correction(phase: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, float]:
+    """``phase`` (float64) freed of the error :func:`harmonic_estimate` finds, and the ``r`` removed (0: none)."""
+    phase = np.asarray(phase, np.float64)
+    r = harmonic_estimate(phase, where)
+    return (correct_harmonics(phase, r) if r != 0.0 else phase), r
 
 
 def three_step(images: np.ndarray, full_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -290,16 +295,16 @@ def still_three_step_result(images: np.ndarray, full_scale: float,
 
 def still_phase(m: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Phase, M and D of a still burst's three-step M, D with the non-sinusoidal-fringe error removed
-    (:func:`harmonic_correction` over 2B/S >= :data:`NOISE_MODULATION`; adopted on val by
+    (:func:`harmonic_estimate` over 2B/S >= :data:`NOISE_MODULATION`; adopted on val by
     ``benchmarks/still_harmonic_rule.md``); the modulation is kept. float32."""
     m = np.asarray(m, np.float32)
     d = np.asarray(d, np.float32)
     mod = np.hypot(m, d)
     plain = np.arctan2(m, d)
-    _, r = harmonic_correction(plain, mod >= NOISE_MODULATION)
+    r = harmonic_estimate(plain, mod >= NOISE_MODULATION)
     if r == 0.0:
-        return plain.astype(np.float32), m, d
-    phase = correct_harmonics(plain.astype(np.float32), r)
+        return plain, m, d
+    phase = correct_harmonics(plain, r)
     return phase, (mod * np.sin(phase)).astype(np.float32), (mod * np.cos(phase)).astype(np.float32)
 
 
