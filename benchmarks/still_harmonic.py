@@ -27,11 +27,10 @@ from gearscan.core.phase import NOISE_MODULATION, harmonic_correction, phase_err
 from gearscan.inference.models import classical_md
 from gearscan.inference.predictor import still_burst_noise, three_step_noise_sigma
 from gearscan.inference.uncertainty import reliability
-from gearscan.twin.dataset import TwinBurstDataset
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "scripts"))
-from choose_still_burst_gate import SETS, by_view  # noqa: E402
+from choose_still_burst_gate import by_view, sampled_bursts  # noqa: E402
 
 FAMILIES = ("data/repro/val_radial", "data/repro/val_views",
             ",".join(f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)))
@@ -39,26 +38,20 @@ FAMILIES = ("data/repro/val_radial", "data/repro/val_views",
 
 def family_rows(folders: list, seed: int) -> dict[str, np.ndarray | list]:
     """Errors of both decodes over the truth masks, their sigma, and each burst's ``r``."""
-    count, options = SETS["still"]
-    kind = list(SETS).index("still")
     e3, ec, sig, ratios = [], [], [], []
-    for f, (folder, groups) in enumerate(folders):
-        ds = TwinBurstDataset(folder, groups=groups, **options)
-        n = min(count // len(folders), len(ds))
-        for i in sorted(np.random.default_rng([seed, kind, f]).choice(len(ds), n, replace=False)):
-            it = ds[int(i)]
-            x = torch.from_numpy(np.asarray(it["input"], np.float32))[None]
-            m, d = classical_md(x[:, :3])[0].numpy()
-            mod = np.hypot(m, d)
-            phase = np.arctan2(m, d)
-            corrected, r = harmonic_correction(phase, mod >= NOISE_MODULATION)
-            noise = still_burst_noise(x[0, :3].numpy())
-            s = three_step_noise_sigma(mod, noise if noise is not None else 1.0 / 255)["sigma_total"]
-            mask = np.asarray(it["mask"], bool)
-            e3.append(phase_error(phase, it["phase"])[mask])
-            ec.append(phase_error(corrected, it["phase"])[mask])
-            sig.append(s[mask])
-            ratios.append(r)
+    for it in sampled_bursts(folders, "still", seed):
+        x = torch.from_numpy(np.asarray(it["input"], np.float32))[None]
+        m, d = classical_md(x[:, :3])[0].numpy()
+        mod = np.hypot(m, d)
+        phase = np.arctan2(m, d)
+        corrected, r = harmonic_correction(phase, mod >= NOISE_MODULATION)
+        noise = still_burst_noise(x[0, :3].numpy())
+        s = three_step_noise_sigma(mod, noise if noise is not None else 1.0 / 255)["sigma_total"]
+        mask = np.asarray(it["mask"], bool)
+        e3.append(phase_error(phase, it["phase"])[mask])
+        ec.append(phase_error(corrected, it["phase"])[mask])
+        sig.append(s[mask])
+        ratios.append(r)
     return {"e3": np.concatenate(e3), "ec": np.concatenate(ec), "sigma": np.concatenate(sig), "r": ratios}
 
 

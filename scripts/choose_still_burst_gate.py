@@ -69,33 +69,40 @@ def by_view(folders: Folders) -> dict[str, Folders]:
     return views
 
 
+def sampled_bursts(folders: Folders, kind: str, seed: int):
+    """The val bursts of one kind (:data:`SETS`) the rule scores: per folder a seeded sample, in item order."""
+    s = list(SETS).index(kind)
+    count, options = SETS[kind]
+    for f, (folder, groups) in enumerate(folders):
+        ds = TwinBurstDataset(folder, groups=groups, **options)
+        n = min(count // len(folders), len(ds))
+        for i in sorted(np.random.default_rng([seed, s, f]).choice(len(ds), n, replace=False)):
+            yield ds[int(i)]
+
+
 def family_bursts(predictor: Predictor, folders: Folders, seed: int, sigma_map: BurstSigma | None,
                   kinds: tuple[str, ...] = tuple(SETS)) -> dict[str, list[dict]]:
     """Per burst kind: the ungated network's and three-step PS's errors over the truth mask, the
     network's sigma and the gated sigma there, the three-step modulation, and the burst's interior
     departure."""
     out: dict[str, list[dict]] = {}
-    for s, (name, (count, options)) in enumerate(SETS.items()):
+    for name in SETS:
         if name not in kinds:
             continue
         rows = []
-        for f, (folder, groups) in enumerate(folders):
-            ds = TwinBurstDataset(folder, groups=groups, **options)
-            n = min(count // len(folders), len(ds))
-            for i in sorted(np.random.default_rng([seed, s, f]).choice(len(ds), n, replace=False)):
-                it = ds[int(i)]
-                x = torch.from_numpy(np.asarray(it["input"], np.float32))[None]
-                net = predictor.predict_tensor(x)
-                classical = classical_md(x[:, :3])[0].numpy()
-                frames = x[0, :3].numpy()
-                gated, _ = still_burst_gate(net, classical, np.inf, predictor.calibration.get("deterministic"), sigma_map,
-                                            frames=frames)
-                m = np.asarray(it["mask"], bool)
-                rows.append({"score": burst_departure(net.phase, classical), "motion": frame_motion_share(frames),
-                             "e_net": phase_error(net.phase, it["phase"])[m].astype(np.float32),
-                             "e_3": phase_error(gated.phase, it["phase"])[m].astype(np.float32),
-                             "s_net": net.sigma_total[m], "s_3": gated.sigma_total[m],
-                             "mod": np.hypot(*classical)[m].astype(np.float32)})
+        for it in sampled_bursts(folders, name, seed):
+            x = torch.from_numpy(np.asarray(it["input"], np.float32))[None]
+            net = predictor.predict_tensor(x)
+            classical = classical_md(x[:, :3])[0].numpy()
+            frames = x[0, :3].numpy()
+            gated, _ = still_burst_gate(net, classical, np.inf, predictor.calibration.get("deterministic"), sigma_map,
+                                        frames=frames)
+            m = np.asarray(it["mask"], bool)
+            rows.append({"score": burst_departure(net.phase, classical), "motion": frame_motion_share(frames),
+                         "e_net": phase_error(net.phase, it["phase"])[m].astype(np.float32),
+                         "e_3": phase_error(gated.phase, it["phase"])[m].astype(np.float32),
+                         "s_net": net.sigma_total[m], "s_3": gated.sigma_total[m],
+                         "mod": np.hypot(*classical)[m].astype(np.float32)})
         out[name] = rows
     return out
 
