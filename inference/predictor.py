@@ -21,7 +21,13 @@ import cv2
 import numpy as np
 import torch
 
-from gearscan.core.phase import in_capture_order, noise_sigma, still_frame_noise, still_phase
+from gearscan.core.phase import (
+    frame_swing,
+    in_capture_order,
+    noise_sigma,
+    still_frame_noise,
+    still_phase,
+)
 from gearscan.core.types import Burst, PhaseResult
 from gearscan.inference.blocks import fold_batchnorm
 from gearscan.inference.model_io import ModelFileError, load_model
@@ -480,12 +486,6 @@ def burst_motion_limit(meta: dict) -> float:
         return check_motion_limit(raw, "still_burst_gate.max_motion_share")
     except ValueError as exc:
         raise ModelFileError(str(exc)) from exc
-
-
-def frame_swing(frames: np.ndarray) -> np.ndarray:
-    """Three-step amplitude B' of ``(3, H, W)`` frames (order-free: from the three pairwise differences)."""
-    f = frames
-    return np.sqrt(2.0 * ((f[0] - f[1]) ** 2 + (f[1] - f[2]) ** 2 + (f[0] - f[2]) ** 2)) / 3.0
 
 
 def still_burst_noise(frames: np.ndarray) -> float | None:

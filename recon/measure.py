@@ -53,7 +53,11 @@ class Reconstructor:
     counted in ``Measurement.unwrap`` (no order could be trusted there), never dropped silently.
     Points whose pixel may blend two surfaces (at a silhouette or depth step, camera blur mixes
     their fringes) are dropped and counted as ``mixed`` (:func:`~gearscan.recon.edges.mixed_pixels`,
-    ``mixed_border_px=None`` keeps them). An
+    ``mixed_border_px=None`` keeps them). A network's phase (``PhaseResult.mode`` other than ``"three-step"``)
+    is a candidate only where the burst's own frames show fringes on every pixel within
+    ``network_support_px`` (:func:`~gearscan.core.phase.fringe_support`): the network was trained on the twin's
+    truth mask alone and invents phase, modulation and a small sigma at shadow borders, creases and silhouettes;
+    such pixels are counted as ``unsupported`` (``None``: no such test). An
     undistorted projector takes the fused unwrap + triangulate path
     (:mod:`gearscan.recon.reconstruct`); a distorted one the fixed-point
     :class:`~gearscan.recon.triangulate.Triangulator`.
@@ -62,7 +66,7 @@ class Reconstructor:
     def __init__(self, rig: Rig, period_px: float, gear, *, min_modulation: float = 0.05,
                  max_sigma: float = 0.3, margin: float = 0.3, unwrap: str = "cad",
                  envelope_mm: float = ENVELOPE_MM, silhouette_mm: float = 0.4, mixed_border_px: int | None = 1,
-                 threads: int | None = None) -> None:
+                 network_support_px: int | None = None, threads: int | None = None) -> None:
         from gearscan.recon.reconstruct import SingleFrequencyReconstructor
         from gearscan.recon.triangulate import Triangulator
         from gearscan.recon.unwrap import CadDepthBounds, phase_bounds
@@ -71,6 +75,8 @@ class Reconstructor:
             raise ValueError(f"unwrap: expected one of {UNWRAP_MODES}, got {unwrap!r}")
         if not 0 <= margin < math.pi / 2:
             raise ValueError(f"margin: expected 0 <= margin < pi/2 rad, got {margin}")
+        if network_support_px is not None and network_support_px < 0:
+            raise ValueError(f"network_support_px: expected None or >= 0 px, got {network_support_px}")
         self.rig = rig
         self.period_px = period_px
         self.mode = unwrap
@@ -101,6 +107,7 @@ class Reconstructor:
         self.max_sigma = max_sigma
         self.margin = margin
         self.mixed_border_px = mixed_border_px
+        self.network_support_px = network_support_px
 
     @classmethod
     def for_gear(cls, rig: Rig, period_px: float, gear, **kw) -> Reconstructor:
@@ -153,6 +160,13 @@ class Reconstructor:
                 f"{cam_shape}: wrong rig file for this camera/ROI?"
             )
         candidate = (result.modulation >= self.min_modulation) & (result.sigma_total <= self.max_sigma)
+        unsupported = np.zeros(candidate.shape, bool)
+        if self.network_support_px is not None and result.mode != "three-step":
+            from gearscan.core.phase import fringe_support
+
+            support = fringe_support(burst.images, burst.full_scale, self.min_modulation, self.network_support_px)
+            unsupported = candidate & ~support
+            candidate = candidate & support
         if self.mode in ("cad", "coarse"):
             source = self.cad if self.mode == "cad" else self.prior
             depth = (source.depth(burst.angles[0], candidate) if source is not None
@@ -191,6 +205,7 @@ class Reconstructor:
             "regions_resolved": regions.resolved_regions,
             "unresolved": int(unresolved.sum()),
             "mixed": int(mixed.sum()),
+            "unsupported": int(unsupported.sum()),
         }
         cloud = to_cloud(tri, self.rig, result.angle, burst_index=burst.index)
         return Measurement(burst, result, cloud, phase_abs, tri.valid, unresolved, stats, mixed)

@@ -81,6 +81,30 @@ def still_frame_noise(images: np.ndarray, where: np.ndarray | None = None) -> fl
     return float(np.median(response[keep]) / 0.6745 / 6.0 / np.sqrt(images.shape[0]))
 
 
+def frame_swing(frames: np.ndarray) -> np.ndarray:
+    """Three-step amplitude B' of ``(3, H, W)`` frames (order-free: from the three pairwise differences).
+
+    On a still pixel it is three-step PS's own B; on a moving one it stays near B unless the three fringe
+    phases nearly coincide, where the frames hold no fringe information at all."""
+    f = frames
+    return np.sqrt(2.0 * ((f[0] - f[1]) ** 2 + (f[1] - f[2]) ** 2 + (f[0] - f[2]) ** 2)) / 3.0
+
+
+def fringe_support(images: np.ndarray, full_scale: float, min_modulation: float, px: int) -> np.ndarray:
+    """Pixels whose own frames, and every frame pixel within ``px`` (a (2 px + 1)^2 square), show fringes:
+    ``2 B' / S >= min_modulation`` (:func:`frame_swing`). The image border does not erode. Evidence from the
+    frames alone, for decoders (a network) whose modulation is their own estimate."""
+    images = np.asarray(images)
+    if images.ndim != 3 or images.shape[0] != 3:
+        raise ValueError(f"images: expected (3, H, W), got shape {images.shape}")
+    if px < 0:
+        raise ValueError(f"px: expected >= 0, got {px}")
+    lit = (2.0 * frame_swing(images.astype(np.float32) / np.float32(full_scale)) >= min_modulation).astype(np.uint8)
+    if px:
+        lit = cv2.erode(lit, np.ones((2 * px + 1, 2 * px + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return lit.astype(bool)
+
+
 # Three-step PS's error from non-sinusoidal fringes (residual projector/camera gamma): harmonics 2 and 4
 # alias onto the fundamental, so the decoded phase is ``phi - r sin(3 phi)`` (in-phase harmonics of a
 # pointwise non-linearity; r ~ B2/B1). Its gradient then ripples as ``1 - 3 r cos(3 phi)``, which the

@@ -172,7 +172,8 @@ class Measurement:
     ``unresolved`` marks pixels that passed the modulation and sigma tests but got no point
     (no prior there, or the surface outside the rig's unambiguous range); ``unwrap`` counts
     them by cause (``unresolved``; ``mixed``: points dropped because their pixel may blend two
-    surfaces, :func:`gearscan.recon.edges.mixed_pixels`), so nothing is dropped silently.
+    surfaces, :func:`gearscan.recon.edges.mixed_pixels`; ``unsupported``: a network's pixels whose frames show
+    no fringes around them, :class:`gearscan.recon.measure.Reconstructor`), so nothing is dropped silently.
     """
 
     burst: Burst

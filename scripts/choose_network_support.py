@@ -1,0 +1,117 @@
+"""Choose the reconstructor's fringe-support guard for network phase on the VAL split.
+
+    python scripts/choose_network_support.py [--seed 900] [--out benchmarks/network_support_val.json]
+
+Rule, written before this ran: ``benchmarks/network_support_rule.md``. Per val scene (one per gear of
+``data/repro/val_radial``, ``data/repro/val_views`` and the default rig's val gears ``data/default_rig/val/z*``),
+``--per-motion`` bursts of each motion (still, the paper's two motions both ways), seeds ``--seed`` + scene; the
+shipped model (deterministic, rig orientation, still-burst gate as shipped) decodes each burst once and every
+candidate ``network_support_px`` reconstructs it. Scored: cloud RMS over every point against the true gear
+surface, and coverage of the truth mask, per kind (still, moving). Val only: the test split reports it
+(``benchmarks/inference_accuracy.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import torch
+
+from gearscan.core.types import Burst, Frame
+from gearscan.evaluate import (
+    PAPER_MOTIONS,
+    REVERSED,
+    STATIC,
+    classical_method,
+    render_cases,
+    scenes_from_dataset,
+)
+from gearscan.inference.predictor import Predictor
+from gearscan.recon.measure import Reconstructor
+
+VAL = ["data/repro/val_radial", "data/repro/val_views"] + [f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)]
+CANDIDATES: tuple[int | None, ...] = (None, 0, 1, 2, 3, 4)
+STILL_COVERAGE, MOVING_COVERAGE, TIE = 0.98, 0.90, 0.01
+
+
+def key(px: int | None) -> str:
+    return "none" if px is None else str(px)
+
+
+def choose(table: dict) -> int | None:
+    """The rule over ``table[key][kind]`` (kinds "still", "moving", and "three-step moving")."""
+    base = table["none"]
+    ok = [px for px in CANDIDATES
+          if table[key(px)]["still"]["coverage"] >= STILL_COVERAGE * base["still"]["coverage"]
+          and table[key(px)]["moving"]["coverage"] >= MOVING_COVERAGE * base["moving"]["coverage"]
+          and table[key(px)]["moving"]["coverage"] >= table["three-step"]["moving"]["coverage"]]
+    mean = {px: 0.5 * (table[key(px)]["still"]["rms_um"] + table[key(px)]["moving"]["rms_um"]) for px in ok}
+    if not mean:
+        return None
+    best = min(mean.values())
+    return next(px for px in ok if mean[px] <= best * (1 + TIE))  # ok is in CANDIDATES order: None, then smaller E
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seed", type=int, default=900)
+    ap.add_argument("--per-motion", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/network_support_val.json"))
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    predictor = Predictor.load(None, orientation="normal")
+    scenes = [s for root in VAL for s in scenes_from_dataset(root)]
+    sums: dict[tuple[str, str], list[float]] = {}
+    for i, scene in enumerate(scenes):
+        surface = o3d.t.geometry.RaycastingScene()
+        surface.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(scene.gear.mesh()))
+        recons = {key(px): Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, network_support_px=px)
+                  for px in CANDIDATES}
+        for case in render_cases(scene, {**STATIC, **PAPER_MOTIONS, **REVERSED}, args.per_motion, seed=args.seed + i):
+            burst = Burst(tuple(Frame(f, j, 0, j) for j, f in enumerate(case.frames)),
+                          tuple(math.radians(a) for a in case.angles_deg))
+            kind = "still" if case.motion == "static" else "moving"
+            net = replace(predictor.predict(case.frames, 0, full_scale=case.full_scale), angle=burst.angles[0])
+            three = replace(classical_method(case.frames, case.full_scale), angle=burst.angles[0])
+            runs = [(k, rc, net) for k, rc in recons.items()] + [("three-step", recons["none"], three)]
+            for name, rc, result in runs:
+                m = rc(burst, result)
+                acc = sums.setdefault((name, kind), [0.0, 0.0, 0.0, 0.0, 0.0])
+                acc[3] += float(case.truth.mask.sum())
+                acc[4] += m.unwrap.get("unsupported", 0)
+                if m.cloud is None or not len(m.cloud):
+                    continue
+                pts = o3d.core.Tensor(np.ascontiguousarray(m.cloud.points, dtype=np.float32))
+                d = surface.compute_distance(pts).numpy().astype(np.float64)
+                rows, cols = m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]
+                acc[0] += d.size
+                acc[1] += float(np.sum(d**2))
+                acc[2] += float(case.truth.mask[rows, cols].sum())
+        for rc in recons.values():
+            rc.close()
+        print(f"{i + 1}/{len(scenes)} {scene.name}", flush=True)
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    for (name, kind), (n, sse, hit, truth, unsupported) in sums.items():
+        table.setdefault(name, {})[kind] = {"points": int(n), "rms_um": 1000 * math.sqrt(sse / n) if n else math.nan,
+                                            "coverage": hit / truth, "unsupported": int(unsupported)}
+    chosen = choose(table)
+    res = {"rule": "benchmarks/network_support_rule.md", "split": "val", "scenes": [s.name for s in scenes],
+           "seed": args.seed, "per_motion": args.per_motion, "model": "inference/weights/default.safetensors",
+           "orientation": "normal", "table": table, "chosen_network_support_px": chosen}
+    args.out.write_text(json.dumps(res, indent=1))
+    for name in [key(px) for px in CANDIDATES] + ["three-step"]:
+        row = table[name]
+        print(f"{name:>10}: still {row['still']['rms_um']:.1f} um, coverage {row['still']['coverage']:.3f}; "
+              f"moving {row['moving']['rms_um']:.1f} um, coverage {row['moving']['coverage']:.3f}")
+    print(f"chosen network_support_px: {chosen}")
+
+
+if __name__ == "__main__":
+    main()
