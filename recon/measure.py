@@ -16,6 +16,9 @@ from gearscan.core.rig import Rig
 from gearscan.core.types import Burst, Measurement, PhaseResult
 
 UNWRAP_MODES = ("cad", "envelope", "coarse")
+# a network's pixel needs fringes in its own frames on every pixel within this many px (val choice,
+# benchmarks/network_support_rule.md; scripts/choose_network_support.py -> benchmarks/network_support_val.json)
+NETWORK_SUPPORT_PX = 2
 ENVELOPE_MM = 1.0  # CAD-free unwrapping: how far the gear may stand outside its tip/root cylinders
 
 
@@ -66,7 +69,7 @@ class Reconstructor:
     def __init__(self, rig: Rig, period_px: float, gear, *, min_modulation: float = 0.05,
                  max_sigma: float = 0.3, margin: float = 0.3, unwrap: str = "cad",
                  envelope_mm: float = ENVELOPE_MM, silhouette_mm: float = 0.4, mixed_border_px: int | None = 1,
-                 network_support_px: int | None = None, threads: int | None = None) -> None:
+                 network_support_px: int | None = NETWORK_SUPPORT_PX, threads: int | None = None) -> None:
         from gearscan.recon.reconstruct import SingleFrequencyReconstructor
         from gearscan.recon.triangulate import Triangulator
         from gearscan.recon.unwrap import CadDepthBounds, phase_bounds
