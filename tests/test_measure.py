@@ -252,3 +252,80 @@ def test_auto_orientation_is_set_by_agreeing_still_bursts_and_honours_the_patter
     slow = burst(5.0, 0.1, (0, 2, 1))
     set_result, vote_result = dec(slow), mixed(slow)
     assert wrapped_rmse(set_result.phase, vote_result.phase) < 1e-5
+
+
+def _fabricated_network_result(result: PhaseResult, frames: np.ndarray, full_scale: float):
+    """``result`` relabelled as a network's, with a confident fringe invented where the frames are dark."""
+    from dataclasses import replace
+
+    from gearscan.core.phase import frame_swing
+
+    dark = 2.0 * frame_swing(frames.astype(np.float32) / full_scale) < 0.02
+    m = np.where(dark, np.float32(0.5) * np.sin(result.phase + 1.0), result.M).astype(np.float32)
+    d = np.where(dark, np.float32(0.5) * np.cos(result.phase + 1.0), result.D).astype(np.float32)
+    sigma = np.where(dark, np.float32(0.05), result.sigma_total).astype(np.float32)
+    fake = replace(result, M=m, D=d, phase=np.arctan2(m, d).astype(np.float32), sigma_total=sigma, mode="deterministic")
+    return fake, dark
+
+
+def test_a_networks_pixels_need_fringes_in_their_own_frames(clean_renderer, gear):
+    """A decoder that invents fringes where the frames are dark (what the network does at shadow borders: it
+    was trained on the truth mask only) gets no point there; the pixels are counted as unsupported. Three-step
+    PS, whose modulation is the frames' own, is untouched by the test."""
+    from gearscan.core.phase import fringe_support
+
+    angle = math.radians(2.0)
+    frames, _ = clean_renderer.render(angle, PatternSet.three_step(PERIOD))
+    burst = _burst(frames, (angle,) * 3)
+    three = classical_result(burst)
+    fake, dark = _fabricated_network_result(three, burst.images, burst.full_scale)
+    assert dark.sum() > 1000  # the scene has shadow and background to invent on
+    guarded = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear, network_support_px=2)
+    open_ = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear, network_support_px=None)
+    m_guard, m_open = guarded(burst, fake), open_(burst, fake)
+    support = fringe_support(burst.images, burst.full_scale, guarded.min_modulation, 2)
+    rows, cols = m_guard.cloud.pixels.T
+    assert support[rows, cols].all()
+    invented = dark & (fake.sigma_total <= open_.max_sigma)
+    assert m_open.unwrap["candidates"] - m_guard.unwrap["candidates"] == m_guard.unwrap["unsupported"]
+    assert m_guard.unwrap["unsupported"] >= invented.sum()
+    assert m_open.unwrap["unsupported"] == 0
+    # three-step PS: the same points with and without the test
+    a, b = guarded(burst, three), open_(burst, three)
+    assert a.unwrap["unsupported"] == 0
+    np.testing.assert_array_equal(a.cloud.pixels, b.cloud.pixels)
+
+
+def test_the_support_test_brings_the_shipped_networks_still_cloud_toward_the_true_surface(rig256):
+    """The shipped network on a still burst (a val-split gear): the points the fringe-support test drops lie
+    far off the true surface, and the cloud it keeps is closer to it than the unguarded one."""
+    import open3d as o3d
+
+    from gearscan.core.gear import GearSpec
+    from gearscan.inference.predictor import Predictor
+    from gearscan.twin.render import Optics, TwinRenderer
+
+    gear = GearSpec(teeth=25)  # a val tooth count: no test gear in a test of the code
+    renderer = TwinRenderer(rig256, gear, Optics())
+    angle = math.radians(1.0)
+    frames, _ = renderer.render(angle, PatternSet.three_step(PERIOD), np.random.default_rng(3))
+    burst = _burst(frames, (angle,) * 3)
+    from dataclasses import replace
+
+    net = replace(Predictor.load(orientation="normal", still_burst_rad=0.0).predict(frames, 0, full_scale=burst.full_scale),
+                  angle=angle)
+    surface = o3d.t.geometry.RaycastingScene()
+    surface.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh()))
+
+    def distances(m):
+        return surface.compute_distance(o3d.core.Tensor(np.ascontiguousarray(m.cloud.points, np.float32))).numpy()
+
+    m_open = Reconstructor.for_gear(rig256, PERIOD, gear, network_support_px=None)(burst, net)
+    m_guard = Reconstructor.for_gear(rig256, PERIOD, gear, network_support_px=2)(burst, net)
+    d_open, d_guard = distances(m_open), distances(m_guard)
+    kept = {tuple(p) for p in m_guard.cloud.pixels}
+    dropped = np.array([tuple(p) not in kept for p in m_open.cloud.pixels])
+    assert m_guard.unwrap["unsupported"] > 0 and dropped.sum() > 100
+    rms = lambda d: float(np.sqrt(np.mean(d.astype(np.float64) ** 2)))  # noqa: E731
+    assert rms(d_open[dropped]) > 2 * rms(d_open[~dropped])  # 122 against 43 um when written
+    assert rms(d_guard) < 0.9 * rms(d_open)  # 43 against 56 um when written

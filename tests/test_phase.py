@@ -190,3 +190,22 @@ def test_still_routes_decode_with_the_correction():
     np.testing.assert_allclose(routed.phase, expected, atol=1e-6)
     np.testing.assert_allclose(routed.modulation, np.hypot(m, d), rtol=1e-5, atol=1e-6)
     assert wrapped_rmse(routed.phase, truth) < 0.5 * wrapped_rmse(plain, truth)
+
+
+def test_fringe_support_needs_fringes_on_every_pixel_around():
+    """Left of column 40 the frames swing (2B/S = 0.5), right of it they are dark: support ends ``px`` short
+    of the dark side, the image border does not erode it, and bad input is named."""
+    from gearscan.core.phase import fringe_support
+
+    h, w = 32, 64
+    phi = np.linspace(0, 8 * np.pi, w)[None, :].repeat(h, 0)
+    frames = np.stack([100 + 60 * np.cos(phi + k * 2 * np.pi / 3) for k in range(3)])
+    frames[:, :, 40:] = 100.0  # lit, no fringes
+    s0 = fringe_support(frames, 255.0, 0.05, 0)
+    s2 = fringe_support(frames, 255.0, 0.05, 2)
+    assert s0[:, :40].all() and not s0[:, 40:].any()
+    assert s2[:, :38].all() and not s2[:, 38:].any()  # the border rows and column 0 stay supported
+    with pytest.raises(ValueError, match="images"):
+        fringe_support(frames[:2], 255.0, 0.05, 1)
+    with pytest.raises(ValueError, match="px"):
+        fringe_support(frames, 255.0, 0.05, -1)
