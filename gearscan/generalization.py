@@ -20,7 +20,8 @@ Strata of one axis partition the pixels of their group (a last ``n/a`` bin takes
 values), so their counts add up to the pooled count. A stratum where the network's RMSE is above
 the baseline's (three-step PS) is flagged. ECE uses the project's reliability diagram
 (:func:`gearscan.inference.uncertainty.reliability`); coverage is the share of the truth mask that
-passes the reconstructor's own keep test (modulation >= 0.05, sigma <= 0.3 rad, finite phase).
+passes the reconstructor's own keep test (modulation >= 0.05, sigma <= 0.3 rad, finite phase; a network's pixel also
+needs fringes in its frames within 2 px: :func:`gearscan.recon.measure.keep_candidates`).
 """
 
 from __future__ import annotations
@@ -47,8 +48,6 @@ from gearscan.twin.families import FamilyScene
 
 BASELINE = "three-step PS"
 NETWORK = "CD-DCU-Net"
-MIN_MODULATION = 0.05  # the Reconstructor's keep test (gearscan.measure defaults)
-MAX_SIGMA = 0.3
 STILL, MOVING = "still", "moving"
 
 
@@ -183,9 +182,12 @@ def pixel_strata(case: BurstCase, span_deg: float) -> dict[str, np.ndarray]:
     }
 
 
-def covered(result: PhaseResult) -> np.ndarray:
-    """Pixels the reconstructor would keep from ``result`` (finite phase, modulation and sigma tests)."""
-    return np.isfinite(result.phase) & (result.modulation >= MIN_MODULATION) & (result.sigma_total <= MAX_SIGMA)
+def covered(result: PhaseResult, frames: np.ndarray, full_scale: float) -> np.ndarray:
+    """Pixels the reconstructor's keep test passes in ``result`` of these ``frames`` (its defaults:
+    :func:`gearscan.recon.measure.keep_candidates`), before unwrapping."""
+    from gearscan.recon.measure import keep_candidates
+
+    return keep_candidates(result, frames, full_scale)[0]
 
 
 # --- accumulation ---------------------------------------------------------------------------
@@ -289,7 +291,7 @@ class GeneralizationScorer:
         if n == 0:
             return
         errs = {k: phase_error(results[k].phase, case.truth.phase)[m].astype(np.float64) for k in self.methods}
-        kept = {k: covered(results[k])[m] for k in self.methods}
+        kept = {k: covered(results[k], case.frames, case.full_scale)[m] for k in self.methods}
         groups = [motion.group] + ([MOVING] if motion.kind == MOVING else [])
         for fam in (family, ALL):
             for grp in groups:

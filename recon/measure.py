@@ -31,6 +31,25 @@ def envelope_bounds(rig: Rig, gear, envelope_mm: float = ENVELOPE_MM):
                              gear.face_width + 2 * envelope_mm)
 
 
+def keep_candidates(result: PhaseResult, images: np.ndarray, full_scale: float, *, min_modulation: float = 0.05,
+                    max_sigma: float = 0.3, network_support_px: int | None = NETWORK_SUPPORT_PX) -> tuple[np.ndarray, np.ndarray]:
+    """The reconstructor's keep test before unwrapping: ``(candidate, unsupported)`` pixel masks.
+
+    Candidates have a finite phase, modulation >= ``min_modulation`` and total sigma <= ``max_sigma``; a network's
+    (``result.mode`` other than ``"three-step"``) also need fringes in the burst's own ``images`` on every pixel
+    within ``network_support_px`` (:func:`~gearscan.core.phase.fringe_support`); ``unsupported``: the pixels that
+    test alone removed."""
+    candidate = np.isfinite(result.phase) & (result.modulation >= min_modulation) & (result.sigma_total <= max_sigma)
+    unsupported = np.zeros(candidate.shape, bool)
+    if network_support_px is not None and result.mode != "three-step":
+        from gearscan.core.phase import fringe_support
+
+        support = fringe_support(images, full_scale, min_modulation, network_support_px)
+        unsupported = candidate & ~support
+        candidate = candidate & support
+    return candidate, unsupported
+
+
 class Reconstructor:
     """PhaseResult -> absolute phase -> points (turntable frame) with depth sigma.
 
@@ -162,14 +181,8 @@ class Reconstructor:
                 f"phase map {result.phase.shape} does not match the rig camera "
                 f"{cam_shape}: wrong rig file for this camera/ROI?"
             )
-        candidate = (result.modulation >= self.min_modulation) & (result.sigma_total <= self.max_sigma)
-        unsupported = np.zeros(candidate.shape, bool)
-        if self.network_support_px is not None and result.mode != "three-step":
-            from gearscan.core.phase import fringe_support
-
-            support = fringe_support(burst.images, burst.full_scale, self.min_modulation, self.network_support_px)
-            unsupported = candidate & ~support
-            candidate = candidate & support
+        candidate, unsupported = keep_candidates(result, burst.images, burst.full_scale, min_modulation=self.min_modulation,
+                                                 max_sigma=self.max_sigma, network_support_px=self.network_support_px)
         if self.mode in ("cad", "coarse"):
             source = self.cad if self.mode == "cad" else self.prior
             depth = (source.depth(burst.angles[0], candidate) if source is not None

@@ -177,7 +177,7 @@ def test_kept_rmse_is_the_error_of_the_pixels_the_keep_test_passes(cases) -> Non
         res = run_methods(case, {BASELINE: classical_method, NETWORK: flag_half})
         scorer.add("tiny", motion, case, res)
         if motion.kind == MOVING:
-            keep = covered(res[NETWORK]) & case.truth.mask
+            keep = covered(res[NETWORK], case.frames, case.full_scale) & case.truth.mask
             sse += float(np.sum(phase_error(res[NETWORK].phase, case.truth.phase)[keep].astype(np.float64) ** 2))
             n += int(keep.sum())
     cell = {(c.family, c.group): c for c in scorer.cells()}[("tiny", MOVING)]
