@@ -144,7 +144,7 @@ def classical_method(frames: np.ndarray, full_scale: float, angles: np.ndarray |
     from gearscan.core.phase import classical_result
     from gearscan.core.types import Burst, Frame
 
-    fr = tuple(Frame(f, i, 0, i, bit_depth=8 if full_scale <= 255 else 16) for i, f in enumerate(frames))
+    fr = tuple(Frame(f, i, 0, i, bit_depth=int(full_scale).bit_length()) for i, f in enumerate(frames))
     return classical_result(Burst(fr, (0.0, 0.0, 0.0)))
 
 
@@ -217,7 +217,7 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult) -> tuple[np.ndarray, in
     from gearscan.core.types import Burst, Frame
 
     rc, surface = case.scene.cad
-    fr = tuple(Frame(f, i, 0, i) for i, f in enumerate(case.frames))
+    fr = tuple(Frame(f, i, 0, i, bit_depth=int(case.full_scale).bit_length()) for i, f in enumerate(case.frames))
     angles = tuple(math.radians(a) for a in case.angles_deg)
     m = rc(Burst(fr, angles), replace(result, angle=angles[0]))
     if m.cloud is None or not len(m.cloud):

@@ -36,12 +36,12 @@ def keep_candidates(result: PhaseResult, images: np.ndarray, full_scale: float, 
     """The reconstructor's keep test before unwrapping: ``(candidate, unsupported)`` pixel masks.
 
     Candidates have a finite phase, modulation >= ``min_modulation`` and total sigma <= ``max_sigma``; a network's
-    (``result.mode`` other than ``"three-step"``) also need fringes in the burst's own ``images`` on every pixel
+    (:attr:`~gearscan.core.types.PhaseResult.from_network`) also need fringes in the burst's own ``images`` on every pixel
     within ``network_support_px`` (:func:`~gearscan.core.phase.fringe_support`); ``unsupported``: the pixels that
     test alone removed."""
     candidate = np.isfinite(result.phase) & (result.modulation >= min_modulation) & (result.sigma_total <= max_sigma)
     unsupported = np.zeros(candidate.shape, bool)
-    if network_support_px is not None and result.mode != "three-step":
+    if network_support_px is not None and result.from_network:
         from gearscan.core.phase import fringe_support
 
         support = fringe_support(images, full_scale, min_modulation, network_support_px)
@@ -75,7 +75,7 @@ class Reconstructor:
     counted in ``Measurement.unwrap`` (no order could be trusted there), never dropped silently.
     Points whose pixel may blend two surfaces (at a silhouette or depth step, camera blur mixes
     their fringes) are dropped and counted as ``mixed`` (:func:`~gearscan.recon.edges.mixed_pixels`,
-    ``mixed_border_px=None`` keeps them). A network's phase (``PhaseResult.mode`` other than ``"three-step"``)
+    ``mixed_border_px=None`` keeps them). A network's phase (``PhaseResult.from_network``: mode "deterministic" or "mc<T>")
     is a candidate only where the burst's own frames show fringes on every pixel within
     ``network_support_px`` (:func:`~gearscan.core.phase.fringe_support`): the network was trained on the twin's
     truth mask alone and invents phase, modulation and a small sigma at shadow borders, creases and silhouettes;

@@ -75,7 +75,7 @@ def main() -> None:
         recons = {key(px): Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, network_support_px=px)
                   for px in CANDIDATES}
         for case in render_cases(scene, {**STATIC, **PAPER_MOTIONS, **REVERSED}, args.per_motion, seed=args.seed + i):
-            burst = Burst(tuple(Frame(f, j, 0, j) for j, f in enumerate(case.frames)),
+            burst = Burst(tuple(Frame(f, j, 0, j, bit_depth=int(case.full_scale).bit_length()) for j, f in enumerate(case.frames)),
                           tuple(math.radians(a) for a in case.angles_deg))
             kind = "still" if case.motion == "static" else "moving"
             net = replace(predictor.predict(case.frames, 0, full_scale=case.full_scale), angle=burst.angles[0])

@@ -290,10 +290,22 @@ def test_a_networks_pixels_need_fringes_in_their_own_frames(clean_renderer, gear
     assert m_open.unwrap["candidates"] - m_guard.unwrap["candidates"] == m_guard.unwrap["unsupported"]
     assert m_guard.unwrap["unsupported"] >= invented.sum()
     assert m_open.unwrap["unsupported"] == 0
-    # three-step PS: the same points with and without the test
-    a, b = guarded(burst, three), open_(burst, three)
-    assert a.unwrap["unsupported"] == 0
-    np.testing.assert_array_equal(a.cloud.pixels, b.cloud.pixels)
+    # three-step PS, and any decoder that reads its modulation off the frames: the same points with and without it
+    from dataclasses import replace
+
+    for classical in (three, replace(three, mode="aia"), replace(three, mode="twin prior")):
+        a, b = guarded(burst, classical), open_(burst, classical)
+        assert a.unwrap["unsupported"] == 0
+        np.testing.assert_array_equal(a.cloud.pixels, b.cloud.pixels)
+    # Monte Carlo results are a network's too
+    assert guarded(burst, replace(fake, mode="mc20")).unwrap["unsupported"] == m_guard.unwrap["unsupported"]
+
+
+@pytest.mark.parametrize("mode, network", [("deterministic", True), ("mc20", True), ("three-step", False),
+                                           ("aia", False), ("hilbert", False), ("twin prior", False), ("mcx", False)])
+def test_which_results_come_from_a_network(mode, network):
+    r = PhaseResult(*(np.zeros((2, 2), np.float32) for _ in range(6)), mode=mode)
+    assert r.from_network is network
 
 
 def test_the_support_test_brings_the_shipped_networks_still_cloud_toward_the_true_surface(rig256):

@@ -205,6 +205,8 @@ def test_fringe_support_needs_fringes_on_every_pixel_around():
     s2 = fringe_support(frames, 255.0, 0.05, 2)
     assert s0[:, :40].all() and not s0[:, 40:].any()
     assert s2[:, :38].all() and not s2[:, 38:].any()  # the border rows and column 0 stay supported
+    raw12 = np.round(frames * 16).astype(np.uint16)  # the same scene from a 12-bit camera, raw integers
+    np.testing.assert_array_equal(fringe_support(raw12, 4095.0, 0.05, 2), s2)
     with pytest.raises(ValueError, match="images"):
         fringe_support(frames[:2], 255.0, 0.05, 1)
     with pytest.raises(ValueError, match="px"):

@@ -86,7 +86,7 @@ def frame_swing(frames: np.ndarray) -> np.ndarray:
 
     On a still pixel it is three-step PS's own B; on a moving one it stays near B unless the three fringe
     phases nearly coincide, where the frames hold no fringe information at all."""
-    f = frames
+    f = np.asarray(frames, np.float32)  # raw integer frames would wrap in the differences
     return np.sqrt(2.0 * ((f[0] - f[1]) ** 2 + (f[1] - f[2]) ** 2 + (f[0] - f[2]) ** 2)) / 3.0
 
 

@@ -142,6 +142,12 @@ class PhaseResult:
         """Normalised modulation ``2B/S`` per pixel."""
         return np.hypot(self.M, self.D)
 
+    @property
+    def from_network(self) -> bool:
+        """Whether a network decoded it (``mode`` "deterministic" or "mc<T>"): its modulation is the network's own
+        estimate, not the frames' (three-step PS, AIA, Hilbert and the twin prior read theirs off the frames)."""
+        return self.mode == "deterministic" or (self.mode.startswith("mc") and self.mode[2:].isdigit())
+
 
 @dataclass(frozen=True, slots=True)
 class Cloud:
