@@ -223,8 +223,10 @@ def main() -> None:
         f"the {1e3 * insp.settings['chip_mm']:.0f} µm chip threshold: the check is "
         f"{'conclusive' if insp.chip_check_conclusive else 'inconclusive (it flags nothing rather than noise)'}. "
         f"Fused only, the spread is {plain.inspection.chip_noise_um:.1f} µm and the check "
-        f"{'conclusive' if plain.inspection.chip_check_conclusive else 'inconclusive'}: without the frame fit, "
-        "the moving cloud is too noisy to tell a chip from noise (it refuses to answer rather than flag intact teeth).",
+        + (f"conclusive: it flags teeth {', '.join(str(t) for t in plain.inspection.chipped_teeth) or 'none'} "
+           f"against the true {truth['chipped_teeth']}." if plain.inspection.chip_check_conclusive else
+           "inconclusive: without the frame fit the moving cloud is too noisy to tell a chip from noise (it refuses "
+           "to answer rather than flag intact teeth)."),
         "",
         "## Fused cloud vs the true (as-built) surface",
         "",
