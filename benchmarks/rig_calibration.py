@@ -48,16 +48,25 @@ MAPS = ("shipped map", "rig's map")
 MODES = ("det", "mc")
 
 
-def adaptation_data(scene, root: Path, start_points: int, seed: int) -> tuple[Path, np.ndarray]:
-    """Render (or reuse) the scene's adaptation dataset; returns its folder and every pose angle (deg)."""
+OFFSETS = tuple(0.037 * k for k in range(20))  # start-grid offsets (deg) tried in turn until no test angle is on a pose
+
+
+def adaptation_data(scene, root: Path, start_points: int, seed: int, test_angles: np.ndarray) -> tuple[Path, float, float]:
+    """Render (or reuse) the scene's adaptation dataset on the first start grid (:data:`OFFSETS`) with no pose
+    within 1e-4 deg of a test burst's angle; returns its folder, the grid's offset and the smallest gap (deg)."""
     gear = scene.gear
     pitch = 360.0 / gear.teeth
     w, h = scene.rig.camera.width, scene.rig.camera.height
-    spec = DatasetSpec(gears=[gear], width=w, height=h, period_px=scene.period_px, seed=seed,
-                       start_step_deg=pitch / start_points, max_start_points=start_points)
     refuse_test(seed=seed, what="adaptation data of the rig-calibration benchmark")
-    generate_dataset(root, spec, scene=(scene.rig, scene.optics, gear, scene.period_px), purpose="adaptation")
-    return root, pose_angles(spec, [k * spec.start_step_deg for k in range(start_points)])
+    for offset in OFFSETS:
+        spec = DatasetSpec(gears=[gear], width=w, height=h, period_px=scene.period_px, seed=seed,
+                           start_step_deg=pitch / start_points, max_start_points=start_points, start_offset_deg=offset)
+        poses = pose_angles(spec, [offset + k * spec.start_step_deg for k in range(start_points)])
+        gap = angle_gap_deg(test_angles, poses, pitch)
+        if gap >= 1e-4:
+            generate_dataset(root, spec, scene=(scene.rig, scene.optics, gear, scene.period_px), purpose="adaptation")
+            return root, offset, gap
+    raise SystemExit(f"{scene.name}: every start grid tried puts a pose on a test burst angle")
 
 
 class Pool:
@@ -102,10 +111,9 @@ def run(args) -> dict:
             cases = render_cases(sc, {m.name: m.steps_deg for m in base}, args.reps, seed=scene.seed)
             orientation = rig_orientation(motions, cases)
             out = args.runs / f"{fam}_{k}"
-            data, poses = adaptation_data(scene, out / "data", args.start_points, args.seed)
-            gap = angle_gap_deg(np.array([a for c in cases for a in c.angles_deg]), poses, 360.0 / scene.gear.teeth)
-            if gap < 1e-4:
-                raise SystemExit(f"{scene.name}: a test burst angle lies on an adaptation pose (gap {gap:.2g} deg)")
+            shutil.rmtree(out / "data", ignore_errors=True)  # the grid may differ from an earlier run's
+            data, offset, gap = adaptation_data(scene, out / "data", args.start_points, args.seed,
+                                                np.array([a for c in cases for a in c.angles_deg]))
             weights = out / "rig_map.safetensors"
             fit = calibrate_model(args.model, [data], items=args.items, mc=args.mc, seed=0, output=weights,
                                   orientation=orientation)
@@ -125,7 +133,7 @@ def run(args) -> dict:
                     if not np.array_equal(*phases):
                         raise SystemExit(f"{scene.name}, {motion.name}, {mode}: the two maps gave different phases")
             scenes_json.append({"name": scene.name, "family": fam, "seed": scene.seed, "params": dict(scene.params),
-                                "orientation": orientation, "test_bursts": len(cases), "pose_gap_deg": gap,
+                                "orientation": orientation, "test_bursts": len(cases), "pose_gap_deg": gap, "start_offset_deg": offset,
                                 "rig_map": fit["deterministic"]["map"], "rig_map_mc": fit.get("mc", {}).get("map"),
                                 "held_out": {m: fit[m].get("held_out") for m in ("deterministic", "mc") if m in fit},
                                 "seconds": time.perf_counter() - t0})

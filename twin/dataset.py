@@ -73,6 +73,8 @@ class DatasetSpec(BaseModel):
         "log-uniformly; None: the radial randomiser's own range (twin.randomize.RANGES, uniform 12-40)")
     seed: int = 0
     max_start_points: int | None = Field(None, ge=1, description="per gear, for quick sets")
+    start_offset_deg: float = Field(0.0, ge=0, lt=90, description="the first start point's angle (deg); the grid "
+                                    "moves with it, e.g. off another set's angles")
 
     @field_validator("steps")
     @classmethod
@@ -179,7 +181,7 @@ def generate_dataset(
     done = {e["id"] for e in index["entries"]}
     jobs = []
     for g in range(len(spec.gears)):
-        starts = start_points(spec.gears[g], spec.start_step_deg)[: spec.max_start_points]
+        starts = [spec.start_offset_deg + a for a in start_points(spec.gears[g], spec.start_step_deg)[: spec.max_start_points]]
         for s, start in enumerate(starts):
             jobs.append((f"sp_{g:02d}_{s:03d}", g, start))
     renderers: dict[int, tuple[TwinRenderer, float, Rig, Optics, GearSpec]] = {}
