@@ -184,7 +184,8 @@ def run_live(
                                  orientation=cfg.model.orientation)
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
-                                   unwrap=cfg.recon.unwrap)
+                                   unwrap=cfg.recon.unwrap,
+                                   network_support_px=None if cfg.recon.network_support_px < 0 else cfg.recon.network_support_px)
     coarse = CoarseStage(rig, cfg.projector.coarse_period_px, cfg.gear, recon if cfg.recon.unwrap == "coarse" else None)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None
     logger = None
