@@ -25,6 +25,11 @@ means altogether (they then learn from the MSE alone).
 (normalised to mean 1 over valid pixels) with ``m_i = hypot(M_i, D_i)`` of the label, so the MSE
 on (M, D) approximates the squared *phase* error ``|dMD|^2 / m^2``, and weakly modulated pixels
 are not under-weighted.
+
+``outside_weight`` adds ``outside_weight * mean_j[ (y_j - mu_j)^2 ]`` over the pixels *outside* the mask (the
+18-step label there: low modulation in shadow, the blurred measurement at edges and creases). Without it the
+network is never told what to output where the truth mask ends, and invents phase and modulation there
+(session 32, ``benchmarks/network_support_rule.md``). 0 (the default): the loss of every model so far.
 """
 
 from __future__ import annotations
@@ -45,8 +50,11 @@ class LossConfig:
     modulation_floor: float = 0.05
     detach_mean: bool = False
     regularization: bool = True
+    outside_weight: float = 0.0
 
     def __post_init__(self) -> None:
+        if not self.outside_weight >= 0:
+            raise ValueError(f"outside_weight: expected >= 0, got {self.outside_weight}")
         if self.alpha < 0 or self.mse_weight < 0:
             raise ValueError(
                 f"alpha and mse_weight: expected >= 0, got {self.alpha}, {self.mse_weight}"
@@ -142,4 +150,9 @@ class PhaseLoss(nn.Module):
             else torch.zeros((), device=pred.device)
         )
         total = c.alpha * nll + c.mse_weight * mse + reg
-        return {"total": total, "nll": nll.detach(), "mse": mse.detach(), "reg": reg.detach()}
+        out = {"nll": nll.detach(), "mse": mse.detach(), "reg": reg.detach()}
+        if c.outside_weight > 0 and mask is not None:
+            outside = weighted_mse(pred, target, ~_check(pred, target, mask))
+            total = total + c.outside_weight * outside
+            out["outside"] = outside.detach()
+        return {"total": total, **out}

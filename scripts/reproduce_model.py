@@ -122,7 +122,8 @@ def _train_cmd(args, train_dirs: list[Path], val_dirs: list[Path], out: Path, ep
             "--static-repeat", str(args.static_repeat), "--dropout-init", "0.02,0.1", "--device", args.device,
             "--workers", str(args.workers), "--threads", str(args.threads),
             *(["--init", str(args.init)] if args.init else []),
-            *(["--prior-input", "--prior-jitter", str(args.prior_jitter)] if args.prior_input else [])]
+            *(["--prior-input", "--prior-jitter", str(args.prior_jitter)] if args.prior_input else []),
+            *(["--outside-weight", str(args.outside_weight)] if args.outside_weight else [])]
 
 
 def main() -> None:
@@ -138,6 +139,8 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--static-repeat", type=int, default=20, help="oversample the still bursts")
+    ap.add_argument("--outside-weight", type=float, default=0.0,
+                    help="weight of the M, D error outside the truth mask (inference.losses.LossConfig.outside_weight)")
     ap.add_argument("--steps-per-epoch", type=int, default=200)
     ap.add_argument("--val-items", type=int, default=96)
     ap.add_argument("--train-minutes", type=float, default=120.0, help="wall-clock training budget")

@@ -80,6 +80,8 @@ def main() -> None:
     ap.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
                     help="autocast; auto = bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), else fp32")
     ap.add_argument("--mse-weighting", default="modulation")
+    ap.add_argument("--outside-weight", type=float, default=0.0,
+                    help="weight of the M, D error outside the truth mask (against the 18-step label); 0: none")
     ap.add_argument("--no-residual", action="store_true")
     ap.add_argument("--motion-input", action="store_true",
                     help="feed the encoder's rotation within the burst (2 extra channels); with --init from a "
@@ -127,7 +129,7 @@ def main() -> None:
                           in_channels=3 + 2 * args.motion_input + PRIOR_CHANNELS * args.prior_input,
                           motion_input=args.motion_input, prior_input=args.prior_input,
                           init_min=p_min, init_max=p_max),
-        loss=LossConfig(alpha=1e-4, mse_weight=1.0, mse_weighting=args.mse_weighting),
+        loss=LossConfig(alpha=1e-4, mse_weight=1.0, mse_weighting=args.mse_weighting, outside_weight=args.outside_weight),
         epochs_deterministic=args.epochs_det,
         epochs_dropout=args.epochs_drop,
         batch_size=args.batch,

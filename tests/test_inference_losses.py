@@ -81,3 +81,30 @@ def test_shape_errors_name_the_argument():
         )
     with pytest.raises(ValueError, match="mse_weighting"):
         LossConfig(mse_weighting="phase")
+
+
+def test_outside_weight_teaches_the_pixels_outside_the_mask():
+    """Outside the truth mask the 18-step label (low modulation in shadow) is learnt with ``outside_weight``:
+    a prediction right inside the mask but inventing fringes outside it costs more, and only then; 0 keeps the
+    loss of every shipped model bit for bit."""
+    import torch
+
+    from gearscan.inference.losses import LossConfig, PhaseLoss
+
+    torch.manual_seed(0)
+    target = torch.zeros(1, 2, 8, 8)
+    target[:, :, :, :4] = 0.4  # lit half with fringes, dark half with none
+    mask = torch.zeros(1, 8, 8, dtype=torch.bool)
+    mask[:, :, :4] = True
+    pred = torch.cat([target.clone(), torch.full((1, 2, 8, 8), 0.01)], 1)  # means, variances
+    pred[:, :2, :, 4:] = 0.4  # invented fringes in the dark half
+    pred.requires_grad_(True)
+    plain, taught = PhaseLoss(LossConfig()), PhaseLoss(LossConfig(outside_weight=0.1))
+    a, b = plain(pred, target, mask), taught(pred, target, mask)
+    assert "outside" not in a and float(b["outside"]) == pytest.approx(0.4**2, rel=1e-5)
+    assert float(b["total"]) == pytest.approx(float(a["total"]) + 0.1 * 0.4**2, rel=1e-5)
+    b["total"].backward()
+    assert pred.grad[:, :2, :, 4:].abs().min() > 0  # the outside means are pulled toward the label
+    assert float(taught(pred, target, None)["total"]) == pytest.approx(float(plain(pred, target, None)["total"]))
+    with pytest.raises(ValueError, match="outside_weight"):
+        LossConfig(outside_weight=-1.0)
