@@ -64,9 +64,10 @@ def main() -> None:
     ap.add_argument("--per-motion", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/network_support_val.json"))
+    ap.add_argument("--model", type=Path, default=None, help="weights to score (default: the shipped model)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    predictor = Predictor.load(None, orientation="normal")
+    predictor = Predictor.load(args.model, orientation="normal")
     scenes = [s for root in VAL for s in scenes_from_dataset(root)]
     sums: dict[tuple[str, str], list[float]] = {}
     for i, scene in enumerate(scenes):
@@ -103,7 +104,7 @@ def main() -> None:
                                             "coverage": hit / truth, "unsupported": int(unsupported)}
     chosen = choose(table)
     res = {"rule": "benchmarks/network_support_rule.md", "split": "val", "scenes": [s.name for s in scenes],
-           "seed": args.seed, "per_motion": args.per_motion, "model": "inference/weights/default.safetensors",
+           "seed": args.seed, "per_motion": args.per_motion, "model": str(args.model or "inference/weights/default.safetensors"),
            "orientation": "normal", "table": table, "chosen_network_support_px": chosen}
     args.out.write_text(json.dumps(res, indent=1))
     for name in [key(px) for px in CANDIDATES] + ["three-step"]:
