@@ -270,6 +270,7 @@ def replay_cmd(
     ply: Annotated[Path | None, typer.Option(help="write every burst's cloud (gear frame: x y z mm, sigma) as DIR/burst_NNNNNN.ply")] = None,
     csv: Annotated[Path | None, typer.Option(help="write every burst's cloud as DIR/burst_NNNNNN.csv (x_mm,y_mm,z_mm,sigma_mm[,deviation_mm])")] = None,
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON for a recording made without one (replaces the recording's own)")] = None,
+    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default 2, recon.measure.NETWORK_SUPPORT_PX)")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
 
@@ -309,7 +310,9 @@ def replay_cmd(
 
             fuser = CloudFuser(voxel_mm, min_bursts)
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
-                        truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None)
+                        truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None,
+                        **({} if network_support_px is None else
+                           {"network_support_px": None if network_support_px < 0 else network_support_px}))
         if fuse is not None:
             from gearscan.inspect import dropped_note
             from gearscan.recon.fuse import save_fused

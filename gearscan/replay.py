@@ -24,7 +24,7 @@ from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
-from gearscan.recon.measure import CoarseStage, Reconstructor
+from gearscan.recon.measure import NETWORK_SUPPORT_PX, CoarseStage, Reconstructor
 
 log = logging.getLogger(__name__)
 
@@ -230,9 +230,11 @@ def replay(
     rig: str | Path | Rig | None = None,
     export: CloudExport | None = None,
     refine: bool = False,
+    network_support_px: int | None = NETWORK_SUPPORT_PX,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
+    ``network_support_px``: the reconstructor's fringe-support test of a network's pixels (None: off).
     ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
     ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.recon.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
@@ -267,7 +269,8 @@ def replay(
         raise RecordingError(f"{reader.path}: --unwrap coarse needs coarse bursts, and this recording's pattern set "
                              f"({patterns.name}) has none; use --unwrap cad (with the gear's CAD) or envelope")
     gear = reader.gear
-    recon = Reconstructor.for_gear(rig, period, gear, unwrap=unwrap) if (reconstruct and gear is not None) else None
+    recon = (Reconstructor.for_gear(rig, period, gear, unwrap=unwrap, network_support_px=network_support_px)
+             if (reconstruct and gear is not None) else None)
     coarse = CoarseStage(rig, coarse_period, gear, recon if unwrap == "coarse" else None)
     scorer = TruthScorer(reader) if (truth and reader.has_truth()) else None
     export_cad = CadScorer(gear) if (export is not None and gear is not None) else None  # deviation in every file

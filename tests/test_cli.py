@@ -187,3 +187,22 @@ def test_twin_render_alternate_order_replays_both_orders(tmp_path):
     assert res.exit_code == 0, res.output
     data = json.loads(metrics.read_text())
     assert data["summary"]["bursts"] == 2 and data["summary"]["three-step_rmse_rad"] < 0.05, data["summary"]
+
+
+def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording, tmp_path):
+    """`--network-support-px -1` turns the fringe-support test of the network's pixels off; the default keeps
+    the shipped 2 px, and the metrics count the pixels it drops."""
+    from gearscan.recon.measure import NETWORK_SUPPORT_PX
+
+    counts = {}
+    for label, extra in (("default", []), ("off", ["--network-support-px", "-1"])):
+        metrics = tmp_path / f"{label}.json"
+        res = runner.invoke(app, ["replay", str(twin_recording), "--orientation", "normal", "--metrics",
+                                  str(metrics), "--save", str(tmp_path / f"{label}.rrd"), *extra])
+        assert res.exit_code == 0, res.output
+        rows = json.loads(metrics.read_text())["bursts"]
+        counts[label] = sum(r.get("unwrap_unsupported", 0) for r in rows)
+    assert NETWORK_SUPPORT_PX == 2
+    assert counts["off"] == 0 and counts["default"] > 0
+    res = runner.invoke(app, ["replay", str(twin_recording), "--network-support-px", "-2"])
+    assert res.exit_code == 2
