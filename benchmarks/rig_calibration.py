@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shutil
 import time
 from pathlib import Path
@@ -143,7 +144,7 @@ def run(args) -> dict:
     table = {fam: {f"{m}|{mode}|{kind}": pool.scores((m, mode, kind)) for m in MAPS for mode in MODES
                    for kind in (MOVING, STILL)} for fam, pool in pools.items()}
     return {"commit": git("rev-parse", "--short", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
-            "host": machine | {"loadavg_end": __import__("os").getloadavg()}, "threads": args.threads,
+            "host": machine | {"loadavg_end": os.getloadavg()}, "threads": args.threads,
             "model": str(args.model or DEFAULT_MODEL), "precision": Predictor.load(args.model).precision,
             "settings": {"scenes": args.scenes, "start_points": args.start_points, "seed": args.seed,
                          "items": args.items, "mc": args.mc, "reps": args.reps},

@@ -71,8 +71,7 @@ def main() -> None:
     scenes = [s for root in VAL for s in scenes_from_dataset(root)]
     sums: dict[tuple[str, str], list[float]] = {}
     for i, scene in enumerate(scenes):
-        surface = o3d.t.geometry.RaycastingScene()
-        surface.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(scene.gear.mesh()))
+        surface = scene.cad[1]  # the true gear surface evaluate.cloud_accuracy scores against
         recons = {key(px): Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, network_support_px=px)
                   for px in CANDIDATES}
         for case in render_cases(scene, {**STATIC, **PAPER_MOTIONS, **REVERSED}, args.per_motion, seed=args.seed + i):
