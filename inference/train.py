@@ -8,7 +8,9 @@
   schedulers, stepped once per epoch (:mod:`gearscan.inference.lr_schedule`).
 - Early stopping per stage after ``patience`` epochs without validation improvement. The
   validation score is ``alpha*NLL + mse_weight*MSE`` in deterministic mode (no regulariser), so
-  it compares across stages.
+  it compares across stages; ``val_objective="full"`` adds the loss's outside-mask term, so that a
+  run trained with it is stopped on what it is trained for (``val_inside_loss`` and
+  ``val_outside`` are kept apart in every row either way).
 - Split by ``group``: no start point in both train and validation.
 - Output folder: ``best.safetensors/.json`` (a Predictor-ready model, with the fitted variance
   scale and the per-mode sigma calibration of :mod:`gearscan.inference.uncertainty`), ``last.*`` + ``last_optim.pt`` (resume), ``metrics.csv``, ``metrics.json``,
@@ -65,6 +67,9 @@ from gearscan.inference.models import ModelConfig, PhaseNet, build_model
 from gearscan.inference.plots import plot_history
 
 
+VAL_OBJECTIVES = ("inside", "full")
+
+
 @dataclass
 class TrainConfig:
     out_dir: str = "runs/cd-dcu-net"
@@ -95,6 +100,9 @@ class TrainConfig:
     calibrate_mc: int = 20  # MC passes for the MC-mode sigma calibration (0: deterministic only)
     budget_cpu_min: float | None = None  # stop at this many CPU minutes of this process (all threads)
     checkpoints_cpu_min: tuple[float, ...] = ()  # save the best-on-val weights so far at these CPU minutes
+    # what early stopping reads: "inside" (the truth mask only; every model so far) or "full" (the trained
+    # objective, with the loss's ``outside_weight`` term; the same as "inside" when that weight is 0)
+    val_objective: str = "inside"
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):
@@ -117,6 +125,8 @@ class TrainConfig:
         self.checkpoints_cpu_min = tuple(sorted(float(m) for m in self.checkpoints_cpu_min))
         if any(not m > 0 for m in self.checkpoints_cpu_min):
             raise ValueError(f"checkpoints_cpu_min: expected CPU minutes > 0, got {self.checkpoints_cpu_min}")
+        if self.val_objective not in VAL_OBJECTIVES:
+            raise ValueError(f"val_objective: expected one of {VAL_OBJECTIVES}, got {self.val_objective!r}")
         from gearscan.inference.predictor import PRECISIONS
 
         if self.precision not in PRECISIONS:
@@ -366,7 +376,7 @@ class Trainer:
         self.model.eval()
         set_stochastic(self.model, False)
         c = self.config.loss
-        acc = [0.0, 0.0, 0.0, 0.0]  # score*batches, batches, sq err, pixels
+        acc = [0.0, 0.0, 0.0, 0.0, 0.0]  # inside score*batches, batches, sq err, pixels, outside*batches
         for batch in self._loader(self.val_set, False, 0):
             with self._autocast():
                 pred = self.model(batch["input"].to(self.device))
@@ -379,8 +389,15 @@ class Trainer:
             se, npx = _wrapped_sq_err(pred.float(), batch["phase"].to(self.device), mask)
             acc[2] += se
             acc[3] += npx
+            acc[4] += float(losses["outside"]) if "outside" in losses else 0.0
         acc = all_reduce_sum(acc, self.dist, self.device)
-        return {"val_loss": acc[0] / max(acc[1], 1), "val_rmse": math.sqrt(acc[2] / max(acc[3], 1))}
+        n = max(acc[1], 1)
+        row = {"val_loss": acc[0] / n, "val_rmse": math.sqrt(acc[2] / max(acc[3], 1))}
+        if c.outside_weight > 0:  # both parts are kept; ``val_loss`` is the one early stopping reads
+            row["val_inside_loss"], row["val_outside"] = acc[0] / n, acc[4] / n
+            if self.config.val_objective == "full":
+                row["val_loss"] = (acc[0] + c.outside_weight * acc[4]) / n
+        return row
 
     # both stages -----------------------------------------------------------------------------
     def fit(self) -> TrainResult:

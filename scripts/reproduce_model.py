@@ -123,7 +123,8 @@ def _train_cmd(args, train_dirs: list[Path], val_dirs: list[Path], out: Path, ep
             "--workers", str(args.workers), "--threads", str(args.threads),
             *(["--init", str(args.init)] if args.init else []),
             *(["--prior-input", "--prior-jitter", str(args.prior_jitter)] if args.prior_input else []),
-            *(["--outside-weight", str(args.outside_weight)] if args.outside_weight else [])]
+            *(["--outside-weight", str(args.outside_weight)] if args.outside_weight else []),
+            *(["--val-objective", args.val_objective] if args.val_objective != "inside" else [])]
 
 
 def main() -> None:
@@ -141,6 +142,8 @@ def main() -> None:
     ap.add_argument("--static-repeat", type=int, default=20, help="oversample the still bursts")
     ap.add_argument("--outside-weight", type=float, default=0.0,
                     help="weight of the M, D error outside the truth mask (inference.losses.LossConfig.outside_weight)")
+    ap.add_argument("--val-objective", default="inside", choices=["inside", "full"],
+                    help="what early stopping reads (scripts/train_default.py)")
     ap.add_argument("--steps-per-epoch", type=int, default=200)
     ap.add_argument("--val-items", type=int, default=96)
     ap.add_argument("--train-minutes", type=float, default=120.0, help="wall-clock training budget")

@@ -82,6 +82,9 @@ def main() -> None:
     ap.add_argument("--mse-weighting", default="modulation")
     ap.add_argument("--outside-weight", type=float, default=0.0,
                     help="weight of the M, D error outside the truth mask (against the 18-step label); 0: none")
+    ap.add_argument("--val-objective", default="inside", choices=["inside", "full"],
+                    help="what early stopping reads: the inside-mask loss (every model so far) or the full objective "
+                         "with the --outside-weight term")
     ap.add_argument("--no-residual", action="store_true")
     ap.add_argument("--motion-input", action="store_true",
                     help="feed the encoder's rotation within the burst (2 extra channels); with --init from a "
@@ -141,6 +144,7 @@ def main() -> None:
         reset_dropout=args.reset_dropout,
         widen_inputs=args.motion_input or args.prior_input,
         steps_per_epoch=args.steps_per_epoch,
+        val_objective=args.val_objective,
         precision=args.precision,
         device=args.device,
         num_workers=args.workers,

@@ -205,6 +205,31 @@ def test_cpu_budget_stops_cleanly_and_keeps_the_best_on_val(tmp_path):
     assert mark.is_file() and json.loads(mark.with_suffix(".json").read_text())["cpu_min"] >= 0.01
 
 
+def test_val_objective_full_stops_on_the_trained_objective(tmp_path):
+    """With ``outside_weight``, every row keeps the inside loss and the outside term apart; early stopping
+    reads the inside loss by default and the trained objective (inside + weight * outside) with "full"."""
+    ds = TensorBurstDataset(list(twin_items()))
+    assert any((~it["mask"]).any() for it in ds.items)  # background to be taught
+    w = 0.5
+    runs = {}
+    for objective in ("inside", "full"):
+        cfg = _cfg(tmp_path, out_dir=str(tmp_path / objective), loss=LossConfig(outside_weight=w),
+                   epochs_deterministic=3, epochs_dropout=0, lr=3e-3, calibrate=False, val_objective=objective)
+        runs[objective] = train(cfg, ds, ds).history
+    for objective, hist in runs.items():
+        for h in hist:
+            assert h["val_outside"] > 0 and h["val_inside_loss"] > 0
+            expected = h["val_inside_loss"] + (w * h["val_outside"] if objective == "full" else 0.0)
+            assert h["val_loss"] == pytest.approx(expected, rel=1e-9)
+        best = json.loads((tmp_path / objective / "stage1_best.json").read_text())["metrics"]
+        assert best["val_loss"] == min(h["val_loss"] for h in hist)
+    # the same seed and data: both runs trained the same weights, so only what they read differs
+    for a, b in zip(runs["inside"], runs["full"], strict=True):
+        assert a["val_outside"] == pytest.approx(b["val_outside"], rel=1e-4)
+    with pytest.raises(ValueError, match="val_objective"):
+        _cfg(tmp_path, val_objective="outside")
+
+
 def test_split_by_group_never_mixes():
     groups = [g for g in range(10) for _ in range(5)]
     tr, va = split_by_group(groups, 0.3, seed=3)
