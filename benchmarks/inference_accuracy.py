@@ -51,6 +51,7 @@ def main() -> None:
     ap.add_argument("--per-motion", type=int, default=3)
     ap.add_argument("--mc", type=int, default=20)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=0, help="torch's RNG before scoring: the MC rows' dropout masks")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     load0 = os.getloadavg()[0]
@@ -74,6 +75,7 @@ def main() -> None:
             name = f"{peer} (peer budget)" if peer == "cd-dcu-net" else peer
             methods[name] = network_method(Predictor.load(path, orientation=orientation, still_burst_rad=0.0))
     t0 = time.perf_counter()
+    torch.manual_seed(args.seed)  # MC's dropout masks: the same draws on every run of this commit and host
     scores = score(methods, cases, clouds=True)
     eval_s = time.perf_counter() - t0
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True).stdout.strip()
@@ -85,7 +87,7 @@ def main() -> None:
     report = {
         "commit": commit, "model": str(args.model or "inference/weights/default.safetensors"),
         "precision": shipped.precision, "orientation": orientation, "split": "test (default family)",
-        "scenes": [s.name for s in scenes], "bursts_per_motion_per_scene": args.per_motion,
+        "scenes": [s.name for s in scenes], "bursts_per_motion_per_scene": args.per_motion, "torch_seed": args.seed,
         "still_burst_gate": {"rad": rig.still_burst_rad, "max_motion_share": gate.get("max_motion_share")},
         "scores": [asdict(s) for s in scores], "eval_seconds": eval_s,
         "machine": {"cpu": cpu, "amx_bf16": "amx_bf16" in flags, "avx512_bf16": "avx512_bf16" in flags,
@@ -95,7 +97,8 @@ def main() -> None:
     lines = [
         "# CD-DCU-Net on the product's default rig with test gears: phase, uncertainty and cloud per motion",
         "",
-        f"`python benchmarks/inference_accuracy.py --scenes {args.scenes} --per-motion {args.per_motion} --mc {args.mc}`; "
+        f"`python benchmarks/inference_accuracy.py --scenes {args.scenes} --per-motion {args.per_motion} --mc {args.mc} "
+        f"--seed {args.seed}`; "
         f"commit `{commit}`; {eval_s / 60:.1f} min.",
         "",
         f"- **Host**: {cpu}, {os.cpu_count()} cores, AVX512-BF16 {'yes' if 'avx512_bf16' in flags else 'no'}, AMX-BF16 "

@@ -13,9 +13,11 @@ import platform
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from gearscan.core.gear import GearSpec
+from gearscan.core.phase import frame_swing, fringe_support
 from gearscan.core.rig import default_rig
 from gearscan.recon.reconstruct import SingleFrequencyReconstructor
 from gearscan.recon.triangulate import Triangulator
@@ -60,6 +62,18 @@ def main() -> None:
     rows.append(("fused, reused buffers, 1 thread", _time(lambda: single(phase, sigma, out=buf1))))
     single.close()
 
+    # the keep test's fringe support for a network's burst (recon.measure.keep_candidates, E = 2 px)
+    frames8 = rng.integers(0, 256, (3, HEIGHT, WIDTH)).astype(np.uint8)
+    frames12 = (frames8.astype(np.uint16) * 16)
+
+    def support_session32() -> None:  # the first form (session 32): float copies, sqrt, division
+        lit = (2.0 * frame_swing(frames8.astype(np.float32) / np.float32(255.0)) >= 0.05).astype(np.uint8)
+        cv2.erode(lit, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE).astype(bool)
+
+    rows.append(("network fringe support, 8-bit frames, 2 px (live path)", _time(lambda: fringe_support(frames8, 255.0, 0.05, 2))))
+    rows.append(("network fringe support, 12-bit frames, 2 px", _time(lambda: fringe_support(frames12, 4095.0, 0.05, 2))))
+    rows.append(("reference: the same support, session 32's form", _time(support_session32)))
+
     lo, hi = phase_bounds(rig, bounds, PERIOD)
     tri = Triangulator(rig, PERIOD)
 
@@ -92,6 +106,10 @@ def main() -> None:
         "",
         f"One-time setup per rig: depth bounds {t_bounds:.1f} s, fused reconstructor {t_setup:.1f} s",
         "(undistorting 5 M camera rays and projecting the bounds; cache it for the session).",
+        "",
+        "A network's burst adds the fringe-support test of its keep test (`core.phase.fringe_support`:",
+        "the frames' own modulation 2B'/S >= 0.05 on every pixel within 2 px), read off the three frames",
+        "before the fused step; three-step PS and the other classical decoders skip it.",
         "",
         "The live path is `SingleFrequencyReconstructor(rig, period, bounds)(phase, sigma, out=buffers)`:",
         "row blocks of 64 rows that stay in cache, on a thread pool; reusing the output buffers",

@@ -66,7 +66,6 @@ from gearscan.inference.model_io import load_into, load_state, save_model, widen
 from gearscan.inference.models import ModelConfig, PhaseNet, build_model
 from gearscan.inference.plots import plot_history
 
-
 VAL_OBJECTIVES = ("inside", "full")
 
 

@@ -195,7 +195,7 @@ def test_still_routes_decode_with_the_correction():
 def test_fringe_support_needs_fringes_on_every_pixel_around():
     """Left of column 40 the frames swing (2B/S = 0.5), right of it they are dark: support ends ``px`` short
     of the dark side, the image border does not erode it, and bad input is named."""
-    from gearscan.core.phase import fringe_support
+    from gearscan.core.phase import frame_swing, fringe_support
 
     h, w = 32, 64
     phi = np.linspace(0, 8 * np.pi, w)[None, :].repeat(h, 0)
@@ -207,6 +207,14 @@ def test_fringe_support_needs_fringes_on_every_pixel_around():
     assert s2[:, :38].all() and not s2[:, 38:].any()  # the border rows and column 0 stay supported
     raw12 = np.round(frames * 16).astype(np.uint16)  # the same scene from a 12-bit camera, raw integers
     np.testing.assert_array_equal(fringe_support(raw12, 4095.0, 0.05, 2), s2)
+    # the threshold is frame_swing's, wherever a pixel is not within rounding of it
+    rng = np.random.default_rng(5)
+    noisy = rng.integers(0, 256, (3, 48, 48)).astype(np.uint8)
+    want = 2.0 * frame_swing(noisy.astype(np.float64) / 255.0)
+    clear = np.abs(want - 0.3) > 1e-4
+    np.testing.assert_array_equal(fringe_support(noisy, 255.0, 0.3, 0)[clear], (want >= 0.3)[clear])
+    with pytest.raises(ValueError, match="full_scale"):
+        fringe_support(frames, 0.0, 0.05, 1)
     with pytest.raises(ValueError, match="images"):
         fringe_support(frames[:2], 255.0, 0.05, 1)
     with pytest.raises(ValueError, match="px"):

@@ -99,10 +99,22 @@ def fringe_support(images: np.ndarray, full_scale: float, min_modulation: float,
         raise ValueError(f"images: expected (3, H, W), got shape {images.shape}")
     if px < 0:
         raise ValueError(f"px: expected >= 0, got {px}")
-    lit = (2.0 * frame_swing(images.astype(np.float32) / np.float32(full_scale)) >= min_modulation).astype(np.uint8)
+    if not full_scale > 0:
+        raise ValueError(f"full_scale: expected > 0, got {full_scale}")
+    # 2 B'/S >= m with B' = sqrt(2 sum d^2) / 3 is sum d^2 >= 9/8 (m S)^2: no sqrt, no division, squares in
+    # place (a live-path step on every network burst: benchmarks/recon_report.md)
+    f = [np.asarray(images[k], np.float32) for k in range(3)]  # raw integer frames would wrap in the differences
+    total = np.subtract(f[0], f[1])
+    np.square(total, out=total)
+    d = np.empty_like(total)
+    for a, b in ((1, 2), (0, 2)):
+        np.subtract(f[a], f[b], out=d)
+        np.square(d, out=d)
+        total += d
+    lit = (total >= np.float32(1.125 * (min_modulation * full_scale) ** 2)).view(np.uint8)
     if px:
         lit = cv2.erode(lit, np.ones((2 * px + 1, 2 * px + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    return lit.astype(bool)
+    return lit.view(bool)
 
 
 # Three-step PS's error from non-sinusoidal fringes (residual projector/camera gamma): harmonics 2 and 4
