@@ -19,6 +19,11 @@ set that does early stopping and the sigma calibration; nothing from the test sp
   per degree (the default rig's test family lives there: 11 px fringes at 256 px, gears to 80
   teeth), and its val twin ``val_radial_dense`` (val tooth counts 25-78, seed 10003).
 
+The next model should add ``--outside-weight 0.05 --val-objective full``: the network is then taught what to output
+outside the twin's truth mask and stopped on that objective (val, session 33: its unguarded per-burst cloud 124 -> 51
+um on still bursts, 158 -> 96 um on moving ones, at +2.3 % moving RMSE inside the mask; ``benchmarks/outside_loss_val.md``).
+Without them the command is the one that trained v6.
+
 Every item set is a folder of its own (one render process each), so the render runs in parallel
 and resumes where it stopped. Training is ``scripts/train_default.py`` (deterministic stage,
 then Concrete Dropout, cosine schedules, best-on-val weights, sigma calibration on val) with the
