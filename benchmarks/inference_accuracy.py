@@ -116,15 +116,15 @@ def main() -> None:
         "triangulates (geometric-constraint unwrapping, the reconstructor's keep test), coverage the share of the "
         "truth mask that got a point. The timing column is this run's wall time per burst including the decode's "
         "own overheads (speed: `inference_speed*.md`).",
-        "- Since session 32 the reconstructor keeps a network's pixel only where the burst's own frames show fringes on "
+        *(["- Since session 32 the reconstructor keeps a network's pixel only where the burst's own frames show fringes on "
         "every pixel within 2 px (`recon.measure.keep_candidates`, chosen on val: `benchmarks/network_support_rule.md`; "
         "the problem was first seen on these test bursts, so they are no clean held-out measure of the guard). The "
         "same run without it (commit 8482663, AMX host; history, not this run): per-burst cloud RMS on still bursts "
-        "68 um as shipped / 140 um without the still-burst gate, with it 30 / 58 um. Moving bursts, pooled over the ten "
+        "68 um as shipped / 140 um without the still-burst gate, with it (e00f261) 30 / 58 um. Moving bursts, pooled over the ten "
         "motions (weighted by coverage): rig orientation 118 -> 112 um at 45.1 -> 47.0 % mean coverage, three motions "
         "worse (non-uniform 0.1/1.6 56 -> 85 um, 0.5+1 82 -> 127, uniform 0.5 97 -> 104); as shipped (orientation voted "
         "per burst) 137 -> 142 um at 39.9 -> 41.3 %, five motions worse. The MC rows of runs before session 33 drew "
-        "unseeded dropout masks; since then `--seed` fixes them.",
+        "unseeded dropout masks; since then `--seed` fixes them."] if args.model is None else []),
         "- The v5 report this replaces (commit a401b1a) scored val scenes (tooth count 25, which also chose v5): "
         "its 5-7x gains were not test numbers.",
         "",

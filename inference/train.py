@@ -9,8 +9,8 @@
 - Early stopping per stage after ``patience`` epochs without validation improvement. The
   validation score is ``alpha*NLL + mse_weight*MSE`` in deterministic mode (no regulariser), so
   it compares across stages; ``val_objective="full"`` adds the loss's outside-mask term, so that a
-  run trained with it is stopped on what it is trained for (``val_inside_loss`` and
-  ``val_outside`` are kept apart in every row either way).
+  run trained with it is stopped on what it is trained for (with an outside term, every row keeps
+  ``val_inside_loss`` and ``val_outside`` apart). A resumed run must read the same objective.
 - Split by ``group``: no start point in both train and validation.
 - Output folder: ``best.safetensors/.json`` (a Predictor-ready model, with the fitted variance
   scale and the per-mode sigma calibration of :mod:`gearscan.inference.uncertainty`), ``last.*`` + ``last_optim.pt`` (resume), ``metrics.csv``, ``metrics.json``,
@@ -67,6 +67,17 @@ from gearscan.inference.models import ModelConfig, PhaseNet, build_model
 from gearscan.inference.plots import plot_history
 
 VAL_OBJECTIVES = ("inside", "full")
+
+
+def validation_row(inside: float, outside: float, rmse: float, loss: LossConfig, objective: str) -> dict:
+    """A validation row: ``val_loss`` is what early stopping reads (the inside-mask loss, plus ``outside_weight``
+    x the outside-mask error for the "full" objective); with an outside term both parts are kept apart."""
+    row = {"val_loss": inside, "val_rmse": rmse}
+    if loss.outside_weight > 0:
+        row["val_inside_loss"], row["val_outside"] = inside, outside
+        if objective == "full":
+            row["val_loss"] = inside + loss.outside_weight * outside
+    return row
 
 
 @dataclass
@@ -126,6 +137,8 @@ class TrainConfig:
             raise ValueError(f"checkpoints_cpu_min: expected CPU minutes > 0, got {self.checkpoints_cpu_min}")
         if self.val_objective not in VAL_OBJECTIVES:
             raise ValueError(f"val_objective: expected one of {VAL_OBJECTIVES}, got {self.val_objective!r}")
+        if self.val_objective == "full" and not self.loss.outside_weight > 0:
+            raise ValueError("val_objective 'full': expected loss.outside_weight > 0 (without it 'full' is 'inside')")
         from gearscan.inference.predictor import PRECISIONS
 
         if self.precision not in PRECISIONS:
@@ -221,6 +234,10 @@ class Trainer:
             self.model, load_state(self.out / "last.safetensors"), self.out / "last.safetensors"
         )
         st = json.loads((self.out / "last_state.json").read_text())
+        scored = st.get("val_objective", {"objective": "inside"})  # before session 33: always the inside loss
+        here = self._val_objective()
+        if scored != here:  # the best-so-far score would be on another scale
+            raise ValueError(f"resume {self.out}: its validation read {scored}, this config reads {here}")
         self.state, self.history = st["state"], st["history"]
         self.state.setdefault("cpu_s", 0.0)
         self.state.setdefault("checkpoints", [])
@@ -230,6 +247,12 @@ class Trainer:
                 torch.load(opt, map_location=self.device, weights_only=True)
             )
 
+    def _val_objective(self) -> dict:
+        """What validation's ``val_loss`` scores (a resumed run must score the same)."""
+        if self.config.val_objective == "full":
+            return {"objective": "full", "outside_weight": float(self.config.loss.outside_weight)}
+        return {"objective": "inside"}
+
     def _save_last(self) -> None:
         self.state["cpu_s"], self._cpu0 = self.cpu_seconds(), time.process_time()
         save_model(
@@ -237,7 +260,8 @@ class Trainer:
         )
         torch.save(self.optimizer.state_dict(), self.out / "last_optim.pt")
         tmp = self.out / "last_state.json.tmp"
-        tmp.write_text(json.dumps({"state": self.state, "history": self.history}, indent=1))
+        tmp.write_text(json.dumps({"state": self.state, "history": self.history,
+                                   "val_objective": self._val_objective()}, indent=1))
         tmp.replace(self.out / "last_state.json")
 
     def _write_metrics(self, plot: bool = False) -> None:
@@ -391,12 +415,7 @@ class Trainer:
             acc[4] += float(losses["outside"]) if "outside" in losses else 0.0
         acc = all_reduce_sum(acc, self.dist, self.device)
         n = max(acc[1], 1)
-        row = {"val_loss": acc[0] / n, "val_rmse": math.sqrt(acc[2] / max(acc[3], 1))}
-        if c.outside_weight > 0:  # both parts are kept; ``val_loss`` is the one early stopping reads
-            row["val_inside_loss"], row["val_outside"] = acc[0] / n, acc[4] / n
-            if self.config.val_objective == "full":
-                row["val_loss"] = (acc[0] + c.outside_weight * acc[4]) / n
-        return row
+        return validation_row(acc[0] / n, acc[4] / n, math.sqrt(acc[2] / max(acc[3], 1)), c, self.config.val_objective)
 
     # both stages -----------------------------------------------------------------------------
     def fit(self) -> TrainResult:

@@ -205,29 +205,46 @@ def test_cpu_budget_stops_cleanly_and_keeps_the_best_on_val(tmp_path):
     assert mark.is_file() and json.loads(mark.with_suffix(".json").read_text())["cpu_min"] >= 0.01
 
 
-def test_val_objective_full_stops_on_the_trained_objective(tmp_path):
-    """With ``outside_weight``, every row keeps the inside loss and the outside term apart; early stopping
-    reads the inside loss by default and the trained objective (inside + weight * outside) with "full"."""
+def test_val_objective_full_stops_on_the_trained_objective(tmp_path, monkeypatch):
+    """With ``outside_weight``, every row keeps the inside loss and the outside term apart, and early stopping reads
+    the inside loss by default and the trained objective (inside + weight * outside) with "full": on scripted
+    validations where the two disagree, each keeps its own epoch. A resume refuses to switch objective."""
     ds = TensorBurstDataset(list(twin_items()))
     assert any((~it["mask"]).any() for it in ds.items)  # background to be taught
     w = 0.5
-    runs = {}
+    # the real validation first: the row's parts and its formula
+    cfg = _cfg(tmp_path, out_dir=str(tmp_path / "real"), loss=LossConfig(outside_weight=w), epochs_deterministic=2,
+               epochs_dropout=0, lr=3e-3, calibrate=False, val_objective="full")
+    for h in train(cfg, ds, ds).history:
+        assert h["val_outside"] > 0 and h["val_inside_loss"] > 0
+        assert h["val_loss"] == pytest.approx(h["val_inside_loss"] + w * h["val_outside"], rel=1e-9)
+    # scripted validations: inside is lowest at epoch 2, inside + 0.5 x outside at epoch 3
+    from gearscan.inference import train as train_module
+
+    scripted = [(0.30, 0.60), (0.10, 0.50), (0.20, 0.10), (0.40, 0.40)]  # (inside, outside) per epoch 1-4
+    chosen = {}
     for objective in ("inside", "full"):
-        cfg = _cfg(tmp_path, out_dir=str(tmp_path / objective), loss=LossConfig(outside_weight=w),
-                   epochs_deterministic=3, epochs_dropout=0, lr=3e-3, calibrate=False, val_objective=objective)
-        runs[objective] = train(cfg, ds, ds).history
-    for objective, hist in runs.items():
-        for h in hist:
-            assert h["val_outside"] > 0 and h["val_inside_loss"] > 0
-            expected = h["val_inside_loss"] + (w * h["val_outside"] if objective == "full" else 0.0)
-            assert h["val_loss"] == pytest.approx(expected, rel=1e-9)
-        best = json.loads((tmp_path / objective / "stage1_best.json").read_text())["metrics"]
-        assert best["val_loss"] == min(h["val_loss"] for h in hist)
-    # the same seed and data: both runs trained the same weights, so only what they read differs
-    for a, b in zip(runs["inside"], runs["full"], strict=True):
-        assert a["val_outside"] == pytest.approx(b["val_outside"], rel=1e-4)
+        calls = iter(scripted)
+
+        def fake(self, calls=calls):
+            inside, outside = next(calls)
+            return train_module.validation_row(inside, outside, 0.1, self.config.loss, self.config.val_objective)
+
+        monkeypatch.setattr(Trainer, "_validate_once", fake)
+        out = tmp_path / objective
+        train(_cfg(tmp_path, out_dir=str(out), loss=LossConfig(outside_weight=w), epochs_deterministic=4,
+                   epochs_dropout=0, steps_per_epoch=1, calibrate=False, val_objective=objective), ds, ds)
+        chosen[objective] = json.loads((out / "stage1_best.json").read_text())["metrics"]["epoch"]
+    assert chosen == {"inside": 2, "full": 3}
+    monkeypatch.undo()
+    # a run validated on one objective cannot be resumed on the other: its best-so-far is on another scale
+    with pytest.raises(ValueError, match="resume"):
+        Trainer(_cfg(tmp_path, out_dir=str(tmp_path / "full"), loss=LossConfig(outside_weight=w),
+                     val_objective="inside", resume=True), ds)
     with pytest.raises(ValueError, match="val_objective"):
         _cfg(tmp_path, val_objective="outside")
+    with pytest.raises(ValueError, match="outside_weight"):
+        _cfg(tmp_path, val_objective="full")  # no outside term: nothing to add
 
 
 def test_split_by_group_never_mixes():

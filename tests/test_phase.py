@@ -209,12 +209,18 @@ def test_fringe_support_needs_fringes_on_every_pixel_around():
     np.testing.assert_array_equal(fringe_support(raw12, 4095.0, 0.05, 2), s2)
     # the threshold is frame_swing's, wherever a pixel is not within rounding of it
     rng = np.random.default_rng(5)
-    noisy = rng.integers(0, 256, (3, 48, 48)).astype(np.uint8)
+    noisy = rng.integers(0, 256, (3, 300, 200)).astype(np.uint8)  # two row blocks
     want = 2.0 * frame_swing(noisy.astype(np.float64) / 255.0)
     clear = np.abs(want - 0.3) > 1e-4
     np.testing.assert_array_equal(fringe_support(noisy, 255.0, 0.3, 0)[clear], (want >= 0.3)[clear])
+    as_float = frames.astype(np.float32)
+    before = as_float.copy()
+    fringe_support(as_float, 255.0, 0.05, 2)
+    np.testing.assert_array_equal(as_float, before)  # the caller's frames are only read
     with pytest.raises(ValueError, match="full_scale"):
         fringe_support(frames, 0.0, 0.05, 1)
+    with pytest.raises(ValueError, match="min_modulation"):
+        fringe_support(frames, 255.0, -0.1, 1)
     with pytest.raises(ValueError, match="images"):
         fringe_support(frames[:2], 255.0, 0.05, 1)
     with pytest.raises(ValueError, match="px"):

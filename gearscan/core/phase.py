@@ -90,6 +90,9 @@ def frame_swing(frames: np.ndarray) -> np.ndarray:
     return np.sqrt(2.0 * ((f[0] - f[1]) ** 2 + (f[1] - f[2]) ** 2 + (f[0] - f[2]) ** 2)) / 3.0
 
 
+SUPPORT_BLOCK_PX = 1 << 15  # pixels per row block of :func:`fringe_support` (two float32 blocks: 256 KB)
+
+
 def fringe_support(images: np.ndarray, full_scale: float, min_modulation: float, px: int) -> np.ndarray:
     """Pixels whose own frames, and every frame pixel within ``px`` (a (2 px + 1)^2 square), show fringes:
     ``2 B' / S >= min_modulation`` (:func:`frame_swing`). The image border does not erode. Evidence from the
@@ -101,17 +104,26 @@ def fringe_support(images: np.ndarray, full_scale: float, min_modulation: float,
         raise ValueError(f"px: expected >= 0, got {px}")
     if not full_scale > 0:
         raise ValueError(f"full_scale: expected > 0, got {full_scale}")
-    # 2 B'/S >= m with B' = sqrt(2 sum d^2) / 3 is sum d^2 >= 9/8 (m S)^2: no sqrt, no division, squares in
-    # place (a live-path step on every network burst: benchmarks/recon_report.md)
-    f = [np.asarray(images[k], np.float32) for k in range(3)]  # raw integer frames would wrap in the differences
-    total = np.subtract(f[0], f[1])
-    np.square(total, out=total)
-    d = np.empty_like(total)
-    for a, b in ((1, 2), (0, 2)):
-        np.subtract(f[a], f[b], out=d)
-        np.square(d, out=d)
-        total += d
-    lit = (total >= np.float32(1.125 * (min_modulation * full_scale) ** 2)).view(np.uint8)
+    if not min_modulation >= 0:
+        raise ValueError(f"min_modulation: expected >= 0, got {min_modulation}")
+    # 2 B'/S >= m with B' = sqrt(2 sum d^2) / 3 is sum d^2 >= 9/8 (m S)^2: no sqrt, no division, in row blocks that
+    # stay in cache (a live-path step on every network burst: benchmarks/recon_report.md)
+    h, w = images.shape[1:]
+    threshold = np.float32(1.125 * (min_modulation * full_scale) ** 2)
+    lit = np.empty((h, w), np.uint8)
+    rows = max(1, SUPPORT_BLOCK_PX // max(w, 1))
+    total, d = np.empty((rows, w), np.float32), np.empty((rows, w), np.float32)
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        t, e = total[: r1 - r0], d[: r1 - r0]
+        block = images[:, r0:r1]
+        np.subtract(block[0], block[1], out=t, dtype=np.float32)  # in float32: raw integer frames would wrap
+        np.square(t, out=t)
+        for a, b in ((1, 2), (0, 2)):
+            np.subtract(block[a], block[b], out=e, dtype=np.float32)
+            np.square(e, out=e)
+            t += e
+        np.greater_equal(t, threshold, out=lit[r0:r1].view(bool))
     if px:
         lit = cv2.erode(lit, np.ones((2 * px + 1, 2 * px + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
     return lit.view(bool)
