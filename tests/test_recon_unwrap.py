@@ -180,6 +180,60 @@ def test_centred_unwrap_takes_the_whole_fringe_around_the_prior():
     assert not no_prior.valid.any()
 
 
+def _grow_orders_every_pixel_every_ring(wrapped, absolute, target, steps, max_step):
+    """The first form of ``grow_orders`` (every pending pixel read in every ring), the reference for its frontier."""
+    from gearscan.recon.unwrap import TWO_PI, _order_jumps, _wrap
+
+    absolute = np.array(absolute, dtype=np.float64)
+    conflict = np.zeros(absolute.shape, bool)
+    h, w = absolute.shape
+    flat_abs, flat_wr = absolute.ravel(), np.asarray(wrapped, np.float64).ravel()
+    idx = np.flatnonzero(np.asarray(target, bool) & ~np.isfinite(absolute))
+    for _ in range(steps):
+        rows, cols = np.divmod(idx, w)
+        lo, hi = np.full(idx.size, np.inf), np.full(idx.size, -np.inf)
+        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            r, c = rows + dr, cols + dc
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            nb = np.where(inside, r * w + c, 0)
+            step = _wrap(flat_wr[idx] - flat_wr[nb])
+            with np.errstate(invalid="ignore"):
+                usable = inside & (np.abs(step) < max_step)
+            src = np.where(usable, flat_abs[nb], np.nan)
+            k = np.rint((src + step - flat_wr[idx]) / TWO_PI)
+            lo = np.where(np.isfinite(src), np.minimum(lo, k), lo)
+            hi = np.where(np.isfinite(src), np.maximum(hi, k), hi)
+        reached = np.isfinite(lo)
+        agree = reached & (lo == hi)
+        conflict.flat[idx[reached & ~agree]] = True
+        flat_abs[idx[agree]] = flat_wr[idx[agree]] + TWO_PI * lo[agree]
+        idx = idx[~reached]
+    conflict |= _order_jumps(wrapped, absolute, max_step) & np.asarray(target, bool) & np.isfinite(absolute)
+    absolute[conflict] = np.nan
+    return absolute, conflict
+
+
+def test_grow_orders_reads_only_the_front_and_finds_what_reading_every_pixel_finds():
+    """Smooth phase with depth steps, noise, seeds a fringe off in places and a ragged target: the frontier
+    form resolves, leaves and flags exactly the pixels the every-pixel form does, with the same phases."""
+    from gearscan.recon.unwrap import grow_orders
+
+    rng = np.random.default_rng(11)
+    h, w = 90, 120
+    yy, xx = np.mgrid[0:h, 0:w]
+    truth = 0.5 * xx + 0.2 * yy + 3.0 * np.sin(xx / 17.0) + 2.6 * ((xx // 30) % 2) + rng.normal(0, 0.15, (h, w))
+    wrapped = np.angle(np.exp(1j * truth))
+    seed = np.where(rng.random((h, w)) < 0.03, truth + 2 * np.pi * (rng.random((h, w)) < 0.2), np.nan)
+    target = rng.random((h, w)) < 0.9
+    for steps in (1, 5, 40):
+        got, got_conflict = grow_orders(wrapped, seed, target, steps=steps, max_step=1.2)
+        want, want_conflict = _grow_orders_every_pixel_every_ring(wrapped, seed, target, steps, 1.2)
+        np.testing.assert_array_equal(got_conflict, want_conflict)
+        np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+        np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], rtol=0, atol=1e-9)
+    assert got_conflict.any() and np.isfinite(got[np.isnan(seed)]).mean() > 0.5  # the case grows and conflicts
+
+
 def test_grow_orders_follows_continuous_phase_and_flags_where_two_surfaces_meet():
     from gearscan.recon.unwrap import grow_orders
 
