@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -103,6 +104,12 @@ def main() -> None:
             row([run(rec_mc, mc, tmp / "o.rrd")], size=size, mode=f"MC T={args.mc}", workers=mc.workers)
     (HERE / "pipeline_report.json").write_text(json.dumps(
         {"results": results, "loadavg": os.getloadavg(), "reference_forward_s": forward_s}, indent=2))
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True).stdout.strip()
+    info = Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []
+    cpu = next((ln.split(":", 1)[1].strip() for ln in info if ln.startswith("model name")), "unknown CPU")
+    flags = next((set(ln.split(":", 1)[1].split()) for ln in info if ln.startswith("flags")), set())
+    one, two = ({r["workers"]: r["steady_bursts_per_s"] for r in results
+                 if r["size"] == "512x512" and r["mode"] == "deterministic" and not r["truth"]}.get(k) for k in (1, 2))
     lines = [
         "# End-to-end replay benchmark (CPU)",
         "",
@@ -114,9 +121,9 @@ def main() -> None:
         "load, CAD scene, viewer stream). The 512x512 deterministic rows without truth scoring are the median of "
         "the repeated runs, one and two decode workers alternating.",
         "",
-        f"Host speed during this run: the shipped network's bare forward pass at 512x512 took {forward_s:.3f} s "
-        "(median of 10, before the runs); the same pass measured 0.10 s on this machine when the host was quiet "
-        "and 0.13-0.15 s at other times of the same session, so rates here scale with it.",
+        f"Commit `{commit}`; host {cpu}, AMX-BF16 {'yes' if 'amx_bf16' in flags else 'no'}. Host speed during this "
+        f"run: the shipped network's bare forward pass at 512x512 took {forward_s:.3f} s (median of 10, before the "
+        "runs); rates here scale with it (earlier reports on other hosts: 0.10-0.42 s).",
         "",
         "| camera | decoder | decode workers | truth scoring | bursts | bursts/s steady | bursts/s incl. start-up | assemble ms | infer ms | reconstruct ms | output ms |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
@@ -134,15 +141,18 @@ def main() -> None:
               "Reading: the stages overlap in threads but share the cores, so a burst costs roughly the sum of",
               "the heavy stages. Rows without truth scoring cost what a live run costs (`gearscan replay",
               "--no-truth`); the scored row adds the replay's CAD distance of every point and a three-step",
-              "baseline to `output`. `reconstruct` casts the CAD gear's rays (only where the modulation",
-              "and sigma pass) for the fringe-order bounds and runs the fused unwrap + triangulation.",
+              "baseline to `output`. `reconstruct` runs the keep test (with a network's fringe-support test),",
+              "casts the CAD gear's rays (only where the modulation and sigma pass) for the fringe-order",
+              "prior, carries orders in at its silhouettes, runs the fused unwrap + triangulation and drops",
+              "mixed pixels.",
               "The pipeline runs numpy's BLAS single-threaded (`Pipeline(blas_threads=1)`): its own spinning",
               "pool competed with torch's and the other stages for the 2 cores: on a quiet host (forward 0.10 s) that",
               "took this row from 4.05 to 5.10 bursts/s (median of 3 runs: 4.66, 5.10, 5.13; report at commit 9766d02).",
               "Two decode workers (`model.workers`, the CPU default) run two bursts through two copies of the",
               "network with one torch thread each: one pass spread over both cores stalls at every parallel",
               "region whenever another stage holds a core; two single-threaded passes do not wait for each",
-              "other. Per-burst infer latency grows (each pass has one core), throughput rises.",
+              "other. Per-burst infer latency grows (each pass has one core); in this run two workers gave",
+              f"{two:.2f} bursts/s against one worker's {one:.2f} (the medians above).",
               "No GPU was lent to this task."]
     (HERE / "pipeline_report.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
