@@ -111,7 +111,7 @@ class TrainConfig:
     budget_cpu_min: float | None = None  # stop at this many CPU minutes of this process (all threads)
     checkpoints_cpu_min: tuple[float, ...] = ()  # save the best-on-val weights so far at these CPU minutes
     # what early stopping reads: "inside" (the truth mask only; every model so far) or "full" (the trained
-    # objective, with the loss's ``outside_weight`` term; the same as "inside" when that weight is 0)
+    # objective, with the loss's ``outside_weight`` term, which "full" requires)
     val_objective: str = "inside"
 
     def __post_init__(self) -> None:
