@@ -67,6 +67,8 @@ def main() -> None:
     ap.add_argument("--orientation", choices=("auto", "normal", "mirrored"), default="auto",
                     help="the network's fringe orientation (the Decoder's; auto: the shipped default, voted per burst "
                          "as this revolution has no still burst to adopt it from; normal: the twin rig's, set)")
+    ap.add_argument("--network-support-px", type=int, default=None,
+                    help="the reconstructor's fringe-support test for network pixels (-1: none; default: the product's)")
     ap.add_argument("--voxel-mm", type=float, default=0.1)
     ap.add_argument("--min-bursts", type=int, default=3)
     args = ap.parse_args()
@@ -77,6 +79,7 @@ def main() -> None:
     from gearscan.core.recording import RecordingReader
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
+    from gearscan.recon.measure import NETWORK_SUPPORT_PX
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()
@@ -99,6 +102,8 @@ def main() -> None:
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
     decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
+    support = ("default" if args.network_support_px is None
+               else None if args.network_support_px < 0 else args.network_support_px)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
 
@@ -108,12 +113,13 @@ def main() -> None:
     # the same revolution without the frame fit: what the fit adds, on this run's host and commit
     t = time.perf_counter()
     plain = run_inspection(args.recording, args.out / "plain", decoder=decoder, grade=8, voxel_mm=args.voxel_mm,
-                           min_bursts=args.min_bursts, refine=False, progress=print)
+                           min_bursts=args.min_bursts, refine=False, progress=print, network_support_px=support)
     plain_seconds = time.perf_counter() - t
     plain_dist = distance(plain.fused.points)
     t = time.perf_counter()
     report = run_inspection(args.recording, args.out, decoder=decoder, grade=8,
-                            voxel_mm=args.voxel_mm, min_bursts=args.min_bursts, refine=True, progress=print)
+                            voxel_mm=args.voxel_mm, min_bursts=args.min_bursts, refine=True, progress=print,
+                            network_support_px=support)
     seconds = time.perf_counter() - t
     insp, fused = report.inspection, report.fused
     dist = distance(fused.points)
@@ -171,7 +177,7 @@ def main() -> None:
         other = recording(not alternate)
         t = time.perf_counter()
         rep2 = run_inspection(other, args.out / "other_order", decoder=decoder, grade=8, voxel_mm=args.voxel_mm,
-                              min_bursts=args.min_bursts, refine=True, progress=print)
+                              min_bursts=args.min_bursts, refine=True, progress=print, network_support_px=support)
         print(f"other order: {time.perf_counter() - t:.0f} s")
         orders.append(order_row("fixed (0, 1, 2)" if alternate else "alternating (0, 1, 2 / 0, 2, 1)", rep2,
                                 distance(rep2.fused.points), coverage_of(rep2.fused.points)))
@@ -187,11 +193,15 @@ def main() -> None:
         (f"network `{args.model}` (deterministic" if args.model else "shipped network (deterministic")
         + (", fringe orientation voted per burst: the shipped default; no still burst to adopt it from)"
            if args.orientation == "auto" else f", fringe orientation set: {args.orientation})"))
+    if not args.classical:
+        decoder += (f"; fringe-support test {NETWORK_SUPPORT_PX} px (the product's)" if support == "default"
+                    else "; no fringe-support test" if support is None else f"; fringe-support test {support} px")
     lines = [
         "# Inspection benchmark (issue 14: fused revolution, ISO 1328-1 pitch and runout)",
         "",
         f"`python benchmarks/inspect_bench.py{'' if args.orientation == 'auto' else ' --orientation ' + args.orientation}"
-        f"{f' --model {args.model}' if args.model else ''}`"
+        f"{f' --model {args.model}' if args.model else ''}"
+        f"{'' if args.network_support_px is None else f' --network-support-px {args.network_support_px}'}`"
         f" — commit {commit()}, host: {started}.",
         "",
         f"Twin: default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, 200 bursts ({report.revolution_deg:.0f}° of encoder "

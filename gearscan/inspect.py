@@ -104,13 +104,15 @@ def run_inspection(
     save: str | Path | None = None,
     refine: bool = True,
     progress: Callable[[str], None] | None = None,
+    network_support_px: int | None | str = "default",
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
 
     ``decoder``: as for :func:`~gearscan.replay.replay` (default three-step PS); ``save``: also
     write the rerun stream (bursts and the fused model) there; ``refine``: fit the fused points
-    to the raw frames (:class:`~gearscan.recon.track.TrackRefiner`). ``inspect_options`` go to
+    to the raw frames (:class:`~gearscan.recon.track.TrackRefiner`); ``network_support_px``: the reconstructor's
+    fringe-support test for a network's pixels ("default": the replay's, None: none). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import replay
@@ -125,7 +127,9 @@ def run_inspection(
     span = revolution_deg(reader)
     say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
     fuser = CloudFuser(voxel_mm, min_bursts)
-    metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine)
+    support = {} if network_support_px == "default" else {"network_support_px": network_support_px}
+    metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine,
+                     **support)
     if metrics.fused is None or not len(metrics.fused):
         raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
     fused = metrics.fused
