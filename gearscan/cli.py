@@ -603,6 +603,7 @@ def inspect_cmd(
     unwrap: Annotated[str, typer.Option(help="fringe orders from the CAD ('cad') or its envelope ('envelope')")] = "cad",
     save: Annotated[Path | None, typer.Option(help="also write the rerun stream (bursts + fused model) to this .rrd")] = None,
     refine: Annotated[bool, typer.Option(help="fit each fused point to every raw frame that saw it (keeps the recording's frames in memory)")] = True,
+    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default 2, recon.measure.NETWORK_SUPPORT_PX; the default-rig option inspects better with -1: its model card)")] = None,
 ) -> None:
     """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
     from gearscan.core.recording import RecordingError
@@ -614,7 +615,9 @@ def inspect_cmd(
     decoder = _decoder(classical, 0, model)
     try:
         report = run_inspection(recording, out, decoder=decoder, grade=grade, voxel_mm=voxel_mm, min_bursts=min_bursts,
-                                unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"))
+                                unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"),
+                                network_support_px="default" if network_support_px is None
+                                else None if network_support_px < 0 else network_support_px)
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
     summary = report.inspection.summary()

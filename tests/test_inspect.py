@@ -146,3 +146,33 @@ def test_iso1328_tolerances_follow_the_2013_formulas():
         iso1328_tolerances(3.0, 120.0, 12)
     with pytest.raises(ValueError, match="module 0.2"):
         iso1328_tolerances(0.2, 120.0, 6)
+
+
+def test_the_fringe_support_test_reaches_the_replay(tmp_path, monkeypatch):
+    """``gearscan inspect --network-support-px -1`` turns the reconstructor's test off (the default-rig option's card
+    asks for it), a number sets it, and without the option the replay keeps the product's default."""
+    import gearscan.inspect as inspect_module
+    import gearscan.replay as replay_module
+    from gearscan.cli import app
+    from gearscan.core.rig import default_rig
+    from gearscan.twin.recordings import render_recording
+
+    rec = tmp_path / "rec"
+    render_recording(rec, rig=default_rig(64, 64), motion="static", bursts=1)
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_replay(recording, **kw):
+        seen.append(kw)
+        raise Stop
+
+    monkeypatch.setattr(replay_module, "replay", fake_replay)
+    for option, expected in ((["--network-support-px", "-1"], {"network_support_px": None}),
+                             (["--network-support-px", "3"], {"network_support_px": 3}), ([], {})):
+        with pytest.raises(Stop):
+            CliRunner().invoke(app, ["inspect", str(rec), "-o", str(tmp_path / "out"), *option], catch_exceptions=False)
+        got = {k: v for k, v in seen[-1].items() if k == "network_support_px"}
+        assert got == expected, option
+    assert inspect_module.run_inspection.__kwdefaults__["network_support_px"] == "default"
