@@ -499,7 +499,7 @@ def grow_orders(wrapped: np.ndarray, absolute: np.ndarray, target: np.ndarray, *
     other pixel's neighbours changed (the reconstructor's cost at camera resolution,
     ``benchmarks/pipeline_report.md``).
     """
-    absolute = np.array(absolute, dtype=np.float64)
+    absolute = np.array(absolute, dtype=np.float64, order="C")  # ravel() below must be a view of it
     conflict = np.zeros(absolute.shape, bool)
     h, w = absolute.shape
     flat_abs, flat_wr, flat_conflict = absolute.ravel(), np.asarray(wrapped, np.float64).ravel(), conflict.ravel()
@@ -590,8 +590,12 @@ def prior_unwrap(
     edge[1:] |= dy
     edge[:-1] |= dy
     # exact Euclidean distance to the nearest edge pixel (OpenCV's: 8-10x scipy's at camera resolution)
-    zone = (cv2.distanceTransform((~edge).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= silhouette_px
-            if edge.any() else np.zeros(edge.shape, bool))
+    # (exact distances are square roots of whole numbers: compare those, not OpenCV's float32 roots)
+    if edge.any():
+        d = cv2.distanceTransform((~edge).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64)
+        zone = np.rint(d * d) <= silhouette_px * silhouette_px
+    else:
+        zone = np.zeros(edge.shape, bool)
     interior = own.valid & cand & ~zone
     absolute = np.where(interior, own.phase_abs, np.nan)
     absolute, conflict = grow_orders(wrapped, absolute, cand & zone, steps=int(math.ceil(3 * silhouette_px)),

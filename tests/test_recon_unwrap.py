@@ -184,7 +184,7 @@ def _grow_orders_every_pixel_every_ring(wrapped, absolute, target, steps, max_st
     """The first form of ``grow_orders`` (every pending pixel read in every ring), the reference for its frontier."""
     from gearscan.recon.unwrap import TWO_PI, _order_jumps, _wrap
 
-    absolute = np.array(absolute, dtype=np.float64)
+    absolute = np.array(absolute, dtype=np.float64, order="C")
     conflict = np.zeros(absolute.shape, bool)
     h, w = absolute.shape
     flat_abs, flat_wr = absolute.ravel(), np.asarray(wrapped, np.float64).ravel()
@@ -232,6 +232,21 @@ def test_grow_orders_reads_only_the_front_and_finds_what_reading_every_pixel_fin
         np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
         np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], rtol=0, atol=1e-9)
     assert got_conflict.any() and np.isfinite(got[np.isnan(seed)]).mean() > 0.5  # the case grows and conflicts
+    # one row, one column, an infinite seed (a target, never a source), no rings, a Fortran-ordered seed
+    for sl in (np.s_[:1, :], np.s_[:, :1]):
+        one = seed[sl].copy()
+        one.flat[-1] = np.inf
+        got, got_conflict = grow_orders(wrapped[sl], one, target[sl], steps=40)
+        want, want_conflict = _grow_orders_every_pixel_every_ring(wrapped[sl], one, target[sl], 40, 1.2)
+        np.testing.assert_array_equal(got_conflict, want_conflict)
+        np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+    none, _ = grow_orders(wrapped, seed, target, steps=0)  # no ring: only the seeds' own fringe jumps are dropped
+    np.testing.assert_array_equal(np.isfinite(none), np.isfinite(_grow_orders_every_pixel_every_ring(
+        wrapped, seed, target, 0, 1.2)[0]))
+    assert not (np.isfinite(none) & np.isnan(seed)).any()
+    got_f, _ = grow_orders(wrapped, np.asfortranarray(seed), target, steps=40)
+    np.testing.assert_array_equal(np.isfinite(got_f), np.isfinite(got_c := grow_orders(wrapped, seed, target, steps=40)[0]))
+    assert np.isfinite(got_c).sum() > np.isfinite(seed).sum()
 
 
 def test_grow_orders_follows_continuous_phase_and_flags_where_two_surfaces_meet():
