@@ -47,6 +47,10 @@ def main() -> None:
     ap.add_argument("--bursts", type=int, default=60)
     ap.add_argument("--model", type=Path, default=None, help="network weights (.safetensors); default: the shipped model")
     ap.add_argument("--out", type=Path, default=HERE.parent / "out" / "frame_fit_heldout")
+    ap.add_argument("--network-support-px", type=int, default=None,
+                    help="the reconstructor's fringe-support test for network pixels (-1: none; default: the product's)")
+    ap.add_argument("--report", type=Path, default=HERE / "frame_fit_heldout_report",
+                    help="path prefix of the report (.md, .json)")
     args = ap.parse_args()
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
@@ -61,6 +65,11 @@ def main() -> None:
 
     started, rows = host(), []
     decoder = Decoder(args.model)
+    support = ({} if args.network_support_px is None
+               else {"network_support_px": None if args.network_support_px < 0 else args.network_support_px})
+    support_text = ("the product's fringe-support test for network pixels" if args.network_support_px is None
+                    else "no fringe-support test" if args.network_support_px < 0
+                    else f"fringe-support test {args.network_support_px} px")
     for s in STRETCHES:
         for alternate in (True, False):
             rec = args.out / f"seed{s['seed']}_{'alternate' if alternate else 'fixed'}"
@@ -69,7 +78,7 @@ def main() -> None:
                 render_recording(rec, defects=defects, motion="uniform:0.6", bursts=args.bursts, seed=s["seed"],
                                  start_deg=s["start_deg"], alternate_order=alternate)
             t = time.perf_counter()
-            m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True)
+            m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True, **support)
             seconds = time.perf_counter() - t
             reader = RecordingReader(rec)
             scene = o3d.t.geometry.RaycastingScene()
@@ -91,11 +100,13 @@ def main() -> None:
     lines = [
         "# Frame fit on held-out twin stretches (recon/track.py)",
         "",
-        f"`python benchmarks/frame_fit_heldout.py --bursts {args.bursts}` — commit {commit()}, host: {started}.",
+        f"`python benchmarks/frame_fit_heldout.py --bursts {args.bursts}"
+        f"{'' if args.network_support_px is None else f' --network-support-px {args.network_support_px}'}`"
+        f" — commit {commit()}, host: {started}.",
         "",
         f"Default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, {args.bursts} bursts per stretch, eccentricity 50 µm, "
         f"one tooth +30 µm pitch error, one tip chipped 0.3 mm; {f'network `{args.model}`' if args.model else 'shipped network'} "
-        "(deterministic), fused per 0.1 mm "
+        f"(deterministic; {support_text}), fused per 0.1 mm "
         "voxel (>= 3 bursts), fitted to the frames (sigma bound 30 µm for every point, fitted or not; off-surface drop 0.15 mm within 0.5 mm). "
         "None of these stretches chose a setting. Distances to the twin's true (as-built) surface.",
         "",
@@ -115,8 +126,9 @@ def main() -> None:
         "frame, every 4th pixel) with a fused point within 0.2 mm; a surface seen by fewer than 3 bursts has none.",
         "",
     ]
-    (HERE / "frame_fit_heldout_report.md").write_text("\n".join(lines))
-    (HERE / "frame_fit_heldout_report.json").write_text(json.dumps({"commit": commit(), "host": started, "rows": rows}, indent=2))
+    args.report.with_suffix(".md").write_text("\n".join(lines))
+    args.report.with_suffix(".json").write_text(json.dumps({"commit": commit(), "host": started, "rows": rows,
+                                                          "network_support_px": args.network_support_px}, indent=2))
     print("\n".join(lines))
 
 
