@@ -59,14 +59,14 @@ def main() -> None:
     from gearscan.core.recording import RecordingReader
     from gearscan.inference.decoder import Decoder
     from gearscan.recon.fuse import CloudFuser
+    from gearscan.recon.measure import network_support_option
     from gearscan.replay import replay
     from gearscan.twin.defects import GearDefects, true_mesh
     from gearscan.twin.recordings import render_recording
 
     started, rows = host(), []
     decoder = Decoder(args.model)
-    support = ({} if args.network_support_px is None
-               else {"network_support_px": None if args.network_support_px < 0 else args.network_support_px})
+    support = {"network_support_px": network_support_option(args.network_support_px)}
     support_text = ("the product's fringe-support test for network pixels" if args.network_support_px is None
                     else "no fringe-support test" if args.network_support_px < 0
                     else f"fringe-support test {args.network_support_px} px")

@@ -79,7 +79,7 @@ def main() -> None:
     from gearscan.core.recording import RecordingReader
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
-    from gearscan.recon.measure import NETWORK_SUPPORT_PX
+    from gearscan.recon.measure import NETWORK_SUPPORT_PX, network_support_option
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()
@@ -102,8 +102,7 @@ def main() -> None:
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
     decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
-    support = ("default" if args.network_support_px is None
-               else None if args.network_support_px < 0 else args.network_support_px)
+    support = network_support_option(args.network_support_px)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
 
@@ -194,7 +193,7 @@ def main() -> None:
         + (", fringe orientation voted per burst: the shipped default; no still burst to adopt it from)"
            if args.orientation == "auto" else f", fringe orientation set: {args.orientation})"))
     if not args.classical:
-        decoder += (f"; fringe-support test {NETWORK_SUPPORT_PX} px (the product's)" if support == "default"
+        decoder += (f"; fringe-support test {NETWORK_SUPPORT_PX} px (the product's)" if args.network_support_px is None
                     else "; no fringe-support test" if support is None else f"; fringe-support test {support} px")
     lines = [
         "# Inspection benchmark (issue 14: fused revolution, ISO 1328-1 pitch and runout)",

@@ -309,10 +309,11 @@ def replay_cmd(
             from gearscan.recon.fuse import CloudFuser
 
             fuser = CloudFuser(voxel_mm, min_bursts)
+        from gearscan.recon.measure import network_support_option
+
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
                         truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None,
-                        **({} if network_support_px is None else
-                           {"network_support_px": None if network_support_px < 0 else network_support_px}))
+                        network_support_px=network_support_option(network_support_px))
         if fuse is not None:
             from gearscan.inspect import dropped_note
             from gearscan.recon.fuse import save_fused
@@ -609,6 +610,7 @@ def inspect_cmd(
     from gearscan.core.recording import RecordingError
     from gearscan.inspect import QUANTITIES, run_inspection
     from gearscan.pipeline import PipelineError
+    from gearscan.recon.measure import network_support_option
 
     if unwrap not in ("cad", "envelope"):
         raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")
@@ -616,8 +618,7 @@ def inspect_cmd(
     try:
         report = run_inspection(recording, out, decoder=decoder, grade=grade, voxel_mm=voxel_mm, min_bursts=min_bursts,
                                 unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"),
-                                network_support_px="default" if network_support_px is None
-                                else None if network_support_px < 0 else network_support_px)
+                                network_support_px=network_support_option(network_support_px))
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
     summary = report.inspection.summary()

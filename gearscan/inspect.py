@@ -21,6 +21,7 @@ import numpy as np
 from gearscan.core.recording import RecordingError, RecordingReader
 from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
 from gearscan.recon.inspect import Inspection, inspect_gear, iso1328_class, iso1328_tolerances
+from gearscan.recon.measure import NETWORK_SUPPORT_PX
 
 QUANTITIES = {  # key in Inspection.summary() -> (symbol, description)
     "fp": ("fp", "single pitch deviation (largest |fp|)"),
@@ -104,7 +105,7 @@ def run_inspection(
     save: str | Path | None = None,
     refine: bool = True,
     progress: Callable[[str], None] | None = None,
-    network_support_px: int | None | str = "default",
+    network_support_px: int | None = NETWORK_SUPPORT_PX,
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
@@ -112,7 +113,7 @@ def run_inspection(
     ``decoder``: as for :func:`~gearscan.replay.replay` (default three-step PS); ``save``: also
     write the rerun stream (bursts and the fused model) there; ``refine``: fit the fused points
     to the raw frames (:class:`~gearscan.recon.track.TrackRefiner`); ``network_support_px``: the reconstructor's
-    fringe-support test for a network's pixels ("default": the replay's, None: none). ``inspect_options`` go to
+    fringe-support test for a network's pixels (None: none). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import replay
@@ -127,9 +128,8 @@ def run_inspection(
     span = revolution_deg(reader)
     say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
     fuser = CloudFuser(voxel_mm, min_bursts)
-    support = {} if network_support_px == "default" else {"network_support_px": network_support_px}
     metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine,
-                     **support)
+                     network_support_px=network_support_px)
     if metrics.fused is None or not len(metrics.fused):
         raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
     fused = metrics.fused

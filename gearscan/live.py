@@ -20,7 +20,7 @@ from gearscan.core.types import Burst, Measurement
 from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineError, PipelineReport, StageSpec
 from gearscan.recon.deviation import CadScorer
-from gearscan.recon.measure import CoarseStage, Reconstructor
+from gearscan.recon.measure import CoarseStage, Reconstructor, network_support_option
 
 log = logging.getLogger(__name__)
 
@@ -185,7 +185,7 @@ def run_live(
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
                                    unwrap=cfg.recon.unwrap,
-                                   network_support_px=None if cfg.recon.network_support_px < 0 else cfg.recon.network_support_px)
+                                   network_support_px=network_support_option(cfg.recon.network_support_px))
     coarse = CoarseStage(rig, cfg.projector.coarse_period_px, cfg.gear, recon if cfg.recon.unwrap == "coarse" else None)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None
     logger = None

@@ -19,6 +19,12 @@ UNWRAP_MODES = ("cad", "envelope", "coarse")
 # a network's pixel needs fringes in its own frames on every pixel within this many px (val choice,
 # benchmarks/network_support_rule.md; scripts/choose_network_support.py -> benchmarks/network_support_val.json)
 NETWORK_SUPPORT_PX = 2
+
+
+def network_support_option(px: int | None) -> int | None:
+    """A ``--network-support-px`` (or the live config's) as the reconstructor's setting: None keeps the product's
+    :data:`NETWORK_SUPPORT_PX`, a negative value turns the test off."""
+    return NETWORK_SUPPORT_PX if px is None else None if px < 0 else px
 ENVELOPE_MM = 1.0  # CAD-free unwrapping: how far the gear may stand outside its tip/root cylinders
 
 

@@ -21,7 +21,7 @@ set that does early stopping and the sigma calibration; nothing from the test sp
 
 The next model should add ``--outside-weight 0.05 --val-objective full``: the network is then taught what to output
 outside the twin's truth mask and stopped on that objective (val, session 33: its unguarded per-burst cloud 124 -> 51
-um on still bursts, 158 -> 96 um on moving ones, at +2.3 % moving RMSE inside the mask; ``benchmarks/outside_loss_val.md``).
+um on still bursts, 158 -> 96 um on moving ones at slightly higher coverage, at +2.3 % moving RMSE inside the mask; ``benchmarks/outside_loss_val.md``).
 Without them the command is the one that trained v6.
 
 Every item set is a folder of its own (one render process each), so the render runs in parallel

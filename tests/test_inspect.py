@@ -155,6 +155,7 @@ def test_the_fringe_support_test_reaches_the_replay(tmp_path, monkeypatch):
     import gearscan.replay as replay_module
     from gearscan.cli import app
     from gearscan.core.rig import default_rig
+    from gearscan.recon.measure import NETWORK_SUPPORT_PX
     from gearscan.twin.recordings import render_recording
 
     rec = tmp_path / "rec"
@@ -170,9 +171,10 @@ def test_the_fringe_support_test_reaches_the_replay(tmp_path, monkeypatch):
 
     monkeypatch.setattr(replay_module, "replay", fake_replay)
     for option, expected in ((["--network-support-px", "-1"], {"network_support_px": None}),
-                             (["--network-support-px", "3"], {"network_support_px": 3}), ([], {})):
+                             (["--network-support-px", "3"], {"network_support_px": 3}),
+                             ([], {"network_support_px": NETWORK_SUPPORT_PX})):
         with pytest.raises(Stop):
             CliRunner().invoke(app, ["inspect", str(rec), "-o", str(tmp_path / "out"), *option], catch_exceptions=False)
         got = {k: v for k, v in seen[-1].items() if k == "network_support_px"}
         assert got == expected, option
-    assert inspect_module.run_inspection.__kwdefaults__["network_support_px"] == "default"
+    assert inspect_module.run_inspection.__kwdefaults__["network_support_px"] == NETWORK_SUPPORT_PX == 2
