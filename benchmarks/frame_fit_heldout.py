@@ -42,6 +42,51 @@ def coverage(reader, points: np.ndarray, step: int = 4, within_mm: float = 0.2) 
     return float(np.isfinite(dist).mean())
 
 
+def render_stretch(out: Path, stretch: dict, alternate: bool, bursts: int) -> Path:
+    """The stretch's recording under ``out`` (rendered once): default rig, 0.6 deg/frame, eccentricity 50 um and
+    the stretch's pitch error and chip."""
+    from gearscan.twin.defects import GearDefects
+    from gearscan.twin.recordings import render_recording
+
+    rec = out / f"seed{stretch['seed']}_{'alternate' if alternate else 'fixed'}"
+    if not (rec / "recording.json").exists():
+        defects = GearDefects.from_options(eccentricity_um=50.0, pitch_errors=stretch["pitch_errors"],
+                                           chips=stretch["chips"])
+        render_recording(rec, defects=defects, motion="uniform:0.6", bursts=bursts, seed=stretch["seed"],
+                         start_deg=stretch["start_deg"], alternate_order=alternate)
+    return rec
+
+
+def score_stretch(rec: Path, decoder, network_support_px: int | None) -> dict:
+    """Replay ``rec`` with fusion and the frame fit, and score the fused cloud against the twin's true surface."""
+    import open3d as o3d
+
+    from gearscan.core.recording import RecordingReader
+    from gearscan.recon.fuse import CloudFuser
+    from gearscan.replay import replay
+    from gearscan.twin.defects import GearDefects, true_mesh
+
+    t = time.perf_counter()
+    m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True,
+               network_support_px=network_support_px)
+    seconds = time.perf_counter() - t
+    reader = RecordingReader(rec)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
+    fused = m.fused
+    cov = coverage(reader, fused.points)
+    d = 1e3 * np.abs(scene.compute_signed_distance(o3d.core.Tensor(fused.points.astype(np.float32))).numpy())
+    r = fused.refined
+    rms = lambda x: float(np.sqrt(np.mean(x**2))) if x.size else float("nan")  # noqa: E731
+    return {"points": len(fused), "coverage": cov, "off_surface": m.refine.get("off_surface", 0),
+            "uncertain": m.refine.get("uncertain", 0), "fitted": float(r.mean()),
+            "fitted_rms_um": rms(d[r]), "rest_rms_um": rms(d[~r]), "rms_um": rms(d),
+            "p95_um": float(np.percentile(d, 95)), "seconds": seconds,
+            # sigma honesty: median |error| / sigma is 0.67 for a right Gaussian sigma
+            "z_fitted": float(np.median(d[r] / (1e3 * fused.sigma[r]))),
+            "z_rest": float(np.median(d[~r] / (1e3 * fused.sigma[~r]))) if (~r).any() else float("nan")}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bursts", type=int, default=60)
@@ -54,48 +99,19 @@ def main() -> None:
     args = ap.parse_args()
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
-    import open3d as o3d
-
-    from gearscan.core.recording import RecordingReader
     from gearscan.inference.decoder import Decoder
-    from gearscan.recon.fuse import CloudFuser
     from gearscan.recon.measure import network_support_option
-    from gearscan.replay import replay
-    from gearscan.twin.defects import GearDefects, true_mesh
-    from gearscan.twin.recordings import render_recording
 
     started, rows = host(), []
     decoder = Decoder(args.model)
-    support = {"network_support_px": network_support_option(args.network_support_px)}
     support_text = ("the product's fringe-support test for network pixels" if args.network_support_px is None
                     else "no fringe-support test" if args.network_support_px < 0
                     else f"fringe-support test {args.network_support_px} px")
     for s in STRETCHES:
         for alternate in (True, False):
-            rec = args.out / f"seed{s['seed']}_{'alternate' if alternate else 'fixed'}"
-            defects = GearDefects.from_options(eccentricity_um=50.0, pitch_errors=s["pitch_errors"], chips=s["chips"])
-            if not (rec / "recording.json").exists():
-                render_recording(rec, defects=defects, motion="uniform:0.6", bursts=args.bursts, seed=s["seed"],
-                                 start_deg=s["start_deg"], alternate_order=alternate)
-            t = time.perf_counter()
-            m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True, **support)
-            seconds = time.perf_counter() - t
-            reader = RecordingReader(rec)
-            scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
-            fused = m.fused
-            cov = coverage(reader, fused.points)
-            d = 1e3 * np.abs(scene.compute_signed_distance(o3d.core.Tensor(fused.points.astype(np.float32))).numpy())
-            r = fused.refined
-            rms = lambda x: float(np.sqrt(np.mean(x**2))) if x.size else float("nan")  # noqa: E731
+            rec = render_stretch(args.out, s, alternate, args.bursts)
             rows.append({"seed": s["seed"], "start_deg": s["start_deg"], "order": "alternating" if alternate else "fixed",
-                         "points": len(fused), "coverage": cov, "off_surface": m.refine.get("off_surface", 0),
-                         "uncertain": m.refine.get("uncertain", 0), "fitted": float(r.mean()),
-                         "fitted_rms_um": rms(d[r]), "rest_rms_um": rms(d[~r]), "rms_um": rms(d),
-                         "p95_um": float(np.percentile(d, 95)), "seconds": seconds,
-                         # sigma honesty: median |error| / sigma is 0.67 for a right Gaussian sigma
-                         "z_fitted": float(np.median(d[r] / (1e3 * fused.sigma[r]))),
-                         "z_rest": float(np.median(d[~r] / (1e3 * fused.sigma[~r]))) if (~r).any() else float("nan")})
+                         **score_stretch(rec, decoder, network_support_option(args.network_support_px))})
             print(rows[-1])
     lines = [
         "# Frame fit on held-out twin stretches (recon/track.py)",

@@ -1,0 +1,89 @@
+"""Choose the fringe-support test for the path that fuses and fits to the frames, on VAL stretches.
+
+    python scripts/choose_fused_support.py [--out benchmarks/fused_support_val.json]
+
+Rule, written before this ran: ``benchmarks/fused_support_rule.md``. Four 60-burst stretches (two seeds, both
+pattern orders) that nothing else uses, two models (the shipped one and the default-rig option), four candidates
+(off, 0, 1, 2 px): each cell is replayed with fusion and the frame fit and scored against the twin's true
+surface exactly as ``benchmarks/frame_fit_heldout.py`` scores its held-out stretches. Cells already in ``--out``
+are kept (a stopped run resumes). The held-out stretches and the inspection revolution only report afterwards.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from frame_fit_heldout import render_stretch, score_stretch  # noqa: E402  (the held-out bench's own scoring)
+from inspect_bench import commit, host  # noqa: E402
+
+VAL_STRETCHES = [  # rule table: used nowhere else
+    {"seed": 31, "start_deg": 113.0, "pitch_errors": ["9:30"], "chips": ["4:0.3"]},
+    {"seed": 47, "start_deg": 277.0, "pitch_errors": ["17:30"], "chips": ["13:0.3"]},
+]
+MODELS = {"v6 (shipped)": None, "default-rig option": ROOT / "inference" / "weights" / "default_rig.safetensors"}
+CANDIDATES: tuple[int | None, ...] = (None, 0, 1, 2)  # None: no test
+INCUMBENT, COVERAGE_SLACK, MARGIN = 2, 0.005, 0.03
+
+
+def label(e: int | None) -> str:
+    return "off" if e is None else f"{e} px"
+
+
+def choose(cells: list[dict]) -> dict:
+    """The rule's choice from scored cells: admissible candidates, geometric means, the pick."""
+    def cell(e, key):
+        return next(c for c in cells if c["E"] == e and (c["model"], c["seed"], c["order"]) == key)
+
+    keys = sorted({(c["model"], c["seed"], c["order"]) for c in cells})
+    score, admissible = {}, {}
+    for e in CANDIDATES:
+        score[label(e)] = math.exp(sum(math.log(cell(e, k)["rms_um"]) for k in keys) / len(keys))
+        admissible[label(e)] = all(cell(e, k)["coverage"] >= cell(None, k)["coverage"] - COVERAGE_SLACK for k in keys)
+    best = min((e for e in CANDIDATES if admissible[label(e)]), key=lambda e: score[label(e)])
+    chosen = best if score[label(best)] <= (1 - MARGIN) * score[label(INCUMBENT)] else INCUMBENT
+    per_model = {}
+    for model in MODELS:
+        mk = [k for k in keys if k[0] == model]
+        per_model[model] = {label(e): math.exp(sum(math.log(cell(e, k)["rms_um"]) for k in mk) / len(mk))
+                            for e in CANDIDATES}
+    return {"score_um": score, "admissible": admissible, "best": label(best), "chosen": label(chosen),
+            "chosen_px": chosen, "per_model_score_um": per_model}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "fused_support_val.json")
+    ap.add_argument("--recordings", type=Path, default=ROOT / "out" / "fused_support_val")
+    ap.add_argument("--bursts", type=int, default=60)
+    args = ap.parse_args()
+
+    from gearscan.inference.decoder import Decoder
+
+    done = json.loads(args.out.read_text()) if args.out.exists() else {"commit": commit(), "host": host(), "cells": []}
+    cells = done["cells"]
+    for model, weights in MODELS.items():
+        decoder = Decoder(weights)
+        for s in VAL_STRETCHES:
+            for alternate in (True, False):
+                order = "alternating" if alternate else "fixed"
+                rec = render_stretch(args.recordings, s, alternate, args.bursts)
+                for e in CANDIDATES:
+                    if any((c["model"], c["seed"], c["order"], c["E"]) == (model, s["seed"], order, e) for c in cells):
+                        continue
+                    cells.append({"model": model, "seed": s["seed"], "order": order, "E": e,
+                                  **score_stretch(rec, decoder, e)})
+                    print({k: cells[-1][k] for k in ("model", "seed", "order", "E", "rms_um", "coverage")}, flush=True)
+                    args.out.write_text(json.dumps(done, indent=1))
+    done["choice"] = choose(cells)
+    args.out.write_text(json.dumps(done, indent=1))
+    print(json.dumps(done["choice"], indent=1))
+
+
+if __name__ == "__main__":
+    main()
