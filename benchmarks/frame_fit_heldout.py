@@ -100,18 +100,19 @@ def main() -> None:
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     from gearscan.inference.decoder import Decoder
-    from gearscan.recon.measure import network_support_option
+    from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, network_support_option
 
     started, rows = host(), []
     decoder = Decoder(args.model)
-    support_text = ("the product's fringe-support test for network pixels" if args.network_support_px is None
+    support_text = ("the product's fringe-support test for network pixels on the frame-fit path, "
+                    f"{FRAME_FIT_NETWORK_SUPPORT_PX} px" if args.network_support_px is None
                     else "no fringe-support test" if args.network_support_px < 0
                     else f"fringe-support test {args.network_support_px} px")
     for s in STRETCHES:
         for alternate in (True, False):
             rec = render_stretch(args.out, s, alternate, args.bursts)
             rows.append({"seed": s["seed"], "start_deg": s["start_deg"], "order": "alternating" if alternate else "fixed",
-                         **score_stretch(rec, decoder, network_support_option(args.network_support_px))})
+                         **score_stretch(rec, decoder, network_support_option(args.network_support_px, frame_fit=True))})
             print(rows[-1])
     lines = [
         "# Frame fit on held-out twin stretches (recon/track.py)",

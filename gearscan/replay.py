@@ -234,7 +234,9 @@ def replay(
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
-    ``network_support_px``: the reconstructor's fringe-support test of a network's pixels (None: off).
+    ``network_support_px``: the reconstructor's fringe-support test of a network's pixels (None: off; the default
+    is the per-burst path's, with ``refine`` the product uses
+    :data:`~gearscan.recon.measure.FRAME_FIT_NETWORK_SUPPORT_PX`: ``network_support_option``).
     ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
     ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.recon.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.

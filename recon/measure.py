@@ -19,12 +19,19 @@ UNWRAP_MODES = ("cad", "envelope", "coarse")
 # a network's pixel needs fringes in its own frames on every pixel within this many px (val choice,
 # benchmarks/network_support_rule.md; scripts/choose_network_support.py -> benchmarks/network_support_val.json)
 NETWORK_SUPPORT_PX = 2
+# ... and where the fused points are then fitted to the raw frames (`inspect`, `replay --fuse`): the frame fit
+# takes the pixels the 2 px test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
+# scripts/choose_fused_support.py -> benchmarks/fused_support_val.json)
+FRAME_FIT_NETWORK_SUPPORT_PX = 0
 
 
-def network_support_option(px: int | None) -> int | None:
+def network_support_option(px: int | None, *, frame_fit: bool = False) -> int | None:
     """A ``--network-support-px`` (or the live config's) as the reconstructor's setting: None keeps the product's
-    :data:`NETWORK_SUPPORT_PX`, a negative value turns the test off."""
-    return NETWORK_SUPPORT_PX if px is None else None if px < 0 else px
+    (:data:`FRAME_FIT_NETWORK_SUPPORT_PX` where fused points are fitted to the frames, else
+    :data:`NETWORK_SUPPORT_PX`), a negative value turns the test off."""
+    if px is None:
+        return FRAME_FIT_NETWORK_SUPPORT_PX if frame_fit else NETWORK_SUPPORT_PX
+    return None if px < 0 else px
 ENVELOPE_MM = 1.0  # CAD-free unwrapping: how far the gear may stand outside its tip/root cylinders
 
 
