@@ -41,3 +41,28 @@ def noisy_renderer(rig256, gear, gear_mesh):
     from gearscan.twin.render import Optics, TwinRenderer
 
     return TwinRenderer(rig256, gear, Optics(), mesh=gear_mesh)
+
+
+class ReplaySpy:
+    """What a command handed ``gearscan.replay.replay`` (``calls``: its keyword arguments, one dict per call); the
+    stub raises :attr:`Called` instead of replaying."""
+
+    class Called(Exception):
+        pass
+
+    def __init__(self) -> None:
+        self.calls: list[dict] = []
+
+    def __call__(self, recording, **kw):
+        self.calls.append(kw)
+        raise self.Called
+
+
+@pytest.fixture
+def replay_spy(monkeypatch) -> ReplaySpy:
+    """``gearscan.replay.replay`` replaced by a :class:`ReplaySpy`: what a command hands the replay, without replaying."""
+    import gearscan.replay as replay_module
+
+    spy = ReplaySpy()
+    monkeypatch.setattr(replay_module, "replay", spy)
+    return spy

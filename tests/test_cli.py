@@ -208,29 +208,17 @@ def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording,
     assert res.exit_code == 2
 
 
-def test_replay_with_the_frame_fit_gets_the_frame_fit_paths_support_test(twin_recording, tmp_path, monkeypatch):
+def test_replay_with_the_frame_fit_gets_the_frame_fit_paths_support_test(twin_recording, tmp_path, replay_spy):
     """Without ``--network-support-px``, ``replay --fuse`` (which fits the fused points to the frames) runs the
     frame-fit path's test (0 px, chosen on val stretches: benchmarks/fused_support_rule.md); per-burst replays and
     ``--fuse --no-refine`` keep 2 px; the option overrides both."""
-    import gearscan.replay as replay_module
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
-
-    seen = []
-
-    class Stop(Exception):
-        pass
-
-    def fake_replay(recording, **kw):
-        seen.append(kw)
-        raise Stop
-
-    monkeypatch.setattr(replay_module, "replay", fake_replay)
     fused = ["--fuse", str(tmp_path / "fused.ply")]
     for extra, expected in (([], NETWORK_SUPPORT_PX), (fused, FRAME_FIT_NETWORK_SUPPORT_PX),
                             ([*fused, "--no-refine"], NETWORK_SUPPORT_PX),
                             ([*fused, "--network-support-px", "3"], 3), ([*fused, "--network-support-px", "-1"], None)):
-        with pytest.raises(Stop):
+        with pytest.raises(replay_spy.Called):
             runner.invoke(app, ["replay", str(twin_recording), "--save", str(tmp_path / "x.rrd"), *extra],
                           catch_exceptions=False)
-        assert seen[-1]["network_support_px"] == expected, extra
+        assert replay_spy.calls[-1]["network_support_px"] == expected, extra
     assert (NETWORK_SUPPORT_PX, FRAME_FIT_NETWORK_SUPPORT_PX) == (2, 0)

@@ -148,11 +148,10 @@ def test_iso1328_tolerances_follow_the_2013_formulas():
         iso1328_tolerances(0.2, 120.0, 6)
 
 
-def test_the_fringe_support_test_reaches_the_replay(tmp_path, monkeypatch):
+def test_the_fringe_support_test_reaches_the_replay(tmp_path, replay_spy):
     """``gearscan inspect --network-support-px -1`` turns the reconstructor's test off, a number sets it, and without
     the option the replay gets the frame-fit path's default (0 px), or the per-burst one (2 px) with ``--no-refine``."""
     import gearscan.inspect as inspect_module
-    import gearscan.replay as replay_module
     from gearscan.cli import app
     from gearscan.core.rig import default_rig
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
@@ -160,24 +159,14 @@ def test_the_fringe_support_test_reaches_the_replay(tmp_path, monkeypatch):
 
     rec = tmp_path / "rec"
     render_recording(rec, rig=default_rig(64, 64), motion="static", bursts=1)
-    seen = []
-
-    class Stop(Exception):
-        pass
-
-    def fake_replay(recording, **kw):
-        seen.append(kw)
-        raise Stop
-
-    monkeypatch.setattr(replay_module, "replay", fake_replay)
     for option, expected in ((["--network-support-px", "-1"], {"network_support_px": None}),
                              (["--network-support-px", "3"], {"network_support_px": 3}),
                              ([], {"network_support_px": FRAME_FIT_NETWORK_SUPPORT_PX}),
                              (["--no-refine"], {"network_support_px": NETWORK_SUPPORT_PX}),
                              (["--no-refine", "--network-support-px", "-1"], {"network_support_px": None})):
-        with pytest.raises(Stop):
+        with pytest.raises(replay_spy.Called):
             CliRunner().invoke(app, ["inspect", str(rec), "-o", str(tmp_path / "out"), *option], catch_exceptions=False)
-        got = {k: v for k, v in seen[-1].items() if k == "network_support_px"}
+        got = {k: v for k, v in replay_spy.calls[-1].items() if k == "network_support_px"}
         assert got == expected, option
     assert inspect_module.run_inspection.__kwdefaults__["network_support_px"] == FRAME_FIT_NETWORK_SUPPORT_PX == 0
     assert NETWORK_SUPPORT_PX == 2
