@@ -1,0 +1,93 @@
+"""Calibrate the sigma of the fused points the frame fit cannot take, on VAL stretches.
+
+    python scripts/calibrate_rest_sigma.py [--out benchmarks/rest_sigma_val.json]
+
+Rule, written before this ran: ``benchmarks/rest_sigma_rule.md``. The 8 val cells of
+``scripts/choose_fused_support.py`` (two seeds, both pattern orders, the shipped model and the default-rig option),
+each replayed with fusion and the frame-fit path's fringe-support test; the frame fit then runs on the fused cloud
+and, for the points it cannot take that the off-surface test keeps (before the sigma bound), z = |distance to the
+true surface| / (sigma * sqrt(bursts)). The scale is the largest cell median over 0.6745, rounded up to 0.5.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "scripts"))
+from choose_fused_support import MODELS, VAL_STRETCHES  # noqa: E402  (the same val cells)
+from frame_fit_heldout import render_stretch  # noqa: E402
+from inspect_bench import commit, host  # noqa: E402
+
+HONEST_MEDIAN_Z = 0.6745  # median |e| / sigma of a Gaussian error with that sigma
+
+
+def rest_z(rec: Path, decoder) -> dict:
+    """Replay ``rec`` fused, fit, and return the unfitted on-surface points' z and errors."""
+    import open3d as o3d
+
+    from gearscan.core.recording import RecordingReader
+    from gearscan.recon.fuse import CloudFuser
+    from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX
+    from gearscan.recon.track import TrackRefiner, off_surface
+    from gearscan.replay import recording_rig, replay
+    from gearscan.twin.defects import GearDefects, true_mesh
+
+    reader = RecordingReader(rec)
+    refiner = TrackRefiner(recording_rig(reader, None), reader.patterns.periods[0])
+    m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=False,
+               network_support_px=FRAME_FIT_NETWORK_SUPPORT_PX, on_burst=lambda meas, row: refiner.add(meas))
+    fused = m.fused
+    res = refiner.refine(fused.points)
+    r = res.refined
+    rest = ~r & ~off_surface(np.where(r[:, None], res.points, fused.points), r)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
+    err = np.abs(scene.compute_signed_distance(o3d.core.Tensor(fused.points[rest].astype(np.float32))).numpy())
+    sigma = fused.sigma[rest] * np.sqrt(np.maximum(fused.bursts[rest], 1))
+    z = err / sigma
+    return {"points": len(fused), "fitted": int(r.sum()), "rest": int(rest.sum()),
+            "rest_rms_um": float(1e3 * np.sqrt(np.mean(err**2))) if err.size else float("nan"),
+            "median_z": float(np.median(z)) if z.size else float("nan"),
+            "z_quantiles": {q: float(np.quantile(z, q / 100)) for q in (25, 75, 90, 95)} if z.size else {},
+            "median_sigma_um": float(1e3 * np.median(sigma)) if sigma.size else float("nan")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "rest_sigma_val.json")
+    ap.add_argument("--recordings", type=Path, default=ROOT / "out" / "fused_support_val")
+    ap.add_argument("--bursts", type=int, default=60)
+    args = ap.parse_args()
+
+    from gearscan.inference.decoder import Decoder
+
+    done = json.loads(args.out.read_text()) if args.out.exists() else {"commit": commit(), "host": host(), "cells": []}
+    cells = done["cells"]
+    for model, weights in MODELS.items():
+        decoder = Decoder(weights)
+        for s in VAL_STRETCHES:
+            for alternate in (True, False):
+                order = "alternating" if alternate else "fixed"
+                if any((c["model"], c["seed"], c["order"]) == (model, s["seed"], order) for c in cells):
+                    continue
+                rec = render_stretch(args.recordings, s, alternate, args.bursts)
+                cells.append({"model": model, "seed": s["seed"], "order": order, **rest_z(rec, decoder)})
+                print({k: cells[-1][k] for k in ("model", "seed", "order", "rest", "rest_rms_um", "median_z")}, flush=True)
+                args.out.write_text(json.dumps(done, indent=1))
+    worst = max(c["median_z"] for c in cells)
+    done["scale"] = max(1.0, math.ceil(2 * worst / HONEST_MEDIAN_Z) / 2)
+    done["worst_median_z"] = worst
+    args.out.write_text(json.dumps(done, indent=1))
+    print(f"worst cell median z {worst:.2f}: scale {done['scale']}")
+
+
+if __name__ == "__main__":
+    main()
