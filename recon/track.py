@@ -32,6 +32,9 @@ from gearscan.core.types import Measurement
 from gearscan.recon.fuse import FusedCloud
 
 _CHUNK = 200_000  # points per vectorised block (bounds the temporary arrays to ~100 MB)
+# a point the fit cannot take carries this many times its bursts' sigma (val calibration:
+# benchmarks/rest_sigma_rule.md; scripts/calibrate_rest_sigma.py -> benchmarks/rest_sigma_val.json)
+REST_SIGMA_SCALE = 1.0
 
 
 @dataclass
@@ -63,7 +66,9 @@ class TrackRefiner:
     the shading drift it also solves for); ``min_spread``: a floor on that evenness (twice the
     smallest eigenvalue of the fit's normalised normal matrix: 1 for an even spread, 0 at one
     phase or at two opposite ones, where sine and cosine cannot be told apart);
-    ``visible_mm``: how close a burst's own point must be for its frames to count as seeing ``X``.
+    ``visible_mm``: how close a burst's own point must be for its frames to count as seeing ``X``;
+    ``rest_sigma_scale``: how many times its bursts' sigma a point the fit cannot take carries (>= 1;
+    :data:`REST_SIGMA_SCALE`, calibrated on val: ``benchmarks/rest_sigma_rule.md``).
 
     Defaults: ``max_sigma_mm = 0.03`` and ``min_spread = 0.05`` were chosen on an independent
     40-burst twin stretch (seed 7, start 11 deg, default rig, 0.6 deg/frame; 40k points against
@@ -75,13 +80,16 @@ class TrackRefiner:
 
     def __init__(self, rig: Rig, period_px: float, *, iterations: int = 4, min_frames: int = 9,
                  min_spread: float = 0.05, visible_mm: float = 0.3, max_step_mm: float = 0.3,
-                 outlier_sigma: float = 3.0, drift: bool = True, max_sigma_mm: float = 0.03) -> None:
+                 outlier_sigma: float = 3.0, drift: bool = True, max_sigma_mm: float = 0.03,
+                 rest_sigma_scale: float = REST_SIGMA_SCALE) -> None:
         if not period_px > 0:
             raise ValueError(f"period_px: expected > 0 projector pixels, got {period_px}")
         if iterations < 1 or min_frames < 4:
             raise ValueError(f"iterations >= 1 and min_frames >= 4 expected, got {iterations} and {min_frames}")
         if not (max_sigma_mm > 0 and 0 <= min_spread <= 1):
             raise ValueError(f"max_sigma_mm > 0 and 0 <= min_spread <= 1 expected, got {max_sigma_mm} and {min_spread}")
+        if not (math.isfinite(rest_sigma_scale) and rest_sigma_scale >= 1):
+            raise ValueError(f"rest_sigma_scale: expected a finite factor >= 1 (it may not shrink a sigma), got {rest_sigma_scale}")
         self.rig = rig
         self.period_px = float(period_px)
         self.iterations = int(iterations)
@@ -92,6 +100,7 @@ class TrackRefiner:
         self.outlier_sigma = float(outlier_sigma)
         self.drift = bool(drift)
         self.max_sigma_mm = float(max_sigma_mm)
+        self.rest_sigma_scale = float(rest_sigma_scale)
         self.bursts: list[_BurstView] = []
 
     def __len__(self) -> int:
@@ -124,7 +133,7 @@ class TrackRefiner:
         result has a sigma of at most ``max_sigma_mm``.
 
         The points the fit could not take keep their fused position, with their bursts' sigma
-        without credit for averaging them (``sigma * sqrt(bursts)``): the few bursts that saw such a
+        without credit for averaging them, times ``rest_sigma_scale`` (``scale * sigma * sqrt(bursts)``): the few bursts that saw such a
         point saw it from nearly the same view and share their error, so fusion's standard error
         flattered it (median |error| / sigma 2.1-2.3 on the inspection revolution in either pattern
         order; 1.0 without the credit). Two kinds of them are dropped and counted: those off the
@@ -136,7 +145,7 @@ class TrackRefiner:
         res = self.refine(fused.points)
         r = res.refined
         points = np.where(r[:, None], res.points, fused.points)
-        sigma = np.where(r, res.sigma, fused.sigma * np.sqrt(np.maximum(fused.bursts, 1)))
+        sigma = np.where(r, res.sigma, self.rest_sigma_scale * fused.sigma * np.sqrt(np.maximum(fused.bursts, 1)))
         out = replace(fused, points=points, sigma=sigma, refined=r, deviation=None)
         off = off_surface(points, r)
         uncertain = ~r & ~off & (sigma > self.max_sigma_mm)

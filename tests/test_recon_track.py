@@ -106,6 +106,9 @@ def test_bad_input_is_named(off_cad_turn):
         TrackRefiner(reader.rig, 0.0)
     with pytest.raises(ValueError, match="max_sigma_mm"):
         TrackRefiner(reader.rig, 40.0, max_sigma_mm=0.0)
+    for scale in (0.5, float("nan")):  # a scale may not shrink a sigma
+        with pytest.raises(ValueError, match="rest_sigma_scale"):
+            TrackRefiner(reader.rig, 40.0, rest_sigma_scale=scale)
 
 
 def test_replay_refuses_refinement_it_cannot_hold_before_replaying(off_cad_turn, monkeypatch):
@@ -169,3 +172,28 @@ def test_refined_cloud_holds_no_point_above_the_sigma_bound_and_counts_the_rest(
     assert len(out) == len(fused) - stats["off_surface"] - stats["uncertain"]
     rows = out.voxel_index if out.voxel_index is not None else np.arange(len(out))
     np.testing.assert_array_equal(out.points[~out.refined], fused.points[rows][~out.refined])
+
+
+def test_unfitted_points_carry_the_scaled_sigma_and_fitted_points_keep_the_fits(off_cad_turn):
+    """``rest_sigma_scale`` multiplies the sigma of the points the fit cannot take (their bursts' sigma without
+    credit for averaging), so more of them fall above the bound; the fitted points do not change."""
+    reader, refiner, fused, _, _, _ = off_cad_turn
+    runs = {}
+    for scale in (1.0, 3.0):
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], rest_sigma_scale=scale, max_sigma_mm=1.0)
+        ref.bursts = refiner.bursts
+        runs[scale] = ref.refine_fused(fused)
+    (one, one_stats), (three, three_stats) = runs[1.0], runs[3.0]
+    assert (~one.refined).sum() > 0 and one.refined.sum() > 0
+    for out, scale in ((one, 1.0), (three, 3.0)):
+        rows = out.voxel_index if out.voxel_index is not None else np.arange(len(out))
+        rest = ~out.refined
+        np.testing.assert_allclose(out.sigma[rest], scale * fused.sigma[rows][rest] * np.sqrt(fused.bursts[rows][rest]))
+    np.testing.assert_array_equal(one.points[one.refined], three.points[three.refined])
+    np.testing.assert_array_equal(one.sigma[one.refined], three.sigma[three.refined])
+    assert three_stats["uncertain"] >= one_stats["uncertain"]
+    tight = TrackRefiner(reader.rig, reader.patterns.periods[0], rest_sigma_scale=3.0)
+    tight.bursts = refiner.bursts
+    out, stats = tight.refine_fused(fused)
+    assert out.sigma.max() <= tight.max_sigma_mm
+
