@@ -34,7 +34,7 @@ from gearscan.recon.fuse import FusedCloud
 _CHUNK = 200_000  # points per vectorised block (bounds the temporary arrays to ~100 MB)
 # a point the fit cannot take carries this many times its bursts' sigma (val calibration:
 # benchmarks/rest_sigma_rule.md; scripts/calibrate_rest_sigma.py -> benchmarks/rest_sigma_val.json)
-REST_SIGMA_SCALE = 1.0
+REST_SIGMA_SCALE = 3.5
 
 
 @dataclass
