@@ -101,6 +101,7 @@ def main() -> None:
 
     from gearscan.inference.decoder import Decoder
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, network_support_option
+    from gearscan.recon.track import REST_SIGMA_SCALE
 
     started, rows = host(), []
     decoder = Decoder(args.model)
@@ -137,7 +138,8 @@ def main() -> None:
         "",
         "The last column is 0.67 where the reported sigma is right for a Gaussian error: above it, the cloud "
         "claims more than it measured. The rest (points the fit could not take) carry their bursts' sigma without "
-        "credit for averaging (`TrackRefiner.refine_fused`); those above the 30 µm bound are dropped and counted.",
+        f"credit for averaging, times {REST_SIGMA_SCALE:g} (`TrackRefiner.refine_fused`, `REST_SIGMA_SCALE`, calibrated on "
+        "val: `rest_sigma_rule.md`); those above the 30 µm bound are dropped and counted.",
         "",
         "Coverage: the share of the surface the camera saw (the twin's truth points of every burst's first "
         "frame, every 4th pixel) with a fused point within 0.2 mm; a surface seen by fewer than 3 bursts has none.",

@@ -84,6 +84,7 @@ def main() -> None:
         NETWORK_SUPPORT_PX,
         network_support_option,
     )
+    from gearscan.recon.track import REST_SIGMA_SCALE
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()
@@ -256,16 +257,19 @@ def main() -> None:
         "",
         f"Frame fit (`recon/track.py`, on by default in `inspect` and `replay --fuse`): "
         f"{100 * refined.mean():.1f} % of the fused points were fitted to the raw frames that saw them "
-        f"({1e3 * before_refined:.1f} µm before, **{1e3 * rms_refined:.1f} µm after**); the other "
-        f"{100 * (1 - refined.mean()):.1f} % keep their fused position ({1e3 * rms_kept:.1f} µm): their fit's own "
-        "sigma is above 30 µm (too few frames, or fringe phases too close to two opposite ones to tell sine from "
-        "cosine; with every burst in the order 0, 1, 2 a point whose fringes move a sixth of a period per frame "
-        "sees only 0 and pi, burst after burst). "
+        f"({1e3 * before_refined:.1f} µm before, **{1e3 * rms_refined:.1f} µm after**); "
+        + (f"the other {(~refined).sum():,} ({100 * (1 - refined.mean()):.1f} %) keep their fused position "
+           f"({1e3 * rms_kept:.1f} µm)" if (~refined).any() else "no unfitted point is left in the cloud")
+        + ". A point the fit cannot take has a fit sigma above 30 µm (too few frames, or fringe phases too close to two "
+        "opposite ones to tell sine from cosine; with every burst in the order 0, 1, 2 a point whose fringes move a "
+        "sixth of a period per frame sees only 0 and pi, burst after burst). "
         f"{off_surface:,} points the fit could not take lay more than 0.15 mm off the plane of the fitted points "
         "within 0.5 mm and were dropped (counted; `recon.track.off_surface`): silhouette and shadow-edge pixels that "
         "several bursts put in one voxel. These settings were chosen on this revolution. "
         f"{uncertain:,} more unfitted points carried a sigma above the fit's own 30 µm bound and were dropped (counted; "
-        "`TrackRefiner.refine_fused`: one bound for every point of the refined cloud; a rule, not tuned here).",
+        "`TrackRefiner.refine_fused`: one bound for every point of the refined cloud; a rule, not tuned here; an "
+        f"unfitted point carries {REST_SIGMA_SCALE:g} times its bursts' sigma without credit for averaging, "
+        "calibrated on val stretches: `rest_sigma_rule.md`).",
         "",
         *([
             "## Pattern order: the same revolution shown both ways",
