@@ -42,6 +42,11 @@ def coverage(reader, points: np.ndarray, step: int = 4, within_mm: float = 0.2) 
     return float(np.isfinite(dist).mean())
 
 
+def _num(x: float | None, fmt: str) -> str:
+    """A table cell: "none" where no point was left to measure."""
+    return "none" if x is None else format(x, fmt)
+
+
 def render_stretch(out: Path, stretch: dict, alternate: bool, bursts: int) -> Path:
     """The stretch's recording under ``out`` (rendered once): default rig, 0.6 deg/frame, eccentricity 50 um and
     the stretch's pitch error and chip."""
@@ -77,14 +82,14 @@ def score_stretch(rec: Path, decoder, network_support_px: int | None) -> dict:
     cov = coverage(reader, fused.points)
     d = 1e3 * np.abs(scene.compute_signed_distance(o3d.core.Tensor(fused.points.astype(np.float32))).numpy())
     r = fused.refined
-    rms = lambda x: float(np.sqrt(np.mean(x**2))) if x.size else float("nan")  # noqa: E731
+    rms = lambda x: float(np.sqrt(np.mean(x**2))) if x.size else None  # noqa: E731  (None: no such point)
     return {"points": len(fused), "coverage": cov, "off_surface": m.refine.get("off_surface", 0),
             "uncertain": m.refine.get("uncertain", 0), "fitted": float(r.mean()),
             "fitted_rms_um": rms(d[r]), "rest_rms_um": rms(d[~r]), "rms_um": rms(d),
             "p95_um": float(np.percentile(d, 95)), "seconds": seconds,
             # sigma honesty: median |error| / sigma is 0.67 for a right Gaussian sigma
             "z_fitted": float(np.median(d[r] / (1e3 * fused.sigma[r]))),
-            "z_rest": float(np.median(d[~r] / (1e3 * fused.sigma[~r]))) if (~r).any() else float("nan")}
+            "z_rest": float(np.median(d[~r] / (1e3 * fused.sigma[~r]))) if (~r).any() else None}
 
 
 def main() -> None:
@@ -133,8 +138,8 @@ def main() -> None:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *[f"| {w['seed']} | {w['start_deg']:g}° | {w['order']} | {w['points']:,} | {100 * w['coverage']:.1f} % | "
           f"{w['off_surface']:,} | {w['uncertain']:,} | "
-          f"{100 * w['fitted']:.1f} % | {w['fitted_rms_um']:.1f} | {w['rest_rms_um']:.1f} | **{w['rms_um']:.1f}** | "
-          f"{w['p95_um']:.1f} | {w['z_fitted']:.2f} / {w['z_rest']:.2f} |" for w in rows],
+          f"{100 * w['fitted']:.1f} % | {w['fitted_rms_um']:.1f} | {_num(w['rest_rms_um'], '.1f')} | **{w['rms_um']:.1f}** | "
+          f"{w['p95_um']:.1f} | {w['z_fitted']:.2f} / {_num(w['z_rest'], '.2f')} |" for w in rows],
         "",
         "The last column is 0.67 where the reported sigma is right for a Gaussian error: above it, the cloud "
         "claims more than it measured. The rest (points the fit could not take) carry their bursts' sigma without "

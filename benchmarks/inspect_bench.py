@@ -141,8 +141,11 @@ def main() -> None:
 
     coverage = coverage_of(fused.points)
 
-    def rms_of(d: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+    def rms_of(d: np.ndarray) -> float | None:
+        return float(np.sqrt(np.mean(d**2))) if d.size else None  # None: no such point (valid JSON, unlike NaN)
+
+    def um(x: float | None) -> str:
+        return "none" if x is None else f"{1e3 * x:.1f}"
 
     def order_row(name: str, rep, d: np.ndarray, cov: float) -> dict:
         r = rep.fused.refined
@@ -283,13 +286,13 @@ def main() -> None:
             "RMS whole cloud (µm) | p95 (µm) | largest fp error (µm) | chipped teeth |",
             "|---|---|---|---|---|---|---|---|---|---|",
             *[f"| {o['order']} | {o['points']:,} | {100 * o['coverage']:.1f} % | {100 * o['fitted']:.1f} % | "
-              f"{1e3 * o['fitted_rms_mm']:.1f} | {1e3 * o['kept_rms_mm']:.1f} | **{1e3 * o['rms_mm']:.1f}** | "
+              f"{um(o['fitted_rms_mm'])} | {um(o['kept_rms_mm'])} | **{1e3 * o['rms_mm']:.1f}** | "
               f"{1e3 * o['p95_mm']:.1f} | {o['fp_max_error_um']:.1f} | {o['chip']} |" for o in orders],
             "",
         ] if len(orders) > 1 else []),
         "| bursts per fused point | points | RMS fused only (µm) | RMS with the fit (µm) | p95 (µm) | fitted | RMS of the fitted (µm) |",
         "|---|---|---|---|---|---|---|",
-        *[f"| {name} | {n:,} | {1e3 * r0:.1f} | {1e3 * r:.1f} | {1e3 * p:.1f} | {100 * f:.0f} % | {1e3 * rf:.1f} |"
+        *[f"| {name} | {n:,} | {um(r0)} | {um(r)} | {1e3 * p:.1f} | {100 * f:.0f} % | {um(rf)} |"
           for name, n, r0, r, p, f, rf in strata],
         "",
         "Fused only, the error falls with the number of bursts that saw a point, as independent errors "
