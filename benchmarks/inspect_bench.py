@@ -107,8 +107,8 @@ def main() -> None:
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
     decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
-    # the product's defaults: 2 px on the fused-only run, the frame-fit path's 0 px where the points are fitted
-    plain_support = network_support_option(args.network_support_px)
+    # the frame-fit path's test (the product's for inspect) on both runs: the fused-only run is the same fused
+    # cloud before the fit, voxel for voxel (the 'before' figures below rely on it)
     support = network_support_option(args.network_support_px, frame_fit=True)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
@@ -119,7 +119,7 @@ def main() -> None:
     # the same revolution without the frame fit: what the fit adds, on this run's host and commit
     t = time.perf_counter()
     plain = run_inspection(args.recording, args.out / "plain", decoder=decoder, grade=8, voxel_mm=args.voxel_mm,
-                           min_bursts=args.min_bursts, refine=False, progress=print, network_support_px=plain_support)
+                           min_bursts=args.min_bursts, refine=False, progress=print, network_support_px=support)
     plain_seconds = time.perf_counter() - t
     plain_dist = distance(plain.fused.points)
     t = time.perf_counter()
@@ -203,8 +203,8 @@ def main() -> None:
         + (", fringe orientation voted per burst: the shipped default; no still burst to adopt it from)"
            if args.orientation == "auto" else f", fringe orientation set: {args.orientation})"))
     if not args.classical:
-        decoder += (f"; fringe-support test {FRAME_FIT_NETWORK_SUPPORT_PX} px with the frame fit, {NETWORK_SUPPORT_PX} px "
-                    "on the fused-only run (the product's)" if args.network_support_px is None
+        decoder += (f"; fringe-support test {FRAME_FIT_NETWORK_SUPPORT_PX} px (the product's with the frame fit; "
+                    f"`replay --fuse --no-refine` runs {NETWORK_SUPPORT_PX} px) on both runs" if args.network_support_px is None
                     else "; no fringe-support test" if support is None else f"; fringe-support test {support} px")
     lines = [
         "# Inspection benchmark (issue 14: fused revolution, ISO 1328-1 pitch and runout)",
