@@ -15,13 +15,14 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from gearscan.core.recording import RecordingError, RecordingReader
 from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
 from gearscan.recon.inspect import Inspection, inspect_gear, iso1328_class, iso1328_tolerances
-from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX
+from gearscan.recon.measure import PRODUCT_SUPPORT
 
 QUANTITIES = {  # key in Inspection.summary() -> (symbol, description)
     "fp": ("fp", "single pitch deviation (largest |fp|)"),
@@ -105,7 +106,7 @@ def run_inspection(
     save: str | Path | None = None,
     refine: bool = True,
     progress: Callable[[str], None] | None = None,
-    network_support_px: int | None = FRAME_FIT_NETWORK_SUPPORT_PX,
+    network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
@@ -113,8 +114,8 @@ def run_inspection(
     ``decoder``: as for :func:`~gearscan.replay.replay` (default three-step PS); ``save``: also
     write the rerun stream (bursts and the fused model) there; ``refine``: fit the fused points
     to the raw frames (:class:`~gearscan.recon.track.TrackRefiner`); ``network_support_px``: the reconstructor's
-    fringe-support test for a network's pixels (None: none; the default is the frame-fit path's, pass
-    :data:`~gearscan.recon.measure.NETWORK_SUPPORT_PX` with ``refine=False``). ``inspect_options`` go to
+    fringe-support test for a network's pixels (None: none; ``"product"``: the product's for the path, as
+    :func:`~gearscan.replay.replay` resolves it with ``refine``). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import replay

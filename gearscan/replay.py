@@ -12,6 +12,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -24,7 +25,12 @@ from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
-from gearscan.recon.measure import NETWORK_SUPPORT_PX, CoarseStage, Reconstructor
+from gearscan.recon.measure import (
+    PRODUCT_SUPPORT,
+    CoarseStage,
+    Reconstructor,
+    network_support_option,
+)
 
 log = logging.getLogger(__name__)
 
@@ -230,13 +236,13 @@ def replay(
     rig: str | Path | Rig | None = None,
     export: CloudExport | None = None,
     refine: bool = False,
-    network_support_px: int | None = NETWORK_SUPPORT_PX,
+    network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
-    ``network_support_px``: the reconstructor's fringe-support test of a network's pixels (None: off; the default
-    is the per-burst path's, with ``refine`` the product uses
-    :data:`~gearscan.recon.measure.FRAME_FIT_NETWORK_SUPPORT_PX`: ``network_support_option``).
+    ``network_support_px``: the reconstructor's fringe-support test of a network's pixels (None: off; ``"product"``:
+    the product's for this call, :data:`~gearscan.recon.measure.FRAME_FIT_NETWORK_SUPPORT_PX` when ``fuse`` and
+    ``refine`` fit the fused points to the frames, else :data:`~gearscan.recon.measure.NETWORK_SUPPORT_PX`).
     ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
     ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.recon.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
@@ -271,6 +277,8 @@ def replay(
         raise RecordingError(f"{reader.path}: --unwrap coarse needs coarse bursts, and this recording's pattern set "
                              f"({patterns.name}) has none; use --unwrap cad (with the gear's CAD) or envelope")
     gear = reader.gear
+    if network_support_px == PRODUCT_SUPPORT:
+        network_support_px = network_support_option(None, frame_fit=refine and fuse is not None)
     recon = (Reconstructor.for_gear(rig, period, gear, unwrap=unwrap, network_support_px=network_support_px)
              if (reconstruct and gear is not None) else None)
     coarse = CoarseStage(rig, coarse_period, gear, recon if unwrap == "coarse" else None)

@@ -25,6 +25,9 @@ NETWORK_SUPPORT_PX = 2
 FRAME_FIT_NETWORK_SUPPORT_PX = 0
 
 
+PRODUCT_SUPPORT = "product"  # a library default: the product's test for the path the call takes
+
+
 def network_support_option(px: int | None, *, frame_fit: bool = False) -> int | None:
     """A ``--network-support-px`` (or the live config's) as the reconstructor's setting: None keeps the product's
     (:data:`FRAME_FIT_NETWORK_SUPPORT_PX` where fused points are fitted to the frames, else

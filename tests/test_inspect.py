@@ -151,7 +151,6 @@ def test_iso1328_tolerances_follow_the_2013_formulas():
 def test_the_fringe_support_test_reaches_the_replay(tmp_path, replay_spy):
     """``gearscan inspect --network-support-px -1`` turns the reconstructor's test off, a number sets it, and without
     the option the replay gets the frame-fit path's default (0 px), or the per-burst one (2 px) with ``--no-refine``."""
-    import gearscan.inspect as inspect_module
     from gearscan.cli import app
     from gearscan.core.rig import default_rig
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
@@ -168,5 +167,43 @@ def test_the_fringe_support_test_reaches_the_replay(tmp_path, replay_spy):
             CliRunner().invoke(app, ["inspect", str(rec), "-o", str(tmp_path / "out"), *option], catch_exceptions=False)
         got = {k: v for k, v in replay_spy.calls[-1].items() if k == "network_support_px"}
         assert got == expected, option
-    assert inspect_module.run_inspection.__kwdefaults__["network_support_px"] == FRAME_FIT_NETWORK_SUPPORT_PX == 0
-    assert NETWORK_SUPPORT_PX == 2
+    assert (FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX) == (0, 2)
+
+
+def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkeypatch):
+    """``replay`` and ``run_inspection`` without ``network_support_px`` give the reconstructor the product's test for
+    the path they take: 0 px where fused points are fitted to the frames, 2 px elsewhere; an explicit value wins."""
+    from gearscan.core.rig import default_rig
+    from gearscan.inspect import run_inspection
+    from gearscan.recon.fuse import CloudFuser
+    from gearscan.recon.measure import (
+        FRAME_FIT_NETWORK_SUPPORT_PX,
+        NETWORK_SUPPORT_PX,
+        Reconstructor,
+    )
+    from gearscan.replay import replay
+    from gearscan.twin.recordings import render_recording
+
+    rec = tmp_path / "rec"
+    render_recording(rec, rig=default_rig(64, 64), motion="static", bursts=1)
+    seen = []
+
+    class Built(Exception):
+        pass
+
+    def for_gear(*args, **kw):
+        seen.append(kw["network_support_px"])
+        raise Built
+
+    monkeypatch.setattr(Reconstructor, "for_gear", for_gear)
+    cases = [(lambda: replay(rec), NETWORK_SUPPORT_PX),
+             (lambda: replay(rec, fuse=CloudFuser(0.1, 3), refine=True), FRAME_FIT_NETWORK_SUPPORT_PX),
+             (lambda: replay(rec, fuse=CloudFuser(0.1, 3)), NETWORK_SUPPORT_PX),
+             (lambda: replay(rec, fuse=CloudFuser(0.1, 3), refine=True, network_support_px=None), None),
+             (lambda: run_inspection(rec, tmp_path / "out"), FRAME_FIT_NETWORK_SUPPORT_PX),
+             (lambda: run_inspection(rec, tmp_path / "out", refine=False), NETWORK_SUPPORT_PX),
+             (lambda: run_inspection(rec, tmp_path / "out", network_support_px=3), 3)]
+    for call, expected in cases:
+        with pytest.raises(Built):
+            call()
+        assert seen[-1] == expected
