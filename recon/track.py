@@ -132,11 +132,13 @@ class TrackRefiner:
         """``fused`` with its refined points moved and their sigma from the fit; every point of the
         result has a sigma of at most ``max_sigma_mm``.
 
-        The points the fit could not take keep their fused position, with their bursts' sigma
-        without credit for averaging them, times ``rest_sigma_scale`` (``scale * sigma * sqrt(bursts)``): the few bursts that saw such a
-        point saw it from nearly the same view and share their error, so fusion's standard error
-        flattered it (median |error| / sigma 2.1-2.3 on the inspection revolution in either pattern
-        order; 1.0 without the credit). Two kinds of them are dropped and counted: those off the
+        The points the fit could not take keep their fused position with ``rest_sigma_scale * sigma *
+        sqrt(bursts)``. No credit for averaging: the few bursts that saw such a point saw it from nearly
+        the same view and share their error, so fusion's standard error flattered it (median |error| /
+        sigma 2.1-2.3 on the inspection revolution in either pattern order). Without the credit it
+        still flattered the points the bound kept (up to 5.3 on val stretches), hence the scale
+        (``benchmarks/rest_sigma_rule.md``); at the shipped 3.5 no such point of the default rig's val
+        stretches passes the bound. Two kinds of them are dropped and counted: those off the
         surface their fitted neighbours measured (:func:`off_surface`, ``stats["off_surface"]``),
         and those whose sigma exceeds ``max_sigma_mm``, the bound a fit must meet too
         (``stats["uncertain"]``): one bound for every point of the refined cloud, so what it

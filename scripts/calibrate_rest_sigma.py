@@ -58,10 +58,10 @@ def rest_z(rec: Path, decoder, keep: Path) -> dict:
     z = err / sigma
     np.savez(keep, error_mm=err, sigma_mm=sigma)
     return {"points": len(fused), "fitted": int(r.sum()), "rest": int(rest.sum()),
-            "rest_rms_um": float(1e3 * np.sqrt(np.mean(err**2))) if err.size else float("nan"),
-            "median_z": float(np.median(z)) if z.size else float("nan"),
+            "rest_rms_um": float(1e3 * np.sqrt(np.mean(err**2))) if err.size else None,
+            "median_z": float(np.median(z)) if z.size else None,
             "z_quantiles": {q: float(np.quantile(z, q / 100)) for q in (25, 75, 90, 95)} if z.size else {},
-            "median_sigma_um": float(1e3 * np.median(sigma)) if sigma.size else float("nan")}
+            "median_sigma_um": float(1e3 * np.median(sigma)) if sigma.size else None}
 
 
 def main() -> None:
@@ -74,6 +74,8 @@ def main() -> None:
     from gearscan.inference.decoder import Decoder
 
     done = json.loads(args.out.read_text()) if args.out.exists() else {"commit": commit(), "host": host(), "cells": []}
+    if done["cells"]:
+        done.setdefault("resumed_at", []).append(commit())
     cells = done["cells"]
     for model, weights in MODELS.items():
         decoder = Decoder(weights)
@@ -84,13 +86,14 @@ def main() -> None:
                     continue
                 rec = render_stretch(args.recordings, s, alternate, args.bursts)
                 keep = args.recordings / f"rest_{'v6' if weights is None else 'default_rig'}_{s['seed']}_{order}.npz"
-                cells.append({"model": model, "seed": s["seed"], "order": order, "arrays": str(keep.relative_to(ROOT)),
+                cells.append({"model": model, "seed": s["seed"], "order": order, "arrays": str(keep.resolve()),
                               **rest_z(rec, decoder, keep)})
                 print({k: cells[-1][k] for k in ("model", "seed", "order", "rest", "rest_rms_um", "median_z")}, flush=True)
                 args.out.write_text(json.dumps(done, indent=1))
-    done["worst_median_z_before_the_bound"] = max(c["median_z"] for c in cells)  # the rule's first form
+    medians = [c["median_z"] for c in cells if c["median_z"] is not None]  # a cell with no unfitted point has none
+    done["worst_median_z_before_the_bound"] = max(medians, default=0.0)  # the rule's first form
     done["scale_first_form"] = max(1.0, math.ceil(2 * done["worst_median_z_before_the_bound"] / HONEST_MEDIAN_Z) / 2)
-    arrays = [np.load(ROOT / c["arrays"]) for c in cells]
+    arrays = [np.load(ROOT / c["arrays"]) for c in cells]  # relative paths in runs before this form: under ROOT
     scale, rows = None, []
     for c in np.arange(1.0, 20.5, 0.5):
         per_cell = []
@@ -105,8 +108,11 @@ def main() -> None:
             scale = float(c)
             break
     done["scan"], done["scale"] = rows, scale
+    # said apart: a scale that passes because no unfitted point is left drops them all, it does not calibrate them
+    done["scale_keeps_no_unfitted_point"] = bool(rows) and all(p["median_z"] is None for p in rows[-1]["cells"])
     args.out.write_text(json.dumps(done, indent=1))
-    print(f"scale {scale} (first form {done['scale_first_form']})")
+    print(f"scale {scale} (first form {done['scale_first_form']}); keeps no unfitted point on val: "
+          f"{done['scale_keeps_no_unfitted_point']}")
 
 
 if __name__ == "__main__":

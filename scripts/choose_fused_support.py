@@ -6,7 +6,9 @@ Rule, written before this ran: ``benchmarks/fused_support_rule.md``. Four 60-bur
 pattern orders) that nothing else uses, two models (the shipped one and the default-rig option), four candidates
 (off, 0, 1, 2 px): each cell is replayed with fusion and the frame fit and scored against the twin's true
 surface exactly as ``benchmarks/frame_fit_heldout.py`` scores its held-out stretches. Cells already in ``--out``
-are kept (a stopped run resumes). The held-out stretches and the inspection revolution only report afterwards.
+are kept (a stopped run resumes; not across a change of ``recon.track.REST_SIGMA_SCALE``, which the json records:
+the recorded run, at 24e4fa9, predates that scale and ran at 1). The held-out stretches and the inspection
+revolution only report afterwards.
 """
 
 from __future__ import annotations
@@ -64,8 +66,16 @@ def main() -> None:
     args = ap.parse_args()
 
     from gearscan.inference.decoder import Decoder
+    from gearscan.recon.track import REST_SIGMA_SCALE
 
-    done = json.loads(args.out.read_text()) if args.out.exists() else {"commit": commit(), "host": host(), "cells": []}
+    done = json.loads(args.out.read_text()) if args.out.exists() else {"commit": commit(), "host": host(), "cells": [],
+                                                                      "rest_sigma_scale": REST_SIGMA_SCALE}
+    ran_at = done.setdefault("rest_sigma_scale", 1.0)  # a json without the key was written before the scale existed
+    if done["cells"] and ran_at != REST_SIGMA_SCALE:
+        raise SystemExit(f"{args.out}: its cells were scored with the unfitted points' sigma scale {ran_at}, this code "
+                         f"runs {REST_SIGMA_SCALE}; write to another --out")
+    if done["cells"]:
+        done.setdefault("resumed_at", []).append(commit())
     cells = done["cells"]
     for model, weights in MODELS.items():
         decoder = Decoder(weights)

@@ -10,7 +10,7 @@ from gearscan.core.recording import RecordingError, RecordingReader
 from gearscan.core.rig import default_rig
 from gearscan.inference.decoder import Decoder
 from gearscan.recon.fuse import CloudFuser
-from gearscan.recon.track import TrackRefiner
+from gearscan.recon.track import REST_SIGMA_SCALE, TrackRefiner
 from gearscan.twin.defects import GearDefects, true_mesh
 from gearscan.twin.recordings import render_recording
 
@@ -58,9 +58,9 @@ def test_fit_moves_the_fused_points_onto_the_true_surface(off_cad_turn):
     # three-step's motion error survives fusion; the fit leaves camera noise
     assert _rms_um(before) > 80
     assert _rms_um(after) < 30 and _rms_um(after) < _rms_um(before) / 4
-    # points not fitted stay exactly where fusion put them, with their bursts' sigma (no averaging credit)
+    # points not fitted stay exactly where fusion put them, with their bursts' sigma (no averaging credit), scaled
     np.testing.assert_array_equal(fitted.points[~r], fused.points[~r])
-    np.testing.assert_allclose(fitted.sigma[~r], fused.sigma[~r] * np.sqrt(fused.bursts[~r]))
+    np.testing.assert_allclose(fitted.sigma[~r], REST_SIGMA_SCALE * fused.sigma[~r] * np.sqrt(fused.bursts[~r]))
     # the fit's sigma is the size of its error (median |z| of a Gaussian: 0.67)
     z = np.abs(after) / fitted.sigma[r]
     assert 0.3 < np.median(z) < 2.0
@@ -183,7 +183,7 @@ def test_unfitted_points_carry_the_scaled_sigma_and_fitted_points_keep_the_fits(
         ref = TrackRefiner(reader.rig, reader.patterns.periods[0], rest_sigma_scale=scale, max_sigma_mm=1.0)
         ref.bursts = refiner.bursts
         runs[scale] = ref.refine_fused(fused)
-    (one, one_stats), (three, three_stats) = runs[1.0], runs[3.0]
+    (one, _), (three, _) = runs[1.0], runs[3.0]
     assert (~one.refined).sum() > 0 and one.refined.sum() > 0
     for out, scale in ((one, 1.0), (three, 3.0)):
         rows = out.voxel_index if out.voxel_index is not None else np.arange(len(out))
@@ -191,9 +191,26 @@ def test_unfitted_points_carry_the_scaled_sigma_and_fitted_points_keep_the_fits(
         np.testing.assert_allclose(out.sigma[rest], scale * fused.sigma[rows][rest] * np.sqrt(fused.bursts[rows][rest]))
     np.testing.assert_array_equal(one.points[one.refined], three.points[three.refined])
     np.testing.assert_array_equal(one.sigma[one.refined], three.sigma[three.refined])
-    assert three_stats["uncertain"] >= one_stats["uncertain"]
-    tight = TrackRefiner(reader.rig, reader.patterns.periods[0], rest_sigma_scale=3.0)
-    tight.bursts = refiner.bursts
-    out, stats = tight.refine_fused(fused)
-    assert out.sigma.max() <= tight.max_sigma_mm
+    # under the product's 30 um bound: the unfitted points kept at scale 1 whose sigma x 3.5 exceeds it leave the cloud
+    bound = TrackRefiner(reader.rig, 40.0).max_sigma_mm
+    outs = {}
+    for scale in (1.0, REST_SIGMA_SCALE):
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], rest_sigma_scale=scale)
+        ref.bursts = refiner.bursts
+        outs[scale] = ref.refine_fused(fused)
+    (kept1, stats1), (kept35, stats35) = outs[1.0], outs[REST_SIGMA_SCALE]
+    leaving = ~kept1.refined & (kept1.sigma * REST_SIGMA_SCALE > bound)
+    assert leaving.any()
+    assert stats35["uncertain"] == stats1["uncertain"] + int(leaving.sum())
+    assert len(kept35) == len(kept1) - int(leaving.sum()) and kept35.sigma.max() <= bound
+
+
+def test_the_product_scales_the_unfitted_points_sigma(tmp_path):
+    """The refiner the replay builds carries the val-calibrated scale (benchmarks/rest_sigma_rule.md)."""
+    from gearscan.replay import make_refiner
+
+    render_recording(tmp_path / "rec", rig=default_rig(64, 64), motion="static", bursts=1)
+    reader = RecordingReader(tmp_path / "rec")
+    refiner = make_refiner(reader, reader.rig, reader.patterns.periods[0], CloudFuser(0.1, 3))
+    assert refiner.rest_sigma_scale == REST_SIGMA_SCALE == 3.5
 
