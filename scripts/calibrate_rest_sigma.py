@@ -24,9 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "scripts"))
-from choose_fused_support import MODELS, VAL_STRETCHES  # noqa: E402  (the same val cells)
-from frame_fit_heldout import render_stretch  # noqa: E402
-from inspect_bench import commit, host  # noqa: E402
+from choose_fused_support import load_or_start, val_cells  # noqa: E402  (the same val cells)
 
 HONEST_MEDIAN_Z = 0.6745  # median |e| / sigma of a Gaussian error with that sigma
 BOUND_MM = 0.03  # TrackRefiner.max_sigma_mm: the bound every point of the refined cloud meets
@@ -71,25 +69,16 @@ def main() -> None:
     ap.add_argument("--bursts", type=int, default=60)
     args = ap.parse_args()
 
-    from gearscan.inference.decoder import Decoder
-
-    done = json.loads(args.out.read_text()) if args.out.exists() else {"commit": commit(), "host": host(), "cells": []}
-    if done["cells"]:
-        done.setdefault("resumed_at", []).append(commit())
+    done = load_or_start(args.out)
     cells = done["cells"]
-    for model, weights in MODELS.items():
-        decoder = Decoder(weights)
-        for s in VAL_STRETCHES:
-            for alternate in (True, False):
-                order = "alternating" if alternate else "fixed"
-                if any((c["model"], c["seed"], c["order"]) == (model, s["seed"], order) for c in cells):
-                    continue
-                rec = render_stretch(args.recordings, s, alternate, args.bursts)
-                keep = args.recordings / f"rest_{'v6' if weights is None else 'default_rig'}_{s['seed']}_{order}.npz"
-                cells.append({"model": model, "seed": s["seed"], "order": order, "arrays": str(keep.resolve()),
-                              **rest_z(rec, decoder, keep)})
-                print({k: cells[-1][k] for k in ("model", "seed", "order", "rest", "rest_rms_um", "median_z")}, flush=True)
-                args.out.write_text(json.dumps(done, indent=1))
+    for model, decoder, seed, order, rec in val_cells(args.recordings, args.bursts):
+        if any((c["model"], c["seed"], c["order"]) == (model, seed, order) for c in cells):
+            continue
+        keep = args.recordings / f"rest_{'v6' if model.startswith('v6') else 'default_rig'}_{seed}_{order}.npz"
+        cells.append({"model": model, "seed": seed, "order": order, "arrays": str(keep.resolve()),
+                      **rest_z(rec, decoder, keep)})
+        print({k: cells[-1][k] for k in ("model", "seed", "order", "rest", "rest_rms_um", "median_z")}, flush=True)
+        args.out.write_text(json.dumps(done, indent=1))
     medians = [c["median_z"] for c in cells if c["median_z"] is not None]  # a cell with no unfitted point has none
     done["worst_median_z_before_the_bound"] = max(medians, default=0.0)  # the rule's first form
     done["scale_first_form"] = max(1.0, math.ceil(2 * done["worst_median_z_before_the_bound"] / HONEST_MEDIAN_Z) / 2)

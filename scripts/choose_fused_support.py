@@ -33,6 +33,28 @@ CANDIDATES: tuple[int | None, ...] = (None, 0, 1, 2)  # None: no test
 INCUMBENT, COVERAGE_SLACK, MARGIN = 2, 0.005, 0.03
 
 
+def val_cells(recordings: Path, bursts: int):
+    """The rule's val cells, model by model: (model, decoder, seed, order, recording), each stretch rendered once."""
+    from gearscan.inference.decoder import Decoder
+
+    for model, weights in MODELS.items():
+        decoder = Decoder(weights)
+        for s in VAL_STRETCHES:
+            for alternate in (True, False):
+                yield (model, decoder, s["seed"], "alternating" if alternate else "fixed",
+                       render_stretch(recordings, s, alternate, bursts))
+
+
+def load_or_start(out: Path, **fresh) -> dict:
+    """The run's json: resumed from ``out`` (its resumes stamped) or a new one with this commit and host."""
+    if not out.exists():
+        return {"commit": commit(), "host": host(), "cells": [], **fresh}
+    done = json.loads(out.read_text())
+    if done["cells"]:
+        done.setdefault("resumed_at", []).append(commit())
+    return done
+
+
 def label(e: int | None) -> str:
     return "off" if e is None else f"{e} px"
 
@@ -65,31 +87,21 @@ def main() -> None:
     ap.add_argument("--bursts", type=int, default=60)
     args = ap.parse_args()
 
-    from gearscan.inference.decoder import Decoder
     from gearscan.recon.track import REST_SIGMA_SCALE
 
-    done = json.loads(args.out.read_text()) if args.out.exists() else {"commit": commit(), "host": host(), "cells": [],
-                                                                      "rest_sigma_scale": REST_SIGMA_SCALE}
+    done = load_or_start(args.out, rest_sigma_scale=REST_SIGMA_SCALE)
     ran_at = done.setdefault("rest_sigma_scale", 1.0)  # a json without the key was written before the scale existed
     if done["cells"] and ran_at != REST_SIGMA_SCALE:
         raise SystemExit(f"{args.out}: its cells were scored with the unfitted points' sigma scale {ran_at}, this code "
                          f"runs {REST_SIGMA_SCALE}; write to another --out")
-    if done["cells"]:
-        done.setdefault("resumed_at", []).append(commit())
     cells = done["cells"]
-    for model, weights in MODELS.items():
-        decoder = Decoder(weights)
-        for s in VAL_STRETCHES:
-            for alternate in (True, False):
-                order = "alternating" if alternate else "fixed"
-                rec = render_stretch(args.recordings, s, alternate, args.bursts)
-                for e in CANDIDATES:
-                    if any((c["model"], c["seed"], c["order"], c["E"]) == (model, s["seed"], order, e) for c in cells):
-                        continue
-                    cells.append({"model": model, "seed": s["seed"], "order": order, "E": e,
-                                  **score_stretch(rec, decoder, e)})
-                    print({k: cells[-1][k] for k in ("model", "seed", "order", "E", "rms_um", "coverage")}, flush=True)
-                    args.out.write_text(json.dumps(done, indent=1))
+    for model, decoder, seed, order, rec in val_cells(args.recordings, args.bursts):
+        for e in CANDIDATES:
+            if any((c["model"], c["seed"], c["order"], c["E"]) == (model, seed, order, e) for c in cells):
+                continue
+            cells.append({"model": model, "seed": seed, "order": order, "E": e, **score_stretch(rec, decoder, e)})
+            print({k: cells[-1][k] for k in ("model", "seed", "order", "E", "rms_um", "coverage")}, flush=True)
+            args.out.write_text(json.dumps(done, indent=1))
     done["choice"] = choose(cells)
     args.out.write_text(json.dumps(done, indent=1))
     print(json.dumps(done["choice"], indent=1))
