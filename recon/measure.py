@@ -23,9 +23,7 @@ NETWORK_SUPPORT_PX = 2
 # takes the pixels the 2 px test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
 # scripts/choose_fused_support.py -> benchmarks/fused_support_val.json)
 FRAME_FIT_NETWORK_SUPPORT_PX = 0
-
-
-PRODUCT_SUPPORT = "product"  # a library default: the product's test for the path the call takes
+PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the product's test for the path taken
 
 
 def network_support_option(px: int | None, *, frame_fit: bool = False) -> int | None:
@@ -35,6 +33,8 @@ def network_support_option(px: int | None, *, frame_fit: bool = False) -> int | 
     if px is None:
         return FRAME_FIT_NETWORK_SUPPORT_PX if frame_fit else NETWORK_SUPPORT_PX
     return None if px < 0 else px
+
+
 ENVELOPE_MM = 1.0  # CAD-free unwrapping: how far the gear may stand outside its tip/root cylinders
 
 
