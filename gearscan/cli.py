@@ -325,8 +325,9 @@ def replay_cmd(
             fitted = ""
             if result.fused.refined is not None:
                 fitted = f", {int(result.fused.refined.sum()):,} of them fitted to the raw frames"
-            typer.echo(f"fused model: {len(result.fused):,} points from {result.fused.bursts_added} bursts{fitted} -> {fuse}"
-                       + dropped_note(result.refine))
+            typer.echo(f"fused model: {len(result.fused):,} points from {result.fused.bursts_added} bursts{fitted} -> {fuse}")
+            if note := dropped_note(result.refine).strip():  # on its own line: not read as part of the path
+                typer.echo(note)
         if export is not None:
             typer.echo(f"burst clouds: {export.written} -> " + ", ".join(str(d) for d in (ply, csv) if d is not None))
     except (RecordingError, PipelineError) as exc:
