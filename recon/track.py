@@ -144,16 +144,20 @@ class TrackRefiner:
         (``stats["uncertain"]``): one bound for every point of the refined cloud, so what it
         holds was measured to within it and what it lacks is counted, not guessed.
         """
+        out, off, stats = self.fit_fused(fused)
+        uncertain = ~out.refined & ~off & (out.sigma > self.max_sigma_mm)
+        stats = {**stats, "off_surface": int(off.sum()), "uncertain": int(uncertain.sum())}
+        drop = off | uncertain
+        return (out.select(~drop) if drop.any() else out), stats
+
+    def fit_fused(self, fused: FusedCloud) -> tuple[FusedCloud, np.ndarray, dict]:
+        """:meth:`refine_fused` before it drops anything: every fused point, fitted or with its scaled burst
+        sigma, the (N,) off-surface mask, and the fit's stats (what the val calibration of the scale reads)."""
         res = self.refine(fused.points)
         r = res.refined
         points = np.where(r[:, None], res.points, fused.points)
         sigma = np.where(r, res.sigma, self.rest_sigma_scale * fused.sigma * np.sqrt(np.maximum(fused.bursts, 1)))
-        out = replace(fused, points=points, sigma=sigma, refined=r, deviation=None)
-        off = off_surface(points, r)
-        uncertain = ~r & ~off & (sigma > self.max_sigma_mm)
-        stats = {**res.stats, "off_surface": int(off.sum()), "uncertain": int(uncertain.sum())}
-        drop = off | uncertain
-        return (out.select(~drop) if drop.any() else out), stats
+        return replace(fused, points=points, sigma=sigma, refined=r, deviation=None), off_surface(points, r), res.stats
 
     # -- geometry ---------------------------------------------------------------------------
     def _camera_xyz(self, pts: np.ndarray, angle: float) -> np.ndarray:

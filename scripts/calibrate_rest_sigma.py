@@ -27,7 +27,6 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from choose_fused_support import load_or_start, val_cells  # noqa: E402  (the same val cells)
 
 HONEST_MEDIAN_Z = 0.6745  # median |e| / sigma of a Gaussian error with that sigma
-BOUND_MM = 0.03  # TrackRefiner.max_sigma_mm: the bound every point of the refined cloud meets
 
 
 def rest_z(rec: Path, decoder, keep: Path) -> dict:
@@ -37,22 +36,22 @@ def rest_z(rec: Path, decoder, keep: Path) -> dict:
     from gearscan.core.recording import RecordingReader
     from gearscan.recon.fuse import CloudFuser
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX
-    from gearscan.recon.track import TrackRefiner, off_surface
+    from gearscan.recon.track import TrackRefiner
     from gearscan.replay import recording_rig, replay
     from gearscan.twin.defects import GearDefects, true_mesh
 
     reader = RecordingReader(rec)
-    refiner = TrackRefiner(recording_rig(reader, None), reader.patterns.periods[0])
+    refiner = TrackRefiner(recording_rig(reader, None), reader.patterns.periods[0], rest_sigma_scale=1.0)  # unscaled
     m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=False,
                network_support_px=FRAME_FIT_NETWORK_SUPPORT_PX, on_burst=lambda meas, row: refiner.add(meas))
     fused = m.fused
-    res = refiner.refine(fused.points)
-    r = res.refined
-    rest = ~r & ~off_surface(np.where(r[:, None], res.points, fused.points), r)
+    fit, off, _ = refiner.fit_fused(fused)  # the product's fit, before its bound drops anything
+    r = fit.refined
+    rest = ~r & ~off
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
     err = np.abs(scene.compute_signed_distance(o3d.core.Tensor(fused.points[rest].astype(np.float32))).numpy())
-    sigma = fused.sigma[rest] * np.sqrt(np.maximum(fused.bursts[rest], 1))
+    sigma = fit.sigma[rest]  # the bursts' sigma without credit for averaging (scale 1)
     z = err / sigma
     np.savez(keep, error_mm=err, sigma_mm=sigma)
     return {"points": len(fused), "fitted": int(r.sum()), "rest": int(rest.sum()),
@@ -82,13 +81,16 @@ def main() -> None:
     medians = [c["median_z"] for c in cells if c["median_z"] is not None]  # a cell with no unfitted point has none
     done["worst_median_z_before_the_bound"] = max(medians, default=0.0)  # the rule's first form
     done["scale_first_form"] = max(1.0, math.ceil(2 * done["worst_median_z_before_the_bound"] / HONEST_MEDIAN_Z) / 2)
+    from gearscan.recon.track import TrackRefiner
+
+    bound = TrackRefiner.__init__.__kwdefaults__["max_sigma_mm"]  # the bound every point of the refined cloud meets
     arrays = [np.load(ROOT / c["arrays"]) for c in cells]  # relative paths in runs before this form: under ROOT
     scale, rows = None, []
     for c in np.arange(1.0, 20.5, 0.5):
         per_cell = []
         for a in arrays:
             s = c * a["sigma_mm"]
-            kept = s <= BOUND_MM
+            kept = s <= bound
             per_cell.append({"kept": int(kept.sum()), "median_z": float(np.median(a["error_mm"][kept] / s[kept]))
                              if kept.any() else None,
                              "kept_rms_um": float(1e3 * np.sqrt(np.mean(a["error_mm"][kept] ** 2))) if kept.any() else None})
