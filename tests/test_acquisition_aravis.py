@@ -94,16 +94,22 @@ def test_software_trigger_one_frame_per_trigger(cam):
 def test_free_run_mono16_roi_and_packet_size(cam):
     cam.configure(CameraSettings(exposure_us=2_000, roi=(0, 0, 800, 800), pixel_format="Mono16", frame_rate_hz=200))
     assert cam.packet_size > 1500, f"packet size not tuned on loopback (MTU 65536): {cam.packet_size} {cam.tuning_note}"
+    missing_before = cam.stats.missing_frames
     cam.start()
-    try:
-        frames = [cam.grab(timeout=2.0) for _ in range(20)]
+    try:  # the simulator's ids start near 65401: grab until they cross the 16-bit wrap (65535 -> 1), 1 s at most
+        frames = [cam.grab(timeout=2.0)]
+        while frames[-1].frame_id >= frames[0].frame_id and len(frames) < 400:
+            frames.append(cam.grab(timeout=2.0))
     finally:
         cam.stop()
     assert all(f.image.shape == (800, 800) and f.image.dtype == np.uint16 and f.bit_depth == 16 for f in frames)
     ids = [f.frame_id for f in frames]
-    # the simulator starts at id 65401, so 20 frames cross the 16-bit wrap (65535 -> 1)
-    assert [cam.frame_id_wrap.step(a, b) for a, b in zip(ids, ids[1:], strict=False)] == [1] * 19, ids
-    assert cam.stats.missing_frames == 0
+    assert ids[-1] < ids[0], f"the ids never crossed the wrap: {ids[0]}..{ids[-1]}"
+    # 200 fps of 1.3 MB frames over loopback may lose a frame on a busy host: each loss must be counted, across
+    # the wrap too, never silent (the driver's promise; a consumer cannot tell a gap from a wrap otherwise)
+    steps = [cam.frame_id_wrap.step(a, b) for a, b in zip(ids, ids[1:], strict=False)]
+    assert all(1 <= k <= 10 for k in steps), ids
+    assert cam.stats.missing_frames - missing_before == sum(k - 1 for k in steps)
     # device timestamps >= 5 ms apart at 200 fps (the simulator stamps at send time and
     # falls behind on a loaded 2-core machine, never ahead), mapped to host time in the past
     dt = np.diff([f.timestamp_ns for f in frames]) / 1e6
