@@ -24,6 +24,13 @@
   the best-on-val weights. ``checkpoints_cpu_min``: at the first validation past each mark,
   the best-on-val weights so far are saved as ``cpu_<m>min.safetensors`` (a 10-minute budget's
   result, read off a longer run with a constant schedule). Every metrics row has ``cpu_min``.
+- ``budget_wall_min``: the same stop by the wall clock since ``fit()`` began (a lent GPU machine's
+  command has a hard time limit; not carried over on resume).
+- ``bank``: draw the training bursts on the training device (:class:`~gearscan.inference.burst_bank.BurstBank`;
+  the train set must be twin dataset folders) instead of through DataLoader workers: on a GPU the
+  workers' per-item copies, not the network, set the pace of a small model.
+- No host sync per training step (the progress bar's loss is read every ``PROGRESS_EVERY`` steps), so
+  the host queues work ahead of a GPU.
 - DDP: launched with ``torchrun`` (env ``WORLD_SIZE`` > 1), gloo on CPU, nccl on CUDA; rank 0
   writes files; validation sums are all-reduced so every rank takes the same decisions
   (:mod:`gearscan.inference.distributed`).
@@ -67,6 +74,7 @@ from gearscan.inference.models import ModelConfig, PhaseNet, build_model
 from gearscan.inference.plots import plot_history
 
 VAL_OBJECTIVES = ("inside", "full")
+PROGRESS_EVERY = 25  # steps between the progress bar's loss read-outs (each is a host sync on a GPU)
 
 
 def validation_row(inside: float, outside: float, rmse: float, loss: LossConfig, objective: str) -> dict:
@@ -109,6 +117,8 @@ class TrainConfig:
     calibrate: bool = True
     calibrate_mc: int = 20  # MC passes for the MC-mode sigma calibration (0: deterministic only)
     budget_cpu_min: float | None = None  # stop at this many CPU minutes of this process (all threads)
+    budget_wall_min: float | None = None  # stop at this many wall-clock minutes since fit() began
+    bank: bool = False  # draw training bursts on the device (BurstBank) instead of DataLoader workers
     checkpoints_cpu_min: tuple[float, ...] = ()  # save the best-on-val weights so far at these CPU minutes
     # what early stopping reads: "inside" (the truth mask only; every model so far) or "full" (the trained
     # objective, with the loss's ``outside_weight`` term, which "full" requires)
@@ -132,6 +142,8 @@ class TrainConfig:
             raise ValueError(f"lr: expected > 0, got {self.lr}")
         if self.budget_cpu_min is not None and not self.budget_cpu_min > 0:
             raise ValueError(f"budget_cpu_min: expected > 0 CPU minutes, got {self.budget_cpu_min}")
+        if self.budget_wall_min is not None and not self.budget_wall_min > 0:
+            raise ValueError(f"budget_wall_min: expected > 0 minutes, got {self.budget_wall_min}")
         self.checkpoints_cpu_min = tuple(sorted(float(m) for m in self.checkpoints_cpu_min))
         if any(not m > 0 for m in self.checkpoints_cpu_min):
             raise ValueError(f"checkpoints_cpu_min: expected CPU minutes > 0, got {self.checkpoints_cpu_min}")
@@ -173,7 +185,8 @@ def _crop(batch: dict, size: int | None, gen: torch.Generator) -> dict:
     left = int(torch.randint(0, w - size + 1, (1,), generator=gen))
     out = dict(batch)
     for k in ("input", "target", "mask", "phase"):
-        out[k] = batch[k][..., top : top + size, left : left + size]
+        if k in batch:  # a BurstBank batch has no phase
+            out[k] = batch[k][..., top : top + size, left : left + size]
     return out
 
 
@@ -201,9 +214,18 @@ class Trainer:
         self.precision = resolve_precision(config.precision, self.device)  # by the CPU's bf16 support
         torch.manual_seed(config.seed + self.dist.rank)
         if val_set is None:
+            if config.bank:
+                raise ValueError("bank: expected a val_set (a bank draws from whole folders, not a group split)")
             tr, va = split_by_group(dataset_groups(train_set), config.val_fraction, config.seed)
             train_set, val_set = Subset(train_set, tr), Subset(train_set, va)
         self.train_set, self.val_set = train_set, val_set
+        self.bank = None
+        if config.bank:
+            from gearscan.inference.burst_bank import BurstBank, twin_parts
+
+            self.bank = BurstBank(twin_parts(train_set), self.device)
+            self._bank_gen = torch.Generator(device=self.device).manual_seed(config.seed * 1009 + self.dist.rank)
+        self._train_loader: DataLoader | None = None
         self.out = Path(config.out_dir)
         if self.dist.main:
             self.out.mkdir(parents=True, exist_ok=True)
@@ -222,7 +244,8 @@ class Trainer:
         self.state = {"stage": 1, "epoch": 0, "best": math.inf, "bad": 0, "stage_best": math.inf, "cpu_s": 0.0,
                       "checkpoints": []}
         self._cpu0 = time.process_time()
-        self._val_cpu = 0.0  # CPU seconds of the last validation: kept free at the end of a budget
+        self._wall0 = time.perf_counter()  # reset when fit() begins
+        self._val_cpu = self._val_wall = 0.0  # the last validation's CPU and wall seconds: kept free at a budget's end
         self.history: list[dict] = []
         self._last_plot = -math.inf
         if config.resume and (self.out / "last.safetensors").is_file():
@@ -299,24 +322,41 @@ class Trainer:
                 drop_last=False,
             )
             sampler.set_epoch(epoch)
+        workers = self.config.num_workers
         return DataLoader(
             dataset,
             batch_size=self.config.batch_size,
             shuffle=shuffle and sampler is None,
             sampler=sampler,
-            num_workers=self.config.num_workers,
+            num_workers=workers,
             drop_last=False,
+            pin_memory=self.device.type == "cuda",
+            persistent_workers=workers > 0 and shuffle,  # the train loader's workers live through the run
         )
+
+    def _train_batches(self, epoch: int):
+        """This epoch's training batches: drawn from the bank, or from one DataLoader kept for the run (its
+        workers start once; a distributed sampler is told the epoch)."""
+        if self.bank is not None:
+            while True:
+                yield self.bank.draw(self.config.batch_size, self._bank_gen)
+        if self._train_loader is None:
+            self._train_loader = self._loader(self.train_set, True, epoch)
+        sampler = self._train_loader.sampler
+        if hasattr(sampler, "set_epoch"):
+            sampler.set_epoch(epoch)
+        yield from self._train_loader
 
     # CPU budget ------------------------------------------------------------------------------
     def cpu_seconds(self) -> float:
         """CPU seconds this fit has used (this process, all threads; carried over on resume)."""
         return self.state["cpu_s"] + time.process_time() - self._cpu0
 
-    def budget_spent(self, reserve: float = 0.0) -> bool:
-        """True when the CPU budget (if any) leaves less than ``reserve`` seconds."""
-        b = self.config.budget_cpu_min
-        return b is not None and self.cpu_seconds() + reserve >= 60.0 * b
+    def budget_spent(self, reserve_cpu: float = 0.0, reserve_wall: float = 0.0) -> bool:
+        """True when the CPU budget or the wall-clock budget (if any) leaves less than its reserve (s)."""
+        cpu, wall = self.config.budget_cpu_min, self.config.budget_wall_min
+        return ((cpu is not None and self.cpu_seconds() + reserve_cpu >= 60.0 * cpu)
+                or (wall is not None and time.perf_counter() - self._wall0 + reserve_wall >= 60.0 * wall))
 
     def _save_checkpoints(self, stage: int) -> None:
         """Copy the best-on-val weights so far to ``cpu_<m>min.*`` for every mark just passed."""
@@ -339,8 +379,11 @@ class Trainer:
         self.model.train()
         set_stochastic(self.model, stage == 2)
         gen = torch.Generator().manual_seed(self.config.seed * 100003 + epoch * 7 + self.dist.rank)
-        loader = self._loader(self.train_set, True, epoch)
-        total = min(len(loader), self.config.steps_per_epoch or len(loader))
+        if self.bank is not None:
+            total = self.config.steps_per_epoch or max(1, len(self.bank) // self.config.batch_size)
+        else:
+            n_batches = math.ceil(math.ceil(len(self.train_set) / self.dist.world) / self.config.batch_size)
+            total = min(n_batches, self.config.steps_per_epoch or n_batches)
         bar = task = None
         if self.config.progress and self.dist.main:
             from rich.progress import Progress
@@ -351,8 +394,8 @@ class Trainer:
         keys = ("total", "nll", "mse", "reg")
         acc = torch.zeros(len(keys), device=self.device)  # summed on the device: no host sync per step
         n, wait_s, t_epoch = 0, 0.0, time.perf_counter()
-        batches = iter(loader)
-        for _ in range(total):
+        batches = self._train_batches(epoch)
+        for step in range(total):
             t_wait = time.perf_counter()
             batch = next(batches, None)
             wait_s += time.perf_counter() - t_wait  # blocked on the loader: where a starved device shows
@@ -375,8 +418,9 @@ class Trainer:
             acc += torch.stack([losses[k].detach().float() for k in keys])
             n += 1
             if bar is not None:
-                bar.update(task, advance=1, loss=f"loss {float(losses['total'].detach()):.4g}")
-            if self.budget_spent(reserve=self._val_cpu):  # leave room for the closing validation
+                loss = {"loss": f"loss {float(losses['total'].detach()):.4g}"} if step % PROGRESS_EVERY == 0 else {}
+                bar.update(task, advance=1, **loss)
+            if self.budget_spent(self._val_cpu, self._val_wall):  # leave room for the closing validation
                 break
         if bar is not None:
             bar.stop()
@@ -389,11 +433,11 @@ class Trainer:
 
     @torch.no_grad()
     def _validate(self) -> dict:
-        c0 = time.process_time()
+        c0, w0 = time.process_time(), time.perf_counter()
         try:
             return self._validate_once()
         finally:
-            self._val_cpu = time.process_time() - c0
+            self._val_cpu, self._val_wall = time.process_time() - c0, time.perf_counter() - w0
 
     def _validate_once(self) -> dict:
         self.model.eval()
@@ -419,7 +463,7 @@ class Trainer:
 
     # both stages -----------------------------------------------------------------------------
     def fit(self) -> TrainResult:
-        t0 = time.perf_counter()
+        t0 = self._wall0 = time.perf_counter()
         cfg = self.config
         stages = [(1, cfg.epochs_deterministic)] + (
             [(2, cfg.epochs_dropout)] if self.has_dropout else []
@@ -522,6 +566,7 @@ class Trainer:
                     "train_seconds": time.perf_counter() - t0,
                     "train_cpu_min": fit_cpu / 60.0,
                     "budget_cpu_min": cfg.budget_cpu_min,
+                    "budget_wall_min": cfg.budget_wall_min,
                     "budget_hit": budget_hit,
                 },
             )

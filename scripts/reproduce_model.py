@@ -50,6 +50,7 @@ from gearscan.twin.splits import SplitError, split_of_seed, split_of_teeth
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "scripts" / "train_default.py"
+CLOSE_S = 20.0  # kept free at the end of --total-minutes: the training process's start and last save
 
 
 def _teeth(split: str, lo: int, hi: int) -> list[int]:
@@ -72,10 +73,11 @@ def _chunks(values: list[int], n: int) -> list[list[int]]:
     return [values[i::n] for i in range(n) if values[i::n]]
 
 
-def plan(scale: float, dense: int = 0) -> tuple[list[tuple], list[tuple]]:
+def plan(scale: float, dense: int = 0, gears_per_set: int | None = None) -> tuple[list[tuple], list[tuple]]:
     """The render jobs (train, val) for a data ``scale`` (1.0: about 420 train start points, 18 GB at 256x256; 0.7: 300).
 
     ``dense`` > 0 adds that many repeats of the dense radial set (34 train gears each) and its val set.
+    ``gears_per_set`` keeps only that many tooth counts per folder (a quick run of the whole command).
     """
     repeats_radial = max(1, round(6 * scale))
     repeats_views = max(1, round(4 * scale))
@@ -88,6 +90,8 @@ def plan(scale: float, dense: int = 0) -> tuple[list[tuple], list[tuple]]:
         for i, teeth in enumerate(_chunks(_DENSE_TEETH, 4)):
             train.append((f"radial_dense_{i}", teeth, dense, 1, False, 3101 + i, DENSE_PERIOD_PX))
     val = [*_VAL_SETS, *([_VAL_DENSE] if dense else [])]
+    if gears_per_set is not None:
+        train, val = ([(j[0], j[1][:gears_per_set], *j[2:]) for j in jobs] for jobs in (train, val))
     for name, jobs in (("train", train), ("val", val)):
         wrong = [j[0] for j in jobs if split_of_seed(j[5]) != name]
         if wrong:
@@ -126,6 +130,7 @@ def _train_cmd(args, train_dirs: list[Path], val_dirs: list[Path], out: Path, ep
             "--lr", str(args.lr), "--val-items", str(val_items), "--patience", "1000", "--reverse",
             "--static-repeat", str(args.static_repeat), "--dropout-init", "0.02,0.1", "--device", args.device,
             "--workers", str(args.workers), "--threads", str(args.threads),
+            *(["--bank"] if args.bank else []),
             *(["--init", str(args.init)] if args.init else []),
             *(["--prior-input", "--prior-jitter", str(args.prior_jitter)] if args.prior_input else []),
             *(["--outside-weight", str(args.outside_weight)] if args.outside_weight else []),
@@ -140,6 +145,8 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="render processes")
     ap.add_argument("--scale", type=float, default=1.0, help="data size (1.0: about 420 train start points, 18 GB)")
     ap.add_argument("--size", type=int, default=256, help="rendered image size, px")
+    ap.add_argument("--gears-per-set", type=int, default=None, metavar="N",
+                    help="render only N tooth counts per folder (a quick run of the whole command)")
     ap.add_argument("--width", type=int, default=8, help="network base width w")
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--batch", type=int, default=8)
@@ -153,6 +160,15 @@ def main() -> None:
     ap.add_argument("--val-items", type=int, default=96)
     ap.add_argument("--train-minutes", type=float, default=120.0, help="wall-clock training budget")
     ap.add_argument("--workers", type=int, default=0, help="DataLoader workers")
+    ap.add_argument("--bank", action=argparse.BooleanOptionalAction, default=None,
+                    help="draw training bursts on the device (inference.burst_bank); default: on with --device cuda")
+    ap.add_argument("--total-minutes", type=float, default=None,
+                    help="wall-clock budget of the whole command (render, probe, training); the training gets "
+                         "what is left and stops itself before it (a lent machine's command limit); "
+                         "replaces --train-minutes")
+    ap.add_argument("--probe-steps", type=int, default=100, help="steps per epoch of the timing probe (2 epochs)")
+    ap.add_argument("--no-calibrate", action="store_true",
+                    help="skip the trainer's sigma calibration (refit later with gearscan calibrate-uncertainty)")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     ap.add_argument("--dense-radial", type=int, default=0, metavar="N",
                     help="add N repeats of the dense radial set (train gears 11-80, camera period 5-40 px) and its val set")
@@ -164,10 +180,13 @@ def main() -> None:
     ap.add_argument("--skip-render", action="store_true", help="the renders are already in --data")
     ap.add_argument("--render-only", action="store_true", help="stop after rendering")
     args = ap.parse_args()
+    t_start = time.time()
+    if args.bank is None:
+        args.bank = args.device == "cuda"
 
     if args.init is not None and not args.init.is_file():
         raise SystemExit(f"--init {args.init}: no such weights file")
-    train_jobs, val_jobs = plan(args.scale, args.dense_radial)
+    train_jobs, val_jobs = plan(args.scale, args.dense_radial, args.gears_per_set)
     t0 = time.time()
     if not args.skip_render:
         render(train_jobs + val_jobs, args.data, args.size, args.jobs)
@@ -180,10 +199,21 @@ def main() -> None:
 
     # probe: seconds per training step on this machine with these settings (the second, warm epoch's)
     probe = args.out / "probe"
-    subprocess.run(_train_cmd(args, train_dirs, val_dirs, probe, 2, 0, 100, 8) + ["--no-calibrate"], check=True)
+    subprocess.run(_train_cmd(args, train_dirs, val_dirs, probe, 2, 0, args.probe_steps, 8) + ["--no-calibrate"],
+                   check=True)
     last = json.loads((probe / "metrics.json").read_text())[-1]
     per_step = last["seconds"] / last["steps"]
-    total_epochs = max(2, int(args.train_minutes * 60 * 0.85 / (per_step * args.steps_per_epoch)))
+    budget_s = args.train_minutes * 60
+    extra = ["--no-calibrate"] if args.no_calibrate else []
+    if args.total_minutes is not None:  # what is left of the command's budget, less the run's start and close
+        budget_s = args.total_minutes * 60 - (time.time() - t_start) - CLOSE_S
+        if budget_s < 60:
+            raise SystemExit(f"--total-minutes {args.total_minutes}: {budget_s + CLOSE_S:.0f} s left after the "
+                             f"render and the probe, not enough to train (expected >= {60 + CLOSE_S} s)")
+        extra += ["--wall-minutes", f"{budget_s / 60:.3f}"]
+    # sized to 85 % of a CPU budget; 95 % of a wall budget, which stops the run itself if the probe was optimistic
+    fill = 0.95 if args.total_minutes is not None else 0.85
+    total_epochs = max(2, int(budget_s * fill / (per_step * args.steps_per_epoch)))
     epochs_drop = max(1, total_epochs // 10)
     epochs_det = total_epochs - epochs_drop
     # how much of a step waited on the loader: a large share means more workers (or GPU-side bursts), not a
@@ -194,7 +224,7 @@ def main() -> None:
           f"epochs of {args.steps_per_epoch}", flush=True)
     t2 = time.time()
     subprocess.run(_train_cmd(args, train_dirs, val_dirs, args.out, epochs_det, epochs_drop, args.steps_per_epoch,
-                              args.val_items), check=True)
+                              args.val_items) + extra, check=True)
     info = {"render_seconds": render_s, "train_seconds": time.time() - t2, "probe_ms_per_step": per_step * 1000,
             "probe_ms_data_wait_per_step": wait * 1000,
             "epochs": [epochs_det, epochs_drop], "args": {k: str(v) for k, v in vars(args).items()},

@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -76,6 +77,12 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="auto", help="auto, cpu or cuda")
     ap.add_argument("--workers", type=int, default=0, help="DataLoader workers")
+    ap.add_argument("--bank", action="store_true",
+                    help="draw the training bursts on the training device (inference.burst_bank; a GPU's choice: "
+                         "DataLoader workers then serve validation only, so --workers 0 suits it)")
+    ap.add_argument("--wall-minutes", type=float, default=None,
+                    help="stop training at this many wall-clock minutes (best-on-val weights kept; a lent "
+                         "machine's command limit)")
     ap.add_argument("--no-calibrate", action="store_true", help="skip the sigma calibration at the end")
     ap.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
                     help="autocast; auto = bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), else fp32")
@@ -148,9 +155,11 @@ def main() -> None:
         precision=args.precision,
         device=args.device,
         num_workers=args.workers,
+        bank=args.bank,
+        budget_wall_min=args.wall_minutes,
         calibrate=not args.no_calibrate,
         resume=args.resume,
-        progress=True,
+        progress=sys.stdout.isatty(),  # a bar in a log file is only blank lines
     )
     t0 = time.time()
     result = train(config, train_set, val_set)

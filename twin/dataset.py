@@ -331,6 +331,14 @@ class TwinBurstDataset:
     def full_scale(self, g: int) -> float:
         return float((1 << int(self.entries[g]["optics"]["bit_depth"])) - 1)
 
+    def pose_stack(self, g: int) -> dict[str, np.ndarray]:
+        """Start point ``g``'s arrays that training bursts are cut from, read into memory: ``frames``
+        (poses, 3, H, W) raw (the three patterns of a burst, at every pose), ``label`` (poses, 2, H, W)
+        and ``mask`` (poses, H, W). :meth:`__getitem__` builds its items from the same arrays."""
+        a = self._open(g)
+        return {"frames": np.array(a["images"][:, self._idx3]), "label": np.array(a["label"]),
+                "mask": np.array(a["mask"])}
+
     def _prior(self, a: dict[str, np.ndarray], poses: tuple[int, int, int], sl: tuple) -> dict[str, np.ndarray]:
         """What the twin prior (:class:`gearscan.twin.prior.TwinPrior`) predicts for this burst, from
         the stored truth of the same renders: the fringe phase change from the first frame to the

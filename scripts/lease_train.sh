@@ -1,0 +1,87 @@
+#!/usr/bin/env bash
+# The one command of a GPU lease: install .lease (scripts/lease_carry.sh), render the twin data, continue the
+# shipped model on the GPU with the project's one command (scripts/reproduce_model.py), and leave in $OUT what
+# comes back. Sized for the device tool's limits: a command runs at most 600 s, what comes back is at most 8 files
+# of 16 MiB two folders down, and a session has 15 device minutes in all (a machine's start included), so there is
+# one try:
+#
+#   bash scripts/lease_carry.sh                                   # here, once (about 2 min)
+#   run(command="bash scripts/lease_train.sh", carry=[".lease"], timeout_s=600)
+#
+# What it trains (each a LEASE_* variable; the defaults are the plan in inference/weights/MODEL_CARD.md):
+# v6 (inference/weights/default.safetensors) continued on v6's data (scale 0.7) plus one repeat of the dense radial
+# set, with the outside-mask term (--outside-weight 0.05 --val-objective full, benchmarks/outside_loss_val.md),
+# training bursts drawn on the GPU (--bank; inference/burst_bank.py) at batch 128. The sigma map is not fitted
+# there (--no-calibrate): `gearscan calibrate-uncertainty` refits it here on val, as for every shipped model.
+#
+# Comes back in $OUT: lease.log (everything printed, written as it goes, so a killed run still reports), best.*
+# (the run's final model: stage 2's best), stage1_best.safetensors, metrics.csv, reproduce.json.
+set -uo pipefail
+T0=$(date +%s)
+: "${OUT:?OUT: expected the folder whose files come back (the device tool sets it)}"
+LIMIT_S=${LEASE_LIMIT_S:-575}  # this script's whole run, under run()'s 600 s
+PY=${LEASE_PYTHON:-python3}
+DEVICE=${LEASE_DEVICE:-cuda}
+WORK=${LEASE_WORK:-/tmp/lease}
+mkdir -p "$OUT" "$WORK"
+exec > >(tee "$OUT/lease.log") 2>&1
+cd "$(dirname "$0")/.."
+left() { echo $((LIMIT_S - ($(date +%s) - T0))); }
+say() { echo "[lease $(($(date +%s) - T0)) s] $*"; }
+
+# 1. what the machine lacks: open3d (CPU build), pydantic, triangle, the libraries open3d links, gearscan itself
+site="$WORK/site"
+if ! "$PY" -c "import open3d" 2>/dev/null; then
+  [ -f .lease/open3d.tar.xz ] || { say "no .lease/open3d.tar.xz: run scripts/lease_carry.sh and carry .lease"; exit 2; }
+  mkdir -p "$site" "$WORK/libs"
+  "$PY" -m pip install -q --no-index --no-deps --no-compile --target "$site" .lease/whl/*.whl || exit 2
+  tar -C "$site" -xJf .lease/open3d.tar.xz && tar -C "$WORK" -xJf .lease/lib.tar.xz || exit 2
+  for lib in "$WORK"/lib/*; do  # only those the machine lacks: its own stay first
+    ldconfig -p | grep -q " $(basename "$lib") " || ln -sf "$lib" "$WORK/libs/"
+  done
+  export LD_LIBRARY_PATH="$WORK/libs${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+  say "carried libraries used: $(ls "$WORK/libs" | tr '\n' ' ')"
+fi
+export PYTHONPATH="$site${PYTHONPATH:+:$PYTHONPATH}"
+if ! "$PY" -c "import gearscan.twin.render" 2>/dev/null; then
+  "$PY" -m pip install -q --no-index --no-deps --no-build-isolation --no-compile --target "$site" . || exit 2
+fi
+# preflight: the renderer casts, the device is there, the weights to continue load
+"$PY" - "$DEVICE" <<'EOF' || { say "preflight failed: nothing trained"; exit 3; }
+import sys
+import torch
+from gearscan.core.gear import GearSpec
+from gearscan.twin.dataset import DatasetSpec, scene_for
+from gearscan.twin.render import TwinRenderer
+device = sys.argv[1]
+if device == "cuda" and not torch.cuda.is_available():
+    raise SystemExit("preflight: --device cuda but torch sees no GPU")
+spec = DatasetSpec(gears=[GearSpec(teeth=30)], width=64, height=64)  # the default rig
+rig, optics, gear, _ = scene_for(spec, 0)
+hit = TwinRenderer(rig, gear, optics).surface(0.0)
+print(f"preflight: torch {torch.__version__}, {torch.cuda.get_device_name() if device == 'cuda' else 'cpu'}, "
+      f"{sys.version.split()[0]}; the twin casts rays ({type(hit).__name__})")
+EOF
+say "installed, $(left) s left"
+
+# 2. render + train within what is left (the command stops its own training; timeout is the backstop)
+run="$WORK/run"
+budget=$(($(left) - 20))
+minutes=$(awk "BEGIN { printf \"%.3f\", $budget / 60 }")
+timeout --signal=INT --kill-after=10 "$budget" "$PY" scripts/reproduce_model.py \
+  --device "$DEVICE" --data "$WORK/data" --out "$run" --jobs "${LEASE_JOBS:-16}" \
+  --scale "${LEASE_SCALE:-0.7}" --dense-radial "${LEASE_DENSE:-1}" --size "${LEASE_SIZE:-256}" \
+  --crop "${LEASE_CROP:-128}" --width 8 --batch "${LEASE_BATCH:-128}" --lr "${LEASE_LR:-1e-3}" \
+  --init "${LEASE_INIT:-inference/weights/default.safetensors}" --outside-weight 0.05 --val-objective full \
+  --threads "${LEASE_THREADS:-4}" --workers 0 --bank --no-calibrate --total-minutes "$minutes" \
+  --probe-steps "${LEASE_PROBE_STEPS:-50}" ${LEASE_EXTRA:-}
+status=$?
+say "reproduce_model.py exited $status, $(left) s left"
+
+# 3. what comes back (at most 8 files)
+for f in best.safetensors best.json stage1_best.safetensors metrics.csv reproduce.json; do
+  [ -f "$run/$f" ] && cp "$run/$f" "$OUT/"
+done
+[ -f "$run/best.safetensors" ] || { [ -f "$run/last.safetensors" ] && cp "$run/last.safetensors" "$OUT/"; }
+ls -l "$OUT"
+exit $status

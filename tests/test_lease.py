@@ -1,0 +1,49 @@
+"""The GPU lease's one command (scripts/lease_train.sh), run here on the CPU at a tiny size: it renders, trains
+from v6 within its time limit and leaves what the device tool can bring back."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_lease_command_fits_the_device_limits(tmp_path):
+    out = tmp_path / "OUT"
+    limit = 170
+    env = os.environ | {
+        "OUT": str(out), "LEASE_WORK": str(tmp_path / "work"), "LEASE_PYTHON": sys.executable, "LEASE_DEVICE": "cpu",
+        "LEASE_LIMIT_S": str(limit), "LEASE_SIZE": "64", "LEASE_CROP": "32", "LEASE_JOBS": "2", "LEASE_BATCH": "8",
+        "LEASE_THREADS": "2", "LEASE_PROBE_STEPS": "5",
+        "LEASE_EXTRA": "--gears-per-set 1 --steps-per-epoch 20 --val-items 16",
+    }
+    t0 = time.time()
+    run = subprocess.run(["bash", str(REPO / "scripts" / "lease_train.sh")], env=env, capture_output=True, text=True,
+                         timeout=limit + 60)
+    took = time.time() - t0
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert took <= limit + 15  # it keeps to its own limit (the device kills a command at 600 s)
+    # what the device tool brings back: at most 8 plain files of 16 MiB, plain names, here at the top of $OUT
+    files = sorted(out.iterdir())
+    assert 5 <= len(files) <= 8 and all(f.is_file() and f.stat().st_size <= 16 * 2**20 for f in files)
+    assert all(re.fullmatch(r"[A-Za-z0-9._-]+", f.name) for f in files)
+    assert {"lease.log", "best.safetensors", "best.json", "stage1_best.safetensors", "metrics.csv"} <= {
+        f.name for f in files}
+    log = (out / "lease.log").read_text()
+    assert "preflight: torch" in log and "the twin casts rays" in log and "exited 0" in log
+    meta = json.loads((out / "best.json").read_text())
+    cfg = meta["training"]
+    assert cfg["bank"] and cfg["budget_wall_min"] > 0 and cfg["init"].endswith("inference/weights/default.safetensors")
+    assert cfg["loss"]["outside_weight"] == 0.05 and cfg["val_objective"] == "full" and not meta["calibration"]
+    info = json.loads((out / "reproduce.json").read_text())
+    # the training process got what was left and kept inside it
+    assert meta["train_seconds"] <= 60 * cfg["budget_wall_min"] + 15 and info["train_seconds"] < limit
