@@ -15,7 +15,8 @@
 # there (--no-calibrate): `gearscan calibrate-uncertainty` refits it here on val, as for every shipped model.
 #
 # Comes back in $OUT: lease.log (everything printed, written as it goes, so a killed run still reports), best.*
-# (the run's final model: stage 2's best), stage1_best.safetensors, metrics.csv, reproduce.json.
+# (the run's final model: stage 2's best), stage1_best.safetensors, metrics.csv, reproduce.json and
+# train_step_profile.{md,json} (step time by width and batch without a loader: what bounds a step there).
 set -uo pipefail
 T0=$(date +%s)
 : "${OUT:?OUT: expected the folder whose files come back (the device tool sets it)}"
@@ -30,24 +31,39 @@ left() { echo $((LIMIT_S - ($(date +%s) - T0))); }
 say() { echo "[lease $(($(date +%s) - T0)) s] $*"; }
 
 # 1. what the machine lacks: open3d (CPU build), pydantic, triangle, the libraries open3d links, gearscan itself
-site="$WORK/site"
-if ! "$PY" -c "import open3d" 2>/dev/null; then
+site="$WORK/site"  # python -P below: the tree's own gearscan/ lacks the mapped subpackages and must not shadow them
+if ! "$PY" -P -c "import open3d" 2>/dev/null; then
   [ -f .lease/open3d.tar.xz ] || { say "no .lease/open3d.tar.xz: run scripts/lease_carry.sh and carry .lease"; exit 2; }
   mkdir -p "$site" "$WORK/libs"
   "$PY" -m pip install -q --no-index --no-deps --no-compile --target "$site" .lease/whl/*.whl || exit 2
   tar -C "$site" -xJf .lease/open3d.tar.xz && tar -C "$WORK" -xJf .lease/lib.tar.xz || exit 2
   for lib in "$WORK"/lib/*; do  # only those the machine lacks: its own stay first
-    ldconfig -p | grep -q " $(basename "$lib") " || ln -sf "$lib" "$WORK/libs/"
+    ldconfig -p | grep -q "^[[:space:]]$(basename "$lib") " || ln -sf "$lib" "$WORK/libs/"
   done
   export LD_LIBRARY_PATH="$WORK/libs${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
-  say "carried libraries used: $(ls "$WORK/libs" | tr '\n' ' ')"
+  say "carried libraries used (the machine lacks them): $(ls "$WORK/libs" | tr '\n' ' ')"
 fi
 export PYTHONPATH="$site${PYTHONPATH:+:$PYTHONPATH}"
-if ! "$PY" -c "import gearscan.twin.render" 2>/dev/null; then
-  "$PY" -m pip install -q --no-index --no-deps --no-build-isolation --no-compile --target "$site" . || exit 2
+if ! "$PY" -P -c "import gearscan.twin.render" 2>/dev/null; then
+  # gearscan from this tree, laid out by pyproject's package map as links (no build on the machine)
+  "$PY" -P - "$site" <<'EOF' || exit 2
+import sys
+import tomllib
+from pathlib import Path
+
+root, pkg = Path.cwd(), Path(sys.argv[1]) / "gearscan"
+pkg.mkdir(parents=True, exist_ok=True)
+for entry in (root / "gearscan").iterdir():  # the top package's own modules and subpackages
+    if entry.name != "__pycache__" and not (pkg / entry.name).exists():
+        (pkg / entry.name).symlink_to(entry)
+dirs = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+for name, folder in dirs.items():
+    if name != "gearscan" and not (pkg / name.split(".", 1)[1]).exists():
+        (pkg / name.split(".", 1)[1]).symlink_to(root / folder)
+EOF
 fi
 # preflight: the renderer casts, the device is there, the weights to continue load
-"$PY" - "$DEVICE" <<'EOF' || { say "preflight failed: nothing trained"; exit 3; }
+"$PY" -P - "$DEVICE" <<'EOF' || { say "preflight failed: nothing trained"; exit 3; }
 import sys
 import torch
 from gearscan.core.gear import GearSpec
@@ -63,6 +79,11 @@ print(f"preflight: torch {torch.__version__}, {torch.cuda.get_device_name() if d
       f"{sys.version.split()[0]}; the twin casts rays ({type(hit).__name__})")
 EOF
 say "installed, $(left) s left"
+
+# 1b. what bounds a training step on this GPU, without any loader (benchmarks/train_step_profile.py; about 20 s)
+read -r pw pb <<< "${LEASE_PROFILE:-8,32 32,128,512}"
+timeout 90 "$PY" benchmarks/train_step_profile.py --device "$DEVICE" --widths "$pw" --batches "$pb" \
+  --threads "${LEASE_THREADS:-4}" --out "$OUT/train_step_profile" || say "step profile failed; training goes on"
 
 # 2. render + train within what is left (the command stops its own training; timeout is the backstop)
 run="$WORK/run"

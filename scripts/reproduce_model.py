@@ -4,7 +4,10 @@ The same command runs on a 2-core CPU or on a lent GPU machine (``--device cuda`
 budget and the number of render processes change::
 
     python scripts/reproduce_model.py --out runs/repro --device cpu --jobs 2 --train-minutes 120
-    python scripts/reproduce_model.py --out runs/repro --device cuda --jobs 16 --train-minutes 15 --width 32
+    python scripts/reproduce_model.py --out runs/repro --device cuda --jobs 16 --total-minutes 9 --batch 128
+
+(a lent machine's command runs at most 10 minutes: ``--total-minutes`` bounds render, probe and training
+together; ``scripts/lease_train.sh`` below wraps it.)
 
 Data (twin/splits.py: train gears and seeds only; val gears and seeds only for the validation
 set that does early stopping and the sigma calibration; nothing from the test split):
@@ -29,10 +32,10 @@ and resumes where it stopped. Training is ``scripts/train_default.py`` (determin
 then Concrete Dropout, cosine schedules, best-on-val weights, sigma calibration on val) with the
 number of epochs sized to ``--train-minutes`` by a short timed probe on this machine.
 
-On a lent GPU machine the renderer needs open3d, which is not installed there and whose wheel is
-larger than what travels with a command: carry ``libOpen3D`` compressed (xz: 36 MB), the rest of
-the package, the GL/X libraries it links against (libEGL, libGL, libX11, libudev, libusb, libidn2;
-only those the machine lacks, on LD_LIBRARY_PATH) and the pydantic and triangle wheels.
+On a lent GPU machine run it through ``scripts/lease_train.sh`` (one command of at most 600 s, with ``.lease`` from
+``scripts/lease_carry.sh`` carried: open3d's CPU build for the machine's Python, pydantic, triangle and the
+libraries open3d links against), which gives this command ``--total-minutes`` for what is left after its
+install, draws the training bursts on the GPU (``--bank``) and copies what comes back into ``$OUT``.
 """
 
 from __future__ import annotations
