@@ -141,7 +141,7 @@ def main() -> None:
     args.out.with_suffix(".json").write_text(json.dumps(info, indent=2))
     lines = [f"# Training step: what bounds it ({info['device']}, {host})", "",
              f"`python benchmarks/train_step_profile.py --device {args.device} --widths {args.widths} --batches "
-             f"{args.batches}`; commit `{info['commit']}`; load average {info['load_average'][0]:.2f}; torch "
+             f"{args.batches}{''.join(' --data ' + str(f) for f in args.data[:1])}{' ...' if len(args.data) > 1 else ''}`; commit `{info['commit']}`; load average {info['load_average'][0]:.2f}; torch "
              f"{torch.__version__}, {info['precision']} autocast, "
              f"{args.threads} threads, {args.crop}x{args.crop} crops, synthetic tensors already on the device (no "
              f"loader), Adam, median of {args.steps} synchronised steps after {args.warmup} warm-up.", "",
