@@ -36,7 +36,9 @@ if ! "$PY" -P -c "import open3d" 2>/dev/null; then
   [ -f .lease/open3d.tar.xz ] || { say "no .lease/open3d.tar.xz: run scripts/lease_carry.sh and carry .lease"; exit 2; }
   mkdir -p "$site" "$WORK/libs"
   "$PY" -m pip install -q --no-index --no-deps --no-compile --target "$site" .lease/whl/*.whl || exit 2
-  tar -C "$site" -xJf .lease/open3d.tar.xz && tar -C "$WORK" -xJf .lease/lib.tar.xz || exit 2
+  # Python's own lzma, not the machine's xz (which its image need not have)
+  "$PY" -P -c 'import sys, tarfile; [tarfile.open(a).extractall(d, filter="data") for a, d in zip(sys.argv[1::2], sys.argv[2::2])]' \
+    .lease/open3d.tar.xz "$site" .lease/lib.tar.xz "$WORK" || exit 2
   for lib in "$WORK"/lib/*; do  # only those the machine lacks: its own stay first
     ldconfig -p | grep -q "^[[:space:]]$(basename "$lib") " || ln -sf "$lib" "$WORK/libs/"
   done
