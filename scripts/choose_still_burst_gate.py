@@ -1,4 +1,4 @@
-"""Choose a model's still-burst gate on the VAL split and store it in the model's JSON.
+"""Choose a model's still-burst gate on the VAL split (or on one rig's own twin data) and store it in the model's JSON.
 
     python scripts/choose_still_burst_gate.py data/repro/val_radial data/repro/val_views \\
         data/default_rig/val/z25,data/default_rig/val/z32,data/default_rig/val/z46,data/default_rig/val/z62 \\
@@ -16,6 +16,11 @@ still bursts to 1.05 x three-step PS wherever the network is above that; none re
 within cost; none within cost: 0) and, with ``--motion``, ``benchmarks/still_burst_motion_rule.md``
 (``rad`` and ``max_motion`` together). Val only: the test split reports it
 (``benchmarks/generalization.py``).
+
+The twin workflow runs the same rule on a user's rig, that rig as its only family, into a copy of the model
+(``benchmarks/rig_still_gate_rule.md``)::
+
+    python scripts/choose_still_burst_gate.py ADAPT/ --model my_rig.safetensors --motion --noise-sigma --write
 """
 
 from __future__ import annotations
@@ -105,6 +110,13 @@ def family_bursts(predictor: Predictor, folders: Folders, seed: int, sigma_map: 
                          "mod": np.hypot(*classical)[m].astype(np.float32)})
         out[name] = rows
     return out
+
+
+def data_kind(families: list[str]) -> str:
+    """What the gate is chosen on: a rig's own twin data (every folder an adaptation dataset) or the val split."""
+    folders = [Path(f) for fam in families for f in fam.split(",")]
+    purposes = {json.loads((f / "index.json").read_text()).get("purpose", "protocol") for f in folders}
+    return "the rig's own twin data" if purposes == {"adaptation"} else "val split"
 
 
 def setting_key(rad: float, max_motion: float = math.inf) -> str:
@@ -262,7 +274,7 @@ def main() -> None:
                 "<= max(ungated + 0.005, 0.05) in every family, the smallest rad with still RMSE <= 1.05 x "
                 "three-step where the network is above it; else the largest within cost; else 0")
     choice = {
-        "rad": chosen, "chosen_on": "val split: " + "; ".join(families), "grid": list(GRID), "rule": rule,
+        "rad": chosen, "chosen_on": f"{data_kind(args.families)}: " + "; ".join(families), "grid": list(GRID), "rule": rule,
         "statistic": "median |network - three-step| phase over modulation >= 0.05, eroded 7x7, >= 256 px",
         "orientation": "normal", "mode": "deterministic", "seed": args.seed, "by_view": args.by_view, "val": table,
     }

@@ -250,3 +250,40 @@ def test_the_predictor_keeps_the_network_where_an_outline_moves(mc):
     moving = np.round(255 * _disc_frames((0, 3, 6))).astype(np.uint8)
     assert pred.predict(still, mc).mode == "three-step"
     assert pred.predict(moving, mc).mode == ("mc2" if mc else "deterministic")
+
+
+def test_a_rigs_own_gate_is_chosen_on_its_twin_data_and_written_to_its_copy(tmp_path):
+    """The twin workflow's step (benchmarks/rig_still_gate_rule.md): the script, run on one rig's adaptation data
+    with a copy of the model, stores that rig's choice and val table in the copy; the shipped model is untouched."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from gearscan.core.gear import GearSpec
+    from gearscan.twin.dataset import DatasetSpec, generate_dataset, scene_for
+
+    # a user's rig (here one the any-view randomiser draws) rendered as `gearscan twin dataset --rig` renders it
+    rig, optics, gear, period = scene_for(DatasetSpec(gears=[GearSpec(teeth=26)], width=64, height=64,
+                                                      randomize=True, views=True, seed=41), 0)
+    data = tmp_path / "adapt"
+    generate_dataset(data, DatasetSpec(gears=[gear], width=64, height=64, poses=6, max_start_points=2,
+                                       period_px=period, seed=1),
+                     scene=(rig, optics, gear, period), purpose="adaptation")
+    copy = tmp_path / "my_rig.safetensors"
+    shutil.copy(DEFAULT_MODEL, copy)
+    shutil.copy(DEFAULT_MODEL.with_suffix(".json"), copy.with_suffix(".json"))
+    shipped = DEFAULT_MODEL.with_suffix(".json").read_bytes()
+    script = Path(__file__).resolve().parents[1] / "scripts" / "choose_still_burst_gate.py"
+    run = subprocess.run([sys.executable, str(script), str(data), "--model", str(copy), "--motion", "--noise-sigma",
+                          "--write", "--threads", "1"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert DEFAULT_MODEL.with_suffix(".json").read_bytes() == shipped
+    gate = json.loads(copy.with_suffix(".json").read_text())["still_burst_gate"]
+    assert gate["chosen_on"] == f"the rig's own twin data: {data}" and list(gate["val"]) == [str(data)]
+    assert gate["sigma"]["kind"] == THREE_STEP_NOISE
+    # the choice is the rule's on the table it stored, and the copy's predictor carries it
+    rad, motion = _chooser().choose_with_motion(gate["val"])
+    assert gate["rad"] == rad and gate.get("max_motion_share", float("inf")) == motion
+    assert Predictor.load(copy).still_burst_rad == rad
