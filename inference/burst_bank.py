@@ -64,6 +64,9 @@ class BurstBank:
         rows = []
         for s, (ds, g) in enumerate(points):
             stack = ds.pose_stack(g)
+            if not deep and stack["frames"].dtype != np.uint8:
+                raise DatasetError(f"BurstBank {ds.root} start point {g}: {stack['frames'].dtype} frames of an 8-bit "
+                                   "camera (expected uint8)")
             raw = stack["frames"].astype(np.int32) if deep else stack["frames"]  # torch gathers no uint16
             self.frames[s].copy_(torch.from_numpy(raw))
             self.label[s].copy_(torch.from_numpy(stack["label"]))

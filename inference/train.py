@@ -24,8 +24,10 @@
   the best-on-val weights. ``checkpoints_cpu_min``: at the first validation past each mark,
   the best-on-val weights so far are saved as ``cpu_<m>min.safetensors`` (a 10-minute budget's
   result, read off a longer run with a constant schedule). Every metrics row has ``cpu_min``.
-- ``budget_wall_min``: the same stop by the wall clock since ``fit()`` began (a lent GPU machine's
-  command has a hard time limit; not carried over on resume).
+- ``deadline``: the same stop at a wall-clock time (Unix seconds; a lent GPU machine's command has a hard
+  limit, and the process's own start counts against it). With a dropout stage to run, the deterministic stage
+  stops at its share of the time left when ``fit()`` began (its epochs over all epochs), so the dropout stage
+  always runs. Distributed ranks stop together (the stop is all-reduced).
 - ``bank``: draw the training bursts on the training device (:class:`~gearscan.inference.burst_bank.BurstBank`;
   the train set must be twin dataset folders) instead of through DataLoader workers: on a GPU the
   workers' per-item copies, not the network, set the pace of a small model.
@@ -75,6 +77,7 @@ from gearscan.inference.plots import plot_history
 
 VAL_OBJECTIVES = ("inside", "full")
 PROGRESS_EVERY = 25  # steps between the progress bar's loss read-outs (each is a host sync on a GPU)
+BANK_SHARE = 0.6  # of the GPU's free memory a BurstBank may take (the network's activations need the rest)
 
 
 def validation_row(inside: float, outside: float, rmse: float, loss: LossConfig, objective: str) -> dict:
@@ -117,7 +120,7 @@ class TrainConfig:
     calibrate: bool = True
     calibrate_mc: int = 20  # MC passes for the MC-mode sigma calibration (0: deterministic only)
     budget_cpu_min: float | None = None  # stop at this many CPU minutes of this process (all threads)
-    budget_wall_min: float | None = None  # stop at this many wall-clock minutes since fit() began
+    deadline: float | None = None  # stop by this wall-clock time (Unix seconds, time.time())
     bank: bool = False  # draw training bursts on the device (BurstBank) instead of DataLoader workers
     checkpoints_cpu_min: tuple[float, ...] = ()  # save the best-on-val weights so far at these CPU minutes
     # what early stopping reads: "inside" (the truth mask only; every model so far) or "full" (the trained
@@ -142,8 +145,8 @@ class TrainConfig:
             raise ValueError(f"lr: expected > 0, got {self.lr}")
         if self.budget_cpu_min is not None and not self.budget_cpu_min > 0:
             raise ValueError(f"budget_cpu_min: expected > 0 CPU minutes, got {self.budget_cpu_min}")
-        if self.budget_wall_min is not None and not self.budget_wall_min > 0:
-            raise ValueError(f"budget_wall_min: expected > 0 minutes, got {self.budget_wall_min}")
+        if self.deadline is not None and not self.deadline > 0:
+            raise ValueError(f"deadline: expected a wall-clock time in Unix seconds, got {self.deadline}")
         self.checkpoints_cpu_min = tuple(sorted(float(m) for m in self.checkpoints_cpu_min))
         if any(not m > 0 for m in self.checkpoints_cpu_min):
             raise ValueError(f"checkpoints_cpu_min: expected CPU minutes > 0, got {self.checkpoints_cpu_min}")
@@ -221,10 +224,17 @@ class Trainer:
         self.train_set, self.val_set = train_set, val_set
         self.bank = None
         if config.bank:
-            from gearscan.inference.burst_bank import BurstBank, twin_parts
+            from gearscan.inference.burst_bank import BurstBank, bank_bytes, twin_parts
 
-            self.bank = BurstBank(twin_parts(train_set), self.device)
-            self._bank_gen = torch.Generator(device=self.device).manual_seed(config.seed * 1009 + self.dist.rank)
+            parts = twin_parts(train_set)
+            need = bank_bytes(parts)
+            free = torch.cuda.mem_get_info(self.device)[0] if self.device.type == "cuda" else math.inf
+            if need <= BANK_SHARE * free:
+                self.bank = BurstBank(parts, self.device)
+                self._bank_gen = torch.Generator(device=self.device)  # seeded per epoch: a resumed run draws anew
+            else:  # the run still trains, through the DataLoader
+                print(f"bank: the training bursts need {need / 2**30:.1f} GiB, the GPU has {free / 2**30:.1f} GiB "
+                      f"free (at most {BANK_SHARE:.0%} of it is used): drawing them through the DataLoader", flush=True)
         self._train_loader: DataLoader | None = None
         self.out = Path(config.out_dir)
         if self.dist.main:
@@ -244,7 +254,7 @@ class Trainer:
         self.state = {"stage": 1, "epoch": 0, "best": math.inf, "bad": 0, "stage_best": math.inf, "cpu_s": 0.0,
                       "checkpoints": []}
         self._cpu0 = time.process_time()
-        self._wall0 = time.perf_counter()  # reset when fit() begins
+        self._stage_deadline: float | None = None  # the deterministic stage's share of the deadline (fit() sets it)
         self._val_cpu = self._val_wall = 0.0  # the last validation's CPU and wall seconds: kept free at a budget's end
         self.history: list[dict] = []
         self._last_plot = -math.inf
@@ -352,11 +362,18 @@ class Trainer:
         """CPU seconds this fit has used (this process, all threads; carried over on resume)."""
         return self.state["cpu_s"] + time.process_time() - self._cpu0
 
-    def budget_spent(self, reserve_cpu: float = 0.0, reserve_wall: float = 0.0) -> bool:
-        """True when the CPU budget or the wall-clock budget (if any) leaves less than its reserve (s)."""
-        cpu, wall = self.config.budget_cpu_min, self.config.budget_wall_min
-        return ((cpu is not None and self.cpu_seconds() + reserve_cpu >= 60.0 * cpu)
-                or (wall is not None and time.perf_counter() - self._wall0 + reserve_wall >= 60.0 * wall))
+    def budget_spent(self, reserve_cpu: float = 0.0, reserve_wall: float = 0.0, *, stage: bool = True) -> bool:
+        """True when the CPU budget or the deadline (the running stage's with ``stage``) leaves less than its
+        reserve (s); distributed ranks all-reduce it, so every rank stops at the same step."""
+        cpu = self.config.budget_cpu_min
+        ends = [d for d in (self.config.deadline, self._stage_deadline if stage else None) if d is not None]
+        if cpu is None and not ends:
+            return False
+        spent = ((cpu is not None and self.cpu_seconds() + reserve_cpu >= 60.0 * cpu)
+                 or any(time.time() + reserve_wall >= d for d in ends))
+        if self.dist.world > 1:
+            spent = all_reduce_sum([float(spent)], self.dist, self.device)[0] > 0
+        return spent
 
     def _save_checkpoints(self, stage: int) -> None:
         """Copy the best-on-val weights so far to ``cpu_<m>min.*`` for every mark just passed."""
@@ -380,7 +397,8 @@ class Trainer:
         set_stochastic(self.model, stage == 2)
         gen = torch.Generator().manual_seed(self.config.seed * 100003 + epoch * 7 + self.dist.rank)
         if self.bank is not None:
-            total = self.config.steps_per_epoch or max(1, len(self.bank) // self.config.batch_size)
+            self._bank_gen.manual_seed(self.config.seed * 1_000_003 + stage * 10_007 + epoch * 101 + self.dist.rank)
+            total = self.config.steps_per_epoch or max(1, len(self.bank) // self.config.batch_size // self.dist.world)
         else:
             n_batches = math.ceil(math.ceil(len(self.train_set) / self.dist.world) / self.config.batch_size)
             total = min(n_batches, self.config.steps_per_epoch or n_batches)
@@ -463,11 +481,14 @@ class Trainer:
 
     # both stages -----------------------------------------------------------------------------
     def fit(self) -> TrainResult:
-        t0 = self._wall0 = time.perf_counter()
+        t0 = time.perf_counter()
         cfg = self.config
         stages = [(1, cfg.epochs_deterministic)] + (
             [(2, cfg.epochs_dropout)] if self.has_dropout else []
         )
+        if cfg.deadline is not None and self.state["stage"] == 1 and len(stages) == 2 and cfg.epochs_dropout:
+            share = cfg.epochs_deterministic / (cfg.epochs_deterministic + cfg.epochs_dropout)
+            self._stage_deadline = time.time() + share * max(0.0, cfg.deadline - time.time())
         if cfg.init and not self.history and self.state["stage"] == 1:  # the starting point is a candidate too
             row = {"stage": 1, "epoch": 0, "lr": 0.0, **{f"train_{k}": math.nan for k in ("total", "nll", "mse", "reg")},
                    "steps": 0, **self._validate(), "seconds": time.perf_counter() - t0}
@@ -520,6 +541,7 @@ class Trainer:
                     self._save_checkpoints(stage)
                     self._save_last()
                     self._write_metrics()
+            self._stage_deadline = None  # the next stage runs to the deadline itself
             # stage done: continue from this stage's best weights
             best_file = self.out / f"stage{stage}_best.safetensors"
             barrier(self.dist)
@@ -537,7 +559,7 @@ class Trainer:
             if self.dist.main:
                 self._save_last()
                 self._write_metrics(plot=True)
-        budget_hit = self.budget_spent()
+        budget_hit = self.budget_spent(stage=False)
         fit_cpu = self.cpu_seconds()
         var_scale, calib, sigma_cal = 1.0, {}, {}
         if cfg.calibrate:
@@ -566,7 +588,7 @@ class Trainer:
                     "train_seconds": time.perf_counter() - t0,
                     "train_cpu_min": fit_cpu / 60.0,
                     "budget_cpu_min": cfg.budget_cpu_min,
-                    "budget_wall_min": cfg.budget_wall_min,
+                    "deadline": cfg.deadline,
                     "budget_hit": budget_hit,
                 },
             )

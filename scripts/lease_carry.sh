@@ -80,7 +80,8 @@ else
   echo "lease carry: no pyenv Python $PY here: not self-checked" >&2
 fi
 
-tree=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1)
+# what the device tool sends: tracked and untracked-not-ignored files (summed over every du batch xargs makes)
+tree=$(git ls-files -co --exclude-standard -z | xargs -0 du -cb 2>/dev/null | awk -F'\t' '$2 == "total" {s += $1} END {print s + 0}')
 carry=$(du -sb .lease | cut -f1)
 total=$((tree + carry))
 echo "lease carry: .lease $((carry / 1048576)) MiB + working tree $((tree / 1048576)) MiB = $((total / 1048576)) MiB (limit 64)"

@@ -14,9 +14,11 @@
 # training bursts drawn on the GPU (--bank; inference/burst_bank.py) at batch 128. The sigma map is not fitted
 # there (--no-calibrate): `gearscan calibrate-uncertainty` refits it here on val, as for every shipped model.
 #
-# Comes back in $OUT: lease.log (everything printed, written as it goes, so a killed run still reports), best.*
-# (the run's final model: stage 2's best), stage1_best.safetensors, metrics.csv, reproduce.json and
-# train_step_profile.{md,json} (step time by width and batch without a loader: what bounds a step there).
+# Comes back in $OUT (8 files): lease.log (everything printed, written as it goes, so a killed run still
+# reports), best.* (the run's final model: stage 2's best; reproduce.json's stages_run says whether stage 2 ran),
+# stage1_best.*, metrics.csv, reproduce.json and train_step_profile.md (step time by width and batch without a
+# loader: what bounds a step there). Exit 2: the install failed; 3: the preflight did, or no time was left; 4: the
+# backstop timeout stopped the training (its last and stage1_best weights come back).
 set -uo pipefail
 T0=$(date +%s)
 : "${OUT:?OUT: expected the folder whose files come back (the device tool sets it)}"
@@ -26,6 +28,14 @@ DEVICE=${LEASE_DEVICE:-cuda}
 WORK=${LEASE_WORK:-/tmp/lease}
 mkdir -p "$OUT" "$WORK"
 exec > >(tee "$OUT/lease.log") 2>&1
+tee_pid=$!
+finish() {  # the log is complete before the tool collects $OUT; 124 (the backstop timeout) is not the tool's own
+  local code=$1
+  [ "$code" = 124 ] && code=4
+  exec >&- 2>&-
+  wait "$tee_pid" 2>/dev/null
+  exit "$code"
+}
 cd "$(dirname "$0")/.."
 left() { echo $((LIMIT_S - ($(date +%s) - T0))); }
 say() { echo "[lease $(($(date +%s) - T0)) s] $*"; }
@@ -33,22 +43,24 @@ say() { echo "[lease $(($(date +%s) - T0)) s] $*"; }
 # 1. what the machine lacks: open3d (CPU build), pydantic, triangle, the libraries open3d links, gearscan itself
 site="$WORK/site"  # python -P below: the tree's own gearscan/ lacks the mapped subpackages and must not shadow them
 if ! "$PY" -P -c "import open3d" 2>/dev/null; then
-  [ -f .lease/open3d.tar.xz ] || { say "no .lease/open3d.tar.xz: run scripts/lease_carry.sh and carry .lease"; exit 2; }
+  [ -f .lease/open3d.tar.xz ] || { say "no .lease/open3d.tar.xz: run scripts/lease_carry.sh and carry .lease"; finish 2; }
   mkdir -p "$site" "$WORK/libs"
-  "$PY" -m pip install -q --no-index --no-deps --no-compile --target "$site" .lease/whl/*.whl || exit 2
+  "$PY" -m pip install -q --no-index --no-deps --no-compile --target "$site" .lease/whl/*.whl || finish 2
   # Python's own lzma, not the machine's xz (which its image need not have)
   "$PY" -P -c 'import sys, tarfile; [tarfile.open(a).extractall(d, filter="data") for a, d in zip(sys.argv[1::2], sys.argv[2::2])]' \
-    .lease/open3d.tar.xz "$site" .lease/lib.tar.xz "$WORK" || exit 2
+    .lease/open3d.tar.xz "$site" .lease/lib.tar.xz "$WORK" || finish 2
+  known=$(ldconfig -p)  # read once: grep -q on a pipe can cut ldconfig off (SIGPIPE) and read as "missing"
   for lib in "$WORK"/lib/*; do  # only those the machine lacks: its own stay first
-    ldconfig -p | grep -q "^[[:space:]]$(basename "$lib") " || ln -sf "$lib" "$WORK/libs/"
+    grep -q "^[[:space:]]$(basename "$lib") " <<< "$known" || ln -sf "$lib" "$WORK/libs/"
   done
   export LD_LIBRARY_PATH="$WORK/libs${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
   say "carried libraries used (the machine lacks them): $(ls "$WORK/libs" | tr '\n' ' ')"
 fi
 export PYTHONPATH="$site${PYTHONPATH:+:$PYTHONPATH}"
-if ! "$PY" -P -c "import gearscan.twin.render" 2>/dev/null; then
+if [ -n "${LEASE_LINK:-}" ] || ! "$PY" -P -c "import gearscan.twin.render" 2>/dev/null; then
   # gearscan from this tree, laid out by pyproject's package map as links (no build on the machine)
-  "$PY" -P - "$site" <<'EOF' || exit 2
+  say "gearscan laid out as links in $site"
+  "$PY" -P - "$site" <<'EOF' || finish 2
 import sys
 import tomllib
 from pathlib import Path
@@ -65,7 +77,7 @@ for name, folder in dirs.items():
 EOF
 fi
 # preflight: the renderer casts, the device is there, the weights to continue load
-"$PY" -P - "$DEVICE" <<'EOF' || { say "preflight failed: nothing trained"; exit 3; }
+"$PY" -P - "$DEVICE" <<'EOF' || { say "preflight failed: nothing trained"; finish 3; }
 import sys
 import torch
 from gearscan.core.gear import GearSpec
@@ -77,21 +89,25 @@ if device == "cuda" and not torch.cuda.is_available():
 spec = DatasetSpec(gears=[GearSpec(teeth=30)], width=64, height=64)  # the default rig
 rig, optics, gear, _ = scene_for(spec, 0)
 hit = TwinRenderer(rig, gear, optics).surface(0.0)
+import gearscan
 print(f"preflight: torch {torch.__version__}, {torch.cuda.get_device_name() if device == 'cuda' else 'cpu'}, "
-      f"{sys.version.split()[0]}; the twin casts rays ({type(hit).__name__})")
+      f"{sys.version.split()[0]}; gearscan from {gearscan.__path__[0]}; the twin casts rays ({type(hit).__name__})")
 EOF
 say "installed, $(left) s left"
 
 # 1b. what bounds a training step on this GPU, without any loader (benchmarks/train_step_profile.py; about 20 s)
 read -r pw pb <<< "${LEASE_PROFILE:-8,32 32,128,512}"
-timeout 90 "$PY" benchmarks/train_step_profile.py --device "$DEVICE" --widths "$pw" --batches "$pb" \
-  --threads "${LEASE_THREADS:-4}" --out "$OUT/train_step_profile" || say "step profile failed; training goes on"
+timeout -k 5 90 "$PY" benchmarks/train_step_profile.py --device "$DEVICE" --widths "$pw" --batches "$pb" \
+  --threads "${LEASE_THREADS:-4}" --out "$WORK/train_step_profile" || say "step profile failed; training goes on"
+cp "$WORK/train_step_profile.md" "$OUT/" 2>/dev/null  # its rows are in the log too
 
-# 2. render + train within what is left (the command stops its own training; timeout is the backstop)
+# 2. render + train within what is left: the command ends its training by a deadline 20 s before its own end
+# (--total-minutes), 25 s before this script's; the timeout 15 s later is only the backstop
 run="$WORK/run"
-budget=$(($(left) - 20))
-minutes=$(awk "BEGIN { printf \"%.3f\", $budget / 60 }")
-timeout --signal=INT --kill-after=10 "$budget" "$PY" scripts/reproduce_model.py \
+total=$(($(left) - 25))
+[ "$total" -ge 120 ] || { say "only $total s left for render and training: nothing trained"; finish 3; }
+minutes=$(awk "BEGIN { printf \"%.3f\", $total / 60 }")
+timeout --signal=TERM --kill-after=5 "$((total + 15))" "$PY" scripts/reproduce_model.py \
   --device "$DEVICE" --data "$WORK/data" --out "$run" --jobs "${LEASE_JOBS:-16}" \
   --scale "${LEASE_SCALE:-0.7}" --dense-radial "${LEASE_DENSE:-1}" --size "${LEASE_SIZE:-256}" \
   --crop "${LEASE_CROP:-128}" --width 8 --batch "${LEASE_BATCH:-128}" --lr "${LEASE_LR:-1e-3}" \
@@ -101,10 +117,10 @@ timeout --signal=INT --kill-after=10 "$budget" "$PY" scripts/reproduce_model.py 
 status=$?
 say "reproduce_model.py exited $status, $(left) s left"
 
-# 3. what comes back (at most 8 files)
-for f in best.safetensors best.json stage1_best.safetensors metrics.csv reproduce.json; do
+# 3. what comes back (at most 8 files; each model with its JSON, which loading needs)
+for f in best.safetensors best.json stage1_best.safetensors stage1_best.json metrics.csv reproduce.json; do
   [ -f "$run/$f" ] && cp "$run/$f" "$OUT/"
 done
-[ -f "$run/best.safetensors" ] || { [ -f "$run/last.safetensors" ] && cp "$run/last.safetensors" "$OUT/"; }
+[ -f "$run/best.safetensors" ] || cp "$run/last.safetensors" "$run/last.json" "$OUT/" 2>/dev/null
 ls -l "$OUT"
-exit $status
+finish $status

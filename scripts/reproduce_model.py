@@ -53,7 +53,7 @@ from gearscan.twin.splits import SplitError, split_of_seed, split_of_teeth
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "scripts" / "train_default.py"
-CLOSE_S = 20.0  # kept free at the end of --total-minutes: the training process's start and last save
+CLOSE_S = 20.0  # kept free at the end of --total-minutes after the training's deadline: its last saves and exit
 
 
 def _teeth(split: str, lo: int, hi: int) -> list[int]:
@@ -202,18 +202,20 @@ def main() -> None:
 
     # probe: seconds per training step on this machine with these settings (the second, warm epoch's)
     probe = args.out / "probe"
-    subprocess.run(_train_cmd(args, train_dirs, val_dirs, probe, 2, 0, args.probe_steps, 8) + ["--no-calibrate"],
-                   check=True)
+    # validated on as many items as the run (validation is part of an epoch's time)
+    subprocess.run(_train_cmd(args, train_dirs, val_dirs, probe, 2, 0, args.probe_steps, args.val_items)
+                   + ["--no-calibrate"], check=True)
     last = json.loads((probe / "metrics.json").read_text())[-1]
     per_step = last["seconds"] / last["steps"]
     budget_s = args.train_minutes * 60
     extra = ["--no-calibrate"] if args.no_calibrate else []
-    if args.total_minutes is not None:  # what is left of the command's budget, less the run's start and close
-        budget_s = args.total_minutes * 60 - (time.time() - t_start) - CLOSE_S
+    if args.total_minutes is not None:  # the training stops itself by a deadline that leaves its close
+        deadline = t_start + args.total_minutes * 60 - CLOSE_S
+        budget_s = deadline - time.time()
         if budget_s < 60:
             raise SystemExit(f"--total-minutes {args.total_minutes}: {budget_s + CLOSE_S:.0f} s left after the "
-                             f"render and the probe, not enough to train (expected >= {60 + CLOSE_S} s)")
-        extra += ["--wall-minutes", f"{budget_s / 60:.3f}"]
+                             f"render and the probe, not enough to train (expected >= {60 + CLOSE_S:.0f} s)")
+        extra += ["--deadline", f"{deadline:.1f}"]
     # sized to 85 % of a CPU budget; 95 % of a wall budget, which stops the run itself if the probe was optimistic
     fill = 0.95 if args.total_minutes is not None else 0.85
     total_epochs = max(2, int(budget_s * fill / (per_step * args.steps_per_epoch)))
@@ -228,7 +230,9 @@ def main() -> None:
     t2 = time.time()
     subprocess.run(_train_cmd(args, train_dirs, val_dirs, args.out, epochs_det, epochs_drop, args.steps_per_epoch,
                               args.val_items) + extra, check=True)
+    rows = json.loads((args.out / "metrics.json").read_text()) if (args.out / "metrics.json").is_file() else []
     info = {"render_seconds": render_s, "train_seconds": time.time() - t2, "probe_ms_per_step": per_step * 1000,
+            "stages_run": sorted({int(r["stage"]) for r in rows if r.get("steps")}),
             "probe_ms_data_wait_per_step": wait * 1000,
             "epochs": [epochs_det, epochs_drop], "args": {k: str(v) for k, v in vars(args).items()},
             "train_sets": train_jobs, "val_sets": val_jobs}

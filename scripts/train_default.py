@@ -80,9 +80,9 @@ def main() -> None:
     ap.add_argument("--bank", action="store_true",
                     help="draw the training bursts on the training device (inference.burst_bank; a GPU's choice: "
                          "DataLoader workers then serve validation only, so --workers 0 suits it)")
-    ap.add_argument("--wall-minutes", type=float, default=None,
-                    help="stop training at this many wall-clock minutes (best-on-val weights kept; a lent "
-                         "machine's command limit)")
+    ap.add_argument("--deadline", type=float, default=None,
+                    help="stop training by this wall-clock time, Unix seconds (best-on-val weights kept; the dropout "
+                         "stage keeps its share; a lent machine's command limit)")
     ap.add_argument("--no-calibrate", action="store_true", help="skip the sigma calibration at the end")
     ap.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
                     help="autocast; auto = bf16 on CUDA and on CPUs with native bf16 (AVX512-BF16/AMX), else fp32")
@@ -156,7 +156,7 @@ def main() -> None:
         device=args.device,
         num_workers=args.workers,
         bank=args.bank,
-        budget_wall_min=args.wall_minutes,
+        deadline=args.deadline,
         calibrate=not args.no_calibrate,
         resume=args.resume,
         progress=sys.stdout.isatty(),  # a bar in a log file is only blank lines
