@@ -4,7 +4,7 @@
 
 Per test family, its first ``--scenes`` scenes: the twin renders an adaptation dataset of the scene's rig and gear
 (``benchmarks/rig_calibration.py``'s ``adaptation_data``: a train seed, no pose on a test burst's angle), and the
-shipped gate's rule (``scripts/choose_still_burst_gate.py``, ``choose_with_motion``) picks a gate on it alone. The
+shipped gate's rule (``gearscan.inference.still_gate_choice.choose_with_motion``, as ``gearscan still-gate`` runs it) picks a gate on it alone. The
 scene's test bursts, decoded without encoder angles (the network's own path), are scored with the shipped gate and
 with the rig's: RMSE against three-step PS, ECE, bursts taken. Nothing on the test split chooses anything. Writes
 ``benchmarks/rig_still_gate_report.{md,json}``.
@@ -17,7 +17,6 @@ import json
 import math
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 
@@ -30,31 +29,21 @@ from gearscan.core.phase import phase_error
 from gearscan.evaluate import Scene, classical_method, render_cases
 from gearscan.generalization import MOVING, STILL, rig_orientation, scene_motions
 from gearscan.inference.predictor import DEFAULT_MODEL, THREE_STEP_NOISE, Predictor
+from gearscan.inference.still_gate_choice import choose_with_motion, gate_table
 from gearscan.inference.uncertainty import reliability
 from gearscan.twin.families import FAMILIES, family_scenes
 
 HERE = Path(__file__).parent
-sys.path.insert(0, str(HERE.parent / "scripts"))
-from choose_still_burst_gate import (  # noqa: E402
-    GRID,
-    MOTION_GRID,
-    choose_with_motion,
-    family_bursts,
-    scores,
-    setting_key,
-)
-
 RUNS = HERE.parent / "runs" / "rig_still_gate"
 GATES = ("shipped gate", "rig's gate")
 STILL_TARGET, MOVING_COST, ECE_SLACK, ECE_TARGET = 1.1, 1.03, 0.005, 0.05
 
 
 def rig_gate(model: Path | None, data: Path, orientation: str, seed: int) -> tuple[float, float, dict]:
-    """``(rad, max_motion, table)`` chosen on one rig's twin data by the shipped gate's rule, the rig alone."""
+    """``(rad, max_motion, table)`` chosen on one rig's twin data by the shipped gate's rule, the rig alone (what
+    ``gearscan still-gate`` runs, without writing it)."""
     predictor = Predictor.load(model, orientation=orientation, still_gate_rad=0.0, still_burst_rad=0.0)
-    rows = family_bursts(predictor, [(str(data), None)], seed, THREE_STEP_NOISE)
-    settings = [(0.0, math.inf)] + [(r, m) for r in GRID for m in MOTION_GRID]
-    table = {"rig": {setting_key(r, m): {k: scores(v, r, m) for k, v in rows.items()} for r, m in settings}}
+    table = gate_table(predictor, {"rig": [(str(data), None)]}, seed, THREE_STEP_NOISE)
     rad, max_motion = choose_with_motion(table)
     return rad, max_motion, table["rig"]
 

@@ -689,7 +689,7 @@ def _register(module: str, names: list[str], target: typer.Typer = app) -> None:
             target.command(name.replace("_", "-"))(fn)
 
 
-_register("gearscan.inference.commands", ["predict", "train", "calibrate_uncertainty"])
+_register("gearscan.inference.commands", ["predict", "train", "calibrate_uncertainty", "still_gate"])
 _register("gearscan.calibrate", ["calibrate"])
 _register("gearscan.acquisition.commands", ["devices"])
 

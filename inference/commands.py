@@ -521,3 +521,49 @@ def calibrate_uncertainty(
             parts = [f"ECE {b['ece']:.3f} -> {a['ece']:.3f}"]
             parts += [f"{k} {b[f'ece_{k}']:.3f} -> {a[f'ece_{k}']:.3f}" for k in ("moving", "still") if f"ece_{k}" in a]
             typer.echo(f"  held-out {piece['scored']}: " + ", ".join(parts) + f" (RMSE {a['rmse']:.4f} rad)")
+
+
+def still_gate(
+    data: Annotated[
+        list[Path],
+        typer.Argument(help="twin datasets of your rig and gear (`gearscan twin dataset --rig`), pooled as one rig",
+                       exists=True, file_okay=False),
+    ],
+    model: Annotated[
+        Path | None,
+        typer.Option("--model", help="model .safetensors whose gate to choose; default: the shipped model"),
+    ] = None,
+    output: Annotated[
+        Path | None,
+        typer.Option("--output", "-o", help="write a copy with the rig's gate here (.safetensors) instead of in place"),
+    ] = None,
+    orientation: Annotated[str, typer.Option(help="your rig's fringe orientation (normal: every twin rig's)")] = "normal",
+    seed: Annotated[int, typer.Option(help="seed of the burst draws")] = 29,
+) -> None:
+    """Choose the still-burst gate on your rig's twin data (the shipped rule, your rig as its only family:
+    benchmarks/rig_still_gate_rule.md) and store it in the model's JSON. A burst the gate takes is decoded by
+    three-step PS when no encoder says the gear stood still (`gearscan predict` without angles)."""
+    import math
+
+    from gearscan.inference.model_io import ModelFileError
+    from gearscan.inference.still_gate_choice import choose_rig_gate
+    from gearscan.twin.dataset import DatasetError
+
+    def show(fam: str, rows: dict) -> None:
+        base = rows["0"]
+        typer.echo(f"- {fam}: ungated network " + ", ".join(
+            f"{k} {v['rmse']:.4f} rad (three-step {v['three_step']:.4f})" for k, v in base.items()))
+
+    try:
+        choice, written = choose_rig_gate(data, model, output, seed=seed, orientation=orientation, progress=show)
+    except (ModelFileError, DatasetError, ValueError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    rad, motion = choice["rad"], choice.get("max_motion_share", math.inf)
+    if rad == 0:
+        typer.echo("no gate: no setting beat the ungated network within the rule's costs on this rig")
+    else:
+        rows = next(iter(choice["val"].values()))[f"{rad:g}" + ("" if motion == math.inf else f"@{motion:g}")]
+        typer.echo(f"gate {rad:g} rad" + ("" if motion == math.inf else f", motion share < {motion:g}") + ": "
+                   + ", ".join(f"{k} {v['rmse']:.4f} rad, {v['taken']}/{v['bursts']} taken" for k, v in rows.items()))
+    typer.echo(f"wrote still_burst_gate to {written}")

@@ -107,14 +107,9 @@ def test_the_models_record_the_val_choice(model):
 
 
 def _chooser():
-    import importlib.util
-    from pathlib import Path
+    from gearscan.inference import still_gate_choice
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "choose_still_burst_gate.py"
-    spec = importlib.util.spec_from_file_location("choose_still_burst_gate", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return still_gate_choice
 
 
 def _row(rmse: float, ece: float = 0.03, three: float = 0.03) -> dict[str, float]:
@@ -253,14 +248,13 @@ def test_the_predictor_keeps_the_network_where_an_outline_moves(mc):
 
 
 def test_a_rigs_own_gate_is_chosen_on_its_twin_data_and_written_to_its_copy(tmp_path):
-    """The twin workflow's step (benchmarks/rig_still_gate_rule.md): the script, run on one rig's adaptation data
-    with a copy of the model, stores that rig's choice and val table in the copy; the shipped model is untouched."""
+    """`gearscan still-gate` (benchmarks/rig_still_gate_rule.md): run on one rig's adaptation data with --output, it
+    stores that rig's choice and table in the copy; the shipped model is untouched; the copy's predictor uses it."""
     import json
-    import shutil
-    import subprocess
-    import sys
-    from pathlib import Path
 
+    from typer.testing import CliRunner
+
+    from gearscan.cli import app
     from gearscan.core.gear import GearSpec
     from gearscan.twin.dataset import DatasetSpec, generate_dataset, scene_for
 
@@ -271,19 +265,19 @@ def test_a_rigs_own_gate_is_chosen_on_its_twin_data_and_written_to_its_copy(tmp_
     generate_dataset(data, DatasetSpec(gears=[gear], width=64, height=64, poses=6, max_start_points=2,
                                        period_px=period, seed=1),
                      scene=(rig, optics, gear, period), purpose="adaptation")
-    copy = tmp_path / "my_rig.safetensors"
-    shutil.copy(DEFAULT_MODEL, copy)
-    shutil.copy(DEFAULT_MODEL.with_suffix(".json"), copy.with_suffix(".json"))
     shipped = DEFAULT_MODEL.with_suffix(".json").read_bytes()
-    script = Path(__file__).resolve().parents[1] / "scripts" / "choose_still_burst_gate.py"
-    run = subprocess.run([sys.executable, str(script), str(data), "--model", str(copy), "--motion", "--noise-sigma",
-                          "--write", "--threads", "1"], capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr[-2000:]
+    copy = tmp_path / "my_rig.safetensors"
+    res = CliRunner().invoke(app, ["still-gate", str(data), "--output", str(copy)])
+    assert res.exit_code == 0, res.output
+    assert "wrote still_burst_gate to" in res.output and "ungated network" in res.output
     assert DEFAULT_MODEL.with_suffix(".json").read_bytes() == shipped
     gate = json.loads(copy.with_suffix(".json").read_text())["still_burst_gate"]
     assert gate["chosen_on"] == f"the rig's own twin data: {data}" and list(gate["val"]) == [str(data)]
-    assert gate["sigma"]["kind"] == THREE_STEP_NOISE
+    assert gate["sigma"]["kind"] == THREE_STEP_NOISE and "still_burst_motion_rule" in gate["rule"]
     # the choice is the rule's on the table it stored, and the copy's predictor carries it
     rad, motion = _chooser().choose_with_motion(gate["val"])
     assert gate["rad"] == rad and gate.get("max_motion_share", float("inf")) == motion
     assert Predictor.load(copy).still_burst_rad == rad
+    # bad input is named
+    res = CliRunner().invoke(app, ["still-gate", str(tmp_path)])
+    assert res.exit_code == 2 and "not a twin dataset" in res.output
