@@ -70,6 +70,44 @@ def adaptation_data(scene, root: Path, start_points: int, seed: int, test_angles
     raise SystemExit(f"{scene.name}: every start grid tried puts a pose on a test burst angle")
 
 
+def scene_setup(scene, name: str, args, stills: int = 2):
+    """A test scene's bursts (the paper's motions both ways, 2 sweeps, ``stills`` still ones, each ``args.reps``
+    times, test seed), its rig orientation from the first still burst, and its adaptation dataset rendered fresh
+    under ``args.runs / name``: ``(motions, cases, orientation, out, data, offset, gap)``."""
+    rng = np.random.default_rng([scene.seed, 1])
+    base = scene_motions(rng, sweeps=2, stills=stills)
+    motions = [m for m in base for _ in range(args.reps)]
+    sc = Scene(scene.name, scene.rig, scene.optics, scene.gear, scene.period_px, _renderer=scene.renderer)
+    # per motion, reps distinct bursts (random start angles and noise from the scene's test seed)
+    cases = render_cases(sc, {m.name: m.steps_deg for m in base}, args.reps, seed=scene.seed)
+    orientation = rig_orientation(motions, cases)
+    out = args.runs / name
+    shutil.rmtree(out / "data", ignore_errors=True)  # the grid may differ from an earlier run's
+    data, offset, gap = adaptation_data(scene, out / "data", args.start_points, args.seed,
+                                        np.array([a for c in cases for a in c.angles_deg]))
+    return motions, cases, orientation, out, data, offset, gap
+
+
+def scene_args(ap: argparse.ArgumentParser, report: str) -> None:
+    """The options the per-rig test benchmarks share: which scenes, the adaptation data, the model, the report."""
+    ap.add_argument("--families", type=lambda s: s.split(","), default=list(FAMILIES))
+    ap.add_argument("--scenes", type=int, default=3)
+    ap.add_argument("--start-points", type=int, default=6)
+    ap.add_argument("--seed", type=int, default=1, help="adaptation data seed (train split; never test)")
+    ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--model", type=Path, default=None)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--keep-data", action="store_true")
+    ap.add_argument("--out", type=Path, default=HERE / report)
+
+
+def write_report(out: Path, res: dict, markdown) -> None:
+    """``out``.json and ``out``.md, and the Markdown printed."""
+    out.with_suffix(".json").write_text(json.dumps(res, indent=1))
+    out.with_suffix(".md").write_text(markdown(res))
+    print(markdown(res))
+
+
 class Pool:
     """Per (map, mode, kind): the test pixels' errors and sigmas, and keep-test counts."""
 
@@ -104,17 +142,7 @@ def run(args) -> dict:
         pool = pools.setdefault(fam, Pool())
         for k, scene in enumerate(family_scenes(fam, args.scenes)):
             t0 = time.perf_counter()
-            rng = np.random.default_rng([scene.seed, 1])
-            base = scene_motions(rng, sweeps=2, stills=2)
-            motions = [m for m in base for _ in range(args.reps)]
-            sc = Scene(scene.name, scene.rig, scene.optics, scene.gear, scene.period_px, _renderer=scene.renderer)
-            # per motion, reps distinct bursts (random start angles and noise from the scene's test seed)
-            cases = render_cases(sc, {m.name: m.steps_deg for m in base}, args.reps, seed=scene.seed)
-            orientation = rig_orientation(motions, cases)
-            out = args.runs / f"{fam}_{k}"
-            shutil.rmtree(out / "data", ignore_errors=True)  # the grid may differ from an earlier run's
-            data, offset, gap = adaptation_data(scene, out / "data", args.start_points, args.seed,
-                                                np.array([a for c in cases for a in c.angles_deg]))
+            motions, cases, orientation, out, data, offset, gap = scene_setup(scene, f"{fam}_{k}", args)
             weights = out / "rig_map.safetensors"
             fit = calibrate_model(args.model, [data], items=args.items, mc=args.mc, seed=0, output=weights,
                                   orientation=orientation)
@@ -212,23 +240,12 @@ def markdown(res: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--families", type=lambda s: s.split(","), default=list(FAMILIES))
-    ap.add_argument("--scenes", type=int, default=3)
-    ap.add_argument("--start-points", type=int, default=6)
-    ap.add_argument("--seed", type=int, default=1, help="adaptation data seed (train split; never test)")
+    scene_args(ap, "rig_calibration_report")
     ap.add_argument("--items", type=int, default=64)
     ap.add_argument("--mc", type=int, default=20)
-    ap.add_argument("--reps", type=int, default=2)
-    ap.add_argument("--model", type=Path, default=None)
-    ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--runs", type=Path, default=RUNS)
-    ap.add_argument("--keep-data", action="store_true")
-    ap.add_argument("--out", type=Path, default=HERE / "rig_calibration_report")
     args = ap.parse_args()
-    res = run(args)
-    args.out.with_suffix(".json").write_text(json.dumps(res, indent=1))
-    args.out.with_suffix(".md").write_text(markdown(res))
-    print(markdown(res))
+    write_report(args.out, run(args), markdown)
 
 
 if __name__ == "__main__":

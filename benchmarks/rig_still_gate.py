@@ -13,7 +13,6 @@ with the rig's: RMSE against three-step PS, ECE, bursts taken. Nothing on the te
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import shutil
@@ -23,15 +22,15 @@ from pathlib import Path
 import numpy as np
 import torch
 from adaptation import git, host
-from rig_calibration import adaptation_data
+from rig_calibration import scene_args, scene_setup, write_report
 
 from gearscan.core.phase import phase_error
-from gearscan.evaluate import Scene, classical_method, render_cases
-from gearscan.generalization import MOVING, STILL, rig_orientation, scene_motions
+from gearscan.evaluate import classical_method
+from gearscan.generalization import MOVING, STILL
 from gearscan.inference.predictor import DEFAULT_MODEL, THREE_STEP_NOISE, Predictor
 from gearscan.inference.still_gate_choice import choose_with_motion, gate_table
 from gearscan.inference.uncertainty import reliability
-from gearscan.twin.families import FAMILIES, family_scenes
+from gearscan.twin.families import family_scenes
 
 HERE = Path(__file__).parent
 RUNS = HERE.parent / "runs" / "rig_still_gate"
@@ -94,16 +93,7 @@ def run(args) -> dict:
         pool = pools.setdefault(fam, Pool())
         for k, scene in enumerate(family_scenes(fam, args.scenes)):
             t0 = time.perf_counter()
-            rng = np.random.default_rng([scene.seed, 1])
-            base = scene_motions(rng, sweeps=2, stills=args.stills)
-            motions = [m for m in base for _ in range(args.reps)]
-            sc = Scene(scene.name, scene.rig, scene.optics, scene.gear, scene.period_px, _renderer=scene.renderer)
-            cases = render_cases(sc, {m.name: m.steps_deg for m in base}, args.reps, seed=scene.seed)
-            orientation = rig_orientation(motions, cases)
-            out = args.runs / f"{fam}_{k}"
-            shutil.rmtree(out, ignore_errors=True)
-            data, offset, gap = adaptation_data(scene, out / "data", args.start_points, args.seed,
-                                                np.array([a for c in cases for a in c.angles_deg]))
+            motions, cases, orientation, out, data, offset, gap = scene_setup(scene, f"{fam}_{k}", args, args.stills)
             rad, max_motion, table = rig_gate(args.model, data, orientation, args.gate_seed)
             predictors = {GATES[0]: Predictor.load(args.model, orientation=orientation),
                           GATES[1]: Predictor.load(args.model, orientation=orientation, still_burst_rad=rad,
@@ -190,23 +180,12 @@ def markdown(res: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--families", type=lambda s: s.split(","), default=list(FAMILIES))
-    ap.add_argument("--scenes", type=int, default=3)
-    ap.add_argument("--start-points", type=int, default=6)
-    ap.add_argument("--seed", type=int, default=1, help="adaptation data seed (train split; never test)")
+    scene_args(ap, "rig_still_gate_report")
     ap.add_argument("--gate-seed", type=int, default=29, help="the gate rule's burst draws (as on val)")
-    ap.add_argument("--reps", type=int, default=2)
     ap.add_argument("--stills", type=int, default=4)
-    ap.add_argument("--model", type=Path, default=None)
-    ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--runs", type=Path, default=RUNS)
-    ap.add_argument("--keep-data", action="store_true")
-    ap.add_argument("--out", type=Path, default=HERE / "rig_still_gate_report")
     args = ap.parse_args()
-    res = run(args)
-    args.out.with_suffix(".json").write_text(json.dumps(res, indent=1))
-    args.out.with_suffix(".md").write_text(markdown(res))
-    print(markdown(res))
+    write_report(args.out, run(args), markdown)
 
 
 if __name__ == "__main__":
