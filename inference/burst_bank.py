@@ -32,9 +32,11 @@ def twin_parts(train_set: Dataset) -> list[TwinBurstDataset]:
 
 
 class BurstBank:
-    """The training items of ``datasets`` (one crop size and image size), kept as tensors on one device."""
+    """The training items of ``datasets`` (one crop size and image size), kept as tensors on one device; ``crop``
+    (px) replaces the datasets' own crop (None: theirs)."""
 
-    def __init__(self, datasets: Sequence[TwinBurstDataset], device: str | torch.device = "cpu") -> None:
+    def __init__(self, datasets: Sequence[TwinBurstDataset], device: str | torch.device = "cpu",
+                 crop: int | None = None) -> None:
         if not datasets:
             raise DatasetError("BurstBank: expected at least one twin dataset, got none")
         first = datasets[0]
@@ -50,8 +52,10 @@ class BurstBank:
                 raise DatasetError(f"BurstBank {ds.root}: prior inputs are built per item; train them through "
                                    "the DataLoader")
         self.device = torch.device(device)
-        self.crop = first.crop
+        self.crop = first.crop if crop is None else int(crop)
         self.height, self.width = shape[1:]
+        if self.crop is not None and not 16 <= self.crop <= min(self.height, self.width):
+            raise DatasetError(f"BurstBank crop: expected 16..{min(self.height, self.width)} px, got {self.crop}")
         points = [(ds, g) for ds in datasets for g in ds.start_points]
         deep = any(ds.full_scale(g) > 255 for ds, g in points)
         n, (poses, h, w) = len(points), shape

@@ -6,6 +6,7 @@ Only light imports at module level; torch and friends load inside the functions.
 from __future__ import annotations
 
 import struct
+import time
 import zipfile
 import zlib
 from pathlib import Path
@@ -376,6 +377,12 @@ def train(
         typer.Option(help="'5,10,20': also save the best-on-val weights so far as OUT/cpu_<m>min.safetensors "
                      "at these CPU minutes"),
     ] = None,
+    bank: Annotated[bool, typer.Option(
+        help="draw the training bursts on the training device (twin dataset folders only): on a GPU the "
+             "DataLoader's per-item copies, not a small network, set the pace")] = False,
+    wall_minutes: Annotated[float | None, typer.Option(
+        min=0.01, help="stop by this many wall-clock minutes from now, best-on-val weights kept (the dropout "
+                       "stage keeps its share)")] = None,
     resume: Annotated[bool, typer.Option(help="resume from OUT/last.* if present")] = False,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
     calibrate_mc: Annotated[
@@ -399,6 +406,7 @@ def train(
     from gearscan.inference.models import ModelConfig
     from gearscan.inference.train import TrainConfig
     from gearscan.inference.train import train as run_training
+    from gearscan.twin.dataset import DatasetError
 
     check_device(device, allow_auto=True)
     marks: tuple[float, ...] = ()
@@ -455,15 +463,23 @@ def train(
         calibrate_mc=calibrate_mc,
         budget_cpu_min=budget_cpu_min,
         checkpoints_cpu_min=marks,
+        bank=bank,
+        deadline=None if wall_minutes is None else time.time() + 60.0 * wall_minutes,
     )
     train_set = _load_dataset(data, motion_input=motion_input, reverse=reverse)
     val_set = (_load_dataset(val_data, max_items=64, motion_input=motion_input, reverse=reverse)
                if val_data else None)
     if isinstance(train_set, tuple):
         train_set, val_set = train_set
-    result = run_training(config, train_set, val_set)
+    try:
+        result = run_training(config, train_set, val_set)
+    except DatasetError as exc:  # e.g. --bank on data that are not twin dataset folders
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
     if result.best_path is not None:
-        budget = f", CPU budget {budget_cpu_min:g} min reached" if result.budget_hit else ""
+        budgets = ([f"CPU budget {budget_cpu_min:g} min"] if budget_cpu_min is not None else []) + (
+            [f"wall-clock budget {wall_minutes:g} min"] if wall_minutes is not None else [])
+        budget = f", {' or '.join(budgets)} reached" if result.budget_hit else ""
         typer.echo(
             f"best model: {result.best_path} (val loss {result.best_val:.4g}, var scale {result.var_scale:.3g}, "
             f"{result.seconds:.0f} s, {result.cpu_seconds / 60:.1f} CPU min{budget})"

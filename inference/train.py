@@ -230,7 +230,7 @@ class Trainer:
             need = bank_bytes(parts)
             free = torch.cuda.mem_get_info(self.device)[0] if self.device.type == "cuda" else math.inf
             if need <= BANK_SHARE * free:
-                self.bank = BurstBank(parts, self.device)
+                self.bank = BurstBank(parts, self.device, crop=config.crop)  # a crop per item, not per batch
                 self._bank_gen = torch.Generator(device=self.device)  # seeded per epoch: a resumed run draws anew
             else:  # the run still trains, through the DataLoader
                 print(f"bank: the training bursts need {need / 2**30:.1f} GiB, the GPU has {free / 2**30:.1f} GiB "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -130,3 +131,33 @@ def test_cli_renders_a_users_rig_and_fine_tunes_within_a_cpu_budget(adapt, tmp_p
     assert best["budget_hit"] is True
     assert best["training"]["loss"]["mse_weighting"] == "modulation"  # the init's loss, not the CLI default
     Predictor.load(run / "best.safetensors")
+
+
+def test_cli_fine_tunes_from_the_bank_within_a_wall_clock_budget(adapt, tmp_path):
+    """`gearscan train --bank --wall-minutes`: bursts drawn on the device (a crop per item), stopped by the clock
+    with both stages run; --bank on data that are not twin folders is refused by name."""
+    root, _, _ = adapt
+    runner = CliRunner()
+    run = tmp_path / "bank"
+    t0 = time.time()
+    res = runner.invoke(app, ["train", "--init", str(DEFAULT_MODEL), "--data", str(root), "--val-data", str(root),
+                              "--bank", "--wall-minutes", "0.15", "--epochs-deterministic", "3",
+                              "--epochs-dropout", "1", "--steps-per-epoch", "100000", "--batch-size", "4",
+                              "--crop", "64", "--calibrate-mc", "0", "--precision", "fp32", "--no-progress",
+                              "--out", str(run), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert "wall-clock budget 0.15 min reached" in res.output and time.time() - t0 < 0.15 * 60 + 30
+    best = read_config(run / "best.safetensors")
+    assert best["training"]["bank"] is True and best["budget_hit"] is True
+    rows = json.loads((run / "metrics.json").read_text())
+    assert {r["stage"] for r in rows if r["steps"]} == {1, 2}
+    # items stored as .npz (the other --data form) cannot be banked: refused by name, nothing trained
+    from gearscan.inference.data import NpzBurstDataset
+    from gearscan.twin.dataset import TwinBurstDataset
+
+    item = TwinBurstDataset(root, crop=64)[0]
+    NpzBurstDataset.write([item, item], tmp_path / "npz")
+    res = runner.invoke(app, ["train", "--data", str(tmp_path / "npz"), "--val-data", str(root), "--bank",
+                              "--out", str(tmp_path / "no"), "--device", "cpu", "--no-progress"])
+    assert res.exit_code == 2 and "expected twin dataset folders" in res.output
+    assert not (tmp_path / "no" / "best.safetensors").exists()

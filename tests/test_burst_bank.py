@@ -93,6 +93,9 @@ def test_draws_are_uniform_over_items_and_crops(folders):
     assert abs(still - expect) < 4 * math.sqrt(expect * (1 - expect) / n)
     full = BurstBank(_parts(folders, None))  # no crop: whole images
     assert full.draw(2, gen)["input"].shape == (2, 3, 64, 64)
+    # a crop of its own (the trainer's): each item cut at its own corner from the same rows
+    own = BurstBank(_parts(folders, None), crop=16)
+    assert torch.equal(own.draw(n, torch.Generator().manual_seed(0))["input"], batch["input"])
 
 
 def test_bank_refuses_what_it_cannot_serve(folders):
@@ -100,6 +103,8 @@ def test_bank_refuses_what_it_cannot_serve(folders):
         BurstBank([*_parts(folders[:1], 32), *_parts(folders[1:], 16)])
     with pytest.raises(DatasetError, match="prior inputs are built per item"):
         BurstBank(_parts(folders, 32, prior=True))
+    with pytest.raises(DatasetError, match="crop: expected 16..64 px, got 8"):
+        BurstBank(_parts(folders, None), crop=8)
     with pytest.raises(DatasetError, match="at least one twin dataset"):
         BurstBank([])
     with pytest.raises(DatasetError, match="expected twin dataset folders"):
