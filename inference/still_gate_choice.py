@@ -24,6 +24,7 @@ from gearscan.inference.model_io import read_config, write_config
 from gearscan.inference.models import classical_md
 from gearscan.inference.predictor import (
     THREE_STEP_NOISE,
+    WEIGHTS_DIR,
     BurstSigma,
     Predictor,
     burst_departure,
@@ -243,7 +244,12 @@ def choose_rig_gate(folders: list[Path], model: Path | None = None, output: Path
     """Choose the gate on one rig's own twin data (``folders`` pooled into one family: ``gearscan twin dataset
     --rig``) by the shipped rule with the shipped gated-burst sigma, and store it in the model's JSON (a copy at
     ``output`` when given, else in place); returns the record and the JSON written."""
+    for folder in folders:  # each a twin dataset, before anything is copied or written
+        TwinBurstDataset(folder)
     weights = model_path(model)
+    if output is None and weights.resolve().parent == WEIGHTS_DIR.resolve():
+        raise ValueError(f"{weights.name} is a shipped model: a gate chosen on one rig would replace the one chosen "
+                         "for every rig; write a copy with --output MY_RIG.safetensors (or pass your own --model)")
     if output is not None:
         output = Path(output).with_suffix(".safetensors")
         if output.resolve() != weights.resolve():

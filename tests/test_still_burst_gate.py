@@ -266,6 +266,9 @@ def test_a_rigs_own_gate_is_chosen_on_its_twin_data_and_written_to_its_copy(tmp_
                                        period_px=period, seed=1),
                      scene=(rig, optics, gear, period), purpose="adaptation")
     shipped = DEFAULT_MODEL.with_suffix(".json").read_bytes()
+    # without --output it would rewrite the shipped model's gate: refused, by name
+    res = CliRunner().invoke(app, ["still-gate", str(data)])
+    assert res.exit_code == 2 and "is a shipped model" in res.output and "--output" in res.output
     copy = tmp_path / "my_rig.safetensors"
     res = CliRunner().invoke(app, ["still-gate", str(data), "--output", str(copy)])
     assert res.exit_code == 0, res.output
@@ -279,5 +282,6 @@ def test_a_rigs_own_gate_is_chosen_on_its_twin_data_and_written_to_its_copy(tmp_
     assert gate["rad"] == rad and gate.get("max_motion_share", float("inf")) == motion
     assert Predictor.load(copy).still_burst_rad == rad
     # bad input is named
-    res = CliRunner().invoke(app, ["still-gate", str(tmp_path)])
+    res = CliRunner().invoke(app, ["still-gate", str(tmp_path), "--output", str(tmp_path / "other.safetensors")])
     assert res.exit_code == 2 and "not a twin dataset" in res.output
+    assert not (tmp_path / "other.safetensors").exists()  # nothing copied for input that was refused
