@@ -547,7 +547,8 @@ def still_gate(
     ],
     model: Annotated[
         Path | None,
-        typer.Option("--model", help="model .safetensors whose gate to choose; default: the shipped model"),
+        typer.Option("--model", help="model .safetensors whose gate to choose; default: the shipped model (a shipped "
+                                     "model needs --output: its own gate stays)"),
     ] = None,
     output: Annotated[
         Path | None,
@@ -562,7 +563,7 @@ def still_gate(
     import math
 
     from gearscan.inference.model_io import ModelFileError
-    from gearscan.inference.still_gate_choice import choose_rig_gate
+    from gearscan.inference.still_gate_choice import choose_rig_gate, setting_key
     from gearscan.twin.dataset import DatasetError
 
     def show(fam: str, rows: dict) -> None:
@@ -579,7 +580,7 @@ def still_gate(
     if rad == 0:
         typer.echo("no gate: no setting beat the ungated network within the rule's costs on this rig")
     else:
-        rows = next(iter(choice["val"].values()))[f"{rad:g}" + ("" if motion == math.inf else f"@{motion:g}")]
+        rows = next(iter(choice["val"].values()))[setting_key(rad, motion)]
         typer.echo(f"gate {rad:g} rad" + ("" if motion == math.inf else f", motion share < {motion:g}") + ": "
                    + ", ".join(f"{k} {v['rmse']:.4f} rad, {v['taken']}/{v['bursts']} taken" for k, v in rows.items()))
     typer.echo(f"wrote still_burst_gate to {written}")
