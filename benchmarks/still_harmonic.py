@@ -16,7 +16,6 @@ import argparse
 import json
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -26,11 +25,10 @@ import torch
 from gearscan.core.phase import NOISE_MODULATION, harmonic_correction, phase_error
 from gearscan.inference.models import classical_md
 from gearscan.inference.predictor import still_burst_noise, three_step_noise_sigma
+from gearscan.inference.still_gate_choice import by_view, sampled_bursts
 from gearscan.inference.uncertainty import reliability
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "scripts"))
-from choose_still_burst_gate import by_view, sampled_bursts  # noqa: E402
 
 FAMILIES = ("data/repro/val_radial", "data/repro/val_views",
             ",".join(f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)))

@@ -1,13 +1,15 @@
 """Training bursts drawn on the training device: the pose stacks held there as tensors, batches cut by gathers.
 
 A :class:`~gearscan.twin.dataset.TwinBurstDataset` item is three frames picked from one start point's
-rendered poses and a crop of them. On a GPU, building those items in DataLoader workers and sending
-them over costs more than the step of a small network (about 0.5 MB per 128x128 item: input, label,
-mask, phase, analytic M, D), so :class:`BurstBank` holds only what training reads (the three patterns
-of every pose, the 18-step label, the mask: about 14 MB per 256x256 start point) on the device and
-draws whole batches there with one gather each. Items are the datasets' own (the same bursts, still
+rendered poses and a crop of them. Built in DataLoader workers, each item travels to the device as about
+0.5 MB at 128x128 (input, label, mask, phase, analytic M, D). :class:`BurstBank` holds only what training reads
+(the three patterns of every pose, the 18-step label, the mask: about 14 MB per 256x256 start point) on the
+device and draws whole batches there with one gather each, so a GPU step waits on no worker and no copy
+(whether the workers or the per-operator overhead set session 22's 58 ms steps is what
+``benchmarks/train_step_profile.py`` measures). Items are the datasets' own (the same bursts, still
 repeats and reversals, the same crop rule), drawn uniformly with replacement rather than in epoch
-permutations; validation still goes through the datasets.
+permutations; validation still goes through the datasets. On a CPU it is no faster than the DataLoader
+(``benchmarks/train_step_profile.md``).
 """
 
 from __future__ import annotations

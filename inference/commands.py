@@ -378,8 +378,8 @@ def train(
                      "at these CPU minutes"),
     ] = None,
     bank: Annotated[bool, typer.Option(
-        help="draw the training bursts on the training device (twin dataset folders only): on a GPU the "
-             "DataLoader's per-item copies, not a small network, set the pace")] = False,
+        help="draw the training bursts on the training device (twin dataset folders only), so a GPU step waits "
+             "on no DataLoader worker and no per-item copy")] = False,
     wall_minutes: Annotated[float | None, typer.Option(
         min=0.01, help="stop by this many wall-clock minutes from now, best-on-val weights kept (the dropout "
                        "stage keeps its share)")] = None,

@@ -29,8 +29,8 @@
   stops at its share of the time left when ``fit()`` began (its epochs over all epochs), so the dropout stage
   always runs. Distributed ranks stop together (the stop is all-reduced).
 - ``bank``: draw the training bursts on the training device (:class:`~gearscan.inference.burst_bank.BurstBank`;
-  the train set must be twin dataset folders) instead of through DataLoader workers: on a GPU the
-  workers' per-item copies, not the network, set the pace of a small model.
+  the train set must be twin dataset folders) instead of through DataLoader workers, so a GPU step waits on
+  no worker and no per-item copy.
 - No host sync per training step (the progress bar's loss is read every ``PROGRESS_EVERY`` steps), so
   the host queues work ahead of a GPU.
 - DDP: launched with ``torchrun`` (env ``WORLD_SIZE`` > 1), gloo on CPU, nccl on CUDA; rank 0

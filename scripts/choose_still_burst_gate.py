@@ -32,24 +32,18 @@ import torch
 
 from gearscan.inference.model_io import read_config, write_config
 from gearscan.inference.predictor import Predictor, burst_sigma_map, model_path
-from gearscan.inference.still_gate_choice import (  # noqa: F401  (the rule's pieces, for callers of this script)
+from gearscan.inference.still_gate_choice import (
     GRID,
-    MOTION_GRID,
-    MOTION_RULE,
     NOISE_SIGMA,
     STATISTIC,
     THREE_STEP_NOISE,
     Folders,
     by_view,
     choose,
-    choose_with_motion,
     family_bursts,
     fit_gated_sigma,
     gate_table,
     motion_choice,
-    scores,
-    setting_key,
-    within_cost,
 )
 
 

@@ -95,7 +95,7 @@ print(f"preflight: torch {torch.__version__}, {torch.cuda.get_device_name() if d
 EOF
 say "installed, $(left) s left"
 
-# 1b. what bounds a training step on this GPU, without any loader (benchmarks/train_step_profile.py; about 20 s)
+# 1b. what bounds a training step on this GPU, without any loader (benchmarks/train_step_profile.py; at most 90 s)
 read -r pw pb <<< "${LEASE_PROFILE:-8,32 32,128,512}"
 timeout -k 5 90 "$PY" benchmarks/train_step_profile.py --device "$DEVICE" --widths "$pw" --batches "$pb" \
   --threads "${LEASE_THREADS:-4}" --out "$WORK/train_step_profile" || say "step profile failed; training goes on"
