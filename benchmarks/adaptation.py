@@ -42,7 +42,7 @@ from gearscan.generalization import MOVING, STILL, rig_orientation, scene_motion
 from gearscan.inference.losses import LossConfig
 from gearscan.inference.model_io import read_config
 from gearscan.inference.models import ModelConfig
-from gearscan.inference.predictor import DEFAULT_MODEL, Predictor
+from gearscan.inference.predictor import DEFAULT_MODEL, Predictor, resolve_precision
 from gearscan.inference.train import TrainConfig, TrainResult, train
 from gearscan.twin.dataset import DatasetSpec, TwinBurstDataset, generate_dataset
 from gearscan.twin.families import family_scenes
@@ -106,7 +106,8 @@ def run_family(args) -> None:
     scene = family_scenes(args.family, args.scene + 1)[args.scene]
     init = args.init.resolve()
     start = "" if init == DEFAULT_MODEL.resolve() else f"-from-{init.stem}"  # another start than the shipped default
-    out = args.runs / ((args.family if args.min_span_deg is None else f"{args.family}-span{args.min_span_deg:g}") + start)
+    out = args.runs / ((args.family if args.min_span_deg is None else f"{args.family}-span{args.min_span_deg:g}") + start
+                       + args.tag)
     gear, pitch = scene.gear, 360.0 / scene.gear.teeth
     w, h = scene.rig.camera.width, scene.rig.camera.height
     # adaptation data: the scene's rig and gear, a non-test seed, start points on a grid within one pitch
@@ -148,7 +149,7 @@ def run_family(args) -> None:
         epochs_deterministic=1_000_000, epochs_dropout=0, batch_size=args.batch, lr=args.lr, schedule="constant",
         patience=1_000_000, steps_per_epoch=args.steps_per_epoch, init=str(init), progress=False,
         calibrate=True, calibrate_mc=0, budget_cpu_min=budget, checkpoints_cpu_min=marks, seed=0,
-        resume=args.resume, precision=args.precision,
+        resume=args.resume, precision=args.precision, compile=args.compile,
     )
     t0 = time.perf_counter()
     if args.score_only:  # a finished run (e.g. one whose scoring failed): read what it wrote
@@ -203,6 +204,8 @@ def run_family(args) -> None:
         "training": {"budget_cpu_min": budget, "marks": list(marks), "lr": args.lr, "schedule": "constant",
                      "batch": args.batch, "crop": args.crop, "steps_per_epoch": args.steps_per_epoch,
                      "cpu_min": result.cpu_seconds / 60.0, "wall_s": train_wall, "precision": args.precision, "budget_hit": result.budget_hit,
+                     "autocast": resolve_precision(args.precision, torch.device("cpu")),  # what "auto" chose
+                     "compile": args.compile,
                      "steps": int(sum(r.get("steps", 0) for r in result.history)),
                      "history": [{k: r[k] for k in ("epoch", "cpu_min", "val_rmse", "val_loss", "steps")}
                                  for r in result.history]},
@@ -439,6 +442,9 @@ def main() -> None:
     ap.add_argument("--precision", default="fp32", choices=["auto", "fp32", "bf16"],
                     help="training autocast (fp32: on this AVX512-BF16 host without AMX a bf16 step cost 1.7 CPU s "
                          "vs 1.2 in fp32, w8 8x128^2)")
+    ap.add_argument("--compile", action="store_true",
+                    help="torch.compile the training steps (TrainConfig.compile; the compile counts in the budget)")
+    ap.add_argument("--tag", default="", help="appended to the run's folder name (e.g. -bf16-compiled)")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--score-only", action="store_true", help="score a finished run's checkpoints (no training)")
     ap.add_argument("--orientation", choices=("rig", "auto"), default="rig",

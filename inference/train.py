@@ -19,8 +19,8 @@
   The initial weights are validated first (row ``epoch 0``), so the best-on-val weights are
   never worse on val than the ones fine-tuning started from.
 - ``budget_cpu_min``: stop cleanly when this process has used that many CPU minutes
-  (``time.process_time()``: all its threads, so other load on shared cores does not eat the
-  budget; training steps stop early enough to leave room for the last validation), keeping
+  (``time.process_time()``: all its threads, plus the children it waited for, such as a compiler; so other
+  load on shared cores does not eat the budget; training steps stop early enough to leave room for the last validation), keeping
   the best-on-val weights. ``checkpoints_cpu_min``: at the first validation past each mark,
   the best-on-val weights so far are saved as ``cpu_<m>min.safetensors`` (a 10-minute budget's
   result, read off a longer run with a constant schedule). Every metrics row has ``cpu_min``.
@@ -31,6 +31,11 @@
 - ``bank``: draw the training bursts on the training device (:class:`~gearscan.inference.burst_bank.BurstBank`;
   the train set must be twin dataset folders) instead of through DataLoader workers, so a GPU step waits on
   no worker and no per-item copy.
+- ``compile``: the training step's network runs through ``torch.compile`` (inductor: fused kernels, fewer
+  operator calls; a w = 8 step of 8 or 32 128^2 crops took 1.5-1.6x less time on an AMX CPU,
+  ``benchmarks/train_step_profile.md``). Validation and calibration stay eager, on the same weights. Compiling
+  costs tens of seconds per stage, and, under a CPU budget, runs in this process so that the budget counts it.
+  If it fails (no C++ compiler, an unsupported operator), training goes on eagerly and says so.
 - No host sync per training step (the progress bar's loss is read every ``PROGRESS_EVERY`` steps), so
   the host queues work ahead of a GPU.
 - DDP: launched with ``torchrun`` (env ``WORLD_SIZE`` > 1), gloo on CPU, nccl on CUDA; rank 0
@@ -48,6 +53,7 @@ import contextlib
 import csv
 import json
 import math
+import resource
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -78,6 +84,13 @@ from gearscan.inference.plots import plot_history
 VAL_OBJECTIVES = ("inside", "full")
 PROGRESS_EVERY = 25  # steps between the progress bar's loss read-outs (each is a host sync on a GPU)
 BANK_SHARE = 0.6  # of the GPU's free memory a BurstBank may take (the network's activations need the rest)
+
+
+def process_cpu_seconds() -> float:
+    """CPU seconds of this process (all threads) and of the children it has waited for (a compiler run by
+    ``torch.compile``), so a CPU budget counts the work done on its behalf."""
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + kids.ru_utime + kids.ru_stime
 
 
 def validation_row(inside: float, outside: float, rmse: float, loss: LossConfig, objective: str) -> dict:
@@ -122,6 +135,7 @@ class TrainConfig:
     budget_cpu_min: float | None = None  # stop at this many CPU minutes of this process (all threads)
     deadline: float | None = None  # stop by this wall-clock time (Unix seconds, time.time())
     bank: bool = False  # draw training bursts on the device (BurstBank) instead of DataLoader workers
+    compile: bool = False  # torch.compile the training step's network (eager again, with a message, if it fails)
     checkpoints_cpu_min: tuple[float, ...] = ()  # save the best-on-val weights so far at these CPU minutes
     # what early stopping reads: "inside" (the truth mask only; every model so far) or "full" (the trained
     # objective, with the loss's ``outside_weight`` term, which "full" requires)
@@ -253,7 +267,13 @@ class Trainer:
         self.has_dropout = bool(concrete_layers(self.model))
         self.state = {"stage": 1, "epoch": 0, "best": math.inf, "bad": 0, "stage_best": math.inf, "cpu_s": 0.0,
                       "checkpoints": []}
-        self._cpu0 = time.process_time()
+        if config.compile and config.budget_cpu_min is not None:
+            import torch._inductor.config as inductor_config
+
+            inductor_config.compile_threads = 1  # compile in this process: its compiler runs count in the budget
+        self._compiled: dict[int, torch.nn.Module] = {}  # the running stage -> its compiled network (cfg.compile)
+        self._compile_failed = False
+        self._cpu0 = process_cpu_seconds()
         self._stage_deadline: float | None = None  # the deterministic stage's share of the deadline (fit() sets it)
         self._val_cpu = self._val_wall = 0.0  # the last validation's CPU and wall seconds: kept free at a budget's end
         self.history: list[dict] = []
@@ -287,7 +307,7 @@ class Trainer:
         return {"objective": "inside"}
 
     def _save_last(self) -> None:
-        self.state["cpu_s"], self._cpu0 = self.cpu_seconds(), time.process_time()
+        self.state["cpu_s"], self._cpu0 = self.cpu_seconds(), process_cpu_seconds()
         save_model(
             self.model, self.out / "last.safetensors", extra={"training": self.config.to_json()}
         )
@@ -333,13 +353,15 @@ class Trainer:
             )
             sampler.set_epoch(epoch)
         workers = self.config.num_workers
+        # a compiled step is specialised to its batch shape: a shuffled epoch's short last batch would recompile
+        drop_last = shuffle and self.config.compile and len(dataset) // self.dist.world >= self.config.batch_size
         return DataLoader(
             dataset,
             batch_size=self.config.batch_size,
             shuffle=shuffle and sampler is None,
             sampler=sampler,
             num_workers=workers,
-            drop_last=False,
+            drop_last=drop_last,
             pin_memory=self.device.type == "cuda",
             persistent_workers=workers > 0 and shuffle,  # the train loader's workers live through the run
         )
@@ -359,8 +381,9 @@ class Trainer:
 
     # CPU budget ------------------------------------------------------------------------------
     def cpu_seconds(self) -> float:
-        """CPU seconds this fit has used (this process, all threads; carried over on resume)."""
-        return self.state["cpu_s"] + time.process_time() - self._cpu0
+        """CPU seconds this fit has used (this process, all threads, waited-for children; carried over on
+        resume)."""
+        return self.state["cpu_s"] + process_cpu_seconds() - self._cpu0
 
     def budget_spent(self, reserve_cpu: float = 0.0, reserve_wall: float = 0.0, *, stage: bool = True) -> bool:
         """True when the CPU budget or the deadline (the running stage's with ``stage``) leaves less than its
@@ -420,19 +443,17 @@ class Trainer:
             if batch is None:
                 break
             batch = _crop(batch, self.config.crop, gen)
-            x = batch["input"].to(self.device, non_blocking=True)
-            with self._autocast():
-                pred = net(x)
-            losses = self.criterion(
-                pred,
-                batch["target"].to(self.device),
-                batch["mask"].to(self.device),
-                self.model,
-                include_regularization=stage == 2,
-            )
-            self.optimizer.zero_grad(set_to_none=True)
-            losses["total"].backward()
-            self.optimizer.step()
+            step_net = self._compiled.get(stage, net)
+            try:
+                losses = self._step(step_net, batch, stage)
+            except Exception as exc:  # noqa: BLE001 - a compiler's failure: any type; eager re-raises real errors
+                if step_net is net:
+                    raise
+                print(f"compile: torch.compile failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); "
+                      "training goes on eagerly", flush=True)
+                self._compile_failed = True
+                self._compiled.clear()
+                losses = self._step(net, batch, stage)
             acc += torch.stack([losses[k].detach().float() for k in keys])
             n += 1
             if bar is not None:
@@ -449,13 +470,29 @@ class Trainer:
         return ({f"train_{k}": vals[j] / max(vals[-1], 1) for j, k in enumerate(keys)} | {"steps": n}
                 | {"train_s": train_s, "data_wait_s": wait_s})
 
+    def _step(self, net: torch.nn.Module, batch: dict, stage: int) -> dict:
+        """One optimizer step on ``batch``; returns the losses."""
+        self.optimizer.zero_grad(set_to_none=True)  # first: a step that failed half-way leaves no gradient behind
+        with self._autocast():
+            pred = net(batch["input"].to(self.device, non_blocking=True))
+        losses = self.criterion(
+            pred,
+            batch["target"].to(self.device),
+            batch["mask"].to(self.device),
+            self.model,
+            include_regularization=stage == 2,
+        )
+        losses["total"].backward()
+        self.optimizer.step()
+        return losses
+
     @torch.no_grad()
     def _validate(self) -> dict:
-        c0, w0 = time.process_time(), time.perf_counter()
+        c0, w0 = process_cpu_seconds(), time.perf_counter()
         try:
             return self._validate_once()
         finally:
-            self._val_cpu, self._val_wall = time.process_time() - c0, time.perf_counter() - w0
+            self._val_cpu, self._val_wall = process_cpu_seconds() - c0, time.perf_counter() - w0
 
     def _validate_once(self) -> dict:
         self.model.eval()
@@ -510,6 +547,8 @@ class Trainer:
                     self.model,
                     device_ids=[self.device.index] if self.device.type == "cuda" else None,
                 )
+            if cfg.compile and not self._compile_failed:  # compiled lazily, at the stage's first step
+                self._compiled = {stage: torch.compile(net)}
             # epoch > 0 when resuming mid-stage: the schedule picks up where it was
             self.scheduler = build_scheduler(self.optimizer, cfg, stage, n_epochs, self.state["epoch"])
             while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience and not self.budget_spent():

@@ -17,7 +17,8 @@
 # Comes back in $OUT (8 files): lease.log (everything printed, written as it goes, so a killed run still
 # reports), best.* (the run's final model: stage 2's best; reproduce.json's stages_run says whether stage 2 ran),
 # stage1_best.*, metrics.csv, reproduce.json and train_step_profile.md (step time by width and batch without a
-# loader: what bounds a step there). Exit 2: the install failed; 3: the preflight did, or no time was left; 4: the
+# loader, eager and compiled: what bounds a step there; the compiled row also decides whether the training is
+# compiled). Exit 2: the install failed; 3: the preflight did, or no time was left; 4: the
 # backstop timeout stopped the training (its last and stage1_best weights come back).
 set -uo pipefail
 T0=$(date +%s)
@@ -95,11 +96,24 @@ print(f"preflight: torch {torch.__version__}, {torch.cuda.get_device_name() if d
 EOF
 say "installed, $(left) s left"
 
-# 1b. what bounds a training step on this GPU, without any loader (benchmarks/train_step_profile.py; at most 90 s)
+# 1b. what bounds a training step on this GPU, without any loader, eager and compiled at the training's width and
+# batch (benchmarks/train_step_profile.py; at most 120 s; the rows are written as they come, so a cut-off profile
+# still reports)
+batch=${LEASE_BATCH:-128}
 read -r pw pb <<< "${LEASE_PROFILE:-8,32 32,128,512}"
-timeout -k 5 90 "$PY" benchmarks/train_step_profile.py --device "$DEVICE" --widths "$pw" --batches "$pb" \
-  --threads "${LEASE_THREADS:-4}" --out "$WORK/train_step_profile" || say "step profile failed; training goes on"
+timeout -k 5 120 "$PY" benchmarks/train_step_profile.py --device "$DEVICE" --widths "$pw" --batches "$pb" \
+  --compiled "8x$batch" --threads "${LEASE_THREADS:-4}" --out "$WORK/train_step_profile" \
+  || say "step profile failed or was cut off; training goes on"
 cp "$WORK/train_step_profile.md" "$OUT/" 2>/dev/null  # its rows are in the log too
+# train compiled if the profile measured it worth it: a compiled step >= 1.25x faster and a compile (its first step)
+# of at most 60 s, since the training compiles twice more (the dropout stage's graph differs). LEASE_COMPILE=1 or 0
+# decides instead.
+compile=${LEASE_COMPILE:-auto}
+if [ "$compile" = auto ]; then
+  compile=$("$PY" benchmarks/train_step_profile.py --worth-compiling "$WORK/train_step_profile.json" \
+    --compiled "8x$batch" 2>/dev/null || echo 0)
+fi
+say "training compiled: $([ "$compile" = 1 ] && echo yes || echo no) (LEASE_COMPILE=${LEASE_COMPILE:-auto})"
 
 # 2. render + train within what is left: the command ends its training by a deadline 20 s before its own end
 # (--total-minutes), 25 s before this script's; the timeout 15 s later is only the backstop
@@ -110,10 +124,10 @@ minutes=$(awk "BEGIN { printf \"%.3f\", $total / 60 }")
 timeout --signal=TERM --kill-after=5 "$((total + 15))" "$PY" scripts/reproduce_model.py \
   --device "$DEVICE" --data "$WORK/data" --out "$run" --jobs "${LEASE_JOBS:-16}" \
   --scale "${LEASE_SCALE:-0.7}" --dense-radial "${LEASE_DENSE:-1}" --size "${LEASE_SIZE:-256}" \
-  --crop "${LEASE_CROP:-128}" --width 8 --batch "${LEASE_BATCH:-128}" --lr "${LEASE_LR:-1e-3}" \
+  --crop "${LEASE_CROP:-128}" --width 8 --batch "$batch" --lr "${LEASE_LR:-1e-3}" \
   --init "${LEASE_INIT:-inference/weights/default.safetensors}" --outside-weight 0.05 --val-objective full \
   --threads "${LEASE_THREADS:-4}" --workers 0 --bank --no-calibrate --total-minutes "$minutes" \
-  --probe-steps "${LEASE_PROBE_STEPS:-50}" ${LEASE_EXTRA:-}
+  --probe-steps "${LEASE_PROBE_STEPS:-50}" $([ "$compile" = 1 ] && echo --compile) ${LEASE_EXTRA:-}
 status=$?
 say "reproduce_model.py exited $status, $(left) s left"
 

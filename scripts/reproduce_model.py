@@ -134,6 +134,7 @@ def _train_cmd(args, train_dirs: list[Path], val_dirs: list[Path], out: Path, ep
             "--static-repeat", str(args.static_repeat), "--dropout-init", "0.02,0.1", "--device", args.device,
             "--workers", str(args.workers), "--threads", str(args.threads),
             *(["--bank"] if args.bank else []),
+            *(["--compile"] if args.compile else []),
             *(["--init", str(args.init)] if args.init else []),
             *(["--prior-input", "--prior-jitter", str(args.prior_jitter)] if args.prior_input else []),
             *(["--outside-weight", str(args.outside_weight)] if args.outside_weight else []),
@@ -165,6 +166,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=0, help="DataLoader workers")
     ap.add_argument("--bank", action=argparse.BooleanOptionalAction, default=None,
                     help="draw training bursts on the device (inference.burst_bank); default: on with --device cuda")
+    ap.add_argument("--compile", action="store_true",
+                    help="torch.compile the training steps (the probe's second epoch times the compiled step)")
     ap.add_argument("--total-minutes", type=float, default=None,
                     help="wall-clock budget of the whole command (render, probe, training); the training gets "
                          "what is left and stops itself before it (a lent machine's command limit); "

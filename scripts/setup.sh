@@ -4,7 +4,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 APT_PKGS=(gir1.2-aravis-0.8 libaravis-0.8-0 aravis-tools aravis-tools-cli libgirepository1.0-dev
-          libcairo2-dev pkg-config gcc socat libgl1 libegl1 libusb-1.0-0 chromium)
+          libcairo2-dev pkg-config gcc g++ python3-dev socat libgl1 libegl1 libusb-1.0-0 chromium)
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 missing=()

@@ -80,6 +80,8 @@ def main() -> None:
     ap.add_argument("--bank", action="store_true",
                     help="draw the training bursts on the training device (inference.burst_bank; a GPU's choice: "
                          "DataLoader workers then serve validation only, so --workers 0 suits it)")
+    ap.add_argument("--compile", action="store_true",
+                    help="torch.compile the training steps (inductor; eager again, with a message, if it fails)")
     ap.add_argument("--deadline", type=float, default=None,
                     help="stop training by this wall-clock time, Unix seconds (best-on-val weights kept; the dropout "
                          "stage keeps its share; a lent machine's command limit)")
@@ -156,6 +158,7 @@ def main() -> None:
         device=args.device,
         num_workers=args.workers,
         bank=args.bank,
+        compile=args.compile,
         deadline=args.deadline,
         calibrate=not args.no_calibrate,
         resume=args.resume,

@@ -336,3 +336,58 @@ def test_ddp_two_processes_gloo(tmp_path):
     hist = json.loads((out / "metrics.json").read_text())
     assert [h["stage"] for h in hist] == [1, 1, 2]
     assert time.perf_counter() - t0 < 300
+
+
+def _stage1(tmp_path, name: str, **kw) -> TrainConfig:
+    """Two deterministic epochs in fp32 on 32 px crops: a compiled step must give the eager step's numbers."""
+    return _cfg(tmp_path, out_dir=str(tmp_path / name), epochs_deterministic=2, epochs_dropout=0, lr=3e-3,
+                crop=32, precision="fp32", calibrate=False, **kw)
+
+
+def test_compiled_training_matches_eager(tmp_path, capsys):
+    """``compile=True`` runs the steps through inductor (a real compile: tens of seconds) and trains the same
+    network: per-epoch losses and final weights agree with the eager run's to float32 rounding."""
+    ds = TensorBurstDataset(list(twin_items()))
+    eager = Trainer(_stage1(tmp_path, "eager"), ds, ds)
+    compiled = Trainer(_stage1(tmp_path, "compiled", compile=True), ds, ds)
+    r_eager, r_comp = eager.fit(), compiled.fit()
+    assert "torch.compile failed" not in capsys.readouterr().out and not compiled._compile_failed
+    for a, b in zip(r_eager.history, r_comp.history, strict=True):
+        assert b["steps"] == a["steps"] > 0
+        assert b["train_total"] == pytest.approx(a["train_total"], rel=1e-4)
+        assert b["val_rmse"] == pytest.approx(a["val_rmse"], rel=1e-3, abs=1e-5)
+    # the weights moved the same way: Adam divides by the gradient's own size, so where a gradient is near zero
+    # float32 rounding moves single weights by a share of a step; the whole update agrees to 1 %
+    start = torch.nn.utils.parameters_to_vector(Trainer(_stage1(tmp_path, "start"), ds, ds).model.parameters())
+    w_eager, w_comp = (torch.nn.utils.parameters_to_vector(t.model.parameters()).detach() for t in (eager, compiled))
+    assert float((w_comp - w_eager).norm() / (w_eager - start).norm()) < 0.01  # 2e-4 measured
+
+
+def test_compile_failure_falls_back_to_eager(tmp_path, monkeypatch, capsys):
+    """A compiler that fails (no C++ compiler, an operator inductor lacks) costs the run nothing: it says so and
+    trains eagerly, to the eager run's numbers."""
+
+    class Broken(torch.nn.Module):
+        def forward(self, x):
+            raise RuntimeError("InductorError: no working C++ compiler found")
+
+    monkeypatch.setattr(torch, "compile", lambda net, **kw: Broken())
+    ds = TensorBurstDataset(list(twin_items()))
+    eager = train(_stage1(tmp_path, "eager"), ds, ds)
+    trainer = Trainer(_stage1(tmp_path, "fallback", compile=True), ds, ds)
+    result = trainer.fit()
+    out = capsys.readouterr().out
+    assert out.count("torch.compile failed (RuntimeError: InductorError: no working C++ compiler") == 1
+    assert trainer._compile_failed
+    assert [h["train_total"] for h in result.history] == [h["train_total"] for h in eager.history]
+
+
+def test_cpu_seconds_count_the_children_waited_for():
+    """A CPU budget counts work the trainer waits for in child processes (the C++ compiler ``torch.compile`` runs),
+    not only this process's threads."""
+    from gearscan.inference.train import process_cpu_seconds
+
+    c0, p0 = process_cpu_seconds(), time.process_time()
+    subprocess.run([sys.executable, "-c", "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.4: pass"],
+                   check=True)
+    assert process_cpu_seconds() - c0 >= 0.4 + (time.process_time() - p0)

@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_lease_command_fits_the_device_limits(tmp_path):
     out = tmp_path / "OUT"
-    limit = 170
+    limit = 240  # the profile's compiled row compiles (tens of seconds on this CPU)
     env = os.environ | {
         "OUT": str(out), "LEASE_WORK": str(tmp_path / "work"), "LEASE_PYTHON": sys.executable, "LEASE_DEVICE": "cpu",
         "LEASE_LIMIT_S": str(limit), "LEASE_SIZE": "64", "LEASE_CROP": "32", "LEASE_JOBS": "2", "LEASE_BATCH": "8",
@@ -50,3 +50,11 @@ def test_lease_command_fits_the_device_limits(tmp_path):
     # the training kept its deadline (its last save within the 20 s left for it) and both stages ran
     run_best = tmp_path / "work" / "run" / "best.json"
     assert run_best.stat().st_mtime <= cfg["deadline"] + 20 and info["stages_run"] == [1, 2]
+    # the profile timed the training's width and batch eager and compiled, and that measurement chose how it trained
+    profile = json.loads((tmp_path / "work" / "train_step_profile.json").read_text())
+    assert {(r["width"], r["batch"], r["compiled"]) for r in profile["rows"]} >= {(8, 8, False), (8, 8, True)}
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from train_step_profile import worth_compiling
+
+    chose = worth_compiling(profile, 8, 8)
+    assert f"training compiled: {'yes' if chose else 'no'}" in log and cfg["compile"] is chose
