@@ -179,6 +179,8 @@ def run_family(args) -> None:
         print(f"{args.family} {label:>3} CPU min (at {cpu_min:.1f}): moving {net[MOVING]:.4f} still {net[STILL]:.4f} "
               f"rad (three-step {baseline[MOVING]:.4f} / {baseline[STILL]:.4f})", flush=True)
     machine["loadavg_end"] = os.getloadavg()
+    # how the weights were trained: this call's settings, or a rescored run's own (its best.json)
+    trained = read_config(run / "best.safetensors")["training"] if args.score_only else config.to_json()
     # a rescore keeps the commit its weights were trained at
     before = json.loads((out / "result.json").read_text()) if args.score_only and (out / "result.json").is_file() else {}
     trained_at = before.get("training_commit", before.get("commit")) if args.score_only else None
@@ -203,9 +205,9 @@ def run_family(args) -> None:
                        "min_gap_to_test_angles_deg": gap},
         "training": {"budget_cpu_min": budget, "marks": list(marks), "lr": args.lr, "schedule": "constant",
                      "batch": args.batch, "crop": args.crop, "steps_per_epoch": args.steps_per_epoch,
-                     "cpu_min": result.cpu_seconds / 60.0, "wall_s": train_wall, "precision": args.precision, "budget_hit": result.budget_hit,
-                     "autocast": resolve_precision(args.precision, torch.device("cpu")),  # what "auto" chose
-                     "compile": args.compile,
+                     "cpu_min": result.cpu_seconds / 60.0, "wall_s": train_wall, "precision": trained["precision"], "budget_hit": result.budget_hit,
+                     "autocast": resolve_precision(trained["precision"], torch.device("cpu"), training=True),  # what "auto" chose
+                     "compile": trained.get("compile", False),
                      "steps": int(sum(r.get("steps", 0) for r in result.history)),
                      "history": [{k: r[k] for k in ("epoch", "cpu_min", "val_rmse", "val_loss", "steps")}
                                  for r in result.history]},
@@ -271,7 +273,22 @@ def _extrapolation(r: dict) -> str:
                else "if the trend held")
     return (f"- {r['scene']}: rmse = {a:.3f} t^{b:.3f}; {TARGET_RAD} rad at about {need:.3g} CPU min "
             f"(~{need * 60 / step_cpu_s:.3g} steps of batch {r['training']['batch']} at {step_cpu_s:.2f} CPU s per step "
-            f"on this host, {r['training']['precision']}): {verdict}.{floors}")
+            f"on this host, {r['training'].get('autocast', r['training']['precision'])}): {verdict}.{floors}")
+
+
+def training_mode(results: list[dict]) -> str:
+    """How the runs trained: autocast and compiled steps, per run where they differ."""
+    def mode(r: dict) -> str:
+        t = r["training"]
+        cast = t.get("autocast", t["precision"])
+        why = (" (the AMD host's choice in session 21: 1.2 CPU s per w8 step in fp32, 1.7 in bf16 without AMX)"
+               if t["precision"] == "fp32" else f" (`--precision {t['precision']}`)")
+        return f"autocast **{cast}**{why}, {'**compiled** steps (`--compile`)' if t.get('compile') else 'eager steps'}"
+
+    modes = {r["run"]: mode(r) for r in results}
+    if len(set(modes.values())) == 1:
+        return next(iter(modes.values()))
+    return "; ".join(f"{run}: {m}" for run, m in modes.items())
 
 
 def write_report(prefix: Path, runs: Path = RUNS) -> None:
@@ -282,6 +299,10 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
     for p, r in zip(paths, results, strict=True):
         r["run"] = p.parent.name  # the family, or family-spanX: two runs of one family stay apart
         r["label_floor"] = label_floor(p.parent / "data", r["adaptation"]["val_start_points"])
+    scenes = [r["scene"] for r in results]
+    for r in results:  # runs of one scene that differ only in how they trained (--tag) are told apart by folder
+        if scenes.count(r["scene"]) > 1:
+            r["scene"] += f" [{r['run']}]"
     gen = json.loads((HERE / "generalization_report.json").read_text())
     fam_zero = {(c["family"], c["group"]): c for c in gen["cells"]}
     import matplotlib
@@ -325,8 +346,7 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         f"AVX512-BF16 {'yes' if h['avx512_bf16'] else 'no'}, AMX-BF16 {'yes' if h['amx_bf16'] else 'no'}; load average "
         + "; ".join(f"{r['run']} {r['host']['loadavg_start'][0]:.1f} at start, {r['host']['loadavg_end'][0]:.1f} at the end"
                     for r in results)
-        + f"; {r0['torch_threads']} torch threads. Training autocast **{r0['training']['precision']}** (chosen in "
-        "session 21 on this host, w8, 8x128^2: 1.2 CPU s per step in fp32, 1.7 in bf16 under that day's load: no AMX); the test "
+        + f"; {r0['torch_threads']} torch threads. Training: {training_mode(results)}; the test "
         f"scoring in **{r0['precision']}**, the Predictor's automatic choice, as in `generalization_report.md`.",
         "- **Model** fine-tuned and scored at 0 minutes: "
         + "; ".join(f"{r['run']}: `{r['model']['path']}` sha256 `{r['model']['sha256']}`" if "model" in r
@@ -337,8 +357,10 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
                                        "first still test burst, as a user sets it per rig)"
                                        if r.get("orientation", {}).get("mode") == "rig"
                                        else "the Predictor's per-burst vote (`auto`)") for r in results) + ".",
-        "- **CPU minutes** are `time.process_time()` of the training process (all its threads), counted from the "
-        "start of fine-tuning: validation included, rendering and the closing sigma calibration not. Other load on "
+        "- **CPU minutes** are `time.process_time()` of the training process (all its threads; since session 36 plus "
+        "the child processes it waited for, such as a compiled run's C++ compiler), counted from the "
+        "start of fine-tuning: validation and a compiled run's compiling included, rendering and the closing sigma "
+        "calibration not. Other load on "
         "the shared cores does not eat the budget directly, but it is not neutral either: the same step (w8, batch 8, "
         "128^2 crops) cost "
         + ", ".join(f"{60 * r['training']['cpu_min'] / max(r['training']['steps'], 1):.2f} CPU s in the {r['run']} run"
@@ -439,12 +461,12 @@ def main() -> None:
                     help="adaptation bursts spanning at least this (frame 1 to 3): the user's turntable speed; "
                          "default: every span the poses give (0.2-1.7 deg)")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--precision", default="fp32", choices=["auto", "fp32", "bf16"],
-                    help="training autocast (fp32: on this AVX512-BF16 host without AMX a bf16 step cost 1.7 CPU s "
-                         "vs 1.2 in fp32, w8 8x128^2)")
+    ap.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
+                    help="training autocast; auto: bf16 on a CPU with AMX, else fp32 (reports before session 36 ran "
+                         "fp32 on an AVX512-BF16 host without AMX; benchmarks/adaptation_precision_rule.md)")
     ap.add_argument("--compile", action="store_true",
                     help="torch.compile the training steps (TrainConfig.compile; the compile counts in the budget)")
-    ap.add_argument("--tag", default="", help="appended to the run's folder name (e.g. -bf16-compiled)")
+    ap.add_argument("--tag", default="", help="appended to the run's folder name (spelled --tag=-compiled: a value starting with '-')")
     ap.add_argument("--resume", action="store_true")
     ap.add_argument("--score-only", action="store_true", help="score a finished run's checkpoints (no training)")
     ap.add_argument("--orientation", choices=("rig", "auto"), default="rig",

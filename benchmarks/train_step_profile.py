@@ -136,15 +136,18 @@ def write(info: dict, args: argparse.Namespace) -> None:
 
 
 COMPILE_MIN_SPEEDUP = 1.25  # a compiled step at least this much faster than the eager one ...
-COMPILE_MAX_S = 60.0  # ... and a compile (its first step) of at most this: a training compiles once per stage
+COMPILES = 3  # ... and what it saves over the training pays for this many compiles (the lease's probe, stage 1, stage 2)
 
 
-def worth_compiling(info: dict, width: int, batch: int) -> bool:
-    """Whether a profile says to train compiled at ``width`` x ``batch``: both rows measured, the compiled step at
-    least ``COMPILE_MIN_SPEEDUP`` faster and compiled within ``COMPILE_MAX_S``."""
+def worth_compiling(info: dict, width: int, batch: int, train_s: float) -> bool:
+    """Whether a profile says to train compiled at ``width`` x ``batch`` for about ``train_s`` seconds: both rows
+    measured, the compiled step at least ``COMPILE_MIN_SPEEDUP`` faster, and the time it saves over ``train_s``
+    at least ``COMPILES`` compiles (the compiled row's first step)."""
     rows = {r["compiled"]: r for r in info["rows"] if (r["width"], r["batch"]) == (width, batch)}
-    return (len(rows) == 2 and rows[False]["ms_per_step"] >= COMPILE_MIN_SPEEDUP * rows[True]["ms_per_step"]
-            and rows[True]["first_step_s"] <= COMPILE_MAX_S)
+    if len(rows) != 2:
+        return False
+    speedup = rows[False]["ms_per_step"] / rows[True]["ms_per_step"]
+    return speedup >= COMPILE_MIN_SPEEDUP and COMPILES * rows[True]["first_step_s"] <= train_s * (1 - 1 / speedup)
 
 
 def main() -> None:
@@ -162,16 +165,20 @@ def main() -> None:
     ap.add_argument("--data", type=Path, nargs="*", default=[], help="twin dataset folders for the loader costs")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "train_step_profile")
     ap.add_argument("--worth-compiling", type=Path, metavar="JSON",
-                    help="only print 1 or 0: whether this profile's rows say to train compiled (at the one --compiled "
-                         "width x batch)")
+                    help="only print 1 or 0: whether this profile's rows say to train compiled at the one --compiled "
+                         "width x batch for --train-seconds")
+    ap.add_argument("--train-seconds", type=float, default=None, help="with --worth-compiling: the training's length")
     args = ap.parse_args()
     if args.worth_compiling:
-        (w, b), = (map(int, c.split("x")) for c in args.compiled.split(",") if c)
-        print(int(worth_compiling(json.loads(args.worth_compiling.read_text()), w, b)))
+        wanted = [c for c in args.compiled.split(",") if c]
+        if len(wanted) != 1 or args.train_seconds is None:
+            ap.error("--worth-compiling: expected one --compiled WxB and --train-seconds S")
+        w, b = map(int, wanted[0].split("x"))
+        print(int(worth_compiling(json.loads(args.worth_compiling.read_text()), w, b, args.train_seconds)))
         return
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    bf16 = resolve_precision("auto", device) == "bf16"
+    bf16 = resolve_precision("auto", device, training=True) == "bf16"
     h = host_info(args.threads)
     host = (f"{h['cpu']}, {h['cores']} cores, AVX512-BF16 {'yes' if h['avx512_bf16'] else 'no'}, AMX-BF16 "
             f"{'yes' if h['amx_bf16'] else 'no'}")

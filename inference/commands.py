@@ -369,8 +369,9 @@ def train(
     ] = None,
     budget_cpu_min: Annotated[
         float | None,
-        typer.Option(min=0.01, help="stop at this many CPU minutes of this process (all threads; other load on "
-                     "shared cores does not count), keeping the best-on-val weights"),
+        typer.Option(min=0.01, help="stop at this many CPU minutes of this process (all threads, and the compiler a "
+                     "--compile step waits for; other load on shared cores does not count), keeping the best-on-val "
+                     "weights"),
     ] = None,
     checkpoints_cpu_min: Annotated[
         str | None,
@@ -381,9 +382,10 @@ def train(
         help="draw the training bursts on the training device (twin dataset folders only), so a GPU step waits "
              "on no DataLoader worker and no per-item copy")] = False,
     compile: Annotated[bool, typer.Option(
-        "--compile", help="torch.compile the training steps: fused kernels, 1.5-1.6x faster steps on an AMX CPU "
-                          "(benchmarks/train_step_profile.md) after a compile of tens of seconds per stage, which a "
-                          "CPU budget counts; eager again, with a message, if it fails")] = False,
+        "--compile", help="torch.compile the training steps (fused kernels; a compile of tens of seconds per stage, "
+                          "which a CPU budget counts; eager again, with a message, if it fails). On an AMX CPU a real "
+                          "fine-tune made only 1.07x the steps in 30 CPU min (benchmarks/adaptation_compile_rule.md); "
+                          "the GPU lease measures it there")] = False,
     wall_minutes: Annotated[float | None, typer.Option(
         min=0.01, help="stop by this many wall-clock minutes from now, best-on-val weights kept (the dropout "
                        "stage keeps its share)")] = None,

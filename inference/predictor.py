@@ -72,15 +72,32 @@ def cpu_has_fast_bf16() -> bool:
     than fp32 for CD-DCU-Net w=16 at 512x512 (benchmarks/inference_speed.md as of commit
     befe6f9; the current report is from an AVX512-BF16 host, where bf16 is the faster one).
     """
-    try:
-        flags = CPUINFO.read_text()
-    except OSError:
-        return False
+    flags = _cpu_flags()
     return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
-def resolve_precision(precision: str, device: str | torch.device) -> str:
-    """``auto``: bf16 on CUDA and on CPUs with native bf16, fp32 otherwise."""
+def cpu_has_amx_bf16() -> bool:
+    """True if the CPU has AMX bf16 tiles: only with them did a bf16 training step beat fp32 (below)."""
+    return "amx_bf16" in _cpu_flags()
+
+
+def _cpu_flags() -> set[str]:
+    try:
+        text = CPUINFO.read_text()
+    except OSError:
+        return set()
+    return {f for line in text.splitlines() if line.startswith("flags") for f in line.split(":", 1)[-1].split()}
+
+
+def resolve_precision(precision: str, device: str | torch.device, *, training: bool = False) -> str:
+    """``auto``: bf16 on CUDA; on a CPU, bf16 where it was measured faster than fp32, fp32 otherwise.
+
+    Inference: with native bf16 (AVX512-BF16 or AMX; on an AMD host with AVX512-BF16 and no AMX a 512x512 burst
+    took 0.059 s in bf16 against 0.080 in fp32, ``benchmarks/inference_speed.md``). Training (``training=True``):
+    only with AMX. On that AMD host a w = 8 training step cost 1.7 CPU s in bf16 against 1.2 in fp32 (session 21),
+    while on an AMX host a 30-CPU-minute fine-tune made 1.66x the steps in bf16
+    (``benchmarks/adaptation_precision_rule.md``).
+    """
     if precision not in PRECISIONS:
         raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
     if precision != "auto":
@@ -88,7 +105,8 @@ def resolve_precision(precision: str, device: str | torch.device) -> str:
     kind = torch.device(device).type
     if kind == "cuda":
         return "bf16"
-    return "bf16" if cpu_has_fast_bf16() else "fp32"
+    fast = cpu_has_amx_bf16() if training else cpu_has_fast_bf16()
+    return "bf16" if fast else "fp32"
 
 
 def model_path(path: str | Path | None) -> Path:

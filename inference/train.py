@@ -19,8 +19,9 @@
   The initial weights are validated first (row ``epoch 0``), so the best-on-val weights are
   never worse on val than the ones fine-tuning started from.
 - ``budget_cpu_min``: stop cleanly when this process has used that many CPU minutes
-  (``time.process_time()``: all its threads, plus the children it waited for, such as a compiler; so other
-  load on shared cores does not eat the budget; training steps stop early enough to leave room for the last validation), keeping
+  (``time.process_time()``: all its threads, plus the child processes a training step waited for, such as the
+  compiler of a compiled step; so other load on shared cores does not eat the budget; training steps stop early
+  enough to leave room for the last validation), keeping
   the best-on-val weights. ``checkpoints_cpu_min``: at the first validation past each mark,
   the best-on-val weights so far are saved as ``cpu_<m>min.safetensors`` (a 10-minute budget's
   result, read off a longer run with a constant schedule). Every metrics row has ``cpu_min``.
@@ -31,11 +32,16 @@
 - ``bank``: draw the training bursts on the training device (:class:`~gearscan.inference.burst_bank.BurstBank`;
   the train set must be twin dataset folders) instead of through DataLoader workers, so a GPU step waits on
   no worker and no per-item copy.
-- ``compile``: the training step's network runs through ``torch.compile`` (inductor: fused kernels, fewer
-  operator calls; a w = 8 step of 8 or 32 128^2 crops took 1.5-1.6x less time on an AMX CPU,
-  ``benchmarks/train_step_profile.md``). Validation and calibration stay eager, on the same weights. Compiling
-  costs tens of seconds per stage, and, under a CPU budget, runs in this process so that the budget counts it.
-  If it fails (no C++ compiler, an unsupported operator), training goes on eagerly and says so.
+- ``compile``: the training step's network runs through ``torch.compile`` (inductor: fused kernels, 202
+  operator calls a step instead of 843). On an AMX CPU the profile's synthetic w = 8 step took 1.5x less time
+  (``benchmarks/train_step_profile.md``), but a real 30-CPU-minute fine-tune only 1.16x per step and made 1.07x
+  the steps (loss, data and validation stay eager; ``benchmarks/adaptation_compile_rule.md``): worth it where a
+  step is dispatch-bound, as on a GPU (the lease measures it). Validation and calibration stay eager, on the same weights. Compiling
+  costs tens of seconds per stage (the dropout stage's graph is another), and, under a CPU budget, runs in this
+  process so that the budget counts it. With a deadline or budget, a later stage is compiled only if at least
+  ``COMPILE_ROOM`` times stage 1's compiling step is left, else it runs eagerly. If a stage's first compiled step
+  fails (no C++ compiler, an operator inductor lacks), training goes on eagerly and says so; on more than one
+  process (DDP) it stops instead, since the ranks could not agree to fall back together.
 - No host sync per training step (the progress bar's loss is read every ``PROGRESS_EVERY`` steps), so
   the host queues work ahead of a GPU.
 - DDP: launched with ``torchrun`` (env ``WORLD_SIZE`` > 1), gloo on CPU, nccl on CUDA; rank 0
@@ -86,11 +92,14 @@ PROGRESS_EVERY = 25  # steps between the progress bar's loss read-outs (each is 
 BANK_SHARE = 0.6  # of the GPU's free memory a BurstBank may take (the network's activations need the rest)
 
 
-def process_cpu_seconds() -> float:
-    """CPU seconds of this process (all threads) and of the children it has waited for (a compiler run by
-    ``torch.compile``), so a CPU budget counts the work done on its behalf."""
+COMPILE_ROOM = 3.0  # a later stage compiles only with this many times stage 1's compiling step left to a deadline
+
+
+def children_cpu_seconds() -> float:
+    """CPU seconds of the child processes this process has waited for (such as the C++ compiler that
+    ``torch.compile`` runs)."""
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + kids.ru_utime + kids.ru_stime
+    return kids.ru_utime + kids.ru_stime
 
 
 def validation_row(inside: float, outside: float, rmse: float, loss: LossConfig, objective: str) -> dict:
@@ -122,7 +131,7 @@ class TrainConfig:
     crop: int | None = None  # random square crop per batch (multiple of 16 recommended)
     steps_per_epoch: int | None = None  # cap on batches per epoch
     device: str = "auto"
-    precision: str = "auto"  # autocast: "auto" = bf16 on CUDA and CPUs with native bf16, else fp32
+    precision: str = "auto"  # autocast: "auto" = bf16 on CUDA and on CPUs with AMX, else fp32
     num_workers: int = 0
     seed: int = 0
     init: str | None = None
@@ -132,7 +141,7 @@ class TrainConfig:
     progress: bool = True
     calibrate: bool = True
     calibrate_mc: int = 20  # MC passes for the MC-mode sigma calibration (0: deterministic only)
-    budget_cpu_min: float | None = None  # stop at this many CPU minutes of this process (all threads)
+    budget_cpu_min: float | None = None  # stop at this many CPU minutes of this process (threads, a step's children)
     deadline: float | None = None  # stop by this wall-clock time (Unix seconds, time.time())
     bank: bool = False  # draw training bursts on the device (BurstBank) instead of DataLoader workers
     compile: bool = False  # torch.compile the training step's network (eager again, with a message, if it fails)
@@ -228,7 +237,7 @@ class Trainer:
         self.device = resolve_device(config.device, self.dist)
         from gearscan.inference.predictor import resolve_precision
 
-        self.precision = resolve_precision(config.precision, self.device)  # by the CPU's bf16 support
+        self.precision = resolve_precision(config.precision, self.device, training=True)  # bf16 on CPUs with AMX
         torch.manual_seed(config.seed + self.dist.rank)
         if val_set is None:
             if config.bank:
@@ -273,7 +282,10 @@ class Trainer:
             inductor_config.compile_threads = 1  # compile in this process: its compiler runs count in the budget
         self._compiled: dict[int, torch.nn.Module] = {}  # the running stage -> its compiled network (cfg.compile)
         self._compile_failed = False
-        self._cpu0 = process_cpu_seconds()
+        self._compile_cost: tuple[float, float] | None = None  # stage 1's compiling step: wall s, CPU s
+        self._compiled_ok: int | None = None  # the stage whose compiled network has made a step
+        self._cpu0 = time.process_time()
+        self._kids_s = 0.0  # CPU of the children training steps waited for (a compiler), since _cpu0
         self._stage_deadline: float | None = None  # the deterministic stage's share of the deadline (fit() sets it)
         self._val_cpu = self._val_wall = 0.0  # the last validation's CPU and wall seconds: kept free at a budget's end
         self.history: list[dict] = []
@@ -307,7 +319,7 @@ class Trainer:
         return {"objective": "inside"}
 
     def _save_last(self) -> None:
-        self.state["cpu_s"], self._cpu0 = self.cpu_seconds(), process_cpu_seconds()
+        self.state["cpu_s"], self._cpu0, self._kids_s = self.cpu_seconds(), time.process_time(), 0.0
         save_model(
             self.model, self.out / "last.safetensors", extra={"training": self.config.to_json()}
         )
@@ -381,9 +393,9 @@ class Trainer:
 
     # CPU budget ------------------------------------------------------------------------------
     def cpu_seconds(self) -> float:
-        """CPU seconds this fit has used (this process, all threads, waited-for children; carried over on
-        resume)."""
-        return self.state["cpu_s"] + process_cpu_seconds() - self._cpu0
+        """CPU seconds this fit has used (this process, all threads, and the children its training steps waited
+        for; carried over on resume)."""
+        return self.state["cpu_s"] + time.process_time() - self._cpu0 + self._kids_s
 
     def budget_spent(self, reserve_cpu: float = 0.0, reserve_wall: float = 0.0, *, stage: bool = True) -> bool:
         """True when the CPU budget or the deadline (the running stage's with ``stage``) leaves less than its
@@ -443,17 +455,7 @@ class Trainer:
             if batch is None:
                 break
             batch = _crop(batch, self.config.crop, gen)
-            step_net = self._compiled.get(stage, net)
-            try:
-                losses = self._step(step_net, batch, stage)
-            except Exception as exc:  # noqa: BLE001 - a compiler's failure: any type; eager re-raises real errors
-                if step_net is net:
-                    raise
-                print(f"compile: torch.compile failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]}); "
-                      "training goes on eagerly", flush=True)
-                self._compile_failed = True
-                self._compiled.clear()
-                losses = self._step(net, batch, stage)
+            losses = self._compiled_step(net, batch, stage) if stage in self._compiled else self._step(net, batch, stage)
             acc += torch.stack([losses[k].detach().float() for k in keys])
             n += 1
             if bar is not None:
@@ -470,8 +472,43 @@ class Trainer:
         return ({f"train_{k}": vals[j] / max(vals[-1], 1) for j, k in enumerate(keys)} | {"steps": n}
                 | {"train_s": train_s, "data_wait_s": wait_s})
 
+    def _compiled_step(self, net: torch.nn.Module, batch: dict, stage: int) -> dict:
+        """A step through the stage's compiled network. Its first step compiles (timed, for the next stage's
+        choice); if that fails, the rest of the run is eager (one process) or stops (DDP)."""
+        if self._compiled_ok == stage:
+            return self._step(self._compiled[stage], batch, stage)
+        w0, c0 = time.perf_counter(), time.process_time() + children_cpu_seconds()
+        failure = None
+        try:
+            losses = self._step(self._compiled[stage], batch, stage)
+        except Exception as exc:  # noqa: BLE001 - a compiler fails with many types; eager re-raises real errors
+            if self.dist.world > 1:
+                raise
+            failure = f"{type(exc).__name__}: {(str(exc).splitlines() or [''])[0][:200]}"
+        if failure is not None:  # outside the handler: the failed step's tensors are free before the retry
+            print(f"compile: torch.compile failed ({failure}); training goes on eagerly", flush=True)
+            self._compile_failed = True
+            self._compiled.clear()
+            return self._step(net, batch, stage)
+        self._compiled_ok = stage
+        if stage == 1 and self._compile_cost is None:
+            self._compile_cost = (time.perf_counter() - w0, time.process_time() + children_cpu_seconds() - c0)
+        return losses
+
+    def _compile_room(self) -> bool:
+        """Whether a later stage has time to compile: ``COMPILE_ROOM`` x stage 1's compiling step left to the
+        deadline and to the CPU budget (always, without either or without a measured compile)."""
+        if self._compile_cost is None:
+            return True
+        wall, cpu = self._compile_cost
+        cfg = self.config
+        if cfg.deadline is not None and cfg.deadline - time.time() < COMPILE_ROOM * wall:
+            return False
+        return cfg.budget_cpu_min is None or 60.0 * cfg.budget_cpu_min - self.cpu_seconds() >= COMPILE_ROOM * cpu
+
     def _step(self, net: torch.nn.Module, batch: dict, stage: int) -> dict:
-        """One optimizer step on ``batch``; returns the losses."""
+        """One optimizer step on ``batch``; returns the losses. The CPU of the children it waits for counts."""
+        kids0 = children_cpu_seconds()
         self.optimizer.zero_grad(set_to_none=True)  # first: a step that failed half-way leaves no gradient behind
         with self._autocast():
             pred = net(batch["input"].to(self.device, non_blocking=True))
@@ -482,17 +519,20 @@ class Trainer:
             self.model,
             include_regularization=stage == 2,
         )
-        losses["total"].backward()
-        self.optimizer.step()
+        try:
+            losses["total"].backward()
+            self.optimizer.step()
+        finally:
+            self._kids_s += children_cpu_seconds() - kids0
         return losses
 
     @torch.no_grad()
     def _validate(self) -> dict:
-        c0, w0 = process_cpu_seconds(), time.perf_counter()
+        c0, w0 = time.process_time(), time.perf_counter()
         try:
             return self._validate_once()
         finally:
-            self._val_cpu, self._val_wall = process_cpu_seconds() - c0, time.perf_counter() - w0
+            self._val_cpu, self._val_wall = time.process_time() - c0, time.perf_counter() - w0
 
     def _validate_once(self) -> dict:
         self.model.eval()
@@ -547,8 +587,13 @@ class Trainer:
                     self.model,
                     device_ids=[self.device.index] if self.device.type == "cuda" else None,
                 )
+            self._compiled = {}
             if cfg.compile and not self._compile_failed:  # compiled lazily, at the stage's first step
-                self._compiled = {stage: torch.compile(net)}
+                if self._compile_room():
+                    self._compiled = {stage: torch.compile(net)}
+                else:
+                    print(f"compile: stage {stage} runs eagerly: less than {COMPILE_ROOM:g} x stage 1's compiling "
+                          f"step ({self._compile_cost[0]:.0f} s) is left", flush=True)
             # epoch > 0 when resuming mid-stage: the schedule picks up where it was
             self.scheduler = build_scheduler(self.optimizer, cfg, stage, n_epochs, self.state["epoch"])
             while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience and not self.budget_spent():

@@ -96,22 +96,24 @@ print(f"preflight: torch {torch.__version__}, {torch.cuda.get_device_name() if d
 EOF
 say "installed, $(left) s left"
 
-# 1b. what bounds a training step on this GPU, without any loader, eager and compiled at the training's width and
-# batch (benchmarks/train_step_profile.py; at most 120 s; the rows are written as they come, so a cut-off profile
-# still reports)
+# 1b. what bounds a training step on this GPU, without any loader, eager and compiled at the training's width, batch
+# and crop (benchmarks/train_step_profile.py; about 120 s at most; the rows are written as they come, so a cut-off
+# profile still reports)
 batch=${LEASE_BATCH:-128}
+compile=${LEASE_COMPILE:-auto}
+case "$compile" in auto|0|1) ;; *) say "LEASE_COMPILE=$compile: expected auto, 0 or 1"; finish 3 ;; esac
 read -r pw pb <<< "${LEASE_PROFILE:-8,32 32,128,512}"
 timeout -k 5 120 "$PY" benchmarks/train_step_profile.py --device "$DEVICE" --widths "$pw" --batches "$pb" \
-  --compiled "8x$batch" --threads "${LEASE_THREADS:-4}" --out "$WORK/train_step_profile" \
+  --crop "${LEASE_CROP:-128}" $([ "$compile" = auto ] && echo --compiled "8x$batch") \
+  --threads "${LEASE_THREADS:-4}" --out "$WORK/train_step_profile" \
   || say "step profile failed or was cut off; training goes on"
 cp "$WORK/train_step_profile.md" "$OUT/" 2>/dev/null  # its rows are in the log too
-# train compiled if the profile measured it worth it: a compiled step >= 1.25x faster and a compile (its first step)
-# of at most 60 s, since the training compiles twice more (the dropout stage's graph differs). LEASE_COMPILE=1 or 0
-# decides instead.
-compile=${LEASE_COMPILE:-auto}
+# train compiled if the profile measured it worth it: a compiled step >= 1.25x faster whose saving over the training
+# (what is left less about 150 s for render, probe and close) pays for its 3 compiles (the probe, stage 1 and the
+# dropout stage, whose graph differs). LEASE_COMPILE=1 or 0 decides instead.
 if [ "$compile" = auto ]; then
   compile=$("$PY" benchmarks/train_step_profile.py --worth-compiling "$WORK/train_step_profile.json" \
-    --compiled "8x$batch" 2>/dev/null || echo 0)
+    --compiled "8x$batch" --train-seconds "$(($(left) - 150))") || { say "no compile decision: training eagerly"; compile=0; }
 fi
 say "training compiled: $([ "$compile" = 1 ] && echo yes || echo no) (LEASE_COMPILE=${LEASE_COMPILE:-auto})"
 

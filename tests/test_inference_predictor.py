@@ -241,10 +241,16 @@ def test_auto_precision_follows_the_cpu(monkeypatch):
     import gearscan.inference.predictor as P
 
     monkeypatch.setattr(P, "cpu_has_fast_bf16", lambda: True)
-    assert resolve_precision("auto", "cpu") == "bf16"
+    monkeypatch.setattr(P, "cpu_has_amx_bf16", lambda: False)  # AVX512-BF16 without AMX
+    assert resolve_precision("auto", "cpu") == "bf16"  # inference: measured faster there
+    assert resolve_precision("auto", "cpu", training=True) == "fp32"  # a training step: measured slower there
+    monkeypatch.setattr(P, "cpu_has_amx_bf16", lambda: True)
+    assert resolve_precision("auto", "cpu", training=True) == "bf16"
     monkeypatch.setattr(P, "cpu_has_fast_bf16", lambda: False)
-    assert resolve_precision("auto", "cpu") == "fp32"
+    monkeypatch.setattr(P, "cpu_has_amx_bf16", lambda: False)
+    assert resolve_precision("auto", "cpu") == "fp32" and resolve_precision("auto", "cpu", training=True) == "fp32"
     assert resolve_precision("auto", "cuda") == "bf16" and resolve_precision("fp32", "cuda") == "fp32"
+    assert resolve_precision("auto", "cuda", training=True) == "bf16"
     with pytest.raises(ValueError, match=r"precision: expected one of .*got 'fp8'"):
         resolve_precision("fp8", "cpu")
 
@@ -252,11 +258,12 @@ def test_auto_precision_follows_the_cpu(monkeypatch):
 def test_cpu_bf16_detection_reads_the_flags(monkeypatch, tmp_path):
     import gearscan.inference.predictor as P
 
-    for flags, fast in (("fpu avx2 fma", False), ("avx512f avx512_bf16", True), ("amx_bf16 amx_tile", True)):
+    for flags, fast, amx in (("fpu avx2 fma", False, False), ("avx512f avx512_bf16", True, False),
+                             ("amx_bf16 amx_tile", True, True)):
         info = tmp_path / "cpuinfo"
-        info.write_text(f"processor : 0\nflags : {flags}\n")
+        info.write_text(f"processor : 0\nflags : {flags}\nbugs : amx_bf16_not_a_flag\n")
         monkeypatch.setattr(P, "CPUINFO", info)
-        assert P.cpu_has_fast_bf16() is fast
+        assert P.cpu_has_fast_bf16() is fast and P.cpu_has_amx_bf16() is amx
 
 
 def test_predict_cli_three_images_mc(saved, tmp_path):

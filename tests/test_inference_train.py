@@ -347,18 +347,23 @@ def _stage1(tmp_path, name: str, **kw) -> TrainConfig:
 def test_compiled_training_matches_eager(tmp_path, capsys):
     """``compile=True`` runs the steps through inductor (a real compile: tens of seconds) and trains the same
     network: per-epoch losses and final weights agree with the eager run's to float32 rounding."""
+    from torch._dynamo.utils import counters
+
     ds = TensorBurstDataset(list(twin_items()))
     eager = Trainer(_stage1(tmp_path, "eager"), ds, ds)
     compiled = Trainer(_stage1(tmp_path, "compiled", compile=True), ds, ds)
-    r_eager, r_comp = eager.fit(), compiled.fit()
+    r_eager = eager.fit()
+    counters.clear()
+    r_comp = compiled.fit()
     assert "torch.compile failed" not in capsys.readouterr().out and not compiled._compile_failed
+    assert counters["stats"]["unique_graphs"] >= 1 and compiled._compile_cost[0] > 0  # dynamo did compile the steps
     for a, b in zip(r_eager.history, r_comp.history, strict=True):
         assert b["steps"] == a["steps"] > 0
         assert b["train_total"] == pytest.approx(a["train_total"], rel=1e-4)
         assert b["val_rmse"] == pytest.approx(a["val_rmse"], rel=1e-3, abs=1e-5)
     # the weights moved the same way: Adam divides by the gradient's own size, so where a gradient is near zero
     # float32 rounding moves single weights by a share of a step; the whole update agrees to 1 %
-    start = torch.nn.utils.parameters_to_vector(Trainer(_stage1(tmp_path, "start"), ds, ds).model.parameters())
+    start = torch.nn.utils.parameters_to_vector(Trainer(_stage1(tmp_path, "start"), ds, ds).model.parameters()).detach()
     w_eager, w_comp = (torch.nn.utils.parameters_to_vector(t.model.parameters()).detach() for t in (eager, compiled))
     assert float((w_comp - w_eager).norm() / (w_eager - start).norm()) < 0.01  # 2e-4 measured
 
@@ -382,12 +387,43 @@ def test_compile_failure_falls_back_to_eager(tmp_path, monkeypatch, capsys):
     assert [h["train_total"] for h in result.history] == [h["train_total"] for h in eager.history]
 
 
-def test_cpu_seconds_count_the_children_waited_for():
-    """A CPU budget counts work the trainer waits for in child processes (the C++ compiler ``torch.compile`` runs),
-    not only this process's threads."""
-    from gearscan.inference.train import process_cpu_seconds
+def test_cpu_budget_counts_the_children_a_step_waits_for(tmp_path, monkeypatch):
+    """A CPU budget counts work a training step waits for in child processes (the C++ compiler of a compiled
+    step), not only this process's threads."""
+    ds = TensorBurstDataset(list(twin_items()))
+    adam_step, ran = torch.optim.Adam.step, []
+    busy = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.4: pass"
 
-    c0, p0 = process_cpu_seconds(), time.process_time()
-    subprocess.run([sys.executable, "-c", "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.4: pass"],
-                   check=True)
-    assert process_cpu_seconds() - c0 >= 0.4 + (time.process_time() - p0)
+    def step_waiting_for_a_child(self, *args, **kwargs):  # as a compiling step waits for its compiler
+        if not ran:
+            ran.append(subprocess.run([sys.executable, "-c", busy], check=True))
+        return adam_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", step_waiting_for_a_child)
+    c0 = time.process_time()
+    result = train(_stage1(tmp_path, "kids"), ds, ds)
+    own = time.process_time() - c0  # this process's CPU over the fit, a little more than the fit counts of it
+    assert ran and result.cpu_seconds >= own - 0.1 + 0.4
+
+
+def test_a_later_stage_compiles_only_with_room_left(tmp_path, capsys):
+    """With a deadline or a CPU budget, a stage is compiled only if COMPILE_ROOM x stage 1's compiling step is
+    left; else it runs eagerly and says so (a compile must not eat a short dropout stage)."""
+    from gearscan.inference.train import COMPILE_ROOM
+
+    ds = TensorBurstDataset(list(twin_items()))
+    trainer = Trainer(_stage1(tmp_path, "room", compile=True, deadline=time.time() + 3600), ds, ds)
+    assert trainer._compile_room()  # nothing measured yet: stage 1 compiles
+    trainer._compile_cost = (3600 / COMPILE_ROOM + 60, 1.0)  # wall: too little of the hour left
+    assert not trainer._compile_room()
+    trainer._compile_cost = (3600 / COMPILE_ROOM - 60, 1.0)
+    assert trainer._compile_room()
+    trainer.config.budget_cpu_min = (COMPILE_ROOM * 1.0 - 0.5) / 60  # CPU: less than 3 x 1 CPU s in the budget
+    assert not trainer._compile_room()
+    trainer.config.budget_cpu_min = None
+    trainer._compile_cost = (1e6, 1.0)
+    trainer.config.epochs_dropout = 1
+    trainer.fit()
+    out = capsys.readouterr().out
+    assert "compile: stage 1 runs eagerly" in out and "compile: stage 2 runs eagerly" in out
+    assert not trainer._compiled and "torch.compile failed" not in out  # nothing was compiled

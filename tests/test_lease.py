@@ -19,11 +19,12 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_lease_command_fits_the_device_limits(tmp_path):
     out = tmp_path / "OUT"
-    limit = 240  # the profile's compiled row compiles (tens of seconds on this CPU)
+    limit = 170
     env = os.environ | {
         "OUT": str(out), "LEASE_WORK": str(tmp_path / "work"), "LEASE_PYTHON": sys.executable, "LEASE_DEVICE": "cpu",
         "LEASE_LIMIT_S": str(limit), "LEASE_SIZE": "64", "LEASE_CROP": "32", "LEASE_JOBS": "2", "LEASE_BATCH": "8",
         "LEASE_THREADS": "2", "LEASE_PROBE_STEPS": "5", "LEASE_PROFILE": "4 2", "LEASE_LINK": "1",
+        "LEASE_COMPILE": "0",  # compiling on this CPU costs more than this tiny run (the choice: the test below)
         "LEASE_EXTRA": "--gears-per-set 1 --steps-per-epoch 20 --val-items 16",
     }
     t0 = time.time()
@@ -50,11 +51,23 @@ def test_lease_command_fits_the_device_limits(tmp_path):
     # the training kept its deadline (its last save within the 20 s left for it) and both stages ran
     run_best = tmp_path / "work" / "run" / "best.json"
     assert run_best.stat().st_mtime <= cfg["deadline"] + 20 and info["stages_run"] == [1, 2]
-    # the profile timed the training's width and batch eager and compiled, and that measurement chose how it trained
-    profile = json.loads((tmp_path / "work" / "train_step_profile.json").read_text())
-    assert {(r["width"], r["batch"], r["compiled"]) for r in profile["rows"]} >= {(8, 8, False), (8, 8, True)}
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    from train_step_profile import worth_compiling
+    assert "training compiled: no (LEASE_COMPILE=0)" in log and cfg["compile"] is False
 
-    chose = worth_compiling(profile, 8, 8)
-    assert f"training compiled: {'yes' if chose else 'no'}" in log and cfg["compile"] is chose
+
+@pytest.mark.parametrize(("eager_ms", "compiled_ms", "first_s", "train_s", "chose"), [
+    (30.0, 20.0, 40.0, 400.0, 1),  # 1.5x: saves 133 s of 400, more than 3 compiles of 40 s
+    (30.0, 20.0, 60.0, 400.0, 0),  # 3 compiles of 60 s cost more than the 133 s saved
+    (30.0, 25.0, 1.0, 400.0, 0),  # 1.2x: under the 1.25x floor
+    (30.0, None, 1.0, 400.0, 0),  # the compiled row missing (the profile cut off): eager
+])
+def test_the_lease_compiles_only_when_its_profile_pays_for_it(tmp_path, eager_ms, compiled_ms, first_s, train_s, chose):
+    """The lease's choice to train compiled, read off its own profile (train_step_profile.py --worth-compiling)."""
+    rows = [{"width": 8, "batch": 128, "compiled": False, "ms_per_step": eager_ms, "first_step_s": 0.1}]
+    if compiled_ms is not None:
+        rows.append({"width": 8, "batch": 128, "compiled": True, "ms_per_step": compiled_ms, "first_step_s": first_s})
+    profile = tmp_path / "profile.json"
+    profile.write_text(json.dumps({"rows": rows}))
+    run = subprocess.run([sys.executable, str(REPO / "benchmarks" / "train_step_profile.py"), "--worth-compiling",
+                          str(profile), "--compiled", "8x128", "--train-seconds", str(train_s)],
+                         capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == str(chose)
