@@ -35,13 +35,13 @@
 - ``compile``: the training step's network runs through ``torch.compile`` (inductor: fused kernels, 202
   operator calls a step instead of 843). On an AMX CPU the profile's synthetic w = 8 step took 1.5x less time
   (``benchmarks/train_step_profile.md``), but a real 30-CPU-minute fine-tune only 1.16x per step and made 1.07x
-  the steps (loss, data and validation stay eager; ``benchmarks/adaptation_compile_rule.md``): worth it where a
-  step is dispatch-bound, as on a GPU (the lease measures it). Validation and calibration stay eager, on the same weights. Compiling
-  costs tens of seconds per stage (the dropout stage's graph is another), and, under a CPU budget, runs in this
-  process so that the budget counts it. With a deadline or budget, a later stage is compiled only if at least
-  ``COMPILE_ROOM`` times stage 1's compiling step is left, else it runs eagerly. If a stage's first compiled step
-  fails (no C++ compiler, an operator inductor lacks), training goes on eagerly and says so; on more than one
-  process (DDP) it stops instead, since the ranks could not agree to fall back together.
+  the steps (loss, data and validation stay eager; ``benchmarks/adaptation_compile_rule.md``). Where a step is
+  bound by operator dispatch it may pay more; the GPU lease measures that. Validation and calibration stay eager,
+  on the same weights. Compiling costs tens of seconds per stage (the dropout stage's graph is another), and,
+  under a CPU budget, runs in this process so that the budget counts it. With a deadline or budget, a later stage
+  is compiled only if at least ``COMPILE_ROOM`` times stage 1's compiling step is left, else it runs eagerly. If a
+  stage's first compiled step fails (no C++ compiler, an operator inductor lacks), training goes on eagerly and
+  says so; on more than one process (DDP) it stops instead, since the ranks could not agree to fall back together.
 - No host sync per training step (the progress bar's loss is read every ``PROGRESS_EVERY`` steps), so
   the host queues work ahead of a GPU.
 - DDP: launched with ``torchrun`` (env ``WORLD_SIZE`` > 1), gloo on CPU, nccl on CUDA; rank 0
@@ -92,7 +92,7 @@ PROGRESS_EVERY = 25  # steps between the progress bar's loss read-outs (each is 
 BANK_SHARE = 0.6  # of the GPU's free memory a BurstBank may take (the network's activations need the rest)
 
 
-COMPILE_ROOM = 3.0  # a later stage compiles only with this many times stage 1's compiling step left to a deadline
+COMPILE_ROOM = 3.0  # a later stage compiles only with this many times stage 1's compiling step left (deadline, budget)
 
 
 def children_cpu_seconds() -> float:
@@ -509,17 +509,17 @@ class Trainer:
     def _step(self, net: torch.nn.Module, batch: dict, stage: int) -> dict:
         """One optimizer step on ``batch``; returns the losses. The CPU of the children it waits for counts."""
         kids0 = children_cpu_seconds()
-        self.optimizer.zero_grad(set_to_none=True)  # first: a step that failed half-way leaves no gradient behind
-        with self._autocast():
-            pred = net(batch["input"].to(self.device, non_blocking=True))
-        losses = self.criterion(
-            pred,
-            batch["target"].to(self.device),
-            batch["mask"].to(self.device),
-            self.model,
-            include_regularization=stage == 2,
-        )
-        try:
+        try:  # a compile that fails still counts
+            self.optimizer.zero_grad(set_to_none=True)  # first: a step that failed half-way leaves no gradient
+            with self._autocast():
+                pred = net(batch["input"].to(self.device, non_blocking=True))
+            losses = self.criterion(
+                pred,
+                batch["target"].to(self.device),
+                batch["mask"].to(self.device),
+                self.model,
+                include_regularization=stage == 2,
+            )
             losses["total"].backward()
             self.optimizer.step()
         finally:
