@@ -10,9 +10,10 @@ for a user: ``purpose: adaptation``), with a non-test seed and start angles on a
 bursts' random angles do not hit (both enforced below). Its start points are split into train and
 val (val: every ``--val-every``-th start point, never the test bursts). The shipped model (or ``--init``) is
 fine-tuned on it under a CPU budget of this process (``time.process_time()``: robust to other
-load on the shared cores), constant learning rate, keeping the best-on-val weights; the weights
-that were best on val at 5, 10 and 20 CPU minutes are saved on the way (with a constant schedule
-a 10-minute budget run stops on the same trajectory). Each checkpoint is then scored on the
+load on the shared cores), keeping the best-on-val weights. With the constant learning rate (``--schedule
+constant``) the weights that were best on val at 5, 10 and 20 CPU minutes are saved on the way (a 10-minute
+budget run stops on the same trajectory); with ``--schedule cosine-time`` (annealed to 0 over the budget) a run's
+own budget is its only mark, and a shorter budget is another run (``--budget 10 --tag=-cosine10``). Each checkpoint is then scored on the
 scene's **test** bursts (test seed, rendered on the fly: the paper's three motions both ways and
 still bursts, ``--reps`` bursts each) against three-step PS, as ``benchmarks/generalization.py``
 scores them. Writes ``runs/adaptation/<family>[-span<deg>]/result.json``; ``--report`` gathers them into
@@ -140,13 +141,13 @@ def run_family(args) -> None:
     val_set = Subset(val_full, sorted(pick.tolist()))
     meta = read_config(init)
     budget = args.budget
-    marks = tuple(m for m in args.marks if m < budget)
+    marks = tuple(m for m in args.marks if m < budget) if args.schedule == "constant" else ()
     run = out / "run"
     if run.exists() and not args.resume and not args.score_only:
         shutil.rmtree(run)
     config = TrainConfig(
         out_dir=str(run), model=ModelConfig.from_json(meta["model"]), loss=LossConfig(**meta["training"]["loss"]),
-        epochs_deterministic=1_000_000, epochs_dropout=0, batch_size=args.batch, lr=args.lr, schedule="constant",
+        epochs_deterministic=1_000_000, epochs_dropout=0, batch_size=args.batch, lr=args.lr, schedule=args.schedule,
         patience=1_000_000, steps_per_epoch=args.steps_per_epoch, init=str(init), progress=False,
         calibrate=True, calibrate_mc=0, budget_cpu_min=budget, checkpoints_cpu_min=marks, seed=0,
         resume=args.resume, precision=args.precision, compile=args.compile,
@@ -203,7 +204,7 @@ def run_family(args) -> None:
                        "train_start_points": train_groups, "val_start_points": val_groups,
                        "train_items": len(train_set), "val_items": len(val_set), "render_s": render_s,
                        "min_gap_to_test_angles_deg": gap},
-        "training": {"budget_cpu_min": budget, "marks": list(marks), "lr": args.lr, "schedule": "constant",
+        "training": {"budget_cpu_min": budget, "marks": list(marks), "lr": trained["lr"], "schedule": trained["schedule"],
                      "batch": args.batch, "crop": args.crop, "steps_per_epoch": args.steps_per_epoch,
                      "cpu_min": result.cpu_seconds / 60.0, "wall_s": train_wall, "precision": trained["precision"], "budget_hit": result.budget_hit,
                      "autocast": resolve_precision(trained["precision"], torch.device("cpu"), training=True),  # what "auto" chose
@@ -283,7 +284,10 @@ def training_mode(results: list[dict]) -> str:
         cast = t.get("autocast", t["precision"])
         why = (" (the AMD host's choice in session 21: 1.2 CPU s per w8 step in fp32, 1.7 in bf16 without AMX)"
                if t["precision"] == "fp32" else f" (`--precision {t['precision']}`)")
-        return f"autocast **{cast}**{why}, {'**compiled** steps (`--compile`)' if t.get('compile') else 'eager steps'}"
+        sched = ("learning rate **annealed to 0 over the budget** (`--schedule cosine-time`)"
+                 if t.get("schedule") == "cosine-time" else "constant learning rate")
+        return (f"autocast **{cast}**{why}, {'**compiled** steps (`--compile`)' if t.get('compile') else 'eager steps'}, "
+                f"{sched} {t['lr']:g}")
 
     modes = {r["run"]: mode(r) for r in results}
     if len(set(modes.values())) == 1:
@@ -370,8 +374,9 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         "- **What chose what**: the adaptation data's own held-out start points (val) chose the weights at every "
         "mark (best-on-val so far, the shipped weights included: the 0-minute row); nothing was chosen on the test "
         "bursts. Learning rate, batch, crop and the mix (static bursts x20, both rotation senses) are the shipped "
-        "CPU recipe's (`scripts/train_default.py`: batch 8, 128^2 crops), set before any run; a constant learning rate so that the "
-        "10-minute mark is where a `--budget-cpu-min 10` run stops.",
+        "CPU recipe's (`scripts/train_default.py`: batch 8, 128^2 crops), set before any run. With a constant learning "
+        "rate the 10-minute mark is where a `--budget-cpu-min 10` run stops; a run annealed over its budget "
+        "(`cosine-time`, under Host) has its budget as its only mark, and a shorter budget is a run of its own.",
         f"- **Split**: the scenes are the first scene of each test family run (`twin/families.py`, test seeds: the "
         "product's default rig with a test gear, or a rig never trained on; "
         f"test split: {describe('test')}). The adaptation data are the user's workflow on that rig and gear: "
@@ -447,7 +452,12 @@ def main() -> None:
     ap.add_argument("--init", type=Path, default=DEFAULT_MODEL,
                     help="the weights fine-tuned and scored at 0 minutes (default: the shipped default; "
                          "e.g. inference/weights/default_rig.safetensors, the default-rig option)")
-    ap.add_argument("--marks", type=lambda s: [float(v) for v in s.split(",")], default=[5.0, 10.0, 20.0])
+    ap.add_argument("--marks", type=lambda s: [float(v) for v in s.split(",")], default=None,
+                    help="CPU minutes at which the best-on-val weights so far are scored too (constant schedule "
+                         "only; default 5,10,20)")
+    ap.add_argument("--schedule", choices=("constant", "cosine-time"), default="constant",
+                    help="learning rate: constant (the marks are shorter budgets' results) or cosine-time (annealed "
+                         "to 0 over --budget: a shorter budget is a run of its own)")
     ap.add_argument("--start-points", type=int, default=10)
     ap.add_argument("--val-every", type=int, default=5, help="every N-th start point is val")
     ap.add_argument("--val-items", type=int, default=32)
@@ -476,6 +486,10 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE / "adaptation_report")
     ap.add_argument("--runs", type=Path, default=RUNS, help="folder of the per-family runs (data, weights, result.json)")
     args = ap.parse_args()
+    if args.marks is not None and args.schedule != "constant":
+        ap.error("--marks: only with --schedule constant (an annealed run's mark is not what a shorter budget gives)")
+    if args.marks is None:
+        args.marks = [5.0, 10.0, 20.0]
     if args.min_span_deg is not None and not args.min_span_deg > 0:
         ap.error(f"--min-span-deg: expected > 0 degrees, got {args.min_span_deg}")
     if not args.init.is_file():

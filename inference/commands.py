@@ -341,7 +341,9 @@ def train(
     ] = 50,
     batch_size: Annotated[int, typer.Option(min=1)] = 16,
     lr: Annotated[float, typer.Option(min=0.0)] = 1e-3,
-    schedule: Annotated[str, typer.Option(help="step, cosine or constant")] = "step",
+    schedule: Annotated[str, typer.Option(
+        help="step, cosine, constant, or cosine-time (annealed to 0 over the --budget-cpu-min or --wall-minutes "
+             "the stage has, whatever number of epochs that is)")] = "step",
     step_every: Annotated[
         int, typer.Option(min=1, help="epochs between x gamma decays (step schedule)")
     ] = 20,

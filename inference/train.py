@@ -4,7 +4,8 @@
   dropout rates get no gradient); stage 2 turns the masks and the regulariser on, starting
   from the best stage-1 weights. Models without dropout (the peers) run stage 1 only.
 - Adam, learning rate ``lr`` with a schedule restarted per stage: ``step`` (x ``gamma`` every
-  ``step_every`` epochs; paper: 1e-3, x0.9 every 20), ``cosine`` or ``constant``; torch's
+  ``step_every`` epochs; paper: 1e-3, x0.9 every 20), ``cosine``, ``constant`` or ``cosine-time`` (a cosine
+  over the stage's time, the CPU budget's or the deadline's, for a run whose epochs the time decides); torch's
   schedulers, stepped once per epoch (:mod:`gearscan.inference.lr_schedule`).
 - Early stopping per stage after ``patience`` epochs without validation improvement. The
   validation score is ``alpha*NLL + mse_weight*MSE`` in deterministic mode (no regulariser), so
@@ -82,7 +83,7 @@ from gearscan.inference.distributed import (
     resolve_device,
 )
 from gearscan.inference.losses import LossConfig, PhaseLoss
-from gearscan.inference.lr_schedule import SCHEDULES, build_scheduler
+from gearscan.inference.lr_schedule import SCHEDULES, TIMED_SCHEDULES, build_scheduler
 from gearscan.inference.model_io import load_into, load_state, save_model, widen_inputs
 from gearscan.inference.models import ModelConfig, PhaseNet, build_model
 from gearscan.inference.plots import plot_history
@@ -157,6 +158,9 @@ class TrainConfig:
             self.loss = LossConfig(**self.loss)
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule: expected one of {SCHEDULES}, got {self.schedule!r}")
+        if self.schedule in TIMED_SCHEDULES and self.budget_cpu_min is None and self.deadline is None:
+            raise ValueError(f"schedule {self.schedule!r}: expected budget_cpu_min or deadline (the time it anneals "
+                             "over)")
         for name in ("batch_size", "step_every", "patience"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
@@ -287,6 +291,7 @@ class Trainer:
         self._cpu0 = time.process_time()
         self._kids_s = 0.0  # CPU of the children training steps waited for (a compiler), since _cpu0
         self._stage_deadline: float | None = None  # the deterministic stage's share of the deadline (fit() sets it)
+        self._stage_t0 = time.time()  # wall-clock start of the running stage (fit() sets it)
         self._val_cpu = self._val_wall = 0.0  # the last validation's CPU and wall seconds: kept free at a budget's end
         self.history: list[dict] = []
         self._last_plot = -math.inf
@@ -409,6 +414,18 @@ class Trainer:
         if self.dist.world > 1:
             spent = all_reduce_sum([float(spent)], self.dist, self.device)[0] > 0
         return spent
+
+    def stage_progress(self) -> float:
+        """Share (0-1) of the running stage's time spent: of the CPU budget left at the stage's start, or of the
+        wall time to its deadline (a resumed run anneals over its new deadline), whichever is further on."""
+        cfg, shares = self.config, [0.0]
+        if cfg.budget_cpu_min is not None:
+            c0 = self.state.get("stage_cpu0", 0.0)
+            shares.append((self.cpu_seconds() - c0) / max(1e-9, 60.0 * cfg.budget_cpu_min - c0))
+        end = self._stage_deadline or cfg.deadline
+        if end is not None:
+            shares.append((time.time() - self._stage_t0) / max(1e-9, end - self._stage_t0))
+        return min(1.0, max(shares))
 
     def _save_checkpoints(self, stage: int) -> None:
         """Copy the best-on-val weights so far to ``cpu_<m>min.*`` for every mark just passed."""
@@ -594,8 +611,12 @@ class Trainer:
                 else:
                     print(f"compile: stage {stage} runs eagerly: less than {COMPILE_ROOM:g} x stage 1's compiling "
                           f"step ({self._compile_cost[0]:.0f} s) is left", flush=True)
+            if self.state["epoch"] == 0 or "stage_cpu0" not in self.state:  # a resumed stage keeps its start
+                self.state["stage_cpu0"] = self.cpu_seconds()
+            self._stage_t0 = time.time()
             # epoch > 0 when resuming mid-stage: the schedule picks up where it was
-            self.scheduler = build_scheduler(self.optimizer, cfg, stage, n_epochs, self.state["epoch"])
+            self.scheduler = build_scheduler(self.optimizer, cfg, stage, n_epochs, self.state["epoch"],
+                                             progress=self.stage_progress)
             while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience and not self.budget_spent():
                 epoch = self.state["epoch"]
                 te = time.perf_counter()

@@ -296,6 +296,44 @@ def test_learning_rate_schedules():
         TrainConfig(schedule="linear")
 
 
+def test_cosine_time_anneals_over_the_stage_time():
+    """``cosine-time`` reads the share of the stage's time spent, not the epoch: half way, half the rate; at the
+    end 0; past it, still 0. Without a budget or deadline to anneal over, the config is refused."""
+    cfg = TrainConfig(lr=1e-3, schedule="cosine-time", budget_cpu_min=1.0)
+    spent = [0.0]
+    opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=cfg.lr)
+    scheduler = build_scheduler(opt, cfg, 1, 1_000_000, progress=lambda: spent[0])
+    lrs = []
+    for f in (0.25, 0.5, 1.0, 1.7):
+        lrs.append(opt.param_groups[0]["lr"])
+        spent[0] = f
+        opt.step()
+        scheduler.step()
+    lrs.append(opt.param_groups[0]["lr"])
+    assert lrs == pytest.approx([1e-3, 0.5e-3 * (1 + math.cos(math.pi / 4)), 0.5e-3, 0.0, 0.0], abs=1e-15)
+    with pytest.raises(ValueError, match="budget_cpu_min or deadline"):
+        TrainConfig(schedule="cosine-time")
+    with pytest.raises(ValueError, match="progress"):
+        build_scheduler(opt, cfg, 1, 10)
+    TrainConfig(schedule="cosine-time", deadline=time.time() + 60)  # a deadline is a time to anneal over too
+
+
+def test_cosine_time_training_ends_annealed(tmp_path):
+    """A real fit under a CPU budget with ``cosine-time``: the rate falls epoch by epoch from its peak, and the last
+    epoch before the budget runs at a small share of it (the budget stops training one validation early)."""
+    ds = TensorBurstDataset(list(twin_items()))
+    cfg = _cfg(tmp_path, epochs_deterministic=100_000, epochs_dropout=0, steps_per_epoch=1, lr=1e-3,
+               schedule="cosine-time", patience=100_000, budget_cpu_min=0.04, calibrate=False)
+    trainer = Trainer(cfg, ds, ds)
+    result = trainer.fit()
+    lrs = [h["lr"] for h in result.history if h["epoch"] > 0]
+    assert result.budget_hit and len(lrs) >= 5
+    assert lrs[0] == pytest.approx(1e-3, rel=0.05)
+    assert lrs == sorted(lrs, reverse=True)  # monotone down
+    assert lrs[-1] < 0.25e-3  # the last epoch ran past 2/3 of the budget
+    assert trainer.stage_progress() > 0.9
+
+
 def test_resume_mid_stage_keeps_the_schedule(tmp_path, monkeypatch):
     ds = TensorBurstDataset(list(twin_items()))
     kw = dict(epochs_deterministic=4, epochs_dropout=0, schedule="cosine", steps_per_epoch=1, calibrate=False)
