@@ -101,6 +101,12 @@ def score(predictor: Predictor | None, cases, motions) -> dict[str, float]:
     return {k: math.sqrt(v[0] / v[1]) for k, v in sums.items()}
 
 
+def shorter_runs_on_the_way(args) -> bool:
+    """Whether a run's best-on-val weights at a mark are what a run of that budget keeps: only at a constant rate
+    and without a weight average (an annealed or averaging run's mark is the middle of its own schedule)."""
+    return args.schedule == "constant" and args.average_from is None
+
+
 def run_family(args) -> None:
     torch.set_num_threads(args.threads)
     machine = host()
@@ -141,7 +147,7 @@ def run_family(args) -> None:
     val_set = Subset(val_full, sorted(pick.tolist()))
     meta = read_config(init)
     budget = args.budget
-    marks = tuple(m for m in args.marks if m < budget) if args.schedule == "constant" else ()
+    marks = tuple(m for m in args.marks if m < budget) if shorter_runs_on_the_way(args) else ()
     run = out / "run"
     if run.exists() and not args.resume and not args.score_only:
         shutil.rmtree(run)
@@ -150,7 +156,7 @@ def run_family(args) -> None:
         epochs_deterministic=1_000_000, epochs_dropout=0, batch_size=args.batch, lr=args.lr, schedule=args.schedule,
         patience=1_000_000, steps_per_epoch=args.steps_per_epoch, init=str(init), progress=False,
         calibrate=True, calibrate_mc=0, budget_cpu_min=budget, checkpoints_cpu_min=marks, seed=0,
-        resume=args.resume, precision=args.precision, compile=args.compile,
+        resume=args.resume, precision=args.precision, compile=args.compile, average_from=args.average_from,
     )
     t0 = time.perf_counter()
     if args.score_only:  # a finished run (e.g. one whose scoring failed): read what it wrote
@@ -206,6 +212,7 @@ def run_family(args) -> None:
                        "min_gap_to_test_angles_deg": gap},
         "training": {"budget_cpu_min": budget, "marks": list(marks), "lr": trained["lr"], "schedule": trained["schedule"],
                      "batch": args.batch, "crop": args.crop, "steps_per_epoch": args.steps_per_epoch,
+                     "average_from": trained.get("average_from"),
                      "cpu_min": result.cpu_seconds / 60.0, "wall_s": train_wall, "precision": trained["precision"], "budget_hit": result.budget_hit,
                      "autocast": resolve_precision(trained["precision"], torch.device("cpu"), training=True),  # what "auto" chose
                      "compile": trained.get("compile", False),
@@ -277,6 +284,27 @@ def _extrapolation(r: dict) -> str:
             f"on this host, {r['training'].get('autocast', r['training']['precision'])}): {verdict}.{floors}")
 
 
+def budget_curves(results: list[dict]) -> list[dict]:
+    """What to extrapolate: a constant-rate run's own marks, or, for runs annealed over their budgets
+    (``cosine-time``) or averaging their last epochs, one curve through the budget-end points of the runs of one scene
+    and recipe (each point is what that budget gives; a run's other points would be the middle of its schedule, so it
+    is never fitted alone)."""
+    curves = [r for r in results
+              if r["training"].get("schedule", "constant") == "constant" and r["training"].get("average_from") is None]
+    groups: dict[tuple, list[dict]] = {}
+    for r in results:
+        if r["training"].get("schedule") == "cosine-time" or r["training"].get("average_from") is not None:
+            key = (r["family"], r["scene_seed"], r["training"]["lr"], r["training"].get("schedule"),
+                   r["training"].get("average_from"))
+            groups.setdefault(key, []).append(r)
+    for runs in groups.values():
+        runs = sorted(runs, key=lambda r: r["training"]["budget_cpu_min"])
+        last = runs[-1]
+        curves.append({**last, "scene": f"{last['scene'].split(' [')[0]} [annealed: {', '.join(r['run'] for r in runs)}]",
+                       "curve": [last["curve"][0]] + [r["curve"][-1] for r in runs]})
+    return curves
+
+
 def training_mode(results: list[dict]) -> str:
     """How the runs trained: autocast and compiled steps, per run where they differ."""
     def mode(r: dict) -> str:
@@ -286,8 +314,10 @@ def training_mode(results: list[dict]) -> str:
                if t["precision"] == "fp32" else f" (`--precision {t['precision']}`)")
         sched = ("learning rate **annealed to 0 over the budget** (`--schedule cosine-time`)"
                  if t.get("schedule") == "cosine-time" else "constant learning rate")
+        avg = (f", the weights of every epoch from {t['average_from']:g} of the budget on averaged (`--average-from`; "
+               "the average kept only if better on val)" if t.get("average_from") is not None else "")
         return (f"autocast **{cast}**{why}, {'**compiled** steps (`--compile`)' if t.get('compile') else 'eager steps'}, "
-                f"{sched} {t['lr']:g}")
+                f"{sched} {t['lr']:g}{avg}")
 
     modes = {r["run"]: mode(r) for r in results}
     if len(set(modes.values())) == 1:
@@ -412,9 +442,10 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
                     for r in results) + ".",
         "",
         "What would meet it, read off the curve (a power law `rmse = a * (CPU min)^b` fitted to the fine-tuned "
-        "moving-burst points; an extrapolation, not a measurement):",
+        "moving-burst points: a constant-rate run's marks, or the budget ends of the runs annealed over their "
+        "budgets; an extrapolation, not a measurement):",
         "",
-        *[_extrapolation(r) for r in results],
+        *[_extrapolation(r) for r in budget_curves(results)],
         "",
         "## Runs",
         "",
@@ -458,6 +489,9 @@ def main() -> None:
     ap.add_argument("--schedule", choices=("constant", "cosine-time"), default="constant",
                     help="learning rate: constant (the marks are shorter budgets' results) or cosine-time (annealed "
                          "to 0 over --budget: a shorter budget is a run of its own)")
+    ap.add_argument("--average-from", type=float, default=None,
+                    help="average every epoch's weights from this share of the budget on (TrainConfig.average_from; "
+                         "the average kept only if better on val); marks are then runs of their own")
     ap.add_argument("--start-points", type=int, default=10)
     ap.add_argument("--val-every", type=int, default=5, help="every N-th start point is val")
     ap.add_argument("--val-items", type=int, default=32)
@@ -486,8 +520,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=HERE / "adaptation_report")
     ap.add_argument("--runs", type=Path, default=RUNS, help="folder of the per-family runs (data, weights, result.json)")
     args = ap.parse_args()
-    if args.marks is not None and args.schedule != "constant":
-        ap.error("--marks: only with --schedule constant (an annealed run's mark is not what a shorter budget gives)")
+    if args.marks is not None and not shorter_runs_on_the_way(args):
+        ap.error("--marks: only with --schedule constant and no --average-from (such a run's mark is not what a "
+                 "shorter budget gives)")
     if args.marks is None:
         args.marks = [5.0, 10.0, 20.0]
     if args.min_span_deg is not None and not args.min_span_deg > 0:

@@ -388,6 +388,11 @@ def train(
                           "which a CPU budget counts; eager again, with a message, if it fails). On an AMX CPU a real "
                           "fine-tune made only 1.07x the steps in 30 CPU min (benchmarks/adaptation_compile_rule.md); "
                           "the GPU lease measures it there")] = False,
+    average_from: Annotated[float | None, typer.Option(
+        min=0.0, max=0.99,
+        help="average the weights of every epoch from this share of a stage on (of --budget-cpu-min or "
+             "--wall-minutes when given, else of its epochs; stochastic weight averaging); the average is kept only "
+             "if it beats the stage's best epoch on val")] = None,
     wall_minutes: Annotated[float | None, typer.Option(
         min=0.01, help="stop by this many wall-clock minutes from now, best-on-val weights kept (the dropout "
                        "stage keeps its share)")] = None,
@@ -473,6 +478,7 @@ def train(
         checkpoints_cpu_min=marks,
         bank=bank,
         compile=compile,
+        average_from=average_from,
         deadline=None if wall_minutes is None else time.time() + 60.0 * wall_minutes,
     )
     train_set = _load_dataset(data, motion_input=motion_input, reverse=reverse)

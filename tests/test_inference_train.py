@@ -334,6 +334,43 @@ def test_cosine_time_training_ends_annealed(tmp_path):
     assert trainer.stage_progress() > 0.9
 
 
+def test_weight_average_is_a_candidate_kept_only_if_better_on_val(tmp_path, monkeypatch):
+    """``average_from``: the epochs from that share on are averaged (their mean, BatchNorm buffers too), the
+    average is validated once more at the stage's end and becomes the stage's best only if it beats the best
+    epoch on val; otherwise the best epoch is kept. Scripted validations decide each way."""
+    ds = TensorBurstDataset(list(twin_items()))
+    for scripted, kept in (([0.9, 0.8, 0.7, 0.6, 0.5, 0.1], True), ([0.9, 0.8, 0.7, 0.6, 0.5, 0.55], False)):
+        out = tmp_path / f"kept{kept}"
+        cfg = _cfg(tmp_path, out_dir=str(out), epochs_deterministic=5, epochs_dropout=0, steps_per_epoch=1,
+                   lr=1e-3, schedule="constant", average_from=0.4, calibrate=False)
+        vals = iter(scripted)
+        monkeypatch.setattr(Trainer, "_validate_once",
+                            lambda self, v=vals: {"val_loss": (x := next(v)), "val_rmse": x})
+        weights: list[dict] = []  # every epoch's weights, as the trainer leaves them
+        real_epoch = Trainer._train_epoch
+
+        def spy(self, *a, _real=real_epoch, _w=weights, **k):
+            r = _real(self, *a, **k)
+            _w.append({n: t.detach().clone() for n, t in self.model.state_dict().items()})
+            return r
+
+        monkeypatch.setattr(Trainer, "_train_epoch", spy)
+        result = train(cfg, ds, ds)
+        monkeypatch.undo()
+        hist = result.history
+        assert [h.get("averaged") for h in hist] == [None, 1, 2, 3, 4, 4]  # epochs ending at share >= 0.4, then it
+        assert hist[-1]["steps"] == 0 and hist[-1]["val_loss"] == scripted[-1]
+        best, _ = load_model(out / "stage1_best.safetensors")
+        expect = weights[-1] if not kept else {
+            n: torch.stack([w[n].float() for w in weights[1:]]).mean(0) for n in weights[-1]}
+        for n, t in best.state_dict().items():
+            if t.is_floating_point():
+                assert torch.allclose(t, expect[n], atol=1e-6), n
+        assert result.best_val == pytest.approx(min(scripted))
+    with pytest.raises(ValueError, match="average_from"):
+        TrainConfig(average_from=1.0)
+
+
 def test_resume_mid_stage_keeps_the_schedule(tmp_path, monkeypatch):
     ds = TensorBurstDataset(list(twin_items()))
     kw = dict(epochs_deterministic=4, epochs_dropout=0, schedule="cosine", steps_per_epoch=1, calibrate=False)
