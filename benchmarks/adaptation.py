@@ -210,7 +210,7 @@ def run_family(args) -> None:
                        "train_start_points": train_groups, "val_start_points": val_groups,
                        "train_items": len(train_set), "val_items": len(val_set), "render_s": render_s,
                        "min_gap_to_test_angles_deg": gap},
-        "training": {"budget_cpu_min": budget, "marks": list(marks), "lr": trained["lr"], "schedule": trained["schedule"],
+        "training": {"budget_cpu_min": budget, "marks": list(trained.get("checkpoints_cpu_min", marks)), "lr": trained["lr"], "schedule": trained["schedule"],
                      "batch": args.batch, "crop": args.crop, "steps_per_epoch": args.steps_per_epoch,
                      "average_from": trained.get("average_from"),
                      "cpu_min": result.cpu_seconds / 60.0, "wall_s": train_wall, "precision": trained["precision"], "budget_hit": result.budget_hit,
@@ -294,8 +294,10 @@ def budget_curves(results: list[dict]) -> list[dict]:
     groups: dict[tuple, list[dict]] = {}
     for r in results:
         if r["training"].get("schedule") == "cosine-time" or r["training"].get("average_from") is not None:
-            key = (r["family"], r["scene_seed"], r["training"]["lr"], r["training"].get("schedule"),
-                   r["training"].get("average_from"))
+            t, a = r["training"], r["adaptation"]
+            key = (r["family"], r["scene_seed"], a.get("min_span_deg"), r.get("model", {}).get("sha256"), a["seed"],
+                   a["start_points"], *(t.get(k) for k in ("schedule", "average_from", "lr", "batch", "crop",
+                                                          "steps_per_epoch", "autocast", "compile")))
             groups.setdefault(key, []).append(r)
     for runs in groups.values():
         runs = sorted(runs, key=lambda r: r["training"]["budget_cpu_min"])

@@ -38,7 +38,8 @@ def build_scheduler(
     so a run stopped by a CPU budget or a deadline ends annealed, however many epochs that time held.
     Sets the optimizer's learning rates to those of epoch ``epoch`` (0-based within the stage;
     > 0 when resuming), replaying the schedule from the stage's start so that a resumed run gets
-    the same rates as an uninterrupted one.
+    the same rates as an uninterrupted one (``cosine-time``: its CPU budget's share carries over; a deadline is
+    the resumed run's own, so its share starts again).
     """
     base = stage_lr(config, stage)
     for group in optimizer.param_groups:  # a new stage restarts from its own peak

@@ -107,6 +107,14 @@ def children_cpu_seconds() -> float:
     return kids.ru_utime + kids.ru_stime
 
 
+def _running_mean(averaged: torch.Tensor, current: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    """The weight average's update: the running mean of float tensors; an integer buffer (BatchNorm's batch count)
+    takes the current value, since torch's own averaging divides it, which CUDA refuses."""
+    if not averaged.is_floating_point():
+        return current
+    return averaged + (current - averaged) / (n.to(averaged.dtype) + 1)
+
+
 def validation_row(inside: float, outside: float, rmse: float, loss: LossConfig, objective: str) -> dict:
     """A validation row: ``val_loss`` is what early stopping reads (the inside-mask loss, plus ``outside_weight``
     x the outside-mask error for the "full" objective); with an outside term both parts are kept apart."""
@@ -345,7 +353,7 @@ class Trainer:
         """CSV + JSON every epoch; the PNG at most every 30 s (or when ``plot``) to keep tiny epochs cheap."""
         if not self.history:
             return
-        keys = list(self.history[-1].keys())
+        keys = list(dict.fromkeys(k for row in self.history for k in row))  # a column some rows lack stays
         with open(self.out / "metrics.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
             w.writeheader()
@@ -424,7 +432,8 @@ class Trainer:
 
     def stage_progress(self) -> float:
         """Share (0-1) of the running stage's time spent: of the CPU budget left at the stage's start, or of the
-        wall time to its deadline (a resumed run anneals over its new deadline), whichever is further on."""
+        wall time to its deadline (a resumed run anneals over its new deadline), whichever is further on; the mean
+        over distributed ranks (each has its own clocks), so every rank steps at the same rate and averages alike."""
         cfg, shares = self.config, [0.0]
         if cfg.budget_cpu_min is not None:
             c0 = self.state.get("stage_cpu0", 0.0)
@@ -432,7 +441,10 @@ class Trainer:
         end = self._stage_deadline or cfg.deadline
         if end is not None:
             shares.append((time.time() - self._stage_t0) / max(1e-9, end - self._stage_t0))
-        return min(1.0, max(shares))
+        share = max(shares)
+        if self.dist.world > 1:
+            share = all_reduce_sum([share], self.dist, self.device)[0] / self.dist.world
+        return min(1.0, share)
 
     def _stage_share(self, n_epochs: int) -> float:
         """Share of the running stage done: of its time with a CPU budget or deadline, else of its epochs."""
@@ -657,7 +669,9 @@ class Trainer:
             self.scheduler = build_scheduler(self.optimizer, cfg, stage, n_epochs, self.state["epoch"],
                                              progress=self.stage_progress)
             average = None  # the stage's weight average (average_from), begun at its share of the stage
-            while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience and not self.budget_spent():
+            # averaging: the closing validation of the average needs room too, so no epoch starts without it
+            room = (self._val_cpu, self._val_wall) if cfg.average_from is not None else (0.0, 0.0)
+            while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience and not self.budget_spent(*room):
                 epoch = self.state["epoch"]
                 te = time.perf_counter()
                 row = {"stage": stage, "epoch": epoch + 1, "lr": self.scheduler.get_last_lr()[0]}
@@ -677,7 +691,8 @@ class Trainer:
                 self.state["epoch"] = epoch + 1
                 if cfg.average_from is not None and self._stage_share(n_epochs) >= cfg.average_from:
                     if average is None:
-                        average = torch.optim.swa_utils.AveragedModel(self.model, use_buffers=True)
+                        average = torch.optim.swa_utils.AveragedModel(self.model, avg_fn=_running_mean,
+                                                                      use_buffers=True)
                     average.update_parameters(self.model)
                     row["averaged"] = int(average.n_averaged)
                 self.history.append(row)
@@ -691,7 +706,7 @@ class Trainer:
                     self._save_checkpoints(stage)
                     self._save_last()
                     self._write_metrics()
-            if average is not None and int(average.n_averaged) >= 2:  # alike on every rank: DDP keeps them equal
+            if average is not None and int(average.n_averaged) >= 2:  # alike on every rank: one shared share
                 self._try_average(stage, average)
             self._stage_deadline = None  # the next stage runs to the deadline itself
             # stage done: continue from this stage's best weights

@@ -326,12 +326,22 @@ def test_cosine_time_training_ends_annealed(tmp_path):
                schedule="cosine-time", patience=100_000, budget_cpu_min=0.04, calibrate=False)
     trainer = Trainer(cfg, ds, ds)
     result = trainer.fit()
-    lrs = [h["lr"] for h in result.history if h["epoch"] > 0]
+    rows = [h for h in result.history if h["epoch"] > 0]
+    lrs = [h["lr"] for h in rows]
     assert result.budget_hit and len(lrs) >= 5
     assert lrs[0] == pytest.approx(1e-3, rel=0.05)
     assert lrs == sorted(lrs, reverse=True)  # monotone down
     assert lrs[-1] < 0.25e-3  # the last epoch ran past 2/3 of the budget
-    assert trainer.stage_progress() > 0.9
+
+    def cos_at(cpu_min: float, c0: float) -> float:  # the rate at that CPU time of a stage begun at c0 CPU s
+        f = min(1.0, max(0.0, (60.0 * cpu_min - c0) / (60.0 * cfg.budget_cpu_min - c0)))
+        return 0.5e-3 * (1 + math.cos(math.pi * f))
+
+    # the rate of epoch k+1 was set when epoch k's training ended: after row k-1's stamp, before row k's. The
+    # stage began between 0 and the first row's stamp, so bound with each end (a later start: a higher rate)
+    first = 60.0 * rows[0]["cpu_min"]
+    for prev, row, nxt in zip(rows, rows[1:], rows[2:], strict=False):
+        assert cos_at(row["cpu_min"], 0.0) - 1e-12 <= nxt["lr"] <= cos_at(prev["cpu_min"], first) + 1e-12
 
 
 def test_weight_average_is_a_candidate_kept_only_if_better_on_val(tmp_path, monkeypatch):
@@ -369,6 +379,13 @@ def test_weight_average_is_a_candidate_kept_only_if_better_on_val(tmp_path, monk
         assert result.best_val == pytest.approx(min(scripted))
     with pytest.raises(ValueError, match="average_from"):
         TrainConfig(average_from=1.0)
+    # the update CUDA can run: floats by running mean, an integer buffer (BatchNorm's count) copied, never divided
+    from gearscan.inference.train import _running_mean
+
+    avg = _running_mean(torch.tensor([1.0, 3.0]), torch.tensor([4.0, 0.0]), torch.tensor(2))
+    assert avg.tolist() == pytest.approx([2.0, 2.0])
+    count = _running_mean(torch.tensor(7), torch.tensor(9), torch.tensor(2))
+    assert count.dtype == torch.int64 and int(count) == 9
 
 
 def test_resume_mid_stage_keeps_the_schedule(tmp_path, monkeypatch):
