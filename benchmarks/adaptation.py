@@ -266,7 +266,8 @@ def label_floor(data: Path, groups: list[int]) -> float | None:
 def _extrapolation(r: dict) -> str:
     fit = power_fit(r["curve"])
     if fit is None:
-        return f"- {r['scene']}: too few points to fit."
+        return (f"- {r['scene']}: one budget ({r['training']['budget_cpu_min']:g} CPU min), no curve: a point at another "
+                "budget is a run of its own, and none was made.")
     a, b = fit
     cpu = r["training"]["cpu_min"]
     step_cpu_s = 60.0 * cpu / max(r["training"]["steps"], 1)
@@ -302,7 +303,8 @@ def budget_curves(results: list[dict]) -> list[dict]:
     for runs in groups.values():
         runs = sorted(runs, key=lambda r: r["training"]["budget_cpu_min"])
         last = runs[-1]
-        curves.append({**last, "scene": f"{last['scene'].split(' [')[0]} [annealed: {', '.join(r['run'] for r in runs)}]",
+        how = "annealed" if last["training"].get("schedule") == "cosine-time" else "averaged"
+        curves.append({**last, "scene": f"{last['scene'].split(' [')[0]} [{how}: {', '.join(r['run'] for r in runs)}]",
                        "curve": [last["curve"][0]] + [r["curve"][-1] for r in runs]})
     return curves
 
@@ -444,7 +446,7 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
                     for r in results) + ".",
         "",
         "What would meet it, read off the curve (a power law `rmse = a * (CPU min)^b` fitted to the fine-tuned "
-        "moving-burst points: a constant-rate run's marks, or the budget ends of the runs annealed over their "
+        "moving-burst points: a constant-rate run's marks, or the budget ends of the runs that anneal or average over their "
         "budgets; an extrapolation, not a measurement):",
         "",
         *[_extrapolation(r) for r in budget_curves(results)],
