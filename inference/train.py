@@ -446,6 +446,11 @@ class Trainer:
             share = all_reduce_sum([share], self.dist, self.device)[0] / self.dist.world
         return min(1.0, share)
 
+    def _average_room(self) -> tuple[float, float]:
+        """CPU and wall seconds an epoch must leave when averaging: the average's closing validation (the last
+        validation's cost); none otherwise."""
+        return (self._val_cpu, self._val_wall) if self.config.average_from is not None else (0.0, 0.0)
+
     def _stage_share(self, n_epochs: int) -> float:
         """Share of the running stage done: of its time with a CPU budget or deadline, else of its epochs."""
         if self.config.budget_cpu_min is not None or self.config.deadline is not None:
@@ -669,9 +674,8 @@ class Trainer:
             self.scheduler = build_scheduler(self.optimizer, cfg, stage, n_epochs, self.state["epoch"],
                                              progress=self.stage_progress)
             average = None  # the stage's weight average (average_from), begun at its share of the stage
-            # averaging: the closing validation of the average needs room too, so no epoch starts without it
-            room = (self._val_cpu, self._val_wall) if cfg.average_from is not None else (0.0, 0.0)
-            while self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience and not self.budget_spent(*room):
+            while (self.state["epoch"] < n_epochs and self.state["bad"] < cfg.patience
+                   and not self.budget_spent(*self._average_room())):
                 epoch = self.state["epoch"]
                 te = time.perf_counter()
                 row = {"stage": stage, "epoch": epoch + 1, "lr": self.scheduler.get_last_lr()[0]}
