@@ -348,23 +348,28 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=100)
+    # left: the test bursts at each scored point (moving solid, still dashed); right: val per epoch; one colour per run
+    fig, (ax, av) = plt.subplots(1, 2, figsize=(11.0, 5.4), dpi=100, sharey=True)
     for k, r in enumerate(results):
         xs = [c["cpu_min"] for c in r["curve"]]
-        col = f"C{k}"
-        ax.plot(xs, [c["rmse"][MOVING] for c in r["curve"]], "-o", color=col, label=f"{r['scene']} moving")
-        ax.plot(xs, [c["rmse"][STILL] for c in r["curve"]], "--s", color=col, ms=4, label=f"{r['scene']} still")
-        ax.axhline(r["three_step"][MOVING], color=col, lw=0.7, ls=":")
+        col = f"C{k % 10}"
+        mark = "os^vD"[k // 10 % 5]
+        ax.plot(xs, [c["rmse"][MOVING] for c in r["curve"]], "-" + mark, color=col, label=r["scene"])
+        ax.plot(xs, [c["rmse"][STILL] for c in r["curve"]], "--" + mark, color=col, ms=3, lw=0.8)
         hist = [x for x in r["training"]["history"] if math.isfinite(x["val_rmse"])]
-        ax.plot([x["cpu_min"] for x in hist], [x["val_rmse"] for x in hist], color=col, lw=0.6, alpha=0.5,
-                label=f"{r['scene']} val (adaptation data, per epoch)")
-    ax.axhline(TARGET_RAD, color="k", lw=1, ls="-.", label=f"target {TARGET_RAD} rad (moving)")
-    ax.set_yscale("log")
-    ax.set_xlabel("fine-tuning, CPU minutes of the training process")
-    ax.set_ylabel("test RMSE (rad)")
-    ax.set_title("per-rig adaptation: test bursts vs CPU minutes (dotted: three-step moving)", fontsize=9)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
+        av.plot([x["cpu_min"] for x in hist], [x["val_rmse"] for x in hist], color=col, lw=0.6, alpha=0.7)
+    for scene_ts in {round(r["three_step"][MOVING], 6) for r in results}:
+        ax.axhline(scene_ts, color="0.5", lw=0.6, ls=":")
+    for a in (ax, av):
+        a.axhline(TARGET_RAD, color="k", lw=1, ls="-.")
+        a.set_yscale("log")
+        a.set_xlabel("fine-tuning, CPU minutes of the training process")
+    ax.set_ylabel("RMSE (rad)")
+    ax.set_title("test bursts: moving (solid), still (dashed); dotted: three-step moving; dash-dot: target",
+                 fontsize=8)
+    av.set_title("val RMSE per epoch (the adaptation data's val start points; it chose the weights)", fontsize=8)
+    fig.legend(*ax.get_legend_handles_labels(), loc="lower center", ncol=2, fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0.03 + 0.026 * math.ceil(len(results) / 2), 1, 1))  # room for the legend's rows
     png = prefix.with_suffix(".png")
     fig.savefig(png)
     plt.close(fig)
