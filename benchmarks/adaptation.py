@@ -12,8 +12,9 @@ val (val: every ``--val-every``-th start point, never the test bursts). The ship
 fine-tuned on it under a CPU budget of this process (``time.process_time()``: robust to other
 load on the shared cores), keeping the best-on-val weights. With the constant learning rate (``--schedule
 constant``) the weights that were best on val at 5, 10 and 20 CPU minutes are saved on the way (a 10-minute
-budget run stops on the same trajectory); with ``--schedule cosine-time`` (annealed to 0 over the budget) a run's
-own budget is its only mark, and a shorter budget is another run (``--budget 10 --tag=-cosine10``). Each checkpoint is then scored on the
+budget run stops on the same trajectory); with ``--schedule cosine-time`` (annealed to 0 over the budget) or
+``--average-from`` (the last epochs' weights averaged) a run's own budget is its only mark, and a shorter budget is
+another run (``--budget 10 --tag=-cosine10``). Each checkpoint is then scored on the
 scene's **test** bursts (test seed, rendered on the fly: the paper's three motions both ways and
 still bursts, ``--reps`` bursts each) against three-step PS, as ``benchmarks/generalization.py``
 scores them. Writes ``runs/adaptation/<family>[-span<deg>]/result.json``; ``--report`` gathers them into
@@ -414,8 +415,8 @@ def write_report(prefix: Path, runs: Path = RUNS) -> None:
         "mark (best-on-val so far, the shipped weights included: the 0-minute row); nothing was chosen on the test "
         "bursts. Learning rate, batch, crop and the mix (static bursts x20, both rotation senses) are the shipped "
         "CPU recipe's (`scripts/train_default.py`: batch 8, 128^2 crops), set before any run. With a constant learning "
-        "rate the 10-minute mark is where a `--budget-cpu-min 10` run stops; a run annealed over its budget "
-        "(`cosine-time`, under Host) has its budget as its only mark, and a shorter budget is a run of its own.",
+        "rate the 10-minute mark is where a `--budget-cpu-min 10` run stops; a run annealed over its budget or averaging "
+        "its last epochs (under Host) has its budget as its only mark, and a shorter budget is a run of its own.",
         f"- **Split**: the scenes are the first scene of each test family run (`twin/families.py`, test seeds: the "
         "product's default rig with a test gear, or a rig never trained on; "
         f"test split: {describe('test')}). The adaptation data are the user's workflow on that rig and gear: "
