@@ -533,8 +533,8 @@ class Trainer:
             if bar is not None:
                 loss = {"loss": f"loss {float(losses['total'].detach()):.4g}"} if step % PROGRESS_EVERY == 0 else {}
                 bar.update(task, advance=1, **loss)
-            reserve = 2 if self.config.average_from is not None else 1  # the average's validation too
-            if self.budget_spent(reserve * self._val_cpu, reserve * self._val_wall):  # room for the closing validation
+            avg_cpu, avg_wall = self._average_room()  # room for the closing validation, and the average's
+            if self.budget_spent(self._val_cpu + avg_cpu, self._val_wall + avg_wall):
                 break
         if bar is not None:
             bar.stop()
