@@ -146,7 +146,8 @@ def markdown(res: dict) -> str:
         f"- **The rig's gate**: chosen per scene on an adaptation dataset of its rig and gear (seed {s['seed']}, "
         f"train split; {s['start_points']} start points over one pitch; no pose on a test burst's angle) by the "
         "shipped gate's rule with the rig as its only family (`choose_with_motion`: 96 moving, 48 slow and 48 still "
-        f"bursts drawn with seed {s['gate_seed']}).",
+        f"bursts drawn with seed {s['gate_seed']}; its ECE bound on the bursts a setting takes, "
+        "`benchmarks/still_gate_taken_ece_rule.md`, since session 38; the family's pooled ECE before).",
         f"- **Split**: test. The first {s['scenes']} scenes of each family; per scene the paper's motions both ways, "
         f"2 sweeps and {s['stills']} still bursts, each {s['reps']} times (test seed), decoded **without encoder "
         "angles** (the network's own path, as `gearscan predict` without `--angles-deg`); fringe orientation from the "

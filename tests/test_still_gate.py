@@ -78,13 +78,13 @@ def test_the_shipped_model_records_why_it_has_no_gate():
 
 
 def test_the_burst_gate_takes_a_still_burst_through_the_predictor_with_no_angles(val_scene_256):
-    """Shipped v6 with the gate its val rule chose (0.02 rad, motion share below 0.001): a still burst is
+    """Shipped v6 with the gate its val rule chose (0.03 rad since session 38, motion share below 0.001): a still burst is
     decoded as well as three-step PS decodes it (ungated, the network is worse), with three-step's noise
     sigma; a 0.6 deg/frame burst keeps the network's correction. (The default-rig option's gate does not
     take this still burst: its interior departure here is 0.034 rad, above its 0.025.)"""
     gated = Predictor.load(DEFAULT_MODEL, orientation="normal")
     ungated = Predictor.load(DEFAULT_MODEL, orientation="normal", still_burst_rad=0.0)
-    assert gated.still_burst_rad == 0.02
+    assert gated.still_burst_rad == 0.03
     still, three_still = _rmse(val_scene_256, (0.0, 0.0), gated)
     still_net, _ = _rmse(val_scene_256, (0.0, 0.0), ungated)
     assert still <= 1.05 * three_still < still_net, (still, three_still, still_net)
