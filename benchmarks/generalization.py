@@ -326,7 +326,9 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         f"- **Model**: `{weights.relative_to(REPO) if weights.is_relative_to(REPO) else weights}` "
         f"(the shipped one unless named), precision **{predictor.precision}** (Predictor's automatic choice: bf16 "
         f"on CPUs with native bf16), still gate {predictor.still_gate_rad:g} rad per pixel and {predictor.still_burst_rad:g} "
-        "rad per burst (from the model's JSON, chosen on val; 0: none).",
+        "rad per burst (from the model's JSON, chosen on val; 0: none); MC mode's phase: "
+        f"{'the deterministic pass' if predictor.mc_phase == 'deterministic' else 'the mean of the passes'} "
+        "(`mc_phase`, from the model's JSON).",
         f"- **Split**: every number below is from the **test** split ({describe('test')}), rendered on the fly "
         "from fixed seeds; nothing here chose anything. Families: `twin/families.py`; splits: `twin/splits.py`.",
         f"- **What the model saw**: {shipped_saw(args.model)}. So every test gear and seed is unseen"

@@ -37,12 +37,14 @@ from gearscan.inference.uncertainty import (
     SigmaCalibration,
     deterministic_moments,
     mc_moments,
+    moments_about,
     to_phase_result,
 )
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_MODEL = WEIGHTS_DIR / "default.safetensors"
 PRECISIONS = ("auto", "fp32", "bf16")
+MC_PHASES = ("mean", "deterministic")
 CALIBRATION_MODES = ("deterministic", "mc")
 CPUINFO = Path("/proc/cpuinfo")
 # MC passes per batched forward: as many as fit in this many pixels, at least 1. Measured with the
@@ -200,6 +202,11 @@ class Predictor:
         gear the network invents corrections in patches and at edges, but most of the interior stays
         within the noise of three-step PS; on a moving one the interior moves too. Chosen per model on
         the val split and stored in its JSON (``still_burst_gate``); None: the model's.
+    mc_phase : the phase Monte Carlo mode reports: ``"deterministic"``, the deterministic pass's, with the passes'
+        spread about it as the model variance (:func:`~gearscan.inference.uncertainty.moments_about`); ``"mean"``,
+        the mean M, D of the passes (the paper's). Chosen per model on val and stored in its JSON (``mc_phase``;
+        ``benchmarks/mc_phase_rule.md``); None: the model's (no entry: ``"mean"``). The model's MC sigma map is
+        fitted for its own choice: v6's for the deterministic phase, so with ``"mean"`` its sigma is not calibrated.
     still_burst_motion : and only when the frames themselves show less motion than this:
         :func:`frame_motion_share` below it (``inf``: no check). Where only part of the image moves
         (a face view: the teeth's outlines sweep, the flat face does not) the interior median stays at
@@ -228,6 +235,7 @@ class Predictor:
         orientation: str = "auto",
         still_burst_rad: float | None = None,
         still_burst_motion: float | None = None,
+        mc_phase: str | None = None,
     ) -> None:
         if orientation not in ORIENTATIONS:
             raise ValueError(f"orientation: expected one of {', '.join(ORIENTATIONS)}, got {orientation!r}")
@@ -246,6 +254,7 @@ class Predictor:
             raise ValueError(f"mc_chunk: expected >= 1 or None (by image size), got {mc_chunk}")
         self.mc_chunk = None if mc_chunk is None else int(mc_chunk)
         self.meta = meta or {}
+        self.mc_phase = model_mc_phase(self.meta) if mc_phase is None else check_mc_phase(mc_phase, "mc_phase")
         if still_gate_rad is None:
             still_gate_rad = float((self.meta.get("still_gate") or {}).get("rad", 0.0))
         if not 0.0 <= still_gate_rad < math.pi:
@@ -276,6 +285,7 @@ class Predictor:
         orientation: str = "auto",
         still_burst_rad: float | None = None,
         still_burst_motion: float | None = None,
+        mc_phase: str | None = None,
     ) -> Predictor:
         """Load ``path`` (.safetensors + .json); default: the shipped model."""
         path = model_path(path)
@@ -311,6 +321,7 @@ class Predictor:
             orientation=orientation,
             still_burst_rad=still_burst_rad,
             still_burst_motion=still_burst_motion,
+            mc_phase=mc_phase,
         )
 
     def replica(self) -> Predictor:
@@ -356,30 +367,40 @@ class Predictor:
             x = torch.flip(x, dims=[-1])
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
+        # the deterministic pass, once: it decides the burst gate in MC mode and is MC mode's phase
+        det_stats = self._moments(x, 0) if mc == 0 or self.still_burst_rad > 0 or self.mc_phase == "deterministic" \
+            else None
         if mc > 0 and self.still_burst_rad > 0:
             # the burst gate decides on the deterministic phase, as it was chosen on val; a burst it takes
             # needs no Monte Carlo passes (its phase is three-step PS's, its sigma the gate's map)
             det_cal = self.calibration.get("deterministic")
-            det = self._result(x, 0, mirror, det_cal, classical)
+            det = self._result(det_stats, 0, mirror, det_cal, classical)
             gated, taken = still_burst_gate(det, classical, self.still_burst_rad, det_cal, self.still_burst_sigma,
                                             frames=frames, max_motion=self.still_burst_motion)
             if taken:
                 return gated
-        result = self._result(x, mc, mirror, calibration, classical)
+        stats = det_stats
+        if mc > 0:
+            stats = self._moments(x, mc)
+            if self.mc_phase == "deterministic":
+                stats = moments_about(stats, det_stats)
+        result = self._result(stats, mc, mirror, calibration, classical)
         burst_rad = self.still_burst_rad if mc == 0 else 0.0  # with mc > 0 the burst gate has spoken above
         return apply_still_gates(result, classical, pixel_rad=self.still_gate_rad, burst_rad=burst_rad,
                                  calibration=calibration, burst_sigma=self.still_burst_sigma,
                                  frames=frames, max_motion=self.still_burst_motion)[0]
 
-    def _result(self, x: torch.Tensor, mc: int, mirror: bool, calibration: SigmaCalibration | None,
-                classical: np.ndarray | None) -> PhaseResult:
-        """The network's own :class:`PhaseResult` of the prepared input (``mc`` passes; 0: deterministic)."""
+    def _moments(self, x: torch.Tensor, mc: int) -> MomentStats:
+        """The network's moments of the prepared input (``mc`` passes; 0: the deterministic pass)."""
         with self._autocast():
             if mc > 0:
                 chunk = self.mc_chunk or auto_mc_chunk(*x.shape[-2:], mc)
-                stats = mc_moments(self.model, x, mc, chunk)
-            else:
-                stats = deterministic_moments(self.model, x)
+                return mc_moments(self.model, x, mc, chunk)
+            return deterministic_moments(self.model, x)
+
+    def _result(self, stats: MomentStats, mc: int, mirror: bool, calibration: SigmaCalibration | None,
+                classical: np.ndarray | None) -> PhaseResult:
+        """The network's own :class:`PhaseResult` from its moments (``mc`` passes; 0: deterministic)."""
         if mirror:
             stats = MomentStats(*(torch.flip(getattr(stats, f.name), dims=[-1]) for f in dataclasses.fields(stats)))
         mode = f"mc{mc}" if mc > 0 else "deterministic"
@@ -481,6 +502,24 @@ def burst_sigma_map(meta: dict) -> BurstSigma | None:
     if not (math.isfinite(a) and a > 0 and all(math.isfinite(v) and abs(v) <= 3 for v in (b, c))):
         raise ModelFileError(f"still_burst_gate.sigma: expected a > 0 and |b|, |c| <= 3, got {raw!r}")
     return a, b, c
+
+
+def check_mc_phase(value: object, name: str) -> str:
+    """``value`` as an MC phase (:data:`MC_PHASES`), or a ValueError naming ``name``."""
+    if value not in MC_PHASES:
+        raise ValueError(f"{name}: expected one of {', '.join(MC_PHASES)}, got {value!r}")
+    return str(value)
+
+
+def model_mc_phase(meta: dict) -> str:
+    """The phase a model's JSON chose for Monte Carlo mode (``mc_phase.phase``); no entry: ``"mean"``."""
+    raw = meta.get("mc_phase")
+    if raw is None:
+        return "mean"
+    try:
+        return check_mc_phase(raw.get("phase") if isinstance(raw, dict) else None, "mc_phase.phase")
+    except ValueError as exc:
+        raise ModelFileError(str(exc)) from exc
 
 
 def check_motion_limit(value: float, name: str) -> float:

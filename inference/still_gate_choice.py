@@ -184,6 +184,9 @@ def within_cost(table: dict, key: str, ece_scope: str = "taken") -> bool:
         for k in ("moving", "still"):
             if ece_scope == "family":
                 gated, ungated = cur[k]["ece"], base[k]["ece"]
+            elif "ece_taken" not in cur[k]:
+                raise ValueError(f"gate table, setting {key}: no ECE of the taken bursts (a table scored before "
+                                 "benchmarks/still_gate_taken_ece_rule.md); read it with ece_scope='family'")
             elif cur[k]["ece_taken"] is None:
                 continue  # nothing taken: the gate changed nothing of this kind
             else:

@@ -179,6 +179,17 @@ def deterministic_moments(model: torch.nn.Module, x: torch.Tensor) -> MomentStat
     return MomentStats(out[:, 0], out[:, 1], zero, zero, out[:, 2], out[:, 3])
 
 
+def moments_about(mc: MomentStats, point: MomentStats) -> MomentStats:
+    """``mc``'s moments about ``point``'s M, D instead of about their own mean: the passes' variance plus the squared
+    offset of their mean from the point (their mean square deviation from it); data variance the passes' mean.
+
+    Monte Carlo mode reports the deterministic pass's phase with the passes' spread around it
+    (``benchmarks/mc_phase_rule.md``: on val the mean of 20 passes was no more accurate and varied from run to run).
+    """
+    return MomentStats(point.M, point.D, mc.model_var_M + (mc.M - point.M) ** 2, mc.model_var_D + (mc.D - point.D) ** 2,
+                       mc.data_var_M, mc.data_var_D)
+
+
 DEPARTURE_FLOOR = 0.01  # rad: the departure term's floor (noise keeps a still burst's from zero)
 
 

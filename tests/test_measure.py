@@ -200,7 +200,13 @@ def test_still_bursts_go_to_three_step_and_moving_ones_to_the_network(noisy_rend
     assert r.mode == "three-step" and dec.still_bursts == 1
     np.testing.assert_array_equal(r.phase, classical_result(still).phase)
     assert dec(moving).mode == "deterministic" and dec.still_bursts == 1
-    assert Decoder(workers=1, still_span_deg=0)(still).mode == "deterministic"
+    # without the encoder route the network's path decodes it: there the shipped still-burst gate (0.03 rad; this
+    # burst's interior departure is 0.021 rad) hands it to three-step PS, and with that gate off the network's
+    # own phase stands
+    no_route = Decoder(workers=1, still_span_deg=0)
+    assert no_route(still).mode == "three-step" and no_route.still_bursts == 0
+    no_route.predictor.still_burst_rad = 0.0
+    assert no_route(still).mode == "deterministic"
     with pytest.raises(ValueError, match="model.still_span_deg: expected >= 0"):
         Decoder(still_span_deg=-1)
 

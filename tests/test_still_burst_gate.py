@@ -264,6 +264,11 @@ def test_the_ece_bound_reads_the_bursts_the_gate_takes():
     assert choose.within_cost({"side": {"0": base, "d": {**base, "still": _row(0.044, ece=0.2)}}}, "d")
     with pytest.raises(ValueError, match="ece_scope"):
         choose.within_cost(table, "a", ece_scope="pooled")
+    old = {"side": {"0": base, "e": {k: {"rmse": v["rmse"], "ece": v["ece"], "three_step": v["three_step"]}
+                                     for k, v in calibrates.items()}}}  # a table scored before the taken bound
+    with pytest.raises(ValueError, match="ece_scope='family'"):
+        choose.within_cost(old, "e")
+    assert not choose.within_cost(old, "e", ece_scope="family")
 
 
 def test_scores_give_the_taken_bursts_ece_gated_and_ungated():

@@ -1,0 +1,95 @@
+"""Monte Carlo mode's phase: the deterministic pass's, with the passes' spread about it (benchmarks/mc_phase_rule.md)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import phase_error
+from gearscan.core.rig import default_rig
+from gearscan.inference.model_io import ModelFileError
+from gearscan.inference.predictor import DEFAULT_MODEL, Predictor, model_mc_phase
+from gearscan.inference.uncertainty import MomentStats, moments_about
+from gearscan.twin.render import Optics, TwinRenderer
+
+
+def test_moments_about_a_point_add_the_offset_of_the_mean():
+    """The passes' mean square deviation from the point: their variance plus the squared offset of their mean."""
+    rng = np.random.default_rng(0)
+    passes = torch.from_numpy(rng.normal(0.3, 0.05, (50, 2, 1, 4, 4)))  # 50 passes of M, D
+    mean, var = passes.mean(0), passes.var(0, unbiased=False)
+    mc = MomentStats(mean[0], mean[1], var[0], var[1], torch.full_like(var[0], 0.01), torch.full_like(var[0], 0.02))
+    point = MomentStats(mean[0] + 0.1, mean[1] - 0.2, *(torch.zeros_like(var[0]),) * 4)
+    out = moments_about(mc, point)
+    torch.testing.assert_close(out.M, point.M)
+    torch.testing.assert_close(out.D, point.D)
+    torch.testing.assert_close(out.model_var_M, ((passes[:, 0] - point.M) ** 2).mean(0))
+    torch.testing.assert_close(out.model_var_D, ((passes[:, 1] - point.D) ** 2).mean(0))
+    torch.testing.assert_close(out.data_var_M, mc.data_var_M)  # the passes' data variance stays
+
+
+@pytest.fixture(scope="module")
+def moving_burst():
+    """A 0.6 deg/frame burst of the default rig with a validation gear (z = 25), and its truth."""
+    gear = GearSpec(teeth=25, module=2.0)
+    twin = TwinRenderer(default_rig(128, 128, working_radius=gear.pitch_radius), gear, Optics())
+    frames, truths = twin.render_sequence(np.radians([3.0, 3.6, 4.2]), PatternSet.three_step(40.0), [0, 1, 2], 5)
+    return frames, truths[0]
+
+
+def test_the_shipped_model_reports_the_deterministic_phase_in_mc_mode(moving_burst):
+    """v6's JSON chose the deterministic pass's phase for MC mode on val: an MC decode gives the deterministic phase,
+    the same on every run, with a model sigma from the passes; the paper's MC mean varies between runs."""
+    frames, _ = moving_burst
+    shipped = Predictor.load(DEFAULT_MODEL, orientation="normal")
+    assert shipped.mc_phase == "deterministic"
+    det = shipped.predict(frames)
+    torch.manual_seed(0)
+    a = shipped.predict(frames, 8)
+    torch.manual_seed(1)
+    b = shipped.predict(frames, 8)
+    assert a.mode == "mc8"
+    np.testing.assert_allclose(a.phase, det.phase, atol=1e-6)
+    np.testing.assert_allclose(b.phase, a.phase, atol=1e-6)
+    assert a.sigma_model.max() > 0 and not det.sigma_model.any()
+    # the model variance is the passes' mean square deviation about the deterministic M, D: with the sigma maps off
+    # and the same dropout draws, the mean-phase decode's variance plus its mean's squared offset
+    raw = Predictor.load(DEFAULT_MODEL, orientation="normal", still_burst_rad=0.0)
+    raw.calibration = {}
+    raw_mean = Predictor.load(DEFAULT_MODEL, orientation="normal", still_burst_rad=0.0, mc_phase="mean")
+    raw_mean.calibration = {}
+    torch.manual_seed(3)
+    about = raw.predict(frames, 8)
+    torch.manual_seed(3)
+    spread = raw_mean.predict(frames, 8)
+    k = raw.var_scale  # every variance is scaled by the model's var_scale before propagation
+    np.testing.assert_allclose(about.var_M, spread.var_M + k * (spread.M - about.M) ** 2, rtol=1e-3, atol=1e-7)
+    np.testing.assert_allclose(about.var_D, spread.var_D + k * (spread.D - about.D) ** 2, rtol=1e-3, atol=1e-7)
+    assert np.abs(spread.M - about.M).max() > 1e-3  # the offset is there to be added
+    paper = Predictor.load(DEFAULT_MODEL, orientation="normal", mc_phase="mean")
+    torch.manual_seed(0)
+    m0 = paper.predict(frames, 8)
+    torch.manual_seed(1)
+    m1 = paper.predict(frames, 8)
+    assert np.abs(phase_error(m0.phase, m1.phase)).max() > 1e-3  # two draws, two phases
+    assert np.abs(phase_error(m0.phase, det.phase)).max() > 1e-3
+
+
+def test_the_val_choice_is_recorded_and_bad_entries_are_named(tmp_path):
+    meta = json.loads(DEFAULT_MODEL.with_suffix(".json").read_text())["mc_phase"]
+    assert meta["phase"] == "deterministic" and meta["rule"] == "benchmarks/mc_phase_rule.md"
+    assert "val split" in meta["chosen_on"] and meta["val"]["rule"]["adopt"]
+    # the rule replayed on the recorded val table: pooled moving no worse, and no family above 1.03 x the MC mean
+    table = {k: v for k, v in meta["val"].items() if k != "rule"}
+    assert table["pooled:moving"]["det"] <= table["pooled:moving"]["mc_mean_of_draws"]
+    assert len(table) == 7 and all(r["det"] <= 1.03 * r["mc_mean_of_draws"] for r in table.values())
+    assert model_mc_phase({}) == "mean"  # a model without the entry: the paper's mean
+    with pytest.raises(ModelFileError, match="mc_phase.phase"):
+        model_mc_phase({"mc_phase": {"phase": "median"}})
+    with pytest.raises(ValueError, match="mc_phase"):
+        Predictor.load(DEFAULT_MODEL, mc_phase="median")
