@@ -206,7 +206,8 @@ class Predictor:
         spread about it as the model variance (:func:`~gearscan.inference.uncertainty.moments_about`); ``"mean"``,
         the mean M, D of the passes (the paper's). Chosen per model on val and stored in its JSON (``mc_phase``;
         ``benchmarks/mc_phase_rule.md``); None: the model's (no entry: ``"mean"``). The model's MC sigma map is
-        fitted for its own choice: v6's for the deterministic phase, so with ``"mean"`` its sigma is not calibrated.
+        fitted for its own choice: v6's and the option's for the deterministic phase, so with ``"mean"`` their sigma is
+        not calibrated.
     still_burst_motion : and only when the frames themselves show less motion than this:
         :func:`frame_motion_share` below it (``inf``: no check). Where only part of the image moves
         (a face view: the teeth's outlines sweep, the flat face does not) the interior median stays at
