@@ -183,7 +183,7 @@ def val_samples(folders: Sequence[str], items: int, seed: int, needs_angles: boo
 def calibrate_model(
     model: str | Path | None, val: str | Path | Sequence[str | Path], *, items: int = 64, mc: int = 20,
     seed: int = 0, output: str | Path | None = None, progress: Callable[[str], None] | None = None,
-    orientation: str = "normal",
+    orientation: str = "normal", modes: Sequence[str] = ("deterministic", "mc"),
 ) -> dict:
     """Fit and store the sigma calibration of ``model`` (default: the shipped one) on ``val``.
 
@@ -192,8 +192,12 @@ def calibrate_model(
     report into the model's JSON (or into ``output``'s JSON, copying the weights there); returns
     that report. ``orientation``: the Predictor's fringe orientation on the val bursts; every twin
     rig's is ``"normal"``, as a user sets it for the rig (``"auto"``'s per-burst vote misreads some
-    fast bursts, and their mirrored decode would enter the fit).
+    fast bursts, and their mirrored decode would enter the fit). ``modes``: which maps to refit; the JSON keeps
+    the others and their reports (e.g. ``("mc",)`` after MC mode's phase changed: ``scripts/choose_mc_phase.py``).
     """
+    unknown = set(modes) - {"deterministic", "mc"}
+    if not modes or unknown:
+        raise ValueError(f"modes: expected some of ('deterministic', 'mc'), got {tuple(modes)}")
     path = model_path(model)
     if items < 2:
         raise ValueError(f"items: expected >= 2 validation bursts, got {items}")
@@ -203,12 +207,19 @@ def calibrate_model(
     predictor = Predictor.load(path, orientation=orientation)
     predictor.calibration = {}  # fit on the uncalibrated sigma (var_scale stays applied)
     sets = val_samples(folders, items, seed, predictor.needs_angles)
-    modes = [("deterministic", 0)] + ([("mc", mc)] if mc > 0 and predictor.has_dropout else [])
-    calibration = {}
+    fitting = ([("deterministic", 0)] if "deterministic" in modes else []) + (
+        [("mc", mc)] if "mc" in modes and mc > 0 and predictor.has_dropout else [])
+    if not fitting:
+        raise ValueError(f"modes {tuple(modes)}: nothing to fit (MC needs mc > 0 and a model with Concrete Dropout)")
+    meta = read_config(path)
+    calibration = {k: SigmaCalibration.from_json(v, f"sigma_calibration.{k}")
+                   for k, v in (meta.get("sigma_calibration") or {}).items() if k not in modes}
     report = {"data": folders, "items": {"moving": sum(len(p) for _, _, p, s in sets if not s),
                                          "still": sum(len(p) for _, _, p, s in sets if s)}, "seed": seed,
               "orientation": orientation}
-    for name, passes in modes:
+    kept = {k: v for k, v in (meta.get("uncertainty_calibration") or {}).items() if k in calibration}
+    report.update(kept)
+    for name, passes in fitting:
         parts = []
         for k, ds, pick, still in sets:
             def tick(n: int, total: int, name: str = name, k: int = k, still: bool = still) -> None:
@@ -219,7 +230,6 @@ def calibrate_model(
         cal, rep = fit_mode(PixelErrors.concat(parts), folders)
         calibration[name] = cal
         report[name] = {"passes": passes, "map": cal.to_json(), **rep}
-    meta = read_config(path)
     meta["sigma_calibration"] = {k: v.to_json() for k, v in calibration.items()}
     meta["uncertainty_calibration"] = report
     target = path

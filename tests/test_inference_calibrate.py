@@ -123,3 +123,24 @@ def test_the_sigma_map_is_fitted_without_the_gated_bursts():
     mixed, report = fit_mode(PixelErrors.concat([base, gated]), ["val"])
     np.testing.assert_allclose(mixed(sigma, dep), alone(sigma, dep), rtol=1e-6)
     assert report["all"]["gated_pixels"] == g
+
+
+def test_a_refit_of_the_mc_map_alone_keeps_the_deterministic_one(val_set, model_path, tmp_path):
+    """``modes=("mc",)`` (after MC mode's phase changed, scripts/choose_mc_phase.py): the MC map is refitted for the
+    deterministic phase the JSON now names; the deterministic map and its report stay as they were."""
+    out = tmp_path / "cal" / "net.safetensors"
+    calibrate_model(model_path, val_set, items=8, mc=3, output=out)
+    meta = json.loads(out.with_suffix(".json").read_text())
+    meta["mc_phase"] = {"phase": "deterministic"}
+    out.with_suffix(".json").write_text(json.dumps(meta))
+    torch.manual_seed(0)
+    report = calibrate_model(out, val_set, items=8, mc=3, modes=("mc",))
+    again = json.loads(out.with_suffix(".json").read_text())
+    assert again["sigma_calibration"]["deterministic"] == meta["sigma_calibration"]["deterministic"]
+    assert again["uncertainty_calibration"]["deterministic"] == meta["uncertainty_calibration"]["deterministic"]
+    assert again["sigma_calibration"]["mc"] == report["mc"]["map"] != meta["sigma_calibration"]["mc"]
+    assert again["mc_phase"] == {"phase": "deterministic"}
+    with pytest.raises(ValueError, match="modes"):
+        calibrate_model(out, val_set, items=8, mc=3, modes=("median",))
+    with pytest.raises(ValueError, match="nothing to fit"):
+        calibrate_model(out, val_set, items=8, mc=0, modes=("mc",))

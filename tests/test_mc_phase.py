@@ -105,3 +105,20 @@ def test_the_val_choice_is_recorded_and_bad_entries_are_named(model, rows, movin
         model_mc_phase({"mc_phase": {"phase": "median"}})
     with pytest.raises(ValueError, match="mc_phase"):
         Predictor.load(model, mc_phase="median")
+
+
+def test_the_rule_adopts_the_deterministic_phase_only_when_no_worse():
+    """benchmarks/mc_phase_rule.md on scripted tables: pooled moving no worse than the MC draws' mean, and no
+    family's moving or still RMSE above 1.03 x it."""
+    from gearscan.inference.mc_phase_choice import verdict
+
+    def row(det: float, mc: float) -> dict:
+        return {"det": det, "mc0": mc, "mc1": mc, "mc_mean_of_draws": mc}
+
+    good = {"a:moving": row(0.10, 0.11), "a:still": row(0.05, 0.05), "pooled:moving": row(0.10, 0.11)}
+    assert verdict(good)["adopt"]
+    worse_pooled = {**good, "pooled:moving": row(0.111, 0.11)}
+    assert not verdict(worse_pooled)["adopt"] and verdict(worse_pooled)["2 no family above 1.03x"]
+    one_family_still = {**good, "a:still": row(0.0520, 0.05)}  # 1.04x
+    assert not verdict(one_family_still)["adopt"] and verdict(one_family_still)["1 pooled moving det <= MC"]
+    assert verdict({**good, "a:still": row(0.0514, 0.05)})["adopt"]  # 1.028x: within the bound
