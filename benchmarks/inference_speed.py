@@ -301,8 +301,8 @@ def report(info: dict) -> str:
         "once above 800x800. The frames stand still, so the network is timed with the still-burst gate off "
         "(`still_burst_rad=0`): the shipped gate would decode them by three-step PS and skip the MC passes "
         "(its own path below). Since session 38 MC mode also runs the deterministic pass, whose phase it reports "
-        "(`mc_phase`, benchmarks/mc_phase_rule.md): one pass more, about 5 % of T = 20 (with the gate on it runs "
-        "anyway).",
+        "(`mc_phase`, benchmarks/mc_phase_rule.md): one pass more, about the deterministic column's "
+        "time (with the gate on it runs anyway).",
         "",
         f"MC before = whole network per pass, chunks of 2, float64 moments (the previous path, "
         f"`mc_moments(..., reuse_prefix=False)`); after = classical M/D, padding and stem once per burst, "

@@ -30,9 +30,8 @@ def mc_phase_table(model: str | None, families: dict[str, Sequence[str]], *, see
                    progress: Callable[[str], None] | None = None) -> dict[str, dict]:
     """``table["family:kind"]`` = RMSE of the deterministic pass (``det``), of each MC draw (``mc0``, ``mc1``) and
     the draws' mean (``mc_mean_of_draws``); ``"pooled:moving"`` over every family; ``"rule"``: the verdict."""
-    det_pred = Predictor.load(model, orientation="normal", still_burst_rad=0.0, still_gate_rad=0.0)
-    mean_pred = Predictor.load(model, orientation="normal", still_burst_rad=0.0, still_gate_rad=0.0,
-                               mc_phase="mean")
+    # one predictor: mc = 0 is the deterministic pass whatever mc_phase says; mc > 0 the mean of the passes
+    pred = Predictor.load(model, orientation="normal", still_burst_rad=0.0, still_gate_rad=0.0, mc_phase="mean")
     table: dict[str, dict] = {}
     sums: dict[str, dict[str, list[float]]] = {}
     for fam, folders in families.items():
@@ -46,10 +45,10 @@ def mc_phase_table(model: str | None, families: dict[str, Sequence[str]], *, see
                     item = ds[int(i)]
                     x = torch.from_numpy(np.asarray(item["input"], np.float32))[None]
                     mask = np.asarray(item["mask"], bool)
-                    results = {"det": det_pred.predict_tensor(x)}
+                    results = {"det": pred.predict_tensor(x)}
                     for s in DRAWS:
                         torch.manual_seed(s)
-                        results[f"mc{s}"] = mean_pred.predict_tensor(x, passes)
+                        results[f"mc{s}"] = pred.predict_tensor(x, passes)
                     for k, r in results.items():
                         e = phase_error(r.phase, item["phase"])[mask].astype(np.float64)
                         acc[k][0] += float((e**2).sum())
