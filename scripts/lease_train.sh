@@ -61,21 +61,7 @@ export PYTHONPATH="$site${PYTHONPATH:+:$PYTHONPATH}"
 if [ -n "${LEASE_LINK:-}" ] || ! "$PY" -P -c "import gearscan.twin.render" 2>/dev/null; then
   # gearscan from this tree, laid out by pyproject's package map as links (no build on the machine)
   say "gearscan laid out as links in $site"
-  "$PY" -P - "$site" <<'EOF' || finish 2
-import sys
-import tomllib
-from pathlib import Path
-
-root, pkg = Path.cwd(), Path(sys.argv[1]) / "gearscan"
-pkg.mkdir(parents=True, exist_ok=True)
-for entry in (root / "gearscan").iterdir():  # the top package's own modules and subpackages
-    if entry.name != "__pycache__" and not (pkg / entry.name).exists():
-        (pkg / entry.name).symlink_to(entry)
-dirs = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
-for name, folder in dirs.items():
-    if name != "gearscan" and not (pkg / name.split(".", 1)[1]).exists():
-        (pkg / name.split(".", 1)[1]).symlink_to(root / folder)
-EOF
+  "$PY" -P scripts/lease_layout.py "$site" || finish 2
 fi
 # preflight: the renderer casts, the device is there, the weights to continue load
 "$PY" -P - "$DEVICE" <<'EOF' || { say "preflight failed: nothing trained"; finish 3; }
