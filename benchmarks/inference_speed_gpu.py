@@ -4,8 +4,8 @@ What a shop floor with a GPU would get from ``Predictor.load(device="cuda")`` th
 frames in on the host, PhaseResult out on the host, so every time includes the copies and ends synchronised), on
 the synthetic fringe frames of ``inference_speed.py``:
 
-- "network": the still-burst gate off, deterministic and MC T passes (chunk: the Predictor's automatic choice and
-  all T passes in one batch);
+- "network": the still-burst gate off, deterministic and MC T passes (chunks: the CPU's choice, all T passes in one
+  batch, and the Predictor's automatic choice on this device);
 - "shipped path": the model's own settings (its still-burst gate on: these still frames are a burst it takes, so
   the time includes the deterministic pass the gate reads and the three-step decode it reports);
 - bf16 (``auto`` on CUDA) beside fp32, and the peak GPU memory of the MC run.
@@ -52,7 +52,7 @@ def measure(device: str, sizes: list[str], passes: int, repeats: int, model: str
             base = {"size": f"{h}x{w}", "precision": net.precision}
             rows.append(base | {"path": "network, deterministic",
                                 "ms": median_ms(time_call(partial(net.predict, frames), repeats, warmup=2))})
-            for chunk in dict.fromkeys((auto_mc_chunk(h, w, passes), passes)):
+            for chunk in dict.fromkeys((auto_mc_chunk(h, w, passes), passes, auto_mc_chunk(h, w, passes, device))):
                 net.mc_chunk = chunk
                 if device == "cuda":
                     torch.cuda.reset_peak_memory_stats()

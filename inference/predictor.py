@@ -62,9 +62,22 @@ BURST_GATE_MIN_PIXELS = 256
 NO_MOTION_CHECK = math.inf
 
 
-def auto_mc_chunk(height: int, width: int, passes: int) -> int:
-    """Passes per batched forward for MC sampling of an ``height x width`` image (see ``MC_CHUNK_PIXELS``)."""
-    return max(1, min(passes, MC_CHUNK_PIXELS // max(1, height * width)))
+# On a GPU every pass in one batch where memory allows: on an H100 (benchmarks/inference_speed_gpu.md) T = 20 in one
+# batch took 54 ms at 512x512 against 105 ms in the CPU's chunks of 2, and 291 ms at 1232x1360 against 364 ms in
+# chunks of 1. Its peak memory was at most 274 bytes per pixel and pass (fp32; bf16 138): a chunk may take this
+# many bytes per pixel and pass out of half the memory free.
+CUDA_MC_BYTES_PER_PIXEL_PASS = 300
+
+
+def auto_mc_chunk(height: int, width: int, passes: int, device: str | torch.device = "cpu") -> int:
+    """Passes per batched forward for MC sampling of an ``height x width`` image: on a CPU by cache
+    (``MC_CHUNK_PIXELS``), on CUDA by the memory free (``CUDA_MC_BYTES_PER_PIXEL_PASS``)."""
+    pixels = max(1, height * width)
+    device = torch.device(device)
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return max(1, min(passes, free // 2 // (CUDA_MC_BYTES_PER_PIXEL_PASS * pixels)))
+    return max(1, min(passes, MC_CHUNK_PIXELS // pixels))
 
 
 def cpu_has_fast_bf16() -> bool:
@@ -395,7 +408,7 @@ class Predictor:
         """The network's moments of the prepared input (``mc`` passes; 0: the deterministic pass)."""
         with self._autocast():
             if mc > 0:
-                chunk = self.mc_chunk or auto_mc_chunk(*x.shape[-2:], mc)
+                chunk = self.mc_chunk or auto_mc_chunk(*x.shape[-2:], mc, self.device)
                 return mc_moments(self.model, x, mc, chunk)
             return deterministic_moments(self.model, x)
 

@@ -311,6 +311,20 @@ def test_predictor_folds_batchnorm_exactly_and_leaves_the_callers_model_alone():
         torch.testing.assert_close(b.model_var_M, a.model_var_M, atol=1e-5, rtol=1e-4)
 
 
+def test_mc_chunk_on_cuda_by_free_memory(monkeypatch):
+    """On a GPU all passes go in one batch where half the free memory holds them (measured faster on an H100,
+    benchmarks/inference_speed_gpu.md), fewer where it does not, never none."""
+    gib = 2**30
+    free = {"bytes": 70 * gib}
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (free["bytes"], 80 * gib))
+    assert auto_mc_chunk(512, 512, 20, "cuda") == 20 and auto_mc_chunk(1232, 1360, 20, "cuda") == 20
+    free["bytes"] = 8 * gib  # 4 GiB for chunks of 1232x1360 x 300 bytes (503 MB a pass): 8 passes
+    assert auto_mc_chunk(1232, 1360, 20, "cuda") == 8
+    free["bytes"] = gib // 4
+    assert auto_mc_chunk(1232, 1360, 20, "cuda") == 1
+    assert auto_mc_chunk(512, 512, 20, "cpu") == 2  # the CPU keeps its cache-bound chunks
+
+
 def test_mc_chunk_by_image_size(saved):
     """Passes per batched forward: 2 at 512x512, 1 from 800x800 up (measured), all of them for
     small images; an explicit chunk is kept, a bad one refused."""
