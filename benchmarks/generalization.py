@@ -54,7 +54,7 @@ from gearscan.generalization import (
 from gearscan.inference.predictor import THREE_STEP_NOISE, Predictor, model_path
 from gearscan.inference.uncertainty import reliability
 from gearscan.twin.families import FAMILIES, family_scenes
-from gearscan.twin.splits import SHIPPED, SHIPPED_DEFAULT_RIG, SHIPPED_V5, describe
+from gearscan.twin.splits import SHIPPED, SHIPPED_DEFAULT_RIG, SHIPPED_V5, SHIPPED_V6, describe
 
 HERE = Path(__file__).parent
 REPO = HERE.parent
@@ -70,6 +70,8 @@ def shipped_saw(model: str | None) -> str:
         return SHIPPED.summary()
     if path.name == "v5.safetensors":
         return SHIPPED_V5.summary()
+    if path.name == "v6.safetensors":
+        return SHIPPED_V6.summary()
     if path.name == "default_rig.safetensors":
         return SHIPPED_DEFAULT_RIG.summary()
     return f"{path} (not a shipped model: its training data is its own record)"

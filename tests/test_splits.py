@@ -16,6 +16,7 @@ from gearscan.twin.splits import (
     SHIPPED_DEFAULT_RIG,
     SHIPPED_V5,
     SHIPPED_V6,
+    SHIPPED_V9,
     SPLITS,
     TEETH_RANGE,
     SplitError,
@@ -42,7 +43,8 @@ def test_splits_are_disjoint_by_gear_rig_and_seed() -> None:
         split_of_seed(seed)  # exactly one owner, or it raises
 
 
-@pytest.mark.parametrize("shipped", [SHIPPED_V5, SHIPPED_V6, SHIPPED_DEFAULT_RIG], ids=["v5", "v6", "default-rig"])
+@pytest.mark.parametrize("shipped", [SHIPPED_V5, SHIPPED_V6, SHIPPED_V9, SHIPPED_DEFAULT_RIG],
+                         ids=["v5", "v6", "v9", "default-rig"])
 def test_shipped_models_saw_only_train_and_val(shipped) -> None:
     assert shipped.train_teeth <= SPLITS["train"].teeth
     assert shipped.val_teeth <= SPLITS["val"].teeth
@@ -52,11 +54,22 @@ def test_shipped_models_saw_only_train_and_val(shipped) -> None:
 
 
 def test_v6_record_matches_the_plan_that_rendered_it() -> None:
-    meta = read_config(DEFAULT_MODEL)["training"]
-    assert SHIPPED is SHIPPED_V6 and meta["version"] == "v6"
+    meta = read_config(DEFAULT_MODEL.with_name("v6.safetensors"))["training"]
+    assert meta["version"] == "v6"
     assert {t for _, teeth, *_ in meta["train_sets"] for t in teeth} == SHIPPED_V6.train_teeth
     assert {t for _, teeth, *_ in meta["val_sets"] for t in teeth} == SHIPPED_V6.val_teeth
     assert {s[-1] for s in meta["train_sets"]} == set(SHIPPED_V6.train_dataset_seeds)
+
+
+def test_v9_record_matches_the_lease_run_that_made_it() -> None:
+    """The shipped v9's record (what its reports say it saw) is the lease run's own: v6's sets plus the dense ones."""
+    meta = read_config(DEFAULT_MODEL)["training"]
+    assert SHIPPED is SHIPPED_V9 and meta["version"] == "v9" and meta["continues"].startswith("v6")
+    assert {t for _, teeth, *_ in meta["train_sets"] for t in teeth} == SHIPPED_V9.train_teeth
+    assert {s[5] for s in meta["train_sets"]} == set(SHIPPED_V9.train_dataset_seeds)
+    assert {t for _, teeth, *_ in meta["val_sets"] for t in teeth} <= SHIPPED_V9.val_teeth
+    assert {s[5] for s in meta["val_sets"]} <= set(SHIPPED_V9.val_dataset_seeds)
+    assert set(SHIPPED_V6.train_dataset_seeds) < set(SHIPPED_V9.train_dataset_seeds)
 
 
 def test_default_rig_record_matches_the_run_that_made_it() -> None:

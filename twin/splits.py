@@ -32,7 +32,7 @@ stated there: its validation used the default rig (gear 25), which the test spli
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 SplitName = Literal["train", "val", "test"]
@@ -253,7 +253,27 @@ SHIPPED_V6 = ShippedData(
     val_rigs="val_radial: radial-random rigs, seed 10002; val_views: any-view rigs, seed 10001",
     val_used_for="early stopping, v6 over the w = 32 run and v5, and the sigma calibration (its form too)",
 )
-SHIPPED = SHIPPED_V6  # what the shipped default model (inference/weights/default.*) saw
+SHIPPED_V6 = replace(SHIPPED_V6, model="v6 (inference/weights/v6.*; the default from session 23 to 38)")
+# v9: v6 continued on a lent GPU (session 39) on v6's data plus one repeat of the dense radial set (radial-random
+# rigs, camera period 5-40 px, teeth of v6's train split, seeds 3101-3104); early stopping also read the dense val
+# set (seed 10003), and the choice over v6 the default rig's val gears (seeds 10005-10008)
+_V9_DENSE = (11, 15, 19, 23, 28, 33, 40, 56, 72, 12, 16, 20, 24, 29, 34, 44, 60, 76, 13, 17, 21, 26, 30, 36, 48, 64,
+             14, 18, 22, 27, 31, 38, 52, 68)
+SHIPPED_V9 = ShippedData(
+    model="v9 (inference/weights/default.*, the default since session 39: v6 continued on a GPU)",
+    train_teeth=frozenset({*SHIPPED_V6.train_teeth, *_V9_DENSE}),
+    train_dataset_seeds=(*SHIPPED_V6.train_dataset_seeds, *range(3101, 3105)),
+    train_rig=SHIPPED_V6.train_rig + ", then also dense radial-random rigs (camera period 5-40 px, teeth 11-76)",
+    train_module_mm=(0.5, 5.0),
+    train_camera_period_px=(5.0, 60.0),
+    val_teeth=SHIPPED_V6.val_teeth,
+    val_dataset_seeds=(*SHIPPED_V6.val_dataset_seeds, 10003, *range(10005, 10009)),
+    val_rigs=SHIPPED_V6.val_rigs + "; val_radial_dense: radial-random rigs with camera period 5-40 px, seed 10003 "
+             "(early stopping); the default rig with teeth 25, 32, 46, 62, seeds 10005-10008 (the choice over v6)",
+    val_used_for="v6's uses, then early stopping of the continuation, v9 over v6 (benchmarks/v9_choice_rule.md), "
+                 "its sigma map, still-burst gate and MC phase",
+)
+SHIPPED = SHIPPED_V9  # what the shipped default model (inference/weights/default.*) saw
 _DEFAULT_RIG_TRAIN = (11, 15, 20, 24, 28, 33, 36, 40, 44, 48, 56, 60, 64, 68, 72, 76)  # its first two runs, seeds 3201-
 # its third and fourth runs (session 28: the rate annealed, twice), seeds 3301-
 _DEFAULT_RIG_TRAIN_3 = (11, 13, 15, 17, 19, 21, 24, 26, 28, 30, 31, 34, 36, 38, 40, 44, 48, 52, 56, 60, 64, 68, 72, 76)
