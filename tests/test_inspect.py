@@ -90,7 +90,7 @@ def test_a_chip_check_too_noisy_to_tell_flags_nothing_and_says_so():
     """Tip cells that stray from the median tooth as far as the chip threshold: no tooth is flagged
     (a moving revolution with the network flagged four intact teeth and missed the chipped one)."""
     from gearscan.core.gear import GearSpec
-    from gearscan.recon.inspect import inspect_gear
+    from gearscan.recon.inspect import CHIP_NOISE_MARGIN, inspect_gear
 
     gear = GearSpec(teeth=20, module=2.0)
     import open3d as o3d
@@ -104,7 +104,7 @@ def test_a_chip_check_too_noisy_to_tell_flags_nothing_and_says_so():
     noisy[:, :2] += normals * rng.normal(0.0, 0.06, (len(pts), 1))  # 60 um of radial noise
     insp = inspect_gear(noisy, np.full(len(pts), 0.06), gear)
     assert not insp.chip_check_conclusive and insp.chipped_teeth == ()
-    assert insp.chip_noise_um > 50 / 1.5
+    assert insp.chip_noise_um > 50 / CHIP_NOISE_MARGIN
 
 
 def test_profile_slope_is_read_on_every_flank(inspected):
