@@ -28,7 +28,17 @@ VAL_STRETCHES = [  # rule table: used nowhere else
     {"seed": 31, "start_deg": 113.0, "pitch_errors": ["9:30"], "chips": ["4:0.3"]},
     {"seed": 47, "start_deg": 277.0, "pitch_errors": ["17:30"], "chips": ["13:0.3"]},
 ]
-MODELS = {"v6 (shipped)": None, "default-rig option": ROOT / "inference" / "weights" / "default_rig.safetensors"}
+
+
+def shipped_label() -> str:
+    """The shipped model's cell label, by its version (``v6 (shipped)`` in the runs before session 39)."""
+    from gearscan.inference.model_io import read_config
+    from gearscan.inference.predictor import DEFAULT_MODEL
+
+    return f"{read_config(DEFAULT_MODEL).get('training', {}).get('version', 'default')} (shipped)"
+
+
+MODELS = {shipped_label(): None, "default-rig option": ROOT / "inference" / "weights" / "default_rig.safetensors"}
 CANDIDATES: tuple[int | None, ...] = (None, 0, 1, 2)  # None: no test
 INCUMBENT, COVERAGE_SLACK, MARGIN = 2, 0.005, 0.03
 
