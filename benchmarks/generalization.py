@@ -53,6 +53,7 @@ from gearscan.generalization import (
 )
 from gearscan.inference.predictor import THREE_STEP_NOISE, Predictor, model_path
 from gearscan.inference.uncertainty import reliability
+from gearscan.recon.measure import NETWORK_SUPPORT_PX
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import SHIPPED, SHIPPED_DEFAULT_RIG, SHIPPED_V5, SHIPPED_V6, describe
 
@@ -348,7 +349,8 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "- RMSE over the truth's valid pixels (analytic wrapped phase at the first frame's pose); gain = "
         "three-step RMSE / network RMSE (< 1: the network is worse); ECE: 30 bins, eps 0.03 rad "
         "(`inference.uncertainty.reliability`); coverage: share of the truth mask passing the reconstructor's "
-        "keep test (modulation >= 0.05, sigma <= 0.3 rad; a network's pixel also needs fringes in its frames within 2 px); RMSE of the kept pixels: over the truth-mask pixels "
+        f"keep test (modulation >= 0.05, sigma <= 0.3 rad; a network's pixel also needs fringes in its frames within "
+        f"{NETWORK_SUPPORT_PX} px, `recon.measure.NETWORK_SUPPORT_PX`); RMSE of the kept pixels: over the truth-mask pixels "
         "that each method's own keep test passes (what reaches the cloud; three-step PS's sigma is its noise "
         "propagation, blind to motion).",
         "",

@@ -36,6 +36,7 @@ from gearscan.evaluate import (
 )
 from gearscan.generalization import vote_mirrored
 from gearscan.inference.predictor import Predictor
+from gearscan.recon.measure import NETWORK_SUPPORT_PX
 from gearscan.twin.families import family_scenes
 
 HERE = Path(__file__).parent
@@ -117,7 +118,8 @@ def main() -> None:
         "truth mask that got a point. The timing column is this run's wall time per burst including the decode's "
         "own overheads (speed: `inference_speed*.md`).",
         *(["- Since session 32 the reconstructor keeps a network's pixel only where the burst's own frames show fringes on "
-        "every pixel within 2 px (`recon.measure.keep_candidates`, chosen on val: `benchmarks/network_support_rule.md`; "
+        f"every pixel within {NETWORK_SUPPORT_PX} px (`recon.measure.keep_candidates`, chosen on val for the shipped model: "
+        "`benchmarks/network_support_rule.md`, 2 px for v6; "
         "the problem was first seen on these test bursts, so they are no clean held-out measure of the guard). The "
         "same run without it (commit 8482663, AMX host; history, not this run): per-burst cloud RMS on still bursts "
         "68 um as shipped / 140 um without the still-burst gate, with it (e00f261) 30 / 58 um. Moving bursts, pooled over the ten "

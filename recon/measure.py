@@ -17,10 +17,11 @@ from gearscan.core.types import Burst, Measurement, PhaseResult
 
 UNWRAP_MODES = ("cad", "envelope", "coarse")
 # a network's pixel needs fringes in its own frames on every pixel within this many px (val choice,
-# benchmarks/network_support_rule.md; scripts/choose_network_support.py -> benchmarks/network_support_val.json)
-NETWORK_SUPPORT_PX = 2
+# benchmarks/network_support_rule.md; scripts/choose_network_support.py -> benchmarks/network_support_val.json):
+# 2 px for v6, 0 px (its own pixel only) for v9, which the outside-mask loss taught not to invent phase there
+NETWORK_SUPPORT_PX = 0
 # ... and where the fused points are then fitted to the raw frames (`inspect`, `replay --fuse`): the frame fit
-# takes the pixels the 2 px test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
+# takes the pixels a wider test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
 # scripts/choose_fused_support.py -> benchmarks/fused_support_val.json)
 FRAME_FIT_NETWORK_SUPPORT_PX = 0
 PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the product's test for the path taken

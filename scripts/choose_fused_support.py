@@ -97,9 +97,16 @@ def main() -> None:
     ap.add_argument("--bursts", type=int, default=60)
     args = ap.parse_args()
 
+    import hashlib
+
+    from gearscan.inference.predictor import DEFAULT_MODEL
     from gearscan.recon.track import REST_SIGMA_SCALE
 
-    done = load_or_start(args.out, rest_sigma_scale=REST_SIGMA_SCALE)
+    shipped_sha = hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]
+    done = load_or_start(args.out, rest_sigma_scale=REST_SIGMA_SCALE, shipped_sha256=shipped_sha)
+    if done.setdefault("shipped_sha256", shipped_sha) != shipped_sha:
+        raise SystemExit(f"{args.out}: its shipped cells were scored with other weights ({done['shipped_sha256']}); "
+                         "write to another --out")
     ran_at = done.setdefault("rest_sigma_scale", 1.0)  # a json without the key was written before the scale existed
     if done["cells"] and ran_at != REST_SIGMA_SCALE:
         raise SystemExit(f"{args.out}: its cells were scored with the unfitted points' sigma scale {ran_at}, this code "

@@ -14,6 +14,7 @@ surface, and coverage of the truth mask, per kind (still, moving). Val only: the
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 from dataclasses import replace
@@ -32,7 +33,7 @@ from gearscan.evaluate import (
     render_cases,
     scenes_from_dataset,
 )
-from gearscan.inference.predictor import Predictor
+from gearscan.inference.predictor import Predictor, model_path
 from gearscan.recon.measure import Reconstructor
 
 VAL = ["data/repro/val_radial", "data/repro/val_views"] + [f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)]
@@ -104,6 +105,7 @@ def main() -> None:
     chosen = choose(table)
     res = {"rule": "benchmarks/network_support_rule.md", "split": "val", "scenes": [s.name for s in scenes],
            "seed": args.seed, "per_motion": args.per_motion, "model": str(args.model or "inference/weights/default.safetensors"),
+           "weights_sha256": hashlib.sha256(model_path(args.model).read_bytes()).hexdigest()[:12],
            "orientation": "normal", "table": table, "chosen_network_support_px": chosen}
     args.out.write_text(json.dumps(res, indent=1))
     for name in [key(px) for px in CANDIDATES] + ["three-step"]:

@@ -191,7 +191,7 @@ def test_twin_render_alternate_order_replays_both_orders(tmp_path):
 
 def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording, tmp_path):
     """`--network-support-px -1` turns the fringe-support test of the network's pixels off; the default keeps
-    the shipped 2 px, and the metrics count the pixels it drops."""
+    the shipped test (0 px for v9: the pixel's own frames), and the metrics count the pixels it drops."""
     from gearscan.recon.measure import NETWORK_SUPPORT_PX
 
     counts = {}
@@ -202,23 +202,26 @@ def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording,
         assert res.exit_code == 0, res.output
         rows = json.loads(metrics.read_text())["bursts"]
         counts[label] = sum(r.get("unwrap_unsupported", 0) for r in rows)
-    assert NETWORK_SUPPORT_PX == 2
+    assert NETWORK_SUPPORT_PX == 0
     assert counts["off"] == 0 and counts["default"] > 0
     res = runner.invoke(app, ["replay", str(twin_recording), "--network-support-px", "-2"])
     assert res.exit_code == 2
 
 
-def test_replay_with_the_frame_fit_gets_the_frame_fit_paths_support_test(twin_recording, tmp_path, replay_spy):
+def test_replay_with_the_frame_fit_gets_the_frame_fit_paths_support_test(twin_recording, tmp_path, replay_spy,
+                                                                        monkeypatch):
     """Without ``--network-support-px``, ``replay --fuse`` (which fits the fused points to the frames) runs the
-    frame-fit path's test (0 px, chosen on val stretches: benchmarks/fused_support_rule.md); per-burst replays and
-    ``--fuse --no-refine`` keep 2 px; the option overrides both."""
-    from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
+    frame-fit path's test (``FRAME_FIT_NETWORK_SUPPORT_PX``, chosen on val stretches: benchmarks/fused_support_rule.md);
+    per-burst replays and ``--fuse --no-refine`` the per-burst one (``NETWORK_SUPPORT_PX``); the option overrides both.
+    The two are set apart here (5 and 7 px) so the route shows whatever the shipped values are."""
+    from gearscan.recon import measure
+
+    monkeypatch.setattr(measure, "NETWORK_SUPPORT_PX", 5)
+    monkeypatch.setattr(measure, "FRAME_FIT_NETWORK_SUPPORT_PX", 7)
     fused = ["--fuse", str(tmp_path / "fused.ply")]
-    for extra, expected in (([], NETWORK_SUPPORT_PX), (fused, FRAME_FIT_NETWORK_SUPPORT_PX),
-                            ([*fused, "--no-refine"], NETWORK_SUPPORT_PX),
+    for extra, expected in (([], 5), (fused, 7), ([*fused, "--no-refine"], 5),
                             ([*fused, "--network-support-px", "3"], 3), ([*fused, "--network-support-px", "-1"], None)):
         with pytest.raises(replay_spy.Called):
             runner.invoke(app, ["replay", str(twin_recording), "--save", str(tmp_path / "x.rrd"), *extra],
                           catch_exceptions=False)
         assert replay_spy.calls[-1]["network_support_px"] == expected, extra
-    assert (NETWORK_SUPPORT_PX, FRAME_FIT_NETWORK_SUPPORT_PX) == (2, 0)

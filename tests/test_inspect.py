@@ -148,13 +148,18 @@ def test_iso1328_tolerances_follow_the_2013_formulas():
         iso1328_tolerances(0.2, 120.0, 6)
 
 
-def test_the_fringe_support_test_reaches_the_replay(tmp_path, replay_spy):
+def test_the_fringe_support_test_reaches_the_replay(tmp_path, replay_spy, monkeypatch):
     """``gearscan inspect --network-support-px -1`` turns the reconstructor's test off, a number sets it, and without
-    the option the replay gets the frame-fit path's default (0 px), or the per-burst one (2 px) with ``--no-refine``."""
+    the option the replay gets the frame-fit path's default, or the per-burst one with ``--no-refine`` (set apart
+    here, 7 and 5 px, so the route shows whatever the shipped values are)."""
     from gearscan.cli import app
     from gearscan.core.rig import default_rig
-    from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
+    from gearscan.recon import measure
     from gearscan.twin.recordings import render_recording
+
+    monkeypatch.setattr(measure, "NETWORK_SUPPORT_PX", 5)
+    monkeypatch.setattr(measure, "FRAME_FIT_NETWORK_SUPPORT_PX", 7)
+    FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX = 7, 5
 
     rec = tmp_path / "rec"
     render_recording(rec, rig=default_rig(64, 64), motion="static", bursts=1)
@@ -167,22 +172,42 @@ def test_the_fringe_support_test_reaches_the_replay(tmp_path, replay_spy):
             CliRunner().invoke(app, ["inspect", str(rec), "-o", str(tmp_path / "out"), *option], catch_exceptions=False)
         got = {k: v for k, v in replay_spy.calls[-1].items() if k == "network_support_px"}
         assert got == expected, option
-    assert (FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX) == (0, 2)
+
+
+def test_the_shipped_support_tests_are_the_val_choices():
+    """Both fringe-support settings are what their rules chose on val for the shipped model (the JSONs the choice
+    scripts write), not numbers typed in."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    from gearscan.inference.predictor import DEFAULT_MODEL
+    from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
+
+    bench = Path(__file__).resolve().parents[1] / "benchmarks"
+    per_burst = json.loads((bench / "network_support_val.json").read_text())
+    fused = json.loads((bench / "fused_support_val.json").read_text())
+    assert per_burst["chosen_network_support_px"] == NETWORK_SUPPORT_PX
+    assert fused["choice"]["chosen_px"] == FRAME_FIT_NETWORK_SUPPORT_PX
+    shipped = hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]  # chosen for these weights
+    assert per_burst["weights_sha256"] == shipped == fused["shipped_sha256"]
 
 
 def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkeypatch):
     """``replay`` and ``run_inspection`` without ``network_support_px`` give the reconstructor the product's test for
-    the path they take: 0 px where fused points are fitted to the frames, 2 px elsewhere; an explicit value wins."""
+    the path they take: the frame-fit path's where fused points are fitted to the frames, the per-burst one elsewhere
+    (set apart here, 7 and 5 px); an explicit value wins."""
     from gearscan.core.rig import default_rig
     from gearscan.inspect import run_inspection
+    from gearscan.recon import measure
     from gearscan.recon.fuse import CloudFuser
-    from gearscan.recon.measure import (
-        FRAME_FIT_NETWORK_SUPPORT_PX,
-        NETWORK_SUPPORT_PX,
-        Reconstructor,
-    )
+    from gearscan.recon.measure import Reconstructor
     from gearscan.replay import replay
     from gearscan.twin.recordings import render_recording
+
+    monkeypatch.setattr(measure, "NETWORK_SUPPORT_PX", 5)
+    monkeypatch.setattr(measure, "FRAME_FIT_NETWORK_SUPPORT_PX", 7)
+    FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX = 7, 5
 
     rec = tmp_path / "rec"
     render_recording(rec, rig=default_rig(64, 64), motion="static", bursts=1)
