@@ -15,12 +15,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import torch
+from inspect_bench import commit as git_commit  # same folder: the commit line of every report
 
 from gearscan.evaluate import (
     GENERALISATION,
@@ -75,11 +75,12 @@ def main() -> None:
         if path.exists():
             name = f"{peer} (peer budget)" if peer == "cd-dcu-net" else peer
             methods[name] = network_method(Predictor.load(path, orientation=orientation, still_burst_rad=0.0))
+    git_commit()  # read before this run writes anything
     t0 = time.perf_counter()
     torch.manual_seed(args.seed)  # MC's dropout masks: the same draws on every run of this commit and host
     scores = score(methods, cases, clouds=True)
     eval_s = time.perf_counter() - t0
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True).stdout.strip()
+    commit = git_commit()  # HEAD, marked when the run's tracked code had uncommitted edits (cached from the start)
     cpu = next((ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
                 if ln.startswith("model name")), "unknown CPU")
     flags = next((set(ln.split(":", 1)[1].split()) for ln in Path("/proc/cpuinfo").read_text().splitlines()

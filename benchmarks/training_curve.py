@@ -169,9 +169,13 @@ def main() -> None:
     runs = [r for r in RUNS if r.weights.is_file()]
     missing = [r for r in RUNS if not r.weights.is_file()]
     previous = json.loads(args.out.with_suffix(".json").read_text()) if args.out.with_suffix(".json").is_file() else {}
-    carried = {row["label"]: row | {"carried_from": row.get("carried_from") or
+    same_protocol = (previous.get("orientation") == args.orientation
+                     and f"--scenes {args.scenes} " in previous.get("command", "") + " ")
+    carried = {row["label"]: row | {"crops": by_label(row["label"]).crops,
+                                    "carried_from": row.get("carried_from") or
                                     {"commit": previous["commit"], "host": previous["host"]}}
-               for row in previous.get("runs", []) if row["label"] in {r.label for r in missing}}
+               for row in previous.get("runs", [])
+               if same_protocol and row["label"] in {r.label for r in missing}}  # never a row of other bursts
     predictors = {r.label: Predictor.load(r.weights, orientation="normal" if args.orientation == "rig" else "auto",
                                            still_burst_rad=0.0)
                   for r in runs}

@@ -80,8 +80,9 @@ orientation = "auto"         # fringe phase along the camera's columns: "normal"
 [recon]
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S
 max_sigma_rad = 0.3          # drop pixels whose total phase uncertainty exceeds this
-network_support_px = 2       # a network's pixel needs fringes in its own frames on every pixel within this
-                             # many px (-1: no such test; the network invents phase at shadow borders)
+network_support_px = 0       # a network's pixel needs fringes in its own frames on every pixel within this
+                             # many px (-1: no such test; chosen on val: 0 for the shipped v9, 2 for v6,
+                             # which invents phase at shadow borders; the default-rig option ran with 2)
 unwrap = "cad"               # fringe orders from the gear's CAD ("cad") or its envelope only ("envelope",
                              # CAD-free: needs fringes wider than the tooth depth, see --check), or
                              # around the last coarse burst ("coarse", CAD-free at any period: needs

@@ -69,14 +69,18 @@ NO_MOTION_CHECK = math.inf
 CUDA_MC_BYTES_PER_PIXEL_PASS = 300
 
 
-def auto_mc_chunk(height: int, width: int, passes: int, device: str | torch.device = "cpu") -> int:
+def auto_mc_chunk(height: int, width: int, passes: int, device: str | torch.device = "cpu", model_width: int = 8) -> int:
     """Passes per batched forward for MC sampling of an ``height x width`` image: on a CPU by cache
-    (``MC_CHUNK_PIXELS``), on CUDA by the memory free (``CUDA_MC_BYTES_PER_PIXEL_PASS``)."""
+    (``MC_CHUNK_PIXELS``), on CUDA by the memory free (``CUDA_MC_BYTES_PER_PIXEL_PASS``, measured at w = 8 and
+    scaled with the network's width). On CUDA the chunk follows the memory free, so seeded MC draws repeat
+    exactly only with a fixed ``Predictor(mc_chunk=...)``."""
     pixels = max(1, height * width)
     device = torch.device(device)
     if device.type == "cuda":
         free, _ = torch.cuda.mem_get_info(device)
-        return max(1, min(passes, free // 2 // (CUDA_MC_BYTES_PER_PIXEL_PASS * pixels)))
+        free += torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)  # torch's cache is free too
+        per_pass = CUDA_MC_BYTES_PER_PIXEL_PASS * pixels * max(1.0, model_width / 8)
+        return max(1, min(passes, int(free // 2 // per_pass)))
     return max(1, min(passes, MC_CHUNK_PIXELS // pixels))
 
 
@@ -219,8 +223,8 @@ class Predictor:
         spread about it as the model variance (:func:`~gearscan.inference.uncertainty.moments_about`); ``"mean"``,
         the mean M, D of the passes (the paper's). Chosen per model on val and stored in its JSON (``mc_phase``;
         ``benchmarks/mc_phase_rule.md``); None: the model's (no entry: ``"mean"``). The model's MC sigma map is
-        fitted for its own choice: v6's and the option's for the deterministic phase, so with ``"mean"`` their sigma is
-        not calibrated.
+        fitted for its own choice: v6's and the option's for the deterministic phase, the shipped v9's for the mean;
+        with the other phase a model's MC sigma is not calibrated.
     still_burst_motion : and only when the frames themselves show less motion than this:
         :func:`frame_motion_share` below it (``inf``: no check). Where only part of the image moves
         (a face view: the teeth's outlines sweep, the flat face does not) the interior median stays at
@@ -408,7 +412,7 @@ class Predictor:
         """The network's moments of the prepared input (``mc`` passes; 0: the deterministic pass)."""
         with self._autocast():
             if mc > 0:
-                chunk = self.mc_chunk or auto_mc_chunk(*x.shape[-2:], mc, self.device)
+                chunk = self.mc_chunk or auto_mc_chunk(*x.shape[-2:], mc, self.device, self.model.config.width)
                 return mc_moments(self.model, x, mc, chunk)
             return deterministic_moments(self.model, x)
 

@@ -68,12 +68,21 @@ def main() -> None:
     ap.add_argument("--bursts", type=int, default=60)
     args = ap.parse_args()
 
-    done = load_or_start(args.out)
+    import hashlib
+
+    from gearscan.inference.predictor import DEFAULT_MODEL
+
+    shipped_sha = hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]
+    done = load_or_start(args.out, shipped_sha256=shipped_sha)
+    if done["cells"] and done.get("shipped_sha256") != shipped_sha:
+        raise SystemExit(f"{args.out}: its shipped model's cells were scored with other weights "
+                         f"({done.get('shipped_sha256', 'not recorded')}, now {shipped_sha}); write to another --out")
     cells = done["cells"]
     for model, decoder, seed, order, rec in val_cells(args.recordings, args.bursts):
         if any((c["model"], c["seed"], c["order"]) == (model, seed, order) for c in cells):
             continue
-        keep = args.recordings / f"rest_{'v6' if model.startswith('v6') else 'default_rig'}_{seed}_{order}.npz"
+        short = model.split()[0] if model.endswith("(shipped)") else "default_rig"  # v6 / v9 / the option
+        keep = args.recordings / f"rest_{short}_{seed}_{order}.npz"
         cells.append({"model": model, "seed": seed, "order": order, "arrays": str(keep.resolve()),
                       **rest_z(rec, decoder, keep)})
         print({k: cells[-1][k] for k in ("model", "seed", "order", "rest", "rest_rms_um", "median_z")}, flush=True)

@@ -98,8 +98,9 @@ def main() -> None:
     ap.add_argument("--val-items", type=int, default=48)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--precision", default="fp32", choices=["auto", "fp32", "bf16"])
-    ap.add_argument("--init", type=Path, default=DEFAULT_MODEL,
-                    help="the weights fine-tuned (default: the shipped default, v6; the option itself to continue it)")
+    ap.add_argument("--init", type=Path, default=DEFAULT_MODEL.with_name("v6.safetensors"),
+                    help="the weights fine-tuned (default: v6, which the option was fine-tuned from; the option itself to "
+                         "continue it)")
     args = ap.parse_args()
     if not SPLITS["train"].has_seed(args.seed) or not SPLITS["train"].has_seed(args.seed + args.gears - 1):
         ap.error(f"--seed: expected train seeds for all {args.gears} gears, got {args.seed}")

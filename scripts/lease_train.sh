@@ -8,8 +8,9 @@
 #   bash scripts/lease_carry.sh                                   # here, once (about 2 min)
 #   run(command="bash scripts/lease_train.sh", carry=[".lease"], timeout_s=600)
 #
-# What it trains (each a LEASE_* variable; the defaults are the plan in inference/weights/MODEL_CARD.md):
-# v6 (inference/weights/default.safetensors) continued on v6's data (scale 0.7) plus one repeat of the dense radial
+# What it trains (each a LEASE_* variable; the defaults are the plan in inference/weights/V6_MODEL_CARD.md, "The next
+# GPU lease"; MODEL_CARD.md says what session 39's run of it taught): the shipped default
+# (inference/weights/default.safetensors: v6 until session 39, v9 since) continued on v6's data (scale 0.7) plus one repeat of the dense radial
 # set, with the outside-mask term (--outside-weight 0.05 --val-objective full, benchmarks/outside_loss_val.md),
 # training bursts drawn on the GPU (--bank; inference/burst_bank.py) at batch 128. The sigma map is not fitted
 # there (--no-calibrate): `gearscan calibrate-uncertainty` refits it here on val, as for every shipped model.

@@ -315,14 +315,31 @@ def test_mc_chunk_on_cuda_by_free_memory(monkeypatch):
     """On a GPU all passes go in one batch where half the free memory holds them (measured faster on an H100,
     benchmarks/inference_speed_gpu.md), fewer where it does not, never none."""
     gib = 2**30
-    free = {"bytes": 70 * gib}
+    free = {"bytes": 70 * gib, "cached": 0}
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (free["bytes"], 80 * gib))
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda device=None: free["cached"] + gib)
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda device=None: gib)
     assert auto_mc_chunk(512, 512, 20, "cuda") == 20 and auto_mc_chunk(1232, 1360, 20, "cuda") == 20
     free["bytes"] = 8 * gib  # 4 GiB for chunks of 1232x1360 x 300 bytes (503 MB a pass): 8 passes
     assert auto_mc_chunk(1232, 1360, 20, "cuda") == 8
-    free["bytes"] = gib // 4
+    assert auto_mc_chunk(1232, 1360, 20, "cuda", model_width=32) == 2  # 4x the width, 4x the memory a pass
+    free["cached"] = 8 * gib  # what torch holds cached but unused counts as free: 8 GiB for chunks, 17 passes
+    assert auto_mc_chunk(1232, 1360, 20, "cuda") == 17
+    free["bytes"], free["cached"] = gib // 4, 0
     assert auto_mc_chunk(1232, 1360, 20, "cuda") == 1
     assert auto_mc_chunk(512, 512, 20, "cpu") == 2  # the CPU keeps its cache-bound chunks
+
+
+def test_the_predictor_chunks_by_its_own_device_and_width(saved, monkeypatch):
+    """The Predictor asks for its chunk with its device and its network's width."""
+    from gearscan.inference import predictor as predictor_module
+
+    seen = []
+    real = predictor_module.auto_mc_chunk
+    monkeypatch.setattr(predictor_module, "auto_mc_chunk", lambda *a: seen.append(a) or real(*a))
+    model, path = saved
+    Predictor.load(path).predict(_frames(hw=(32, 40), seed=3), mc=2)
+    assert seen == [(32, 40, 2, torch.device("cpu"), model.config.width)]
 
 
 def test_mc_chunk_by_image_size(saved):

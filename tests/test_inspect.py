@@ -86,9 +86,12 @@ def test_chipped_tooth_is_flagged_and_no_other(inspected):
     assert insp["chipped_teeth"] == truth["chipped_teeth"] == [7]
 
 
-def test_a_chip_check_too_noisy_to_tell_flags_nothing_and_says_so():
+@pytest.mark.parametrize("noise_mm", [0.06, 0.021], ids=["60 um a point", "21 um a point"])
+def test_a_chip_check_too_noisy_to_tell_flags_nothing_and_says_so(noise_mm):
     """Tip cells that stray from the median tooth as far as the chip threshold: no tooth is flagged
-    (a moving revolution with the network flagged four intact teeth and missed the chipped one)."""
+    (a moving revolution with the network flagged four intact teeth and missed the chipped one). At 21 um a point
+    the cells spread about 28 um, near the 29.3 um of v9's fused-only inspection revolution, where the 1.5x margin
+    called the check conclusive and it flagged two intact teeth: inconclusive at the 2x margin."""
     from gearscan.core.gear import GearSpec
     from gearscan.recon.inspect import CHIP_NOISE_MARGIN, inspect_gear
 
@@ -101,10 +104,12 @@ def test_a_chip_check_too_noisy_to_tell_flags_nothing_and_says_so():
     pts = pts[np.abs(pts[:, 2]) < gear.face_width / 2 - 0.2]  # the tooth surfaces, not the end faces
     normals = pts[:, :2] / np.linalg.norm(pts[:, :2], axis=1, keepdims=True)
     noisy = pts.copy()
-    noisy[:, :2] += normals * rng.normal(0.0, 0.06, (len(pts), 1))  # 60 um of radial noise
-    insp = inspect_gear(noisy, np.full(len(pts), 0.06), gear)
+    noisy[:, :2] += normals * rng.normal(0.0, noise_mm, (len(pts), 1))  # radial noise
+    insp = inspect_gear(noisy, np.full(len(pts), noise_mm), gear)
     assert not insp.chip_check_conclusive and insp.chipped_teeth == ()
     assert insp.chip_noise_um > 50 / CHIP_NOISE_MARGIN
+    if noise_mm < 0.03:
+        assert insp.chip_noise_um < 50 / 1.5  # the old margin would have called it conclusive
 
 
 def test_profile_slope_is_read_on_every_flank(inspected):
@@ -189,6 +194,17 @@ def test_the_shipped_support_tests_are_the_val_choices():
     fused = json.loads((bench / "fused_support_val.json").read_text())
     assert per_burst["chosen_network_support_px"] == NETWORK_SUPPORT_PX
     assert fused["choice"]["chosen_px"] == FRAME_FIT_NETWORK_SUPPORT_PX
+    # and the rules replayed on the stored tables give the same answers (a hand edit of either is caught)
+    import sys
+
+    sys.path[:0] = [str(bench.parent / "scripts"), str(bench)]
+    try:
+        import choose_fused_support
+        import choose_network_support
+    finally:
+        del sys.path[:2]
+    assert choose_network_support.choose(per_burst["table"]) == NETWORK_SUPPORT_PX
+    assert choose_fused_support.choose(fused["cells"])["chosen_px"] == FRAME_FIT_NETWORK_SUPPORT_PX
     shipped = hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]  # chosen for these weights
     assert per_burst["weights_sha256"] == shipped == fused["shipped_sha256"]
 

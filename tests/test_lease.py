@@ -1,5 +1,5 @@
 """The GPU lease's one command (scripts/lease_train.sh), run here on the CPU at a tiny size: it renders, trains
-from v6 within its time limit and leaves what the device tool can bring back."""
+from the shipped model within its time limit and leaves what the device tool can bring back."""
 
 from __future__ import annotations
 

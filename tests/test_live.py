@@ -80,11 +80,11 @@ def test_template_is_valid_and_errors_name_the_key(tmp_path):
         LiveConfig.from_toml(TEMPLATE.replace('orientation = "auto"', 'orientation = "upside"'), "rig.toml")
     from gearscan.recon.measure import NETWORK_SUPPORT_PX
 
-    assert cfg.recon.network_support_px == NETWORK_SUPPORT_PX == 2  # the template states the shipped value
-    off = LiveConfig.from_toml(TEMPLATE.replace("network_support_px = 2 ", "network_support_px = -1 "))
+    assert cfg.recon.network_support_px == NETWORK_SUPPORT_PX  # the template states the shipped value
+    off = LiveConfig.from_toml(TEMPLATE.replace("network_support_px = 0 ", "network_support_px = -1 "))
     assert off.recon.network_support_px == -1
     with pytest.raises(ValueError, match="recon.network_support_px"):
-        LiveConfig.from_toml(TEMPLATE.replace("network_support_px = 2 ", "network_support_px = -3 "), "rig.toml")
+        LiveConfig.from_toml(TEMPLATE.replace("network_support_px = 0 ", "network_support_px = -3 "), "rig.toml")
     assert LiveConfig.from_toml(TEMPLATE.replace('orientation = "auto"', 'orientation = "mirrored"')).model.orientation == "mirrored"
     res = runner.invoke(app, ["config", "init", str(tmp_path / "rig.toml")])
     assert res.exit_code == 0 and (tmp_path / "rig.toml").read_text() == TEMPLATE

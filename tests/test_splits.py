@@ -67,7 +67,7 @@ def test_v9_record_matches_the_lease_run_that_made_it() -> None:
     assert SHIPPED is SHIPPED_V9 and meta["version"] == "v9" and meta["continues"].startswith("v6")
     assert {t for _, teeth, *_ in meta["train_sets"] for t in teeth} == SHIPPED_V9.train_teeth
     assert {s[5] for s in meta["train_sets"]} == set(SHIPPED_V9.train_dataset_seeds)
-    assert {t for _, teeth, *_ in meta["val_sets"] for t in teeth} <= SHIPPED_V9.val_teeth
+    assert {t for _, teeth, *_ in meta["val_sets"] for t in teeth} == SHIPPED_V9.val_teeth
     assert {s[5] for s in meta["val_sets"]} <= set(SHIPPED_V9.val_dataset_seeds)
     assert set(SHIPPED_V6.train_dataset_seeds) < set(SHIPPED_V9.train_dataset_seeds)
 

@@ -84,10 +84,10 @@ def test_a_broken_sigma_map_in_the_json_is_named():
     assert burst_sigma_map({}) is None
 
 
-@pytest.mark.parametrize("model", [DEFAULT_MODEL, OPTION], ids=["v6", "default-rig option"])
+@pytest.mark.parametrize("model", [DEFAULT_MODEL, OPTION], ids=["shipped v9", "default-rig option"])
 def test_the_models_record_the_val_choice(model):
-    """Both models carry the motion-check rule's val choice (v6: 0.03 rad, session 38, its ECE bound on the taken
-    bursts; the option: 0.025, session 30; each with a motion share below 0.001 and three-step's noise sigma) and
+    """Both models carry the motion-check rule's val choice (v9: 0.03 rad, session 39, as v6's in session 38, its ECE
+    bound on the taken bursts; the option: 0.025, session 30; each with a motion share below 0.001 and three-step's noise sigma) and
     the val table it read, per rig view."""
     pred = Predictor.load(model)
     meta = pred.meta["still_burst_gate"]

@@ -79,7 +79,7 @@ def test_the_shipped_model_records_why_it_has_no_gate():
 
 
 def test_the_burst_gate_takes_a_still_burst_through_the_predictor_with_no_angles(val_scene_256):
-    """Shipped v6 with the gate its val rule chose (0.03 rad since session 38, motion share below 0.001): a still burst is
+    """Shipped v9 with the gate its val rule chose (0.03 rad, as v6's since session 38, motion share below 0.001): a still burst is
     decoded as well as three-step PS decodes it (ungated, the network is worse), with three-step's noise
     sigma; a 0.6 deg/frame burst keeps the network's correction. (The default-rig option's gate does not
     take this still burst: its interior departure here is 0.034 rad, above its 0.025.)"""

@@ -24,8 +24,8 @@ adaptation``) renders their own rig and gear, whatever its tooth count: :func:`r
 called there with the seed only. A benchmark that fine-tunes on a test scene's rig keeps its test
 bursts untouched by other means (non-test seeds, other start angles: ``benchmarks/adaptation.py``).
 
-What the shipped model saw is :data:`SHIPPED` (v6, :data:`SHIPPED_V6`: rendered by
-``scripts/reproduce_model.py`` under these rules). The earlier default, v5, predates this module
+What the shipped model saw is :data:`SHIPPED` (v9, :data:`SHIPPED_V9`: v6, :data:`SHIPPED_V6`, continued; both
+rendered by ``scripts/reproduce_model.py`` under these rules). The earlier default, v5, predates this module
 (:data:`SHIPPED_V5`, from ``scripts/train_default.py`` and its model card); one exception is
 stated there: its validation used the default rig (gear 25), which the test split now owns.
 """
