@@ -21,9 +21,9 @@ UNWRAP_MODES = ("cad", "envelope", "coarse")
 # 2 px for v6, 0 px (its own pixel only) for v9, which the outside-mask loss taught not to invent phase there
 NETWORK_SUPPORT_PX = 0
 # ... and where the fused points are then fitted to the raw frames (`inspect`, `replay --fuse`): the frame fit
-# takes the pixels a wider test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
-# scripts/choose_fused_support.py -> benchmarks/fused_support_val.json)
-FRAME_FIT_NETWORK_SUPPORT_PX = 0
+# takes the pixels a test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
+# scripts/choose_fused_support.py -> benchmarks/fused_support_val.json): 0 px for v6, no test (None) for v9
+FRAME_FIT_NETWORK_SUPPORT_PX: int | None = None
 PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the product's test for the path taken
 
 
