@@ -110,8 +110,9 @@ def main() -> None:
 
     started, rows = host(), []
     decoder = Decoder(args.model)
+    product = "off" if FRAME_FIT_NETWORK_SUPPORT_PX is None else f"{FRAME_FIT_NETWORK_SUPPORT_PX} px"
     support_text = ("the product's fringe-support test for network pixels on the frame-fit path, "
-                    f"{FRAME_FIT_NETWORK_SUPPORT_PX} px" if args.network_support_px is None
+                    f"{product}" if args.network_support_px is None
                     else "no fringe-support test" if args.network_support_px < 0
                     else f"fringe-support test {args.network_support_px} px")
     for s in STRETCHES:

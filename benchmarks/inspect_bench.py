@@ -203,7 +203,8 @@ def main() -> None:
         + (", fringe orientation voted per burst: the shipped default; no still burst to adopt it from)"
            if args.orientation == "auto" else f", fringe orientation set: {args.orientation})"))
     if not args.classical:
-        decoder += (f"; fringe-support test {FRAME_FIT_NETWORK_SUPPORT_PX} px (the product's with the frame fit; "
+        frame_fit_test = "off" if FRAME_FIT_NETWORK_SUPPORT_PX is None else f"{FRAME_FIT_NETWORK_SUPPORT_PX} px"
+        decoder += (f"; fringe-support test {frame_fit_test} (the product's with the frame fit; "
                     f"`replay --fuse --no-refine` runs {NETWORK_SUPPORT_PX} px) on both runs" if args.network_support_px is None
                     else "; no fringe-support test" if support is None else f"; fringe-support test {support} px")
     lines = [
