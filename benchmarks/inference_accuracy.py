@@ -88,6 +88,7 @@ def main() -> None:
     gate = rig.meta.get("still_burst_gate") or {}
     report = {
         "commit": commit, "model": str(args.model or "inference/weights/default.safetensors"),
+        "network_support_px": NETWORK_SUPPORT_PX,  # the per-burst fringe-support test this run's clouds kept
         "precision": shipped.precision, "orientation": orientation, "split": "test (default family)",
         "scenes": [s.name for s in scenes], "bursts_per_motion_per_scene": args.per_motion, "torch_seed": args.seed,
         "still_burst_gate": {"rad": rig.still_burst_rad, "max_motion_share": gate.get("max_motion_share")},

@@ -70,7 +70,7 @@ def main() -> None:
         lit = (2.0 * frame_swing(frames8.astype(np.float32) / np.float32(255.0)) >= 0.05).astype(np.uint8)
         cv2.erode(lit, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE).astype(bool)
 
-    rows.append(("network fringe support, 8-bit frames, 2 px (live path)", _time(lambda: fringe_support(frames8, 255.0, 0.05, 2))))
+    rows.append(("network fringe support, 8-bit frames, 2 px (v6's live path)", _time(lambda: fringe_support(frames8, 255.0, 0.05, 2))))
     rows.append(("network fringe support, 12-bit frames, 2 px", _time(lambda: fringe_support(frames12, 4095.0, 0.05, 2))))
     rows.append(("reference: the same support, session 32's form", _time(support_session32)))
 
