@@ -204,7 +204,7 @@ def test_the_shipped_support_tests_are_the_val_choices():
     finally:
         del sys.path[:2]
     assert choose_network_support.choose(per_burst["table"]) == NETWORK_SUPPORT_PX
-    assert choose_fused_support.choose(fused["cells"])["chosen_px"] == FRAME_FIT_NETWORK_SUPPORT_PX
+    assert choose_fused_support.choose(fused["cells"], fused["incumbent_px"])["chosen_px"] == FRAME_FIT_NETWORK_SUPPORT_PX
     shipped = hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]  # chosen for these weights
     assert per_burst["weights_sha256"] == shipped == fused["shipped_sha256"]
 
