@@ -14,6 +14,7 @@ revolution only report afterwards.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -58,11 +59,23 @@ def val_cells(recordings: Path, bursts: int):
                        render_stretch(recordings, s, alternate, bursts))
 
 
+def shipped_sha256() -> str:
+    """The shipped weights a run scores as "the shipped model" (the default changes between sessions)."""
+    from gearscan.inference.predictor import DEFAULT_MODEL
+
+    return hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]
+
+
 def load_or_start(out: Path, **fresh) -> dict:
-    """The run's json: resumed from ``out`` (its resumes stamped) or a new one with this commit and host."""
+    """The run's json: resumed from ``out`` (its resumes stamped) or a new one with this commit, host and the shipped
+    weights' sha; a json whose cells were scored with other shipped weights is refused."""
+    sha = shipped_sha256()
     if not out.exists():
-        return {"commit": commit(), "host": host(), "cells": [], **fresh}
+        return {"commit": commit(), "host": host(), "shipped_sha256": sha, "cells": [], **fresh}
     done = json.loads(out.read_text())
+    if done["cells"] and done.get("shipped_sha256") != sha:
+        raise SystemExit(f"{out}: its shipped model's cells were scored with other weights "
+                         f"({done.get('shipped_sha256', 'not recorded')}, now {sha}); write to another --out")
     if done["cells"]:
         done.setdefault("resumed_at", []).append(commit())
     return done
@@ -102,17 +115,10 @@ def main() -> None:
     ap.add_argument("--bursts", type=int, default=60)
     args = ap.parse_args()
 
-    import hashlib
-
-    from gearscan.inference.predictor import DEFAULT_MODEL
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX
     from gearscan.recon.track import REST_SIGMA_SCALE
 
-    shipped_sha = hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]
-    done = load_or_start(args.out, rest_sigma_scale=REST_SIGMA_SCALE, shipped_sha256=shipped_sha)
-    if done["cells"] and done.get("shipped_sha256") != shipped_sha:
-        raise SystemExit(f"{args.out}: its shipped model's cells were scored with other weights "
-                         f"({done.get('shipped_sha256', 'not recorded')}, now {shipped_sha}); write to another --out")
+    done = load_or_start(args.out, rest_sigma_scale=REST_SIGMA_SCALE)
     ran_at = done.setdefault("rest_sigma_scale", 1.0)  # a json without the key was written before the scale existed
     if done["cells"] and ran_at != REST_SIGMA_SCALE:
         raise SystemExit(f"{args.out}: its cells were scored with the unfitted points' sigma scale {ran_at}, this code "
