@@ -98,28 +98,29 @@ def main() -> None:
     ap.add_argument("--model", type=Path, default=None, help="network weights (.safetensors); default: the shipped model")
     ap.add_argument("--out", type=Path, default=HERE.parent / "out" / "frame_fit_heldout")
     ap.add_argument("--network-support-px", type=int, default=None,
-                    help="the reconstructor's fringe-support test for network pixels (-1: none; default: the product's)")
+                    help="the reconstructor's fringe-support test for network pixels (-1: none; default: the model's own, else the product's)")
     ap.add_argument("--report", type=Path, default=HERE / "frame_fit_heldout_report",
                     help="path prefix of the report (.md, .json)")
     args = ap.parse_args()
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     from gearscan.inference.decoder import Decoder
-    from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, network_support_option
+    from gearscan.recon.measure import network_support_option
     from gearscan.recon.track import REST_SIGMA_SCALE
 
     started, rows = host(), []
     decoder = Decoder(args.model)
-    product = "off" if FRAME_FIT_NETWORK_SUPPORT_PX is None else f"{FRAME_FIT_NETWORK_SUPPORT_PX} px"
-    support_text = ("the product's fringe-support test for network pixels on the frame-fit path, "
-                    f"{product}" if args.network_support_px is None
+    support = network_support_option(args.network_support_px, frame_fit=True, model=decoder.network_support)
+    whose = "the model's own" if decoder.network_support is not None else "the product's"
+    support_text = (f"{whose} fringe-support test for network pixels on the frame-fit path, "
+                    f"{'off' if support is None else f'{support} px'}" if args.network_support_px is None
                     else "no fringe-support test" if args.network_support_px < 0
                     else f"fringe-support test {args.network_support_px} px")
     for s in STRETCHES:
         for alternate in (True, False):
             rec = render_stretch(args.out, s, alternate, args.bursts)
             rows.append({"seed": s["seed"], "start_deg": s["start_deg"], "order": "alternating" if alternate else "fixed",
-                         **score_stretch(rec, decoder, network_support_option(args.network_support_px, frame_fit=True))})
+                         **score_stretch(rec, decoder, support)})
             print(rows[-1])
     lines = [
         "# Frame fit on held-out twin stretches (recon/track.py)",

@@ -79,11 +79,7 @@ def main() -> None:
     from gearscan.core.recording import RecordingReader
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
-    from gearscan.recon.measure import (
-        FRAME_FIT_NETWORK_SUPPORT_PX,
-        NETWORK_SUPPORT_PX,
-        network_support_option,
-    )
+    from gearscan.recon.measure import network_support_option
     from gearscan.recon.track import REST_SIGMA_SCALE
     from gearscan.twin.defects import GearDefects, true_mesh
 
@@ -107,9 +103,10 @@ def main() -> None:
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
     decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
-    # the frame-fit path's test (the product's for inspect) on both runs: the fused-only run is the same fused
-    # cloud before the fit, voxel for voxel (the 'before' figures below rely on it)
-    support = network_support_option(args.network_support_px, frame_fit=True)
+    # the frame-fit path's test (the model's own for inspect, else the product's) on both runs: the fused-only run is
+    # the same fused cloud before the fit, voxel for voxel (the 'before' figures below rely on it)
+    support = network_support_option(args.network_support_px, frame_fit=True, model=decoder.network_support)
+    per_burst = network_support_option(None, frame_fit=False, model=decoder.network_support)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
 
@@ -198,14 +195,15 @@ def main() -> None:
     rows = list(zip(names, truths, quantities(insp), quantities(plain.inspection), strict=True))
     fp_err, plain_fp_err = fp_error(insp), fp_error(plain.inspection)
     ok = lambda t, m: abs(m - t) <= 5 + 0.05 * abs(t)  # noqa: E731
-    decoder = "three-step PS" if args.classical else (
+    decoder_obj, decoder = decoder, "three-step PS" if args.classical else (
         (f"network `{args.model}` (deterministic" if args.model else "shipped network (deterministic")
         + (", fringe orientation voted per burst: the shipped default; no still burst to adopt it from)"
            if args.orientation == "auto" else f", fringe orientation set: {args.orientation})"))
     if not args.classical:
-        frame_fit_test = "off" if FRAME_FIT_NETWORK_SUPPORT_PX is None else f"{FRAME_FIT_NETWORK_SUPPORT_PX} px"
-        decoder += (f"; fringe-support test {frame_fit_test} (the product's with the frame fit; "
-                    f"`replay --fuse --no-refine` runs {NETWORK_SUPPORT_PX} px) on both runs" if args.network_support_px is None
+        whose = "the model's own" if decoder_obj.network_support is not None else "the product's"
+        px = lambda v: "off" if v is None else f"{v} px"  # noqa: E731
+        decoder += (f"; fringe-support test {px(support)} ({whose} with the frame fit; "
+                    f"`replay --fuse --no-refine` runs {px(per_burst)}) on both runs" if args.network_support_px is None
                     else "; no fringe-support test" if support is None else f"; fringe-support test {support} px")
     lines = [
         "# Inspection benchmark (issue 14: fused revolution, ISO 1328-1 pitch and runout)",

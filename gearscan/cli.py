@@ -270,7 +270,7 @@ def replay_cmd(
     ply: Annotated[Path | None, typer.Option(help="write every burst's cloud (gear frame: x y z mm, sigma) as DIR/burst_NNNNNN.ply")] = None,
     csv: Annotated[Path | None, typer.Option(help="write every burst's cloud as DIR/burst_NNNNNN.csv (x_mm,y_mm,z_mm,sigma_mm[,deviation_mm])")] = None,
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON for a recording made without one (replaces the recording's own)")] = None,
-    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default recon.measure.NETWORK_SUPPORT_PX, 0 px for the shipped v9; with --fuse and its frame fit FRAME_FIT_NETWORK_SUPPORT_PX)")] = None,
+    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own val choice, its JSON's network_support: per burst 0 px for the shipped v9, 2 for v6 and the default-rig option; with --fuse and its frame fit off for v9, 0 px for v6 and the option)")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
 
@@ -314,7 +314,8 @@ def replay_cmd(
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
                         truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None,
                         network_support_px=network_support_option(network_support_px,
-                                                                  frame_fit=refine and fuser is not None))
+                                                                  frame_fit=refine and fuser is not None,
+                                                                  model=decoder.network_support))
         if fuse is not None:
             from gearscan.inspect import dropped_note
             from gearscan.recon.fuse import save_fused
@@ -606,7 +607,7 @@ def inspect_cmd(
     unwrap: Annotated[str, typer.Option(help="fringe orders from the CAD ('cad') or its envelope ('envelope')")] = "cad",
     save: Annotated[Path | None, typer.Option(help="also write the rerun stream (bursts + fused model) to this .rrd")] = None,
     refine: Annotated[bool, typer.Option(help="fit each fused point to every raw frame that saw it (keeps the recording's frames in memory)")] = True,
-    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default with the frame fit recon.measure.FRAME_FIT_NETWORK_SUPPORT_PX, else NETWORK_SUPPORT_PX)")] = None,
+    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own val choice, its JSON's network_support: with the frame fit off for the shipped v9, 0 px for v6 and the default-rig option; with --no-refine 0 px for v9, 2 for v6 and the option)")] = None,
 ) -> None:
     """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
     from gearscan.core.recording import RecordingError
@@ -620,7 +621,8 @@ def inspect_cmd(
     try:
         report = run_inspection(recording, out, decoder=decoder, grade=grade, voxel_mm=voxel_mm, min_bursts=min_bursts,
                                 unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"),
-                                network_support_px=network_support_option(network_support_px, frame_fit=refine))
+                                network_support_px=network_support_option(network_support_px, frame_fit=refine,
+                                                                          model=decoder.network_support))
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
     summary = report.inspection.summary()

@@ -16,7 +16,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError, format_errors
 from gearscan.core.gear import GearSpec
 from gearscan.inference.decoder import STILL_SPAN_DEG
-from gearscan.recon.measure import NETWORK_SUPPORT_PX
 
 TEMPLATE = """\
 # gearscan live configuration. Lengths in mm, angles in degrees, times as named.
@@ -80,9 +79,10 @@ orientation = "auto"         # fringe phase along the camera's columns: "normal"
 [recon]
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S
 max_sigma_rad = 0.3          # drop pixels whose total phase uncertainty exceeds this
-network_support_px = 0       # a network's pixel needs fringes in its own frames on every pixel within this
-                             # many px (-1: no such test; chosen on val: 0 for the shipped v9, 2 for v6,
-                             # which invents phase at shadow borders; the default-rig option ran with 2)
+# network_support_px = 0     # a network's pixel needs fringes in its own frames on every pixel within this
+                             # many px (-1: no such test). Unset: the model's own val choice from its JSON
+                             # (network_support.per_burst_px: 0 for the shipped v9, 2 for v6, which invents
+                             # phase at shadow borders, and for the default-rig option)
 unwrap = "cad"               # fringe orders from the gear's CAD ("cad") or its envelope only ("envelope",
                              # CAD-free: needs fringes wider than the tooth depth, see --check), or
                              # around the last coarse burst ("coarse", CAD-free at any period: needs
@@ -123,7 +123,7 @@ class ReconSection(BaseModel):
 
     min_modulation: float = Field(0.05, ge=0, le=1)
     max_sigma_rad: float = Field(0.3, gt=0)
-    network_support_px: int = Field(NETWORK_SUPPORT_PX, ge=-1, le=16)  # -1: off (TOML has no null)
+    network_support_px: int | None = Field(None, ge=-1, le=16)  # None: the model's; -1: off (TOML has no null)
     unwrap: Literal["cad", "envelope", "coarse"] = "cad"
     cad_deviation: bool = True
 

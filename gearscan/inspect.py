@@ -114,8 +114,8 @@ def run_inspection(
     ``decoder``: as for :func:`~gearscan.replay.replay` (default three-step PS); ``save``: also
     write the rerun stream (bursts and the fused model) there; ``refine``: fit the fused points
     to the raw frames (:class:`~gearscan.recon.track.TrackRefiner`); ``network_support_px``: the reconstructor's
-    fringe-support test for a network's pixels (None: none; ``"product"``: the product's for the path, as
-    :func:`~gearscan.replay.replay` resolves it with ``refine``). ``inspect_options`` go to
+    fringe-support test for a network's pixels (None: none; ``"product"``: the decoding model's own for the path,
+    else the product's, as :func:`~gearscan.replay.replay` resolves it with ``refine``). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import replay

@@ -185,7 +185,8 @@ def run_live(
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
                                    unwrap=cfg.recon.unwrap,
-                                   network_support_px=network_support_option(cfg.recon.network_support_px))
+                                   network_support_px=network_support_option(cfg.recon.network_support_px,
+                                                                                    model=getattr(decoder, "network_support", None)))
     coarse = CoarseStage(rig, cfg.projector.coarse_period_px, cfg.gear, recon if cfg.recon.unwrap == "coarse" else None)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None
     logger = None

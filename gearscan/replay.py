@@ -241,8 +241,9 @@ def replay(
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
     ``network_support_px``: the reconstructor's fringe-support test of a network's pixels (None: off; ``"product"``:
-    the product's for this call, :data:`~gearscan.recon.measure.FRAME_FIT_NETWORK_SUPPORT_PX` when ``fuse`` and
-    ``refine`` fit the fused points to the frames, else :data:`~gearscan.recon.measure.NETWORK_SUPPORT_PX`).
+    the decoding model's own for this call, its ``frame_fit_px`` when ``fuse`` and ``refine`` fit the fused points
+    to the frames, else its ``per_burst_px`` (``decoder.network_support``); where it names none, the product's,
+    :data:`~gearscan.recon.measure.FRAME_FIT_NETWORK_SUPPORT_PX` or :data:`~gearscan.recon.measure.NETWORK_SUPPORT_PX`).
     ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
     ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.recon.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
@@ -278,7 +279,8 @@ def replay(
                              f"({patterns.name}) has none; use --unwrap cad (with the gear's CAD) or envelope")
     gear = reader.gear
     if network_support_px == PRODUCT_SUPPORT:
-        network_support_px = network_support_option(None, frame_fit=refine and fuse is not None)
+        network_support_px = network_support_option(None, frame_fit=refine and fuse is not None,
+                                                     model=getattr(decoder, "network_support", None))
     recon = (Reconstructor.for_gear(rig, period, gear, unwrap=unwrap, network_support_px=network_support_px)
              if (reconstruct and gear is not None) else None)
     coarse = CoarseStage(rig, coarse_period, gear, recon if unwrap == "coarse" else None)

@@ -11,9 +11,13 @@ import os
 import queue
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from gearscan.core.phase import classical_result, still_result
 from gearscan.core.types import Burst, PhaseResult
+
+if TYPE_CHECKING:  # the predictor (torch) is imported only when a network decodes
+    from gearscan.inference.predictor import NetworkSupport
 
 STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beat the network on radial val rigs (Decoder)
 ORIENTATION_VOTES = 3  # still bursts whose agreeing votes set the rig's fringe orientation (Decoder, "auto")
@@ -99,6 +103,12 @@ class Decoder:
             return predictor.predict_burst(burst, mc=self.mc)
         finally:
             self._pool.put(predictor)
+
+    @property
+    def network_support(self) -> NetworkSupport | None:
+        """The network's own fringe-support tests (:class:`~gearscan.inference.predictor.NetworkSupport`) for the
+        reconstructor; None for three-step PS or a model whose JSON names none (the product's apply)."""
+        return None if self.predictor is None else self.predictor.network_support
 
     def summary(self) -> dict:
         """What decoded the run: mode, bursts sent to three-step PS as still, the fringe orientation

@@ -236,6 +236,9 @@ class Predictor:
         fast bursts (val, large radial gears, spans of 1.1 deg and more:
         ``benchmarks/dense_finetune_report.md``; test: ``generalization_report.md``); the likely cause: fringes drifting a third of a period
         per frame turn the three frames into the reversed three-step set, whose phase is mirrored.
+
+    ``network_support`` (read from the JSON, :func:`model_network_support`): the reconstructor's fringe-support
+    tests chosen on val for this model, which the app passes on where the user sets none; None: the product's.
     """
 
     def __init__(
@@ -286,6 +289,7 @@ class Predictor:
         self.still_burst_sigma = burst_sigma_map(self.meta)
         self.still_burst_motion = (burst_motion_limit(self.meta) if still_burst_motion is None
                                    else check_motion_limit(still_burst_motion, "still_burst_motion"))
+        self.network_support = model_network_support(self.meta)
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
         if self.channels_last:
@@ -561,6 +565,44 @@ def burst_motion_limit(meta: dict) -> float:
         return check_motion_limit(raw, "still_burst_gate.max_motion_share")
     except ValueError as exc:
         raise ModelFileError(str(exc)) from exc
+
+
+NETWORK_SUPPORT_KEY = "network_support"
+MAX_SUPPORT_PX = 16  # as the CLI's --network-support-px
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class NetworkSupport:
+    """The reconstructor's fringe-support tests chosen on val for one model (``network_support`` in its JSON): a
+    network pixel is kept only where its burst's own frames show fringes on every pixel within this many px (None:
+    no test). ``per_burst_px`` for each burst's cloud; ``frame_fit_px`` where the fused points are then fitted to the
+    raw frames (``inspect``, ``replay --fuse``). A property of the model: v6 invents phase at shadow borders that v9
+    does not (``benchmarks/network_support_rule.md``)."""
+
+    per_burst_px: int | None
+    frame_fit_px: int | None
+
+
+def _support_px(raw: object, name: str) -> int | None:
+    if raw is None:
+        return None
+    if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw <= MAX_SUPPORT_PX:
+        raise ModelFileError(f"{name}: expected null (no test) or a whole number of px in 0..{MAX_SUPPORT_PX}, "
+                             f"got {raw!r}")
+    return raw
+
+
+def model_network_support(meta: dict) -> NetworkSupport | None:
+    """A model's own fringe-support tests from its JSON (:class:`NetworkSupport`); None where the JSON names none
+    (the reconstructor then uses the product's, ``recon.measure``)."""
+    raw = meta.get(NETWORK_SUPPORT_KEY)
+    if raw is None:
+        return None
+    if not isinstance(raw, dict) or not {"per_burst_px", "frame_fit_px"} <= set(raw):
+        raise ModelFileError(f"{NETWORK_SUPPORT_KEY}: expected {{'per_burst_px': px or null, 'frame_fit_px': px or "
+                             f"null}}, got {raw!r}")
+    return NetworkSupport(_support_px(raw["per_burst_px"], f"{NETWORK_SUPPORT_KEY}.per_burst_px"),
+                          _support_px(raw["frame_fit_px"], f"{NETWORK_SUPPORT_KEY}.frame_fit_px"))
 
 
 def still_burst_noise(frames: np.ndarray) -> float | None:

@@ -9,6 +9,7 @@ frame at that angle.
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 import numpy as np
 
@@ -27,11 +28,21 @@ FRAME_FIT_NETWORK_SUPPORT_PX: int | None = None
 PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the product's test for the path taken
 
 
-def network_support_option(px: int | None, *, frame_fit: bool = False) -> int | None:
-    """A ``--network-support-px`` (or the live config's) as the reconstructor's setting: None keeps the product's
-    (:data:`FRAME_FIT_NETWORK_SUPPORT_PX` where fused points are fitted to the frames, else
-    :data:`NETWORK_SUPPORT_PX`), a negative value turns the test off."""
+class ModelSupport(Protocol):
+    """A model's own fringe-support tests, chosen on val (``inference.predictor.NetworkSupport``)."""
+
+    per_burst_px: int | None
+    frame_fit_px: int | None
+
+
+def network_support_option(px: int | None, *, frame_fit: bool = False, model: ModelSupport | None = None) -> int | None:
+    """A ``--network-support-px`` (or the live config's) as the reconstructor's setting. None keeps the decoding
+    model's own (``model``: its ``frame_fit_px`` where fused points are fitted to the frames, else its
+    ``per_burst_px``), or, where the model names none, the product's (:data:`FRAME_FIT_NETWORK_SUPPORT_PX`,
+    :data:`NETWORK_SUPPORT_PX`); a negative value turns the test off."""
     if px is None:
+        if model is not None:
+            return model.frame_fit_px if frame_fit else model.per_burst_px
         return FRAME_FIT_NETWORK_SUPPORT_PX if frame_fit else NETWORK_SUPPORT_PX
     return None if px < 0 else px
 

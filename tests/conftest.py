@@ -44,8 +44,8 @@ def noisy_renderer(rig256, gear, gear_mesh):
 
 
 class ReplaySpy:
-    """What a command handed ``gearscan.replay.replay`` (``calls``: its keyword arguments, one dict per call); the
-    stub raises :attr:`Called` instead of replaying."""
+    """What a command handed the function this stands in for (``gearscan.replay.replay``, ``Reconstructor.for_gear``;
+    ``calls``: its keyword arguments, one dict per call); the stub raises :attr:`Called` instead of running."""
 
     class Called(Exception):
         pass
@@ -53,7 +53,7 @@ class ReplaySpy:
     def __init__(self) -> None:
         self.calls: list[dict] = []
 
-    def __call__(self, recording, **kw):
+    def __call__(self, *args, **kw):
         self.calls.append(kw)
         raise self.Called
 
@@ -65,4 +65,34 @@ def replay_spy(monkeypatch) -> ReplaySpy:
 
     spy = ReplaySpy()
     monkeypatch.setattr(replay_module, "replay", spy)
+    return spy
+
+
+class OwnSupportDecoder:
+    """A stand-in decoder whose model names its own fringe-support tests (``inference.predictor.NetworkSupport``'s
+    fields); decoding with it is a test failure (the tests stop before the first burst)."""
+
+    def __init__(self, per_burst_px: int | None, frame_fit_px: int | None) -> None:
+        from gearscan.inference.predictor import NetworkSupport
+
+        self.network_support = NetworkSupport(per_burst_px, frame_fit_px)
+
+    def __call__(self, burst):
+        raise AssertionError("a burst reached the stand-in decoder")
+
+
+@pytest.fixture
+def own_support_decoder() -> type[OwnSupportDecoder]:
+    return OwnSupportDecoder
+
+
+
+@pytest.fixture
+def support_spy(monkeypatch) -> ReplaySpy:
+    """``Reconstructor.for_gear`` replaced by a spy (``calls[-1]["network_support_px"]``: the test it was given); the
+    run stops there (:attr:`ReplaySpy.Called`)."""
+    from gearscan.recon.measure import Reconstructor
+
+    spy = ReplaySpy()
+    monkeypatch.setattr(Reconstructor, "for_gear", spy)
     return spy

@@ -191,8 +191,9 @@ def test_twin_render_alternate_order_replays_both_orders(tmp_path):
 
 def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording, tmp_path):
     """`--network-support-px -1` turns the fringe-support test of the network's pixels off; the default keeps
-    the shipped test (0 px for v9: the pixel's own frames), and the metrics count the pixels it drops."""
-    from gearscan.recon.measure import NETWORK_SUPPORT_PX
+    the shipped model's own test (0 px for v9: the pixel's own frames), and the metrics count the pixels it drops."""
+    from gearscan.inference.model_io import read_config
+    from gearscan.inference.predictor import DEFAULT_MODEL, model_network_support
 
     counts = {}
     for label, extra in (("default", []), ("off", ["--network-support-px", "-1"])):
@@ -202,7 +203,7 @@ def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording,
         assert res.exit_code == 0, res.output
         rows = json.loads(metrics.read_text())["bursts"]
         counts[label] = sum(r.get("unwrap_unsupported", 0) for r in rows)
-    assert NETWORK_SUPPORT_PX == 0
+    assert model_network_support(read_config(DEFAULT_MODEL)).per_burst_px == 0
     assert counts["off"] == 0 and counts["default"] > 0
     res = runner.invoke(app, ["replay", str(twin_recording), "--network-support-px", "-2"])
     assert res.exit_code == 2
@@ -211,13 +212,16 @@ def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording,
 def test_replay_with_the_frame_fit_gets_the_frame_fit_paths_support_test(twin_recording, tmp_path, replay_spy,
                                                                         monkeypatch):
     """Without ``--network-support-px``, ``replay --fuse`` (which fits the fused points to the frames) runs the
-    frame-fit path's test (``FRAME_FIT_NETWORK_SUPPORT_PX``, chosen on val stretches: benchmarks/fused_support_rule.md);
-    per-burst replays and ``--fuse --no-refine`` the per-burst one (``NETWORK_SUPPORT_PX``); the option overrides both.
-    The two are set apart here (5 and 7 px) so the route shows whatever the shipped values are."""
+    model's frame-fit test (``network_support.frame_fit_px`` in its JSON, chosen on val stretches:
+    benchmarks/fused_support_rule.md); per-burst replays and ``--fuse --no-refine`` its per-burst one; the option
+    overrides both. The model's two are stubbed apart here (5 and 7 px; the product's 11 and 13) so the route shows
+    whatever the shipped values are."""
+    from gearscan.inference import predictor
     from gearscan.recon import measure
 
-    monkeypatch.setattr(measure, "NETWORK_SUPPORT_PX", 5)
-    monkeypatch.setattr(measure, "FRAME_FIT_NETWORK_SUPPORT_PX", 7)
+    monkeypatch.setattr(measure, "NETWORK_SUPPORT_PX", 13)
+    monkeypatch.setattr(measure, "FRAME_FIT_NETWORK_SUPPORT_PX", 11)
+    monkeypatch.setattr(predictor, "model_network_support", lambda meta: predictor.NetworkSupport(5, 7))
     fused = ["--fuse", str(tmp_path / "fused.ply")]
     for extra, expected in (([], 5), (fused, 7), ([*fused, "--no-refine"], 5),
                             ([*fused, "--network-support-px", "3"], 3), ([*fused, "--network-support-px", "-1"], None)):

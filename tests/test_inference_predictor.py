@@ -477,3 +477,32 @@ def test_fast_drift_fools_the_vote_and_a_set_orientation_does_not(saved):
     np.testing.assert_allclose(flipped.predict(mirrored_in).phase[:, ::-1], n.phase, atol=1e-6)
     with pytest.raises(ValueError, match="orientation: expected one of auto, normal, mirrored"):
         Predictor.load(path, orientation="sideways")
+
+
+def test_a_model_carries_its_own_fringe_support_tests(saved, tmp_path):
+    """The reconstructor's fringe-support tests chosen on val travel in the model's JSON (``network_support``): read
+    into ``Predictor.network_support`` and the decoder; none named: None (the product's apply); a bad entry names the
+    key and what was expected."""
+    from gearscan.inference.decoder import Decoder
+    from gearscan.inference.model_io import read_config
+    from gearscan.inference.predictor import WEIGHTS_DIR, NetworkSupport, model_network_support
+
+    model, path = saved
+    assert Predictor.load(path).network_support is None
+    assert Decoder(classical=True).network_support is None
+    save_model(model, path, extra={"network_support": {"per_burst_px": 2, "frame_fit_px": None}})
+    assert Predictor.load(path).network_support == NetworkSupport(2, None)
+    assert Decoder(path, workers=1).network_support == NetworkSupport(2, None)
+    for bad, match in (({"per_burst_px": 2}, "network_support: expected"),
+                       ({"per_burst_px": -1, "frame_fit_px": 0}, r"network_support\.per_burst_px: expected null"),
+                       ({"per_burst_px": 0, "frame_fit_px": 1.5}, r"network_support\.frame_fit_px"),
+                       ({"per_burst_px": True, "frame_fit_px": 0}, r"network_support\.per_burst_px"),
+                       ("2 px", "network_support: expected")):
+        save_model(model, path, extra={"network_support": bad})
+        with pytest.raises(ModelFileError, match=match):
+            Predictor.load(path)
+    # the shipped files: v9 its own val choices (0 px, no test with the frame fit), v6 and the option 2 px / 0 px
+    shipped = {name: model_network_support(read_config(WEIGHTS_DIR / f"{name}.safetensors"))
+               for name in ("default", "v6", "default_rig")}
+    assert shipped == {"default": NetworkSupport(0, None), "v6": NetworkSupport(2, 0),
+                       "default_rig": NetworkSupport(2, 0)}

@@ -155,15 +155,18 @@ def test_iso1328_tolerances_follow_the_2013_formulas():
 
 def test_the_fringe_support_test_reaches_the_replay(tmp_path, replay_spy, monkeypatch):
     """``gearscan inspect --network-support-px -1`` turns the reconstructor's test off, a number sets it, and without
-    the option the replay gets the frame-fit path's default, or the per-burst one with ``--no-refine`` (set apart
-    here, 7 and 5 px, so the route shows whatever the shipped values are)."""
+    the option the replay gets the decoding model's own frame-fit test, or its per-burst one with ``--no-refine``
+    (the model's JSON stubbed to 7 and 5 px and the product's to 11 and 13, so the route shows whatever the shipped
+    values are)."""
     from gearscan.cli import app
     from gearscan.core.rig import default_rig
+    from gearscan.inference import predictor
     from gearscan.recon import measure
     from gearscan.twin.recordings import render_recording
 
-    monkeypatch.setattr(measure, "NETWORK_SUPPORT_PX", 5)
-    monkeypatch.setattr(measure, "FRAME_FIT_NETWORK_SUPPORT_PX", 7)
+    monkeypatch.setattr(measure, "NETWORK_SUPPORT_PX", 13)
+    monkeypatch.setattr(measure, "FRAME_FIT_NETWORK_SUPPORT_PX", 11)
+    monkeypatch.setattr(predictor, "model_network_support", lambda meta: predictor.NetworkSupport(5, 7))
     FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX = 7, 5
 
     rec = tmp_path / "rec"
@@ -181,13 +184,18 @@ def test_the_fringe_support_test_reaches_the_replay(tmp_path, replay_spy, monkey
 
 def test_the_shipped_support_tests_are_the_val_choices():
     """Both fringe-support settings are what their rules chose on val for the shipped model (the JSONs the choice
-    scripts write), not numbers typed in."""
+    scripts write), not numbers typed in: in the shipped model's JSON (``network_support``, what the app uses) and as
+    the product's settings for a model whose JSON names none."""
     import hashlib
     import json
     from pathlib import Path
 
-    from gearscan.inference.predictor import DEFAULT_MODEL
+    from gearscan.inference.model_io import read_config
+    from gearscan.inference.predictor import DEFAULT_MODEL, NetworkSupport, model_network_support
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
+
+    assert model_network_support(read_config(DEFAULT_MODEL)) == NetworkSupport(NETWORK_SUPPORT_PX,
+                                                                              FRAME_FIT_NETWORK_SUPPORT_PX)
 
     bench = Path(__file__).resolve().parents[1] / "benchmarks"
     per_burst = json.loads((bench / "network_support_val.json").read_text())
@@ -209,15 +217,16 @@ def test_the_shipped_support_tests_are_the_val_choices():
     assert per_burst["weights_sha256"] == shipped == fused["shipped_sha256"]
 
 
-def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkeypatch):
-    """``replay`` and ``run_inspection`` without ``network_support_px`` give the reconstructor the product's test for
-    the path they take: the frame-fit path's where fused points are fitted to the frames, the per-burst one elsewhere
-    (set apart here, 7 and 5 px); an explicit value wins."""
+def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkeypatch, own_support_decoder,
+                                                                 support_spy):
+    """``replay`` and ``run_inspection`` without ``network_support_px`` give the reconstructor the test for the path
+    they take: the frame-fit path's where fused points are fitted to the frames, the per-burst one elsewhere; the
+    decoding model's own where it names them, else the product's (set apart here: 9 / 2 px and 7 / 5 px); an
+    explicit value wins."""
     from gearscan.core.rig import default_rig
     from gearscan.inspect import run_inspection
     from gearscan.recon import measure
     from gearscan.recon.fuse import CloudFuser
-    from gearscan.recon.measure import Reconstructor
     from gearscan.replay import replay
     from gearscan.twin.recordings import render_recording
 
@@ -227,16 +236,6 @@ def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkey
 
     rec = tmp_path / "rec"
     render_recording(rec, rig=default_rig(64, 64), motion="static", bursts=1)
-    seen = []
-
-    class Built(Exception):
-        pass
-
-    def for_gear(*args, **kw):
-        seen.append(kw["network_support_px"])
-        raise Built
-
-    monkeypatch.setattr(Reconstructor, "for_gear", for_gear)
     cases = [(lambda: replay(rec), NETWORK_SUPPORT_PX),
              (lambda: replay(rec, fuse=CloudFuser(0.1, 3), refine=True), FRAME_FIT_NETWORK_SUPPORT_PX),
              (lambda: replay(rec, fuse=CloudFuser(0.1, 3)), NETWORK_SUPPORT_PX),
@@ -244,7 +243,12 @@ def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkey
              (lambda: run_inspection(rec, tmp_path / "out"), FRAME_FIT_NETWORK_SUPPORT_PX),
              (lambda: run_inspection(rec, tmp_path / "out", refine=False), NETWORK_SUPPORT_PX),
              (lambda: run_inspection(rec, tmp_path / "out", network_support_px=3), 3)]
+    own = own_support_decoder(2, 9)
+    cases += [(lambda: replay(rec, decoder=own), 2),
+              (lambda: replay(rec, decoder=own, fuse=CloudFuser(0.1, 3), refine=True), 9),
+              (lambda: run_inspection(rec, tmp_path / "out", decoder=own), 9),
+              (lambda: run_inspection(rec, tmp_path / "out", decoder=own, network_support_px=None), None)]
     for call, expected in cases:
-        with pytest.raises(Built):
+        with pytest.raises(support_spy.Called):
             call()
-        assert seen[-1] == expected
+        assert support_spy.calls[-1]["network_support_px"] == expected

@@ -78,13 +78,11 @@ def test_template_is_valid_and_errors_name_the_key(tmp_path):
     assert cfg.model.orientation == "auto"
     with pytest.raises(ValueError, match="model.orientation"):
         LiveConfig.from_toml(TEMPLATE.replace('orientation = "auto"', 'orientation = "upside"'), "rig.toml")
-    from gearscan.recon.measure import NETWORK_SUPPORT_PX
-
-    assert cfg.recon.network_support_px == NETWORK_SUPPORT_PX  # the template states the shipped value
-    off = LiveConfig.from_toml(TEMPLATE.replace("network_support_px = 0 ", "network_support_px = -1 "))
+    assert cfg.recon.network_support_px is None  # the template leaves it to the model's own val choice
+    off = LiveConfig.from_toml(TEMPLATE.replace("# network_support_px = 0 ", "network_support_px = -1 "))
     assert off.recon.network_support_px == -1
     with pytest.raises(ValueError, match="recon.network_support_px"):
-        LiveConfig.from_toml(TEMPLATE.replace("network_support_px = 0 ", "network_support_px = -3 "), "rig.toml")
+        LiveConfig.from_toml(TEMPLATE.replace("# network_support_px = 0 ", "network_support_px = -3 "), "rig.toml")
     assert LiveConfig.from_toml(TEMPLATE.replace('orientation = "auto"', 'orientation = "mirrored"')).model.orientation == "mirrored"
     res = runner.invoke(app, ["config", "init", str(tmp_path / "rig.toml")])
     assert res.exit_code == 0 and (tmp_path / "rig.toml").read_text() == TEMPLATE
@@ -387,3 +385,22 @@ def test_a_hardware_sequenced_projector_plays_the_alternating_order(tmp_path):
             'trigger = "hardware"', 'trigger = "hardware"\npattern_cycle = 6\npattern_sequence = [0, 1, 2, 0, 1, 2]'), "live.toml"))
     session = AcquisitionSession(LiveConfig.from_toml(text.replace('trigger = "hardware"', 'trigger = "hardware"\npattern_cycle = 6'), "live.toml"))
     assert session.settings.pattern_sequence == (0, 1, 2, 0, 2, 1)
+
+
+def test_live_gives_the_reconstructor_the_models_own_support_test(twin, tmp_path, monkeypatch, own_support_decoder,
+                                                                 support_spy):
+    """Unset in the config, the live reconstructor runs the decoding model's per-burst fringe-support test (its JSON's
+    ``network_support``), else the product's; ``network_support_px`` in the config overrides both (-1: off)."""
+    from gearscan.live import run_live
+    from gearscan.recon import measure
+
+    root, rec, rig_path = twin
+    cfg = LiveConfig.load(_config(tmp_path, rec, rig_path, None))
+    assert cfg.recon.network_support_px is None
+    monkeypatch.setattr(measure, "NETWORK_SUPPORT_PX", 6)
+    off = cfg.model_copy(update={"recon": cfg.recon.model_copy(update={"network_support_px": -1})})
+    for config, decoder, expected in ((cfg, own_support_decoder(4, 9), 4), (cfg, Decoder(classical=True), 6),
+                                      (off, own_support_decoder(4, 9), None)):
+        with pytest.raises(support_spy.Called):
+            run_live(config, bursts=1, decoder=decoder, handle_signals=False)
+        assert support_spy.calls[-1]["network_support_px"] == expected
