@@ -154,7 +154,8 @@ def main() -> None:
     ]
     args.report.with_suffix(".md").write_text("\n".join(lines))
     args.report.with_suffix(".json").write_text(json.dumps({"commit": commit(), "host": started, "rows": rows,
-                                                          "network_support_px": args.network_support_px,  # None: the product's
+                                                          "network_support_px": args.network_support_px,  # the option; None: the model's own
+                                                          "support_px_run": support,  # what ran (None: no test)
                                                           "support_test": support_text}, indent=2))
     print("\n".join(lines))
 

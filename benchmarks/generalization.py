@@ -53,7 +53,7 @@ from gearscan.generalization import (
 )
 from gearscan.inference.predictor import THREE_STEP_NOISE, Predictor, model_path
 from gearscan.inference.uncertainty import reliability
-from gearscan.recon.measure import NETWORK_SUPPORT_PX
+from gearscan.recon.measure import network_support_option
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import SHIPPED, SHIPPED_DEFAULT_RIG, SHIPPED_V5, SHIPPED_V6, describe
 
@@ -207,8 +207,10 @@ def main() -> None:
     methods = {BASELINE: classical_method, NETWORK: network_method(predictor), other_name: network_method(other),
                RIG_NAME: network_method(rig)}
     mc_name = f"{NETWORK} MC T={args.mc}"
-    det = GeneralizationScorer([BASELINE, NETWORK, other_name, RIG_NAME])
-    mc = GeneralizationScorer([BASELINE, NETWORK, mc_name])
+    own = predictor.network_support  # every network method here is this model: its own per-burst keep test
+    det = GeneralizationScorer([BASELINE, NETWORK, other_name, RIG_NAME],
+                               supports={NETWORK: own, other_name: own, RIG_NAME: own})
+    mc = GeneralizationScorer([BASELINE, NETWORK, mc_name], supports={NETWORK: own, mc_name: own})
     scenes_json, timing = [], {"render_s": 0.0, "decode_s": 0.0, "mc_s": 0.0, "bursts": 0, "mc_bursts": 0}
     still_sigma: dict[str, dict[str, list[np.ndarray]]] = {}
     for fam in families:
@@ -292,6 +294,7 @@ def still_sigma_section(acc: dict, order: list[str]) -> list[str]:
 def write_report(out: Path, args, machine: dict, predictor: Predictor, det: GeneralizationScorer,
                  mc: GeneralizationScorer, mc_name: str, scenes_json: list, timing: dict, total_s: float,
                  families: list[str], still_sigma: dict | None = None) -> None:
+    support_px = network_support_option(None, model=predictor.network_support)  # the coverage's keep test
     cells, strata = det.cells(), det.strata()
     mc_cells = mc.cells()
     fams = [*families, ALL]
@@ -350,7 +353,7 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "three-step RMSE / network RMSE (< 1: the network is worse); ECE: 30 bins, eps 0.03 rad "
         "(`inference.uncertainty.reliability`); coverage: share of the truth mask passing the reconstructor's "
         f"keep test (modulation >= 0.05, sigma <= 0.3 rad; a network's pixel also needs fringes in its frames within "
-        f"{NETWORK_SUPPORT_PX} px, `recon.measure.NETWORK_SUPPORT_PX`); RMSE of the kept pixels: over the truth-mask pixels "
+        f"{support_px} px, the model's own per-burst setting or else the product's, `recon.measure.network_support_option`); RMSE of the kept pixels: over the truth-mask pixels "
         "that each method's own keep test passes (what reaches the cloud; three-step PS's sigma is its noise "
         "propagation, blind to motion).",
         "",

@@ -36,7 +36,7 @@ from gearscan.evaluate import (
 )
 from gearscan.generalization import vote_mirrored
 from gearscan.inference.predictor import Predictor
-from gearscan.recon.measure import NETWORK_SUPPORT_PX
+from gearscan.recon.measure import network_support_option
 from gearscan.twin.families import family_scenes
 
 HERE = Path(__file__).parent
@@ -66,6 +66,7 @@ def main() -> None:
     shipped = Predictor.load(args.model)
     rig = Predictor.load(args.model, orientation=orientation)
     methods = {"three-step PS": classical_method, SHIPPED: network_method(shipped), RIG: network_method(rig)}
+    support_px = network_support_option(None, model=rig.network_support)  # the model's own per-burst keep test
     if rig.still_burst_rad > 0:
         alone = Predictor.load(args.model, orientation=orientation, still_burst_rad=0.0)
         methods[f"{RIG}, no still-burst gate"] = network_method(alone)
@@ -88,7 +89,7 @@ def main() -> None:
     gate = rig.meta.get("still_burst_gate") or {}
     report = {
         "commit": commit, "model": str(args.model or "inference/weights/default.safetensors"),
-        "network_support_px": NETWORK_SUPPORT_PX,  # the per-burst fringe-support test this run's clouds kept
+        "network_support_px": support_px,  # the per-burst fringe-support test this run's clouds kept (peers: theirs)
         "precision": shipped.precision, "orientation": orientation, "split": "test (default family)",
         "scenes": [s.name for s in scenes], "bursts_per_motion_per_scene": args.per_motion, "torch_seed": args.seed,
         "still_burst_gate": {"rad": rig.still_burst_rad, "max_motion_share": gate.get("max_motion_share")},
@@ -120,7 +121,7 @@ def main() -> None:
         "truth mask that got a point. The timing column is this run's wall time per burst including the decode's "
         "own overheads (speed: `inference_speed*.md`).",
         *(["- Since session 32 the reconstructor keeps a network's pixel only where the burst's own frames show fringes on "
-        f"every pixel within {NETWORK_SUPPORT_PX} px (`recon.measure.keep_candidates`, chosen on val for the shipped model: "
+        f"every pixel within {support_px} px (`recon.measure.keep_candidates`, the model's own setting, chosen on val for the shipped model: "
         "`benchmarks/network_support_rule.md`, 2 px for v6; "
         "the problem was first seen on these test bursts, so they are no clean held-out measure of the guard). The "
         "same run without it (commit 8482663, AMX host; history, not this run): per-burst cloud RMS on still bursts "

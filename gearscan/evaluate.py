@@ -9,6 +9,7 @@ scored the same way.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import time
@@ -149,9 +150,12 @@ def classical_method(frames: np.ndarray, full_scale: float, angles: np.ndarray |
 
 
 def network_method(predictor, mc: int = 0) -> Method:
+    """``predictor`` as a method; ``network_support`` on it: the model's own fringe-support tests (the clouds'
+    keep test, :func:`cloud_accuracy`)."""
     def run(frames: np.ndarray, full_scale: float, angles: np.ndarray | None = None) -> PhaseResult:
         return predictor.predict(frames, mc, full_scale=full_scale, angles=angles)
 
+    run.network_support = getattr(predictor, "network_support", None)
     return run
 
 
@@ -185,7 +189,7 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
                 errs.append(phase_error(res.phase, c.truth.phase)[m])
                 sigmas.append(res.sigma_total[m])
                 if clouds:
-                    d, hit = cloud_accuracy(c, res)
+                    d, hit = cloud_accuracy(c, res, model=getattr(method, "network_support", None))
                     cloud_sq += float(np.sum(d**2))
                     cloud_n += d.size
                     covered += hit
@@ -201,9 +205,11 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
     return out
 
 
-def cloud_accuracy(case: BurstCase, result: PhaseResult) -> tuple[np.ndarray, int]:
+def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None) -> tuple[np.ndarray, int]:
     """Distance (mm) of each point triangulated from ``result`` to the true gear surface, and how
-    many truth-mask pixels got a point (coverage numerator).
+    many truth-mask pixels got a point (coverage numerator). A network's pixels pass the per-burst
+    fringe-support test of the decoding ``model`` (its ``network_support``; None: the product's), as
+    the app's reconstructor runs it.
 
     Scored against the twin's gear (the scene's gear is the one rendered), not the fringe orders'
     prior (DESIGN.md, "Numbers we can trust"); every point counts, edge and spurious ones included.
@@ -215,8 +221,13 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult) -> tuple[np.ndarray, in
     import open3d as o3d
 
     from gearscan.core.types import Burst, Frame
+    from gearscan.recon.measure import network_support_option
 
     rc, surface = case.scene.cad
+    support = network_support_option(None, model=model)
+    if support != rc.network_support_px:  # the scene's reconstructor, this model's keep test
+        rc = copy.copy(rc)
+        rc.network_support_px = support
     fr = tuple(Frame(f, i, 0, i, bit_depth=int(case.full_scale).bit_length()) for i, f in enumerate(case.frames))
     angles = tuple(math.radians(a) for a in case.angles_deg)
     m = rc(Burst(fr, angles), replace(result, angle=angles[0]))

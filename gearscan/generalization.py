@@ -183,12 +183,13 @@ def pixel_strata(case: BurstCase, span_deg: float) -> dict[str, np.ndarray]:
     }
 
 
-def covered(result: PhaseResult, frames: np.ndarray, full_scale: float) -> np.ndarray:
+def covered(result: PhaseResult, frames: np.ndarray, full_scale: float, model=None) -> np.ndarray:
     """Pixels the reconstructor's keep test passes in ``result`` of these ``frames`` (its defaults:
-    :func:`gearscan.recon.measure.keep_candidates`), before unwrapping."""
-    from gearscan.recon.measure import keep_candidates
+    :func:`gearscan.recon.measure.keep_candidates`, with the decoding ``model``'s per-burst fringe-support test, its
+    ``network_support``; None: the product's), before unwrapping."""
+    from gearscan.recon.measure import keep_candidates, network_support_option
 
-    return keep_candidates(result, frames, full_scale)[0]
+    return keep_candidates(result, frames, full_scale, network_support_px=network_support_option(None, model=model))[0]
 
 
 # --- accumulation ---------------------------------------------------------------------------
@@ -274,11 +275,13 @@ class GeneralizationScorer:
     per family and pooled over all of them (:data:`ALL`).
     """
 
-    def __init__(self, methods: list[str], network: str = NETWORK, baseline: str = BASELINE) -> None:
+    def __init__(self, methods: list[str], network: str = NETWORK, baseline: str = BASELINE,
+                 supports: dict | None = None) -> None:
         for name in (network, baseline):
             if name not in methods:
                 raise ValueError(f"methods {methods} lack {name!r} (network {network!r}, baseline {baseline!r})")
         self.methods = list(methods)
+        self.supports = dict(supports or {})  # method -> its model's network_support (coverage's keep test)
         self.network, self.baseline = network, baseline
         self._cells: dict[tuple[str, str], _Sums] = {}
         self._strata: dict[tuple[str, str, str], _StrataSums] = {}
@@ -292,7 +295,7 @@ class GeneralizationScorer:
         if n == 0:
             return
         errs = {k: phase_error(results[k].phase, case.truth.phase)[m].astype(np.float64) for k in self.methods}
-        kept = {k: covered(results[k], case.frames, case.full_scale)[m] for k in self.methods}
+        kept = {k: covered(results[k], case.frames, case.full_scale, self.supports.get(k))[m] for k in self.methods}
         groups = [motion.group] + ([MOVING] if motion.kind == MOVING else [])
         for fam in (family, ALL):
             for grp in groups:

@@ -17,7 +17,9 @@ from gearscan.core.rig import Rig
 from gearscan.core.types import Burst, Measurement, PhaseResult
 
 UNWRAP_MODES = ("cad", "envelope", "coarse")
-# a network's pixel needs fringes in its own frames on every pixel within this many px (val choice,
+# The product's fringe-support tests, for a model whose JSON names none (each shipped model carries its own,
+# `network_support`, which `network_support_option` prefers); both are the shipped v9's val choices.
+# A network's pixel needs fringes in its own frames on every pixel within this many px (val choice,
 # benchmarks/network_support_rule.md; scripts/choose_network_support.py -> benchmarks/network_support_val.json):
 # 2 px for v6, 0 px (its own pixel only) for v9, which the outside-mask loss taught not to invent phase there
 NETWORK_SUPPORT_PX = 0

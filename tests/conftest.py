@@ -86,7 +86,6 @@ def own_support_decoder() -> type[OwnSupportDecoder]:
     return OwnSupportDecoder
 
 
-
 @pytest.fixture
 def support_spy(monkeypatch) -> ReplaySpy:
     """``Reconstructor.for_gear`` replaced by a spy (``calls[-1]["network_support_px"]``: the test it was given); the

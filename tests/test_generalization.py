@@ -199,3 +199,44 @@ def test_a_tie_between_two_three_step_routines_is_not_a_loss() -> None:
     assert not stratum(0.0282 * (1 + 1e-6)).worse and not loses(0.0282, 0.0282)
     assert stratum(0.0282 * 1.01).worse and loses(0.0285, 0.0282)
     assert not stratum(0.0200).worse
+
+
+def test_coverage_runs_the_decoding_models_own_support_test(cases) -> None:
+    """The keep test behind coverage is the one the app runs for the model (its JSON's ``network_support``): a
+    model naming a 4 px ring keeps fewer pixels of a network-decoded burst than one naming no test, and exactly what
+    ``keep_candidates`` keeps at 4 px."""
+    from gearscan.inference.predictor import NetworkSupport
+    from gearscan.recon.measure import keep_candidates
+
+    def as_network(frames, full_scale, angles=None):  # three-step PS's phase, reported as a network's
+        return dataclasses.replace(classical_method(frames, full_scale, angles), mode="deterministic")
+
+    coverage = {}
+    for px in (4, None):
+        scorer = GeneralizationScorer([BASELINE, NETWORK], supports={NETWORK: NetworkSupport(px, None)})
+        case = cases[1]
+        res = run_methods(case, {BASELINE: classical_method, NETWORK: as_network})
+        assert res[NETWORK].from_network
+        scorer.add("tiny", ONE_DEG, case, res)
+        coverage[px] = {(c.family, c.group): c for c in scorer.cells()}[("tiny", MOVING)].coverage[NETWORK]
+    kept = keep_candidates(res[NETWORK], case.frames, case.full_scale, network_support_px=4)[0] & case.truth.mask
+    assert coverage[4] == pytest.approx(kept.sum() / case.truth.mask.sum())
+    assert 0 < coverage[4] < coverage[None]
+
+
+def test_evaluate_scores_each_models_cloud_with_its_own_support_test(cases, monkeypatch) -> None:
+    """``gearscan evaluate``'s cloud column keeps a network's pixels by the decoding model's own fringe-support test:
+    ``network_method`` carries the predictor's ``network_support`` and ``score`` hands it to ``cloud_accuracy``."""
+    import gearscan.evaluate as ev
+    from gearscan.inference.predictor import NetworkSupport
+
+    class Stub:  # a predictor: three-step PS's phase, and a model record of 3 px
+        network_support = NetworkSupport(3, None)
+
+        def predict(self, frames, mc=0, *, full_scale, angles=None):
+            return classical_method(frames, full_scale, angles)
+
+    seen = []
+    monkeypatch.setattr(ev, "cloud_accuracy", lambda case, result, model=None: (seen.append(model), (np.zeros(1), 1))[1])
+    ev.score({BASELINE: classical_method, NETWORK: ev.network_method(Stub())}, cases[:1], clouds=True)
+    assert seen == [None, NetworkSupport(3, None)]
