@@ -182,11 +182,11 @@ def run_live(
     decoder = decoder or Decoder(cfg.model.path, mc=cfg.model.mc, precision=cfg.model.precision,
                                  workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg,
                                  orientation=cfg.model.orientation)
+    support = network_support_option(cfg.recon.network_support_px,  # unset: the model's own (its JSON)
+                                     model=getattr(decoder, "network_support", None))
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
-                                   unwrap=cfg.recon.unwrap,
-                                   network_support_px=network_support_option(cfg.recon.network_support_px,
-                                                                                    model=getattr(decoder, "network_support", None)))
+                                   unwrap=cfg.recon.unwrap, network_support_px=support)
     coarse = CoarseStage(rig, cfg.projector.coarse_period_px, cfg.gear, recon if cfg.recon.unwrap == "coarse" else None)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None
     logger = None
