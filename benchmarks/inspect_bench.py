@@ -68,7 +68,7 @@ def main() -> None:
                     help="the network's fringe orientation (the Decoder's; auto: the shipped default, voted per burst "
                          "as this revolution has no still burst to adopt it from; normal: the twin rig's, set)")
     ap.add_argument("--network-support-px", type=int, default=None,
-                    help="the reconstructor's fringe-support test for network pixels (-1: none; default: the product's)")
+                    help="the reconstructor's fringe-support test for network pixels (-1: none; default: the model's own, else the product's)")
     ap.add_argument("--voxel-mm", type=float, default=0.1)
     ap.add_argument("--min-bursts", type=int, default=3)
     args = ap.parse_args()
