@@ -46,6 +46,7 @@ from gearscan.inference.model_io import read_config
 from gearscan.inference.models import ModelConfig
 from gearscan.inference.predictor import DEFAULT_MODEL, Predictor, resolve_precision
 from gearscan.inference.train import TrainConfig, TrainResult, train
+from gearscan.provenance import code_edits
 from gearscan.twin.dataset import DatasetSpec, TwinBurstDataset, generate_dataset
 from gearscan.twin.families import family_scenes
 from gearscan.twin.splits import SPLITS, describe, refuse_test
@@ -199,7 +200,7 @@ def run_family(args) -> None:
         + ("" if not start else f", from {init.stem}"),
         "period_px": scene.period_px, "resolution": f"{w}x{h}", "commit": git("rev-parse", "--short", "HEAD"),
         "training_commit": trained_at or git("rev-parse", "--short", "HEAD"),
-        "working_tree_dirty": bool(git("status", "--porcelain", "--untracked-files=no")), "host": machine,
+        "working_tree_dirty": bool(code_edits(REPO)), "host": machine,
         "torch_threads": args.threads, "precision": Predictor.load(init).precision,
         "orientation": {"mode": args.orientation, "set": orientation},
         "model": {"path": str(init.relative_to(REPO) if init.is_relative_to(REPO) else init),

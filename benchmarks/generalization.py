@@ -53,6 +53,7 @@ from gearscan.generalization import (
 )
 from gearscan.inference.predictor import THREE_STEP_NOISE, Predictor, model_path
 from gearscan.inference.uncertainty import reliability
+from gearscan.provenance import code_edits
 from gearscan.recon.measure import network_support_option
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import SHIPPED, SHIPPED_DEFAULT_RIG, SHIPPED_V5, SHIPPED_V6, describe
@@ -299,7 +300,7 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
     mc_cells = mc.cells()
     fams = [*families, ALL]
     weights = model_path(args.model)
-    commit, dirty = git("rev-parse", "--short", "HEAD"), bool(git("status", "--porcelain", "--untracked-files=no"))
+    commit, dirty = git("rev-parse", "--short", "HEAD"), bool(code_edits(REPO))
     counts_ok = all(
         sum(s.pixels for s in strata if s.family == f and s.kind == kind and s.axis == a.name)
         == det.pooled_pixels(f, kind)

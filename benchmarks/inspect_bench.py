@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gearscan.provenance import code_edits
+
 HERE = Path(__file__).resolve().parent
 DEFECTS = {"eccentricity_um": 50.0, "pitch_errors": ["3:30"], "chips": ["7:0.3"]}
 
@@ -45,7 +47,7 @@ def commit() -> str:
     Cached: the first call (before a report writes its own files) is the one that counts."""
     try:
         head = subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True).strip()
-        dirty = subprocess.check_output(["git", "status", "--porcelain", "--untracked-files=no"], cwd=HERE, text=True)
+        dirty = code_edits(HERE.parent)
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return f"{head} + uncommitted edits" if dirty.strip() else head

@@ -38,6 +38,7 @@ from gearscan.generalization import (
 from gearscan.inference.calibrate import calibrate_model
 from gearscan.inference.predictor import DEFAULT_MODEL, Predictor
 from gearscan.inference.uncertainty import reliability
+from gearscan.provenance import code_edits
 from gearscan.twin.dataset import DatasetSpec, generate_dataset
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import refuse_test
@@ -171,7 +172,7 @@ def run(args) -> dict:
                 shutil.rmtree(out / "data", ignore_errors=True)
     table = {fam: {f"{m}|{mode}|{kind}": pool.scores((m, mode, kind)) for m in MAPS for mode in MODES
                    for kind in (MOVING, STILL)} for fam, pool in pools.items()}
-    return {"commit": git("rev-parse", "--short", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+    return {"commit": git("rev-parse", "--short", "HEAD"), "dirty": bool(code_edits(HERE.resolve().parent)),
             "host": machine | {"loadavg_end": os.getloadavg()}, "threads": args.threads,
             "model": str(args.model or DEFAULT_MODEL), "precision": Predictor.load(args.model).precision,
             "settings": {"scenes": args.scenes, "start_points": args.start_points, "seed": args.seed,

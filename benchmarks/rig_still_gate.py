@@ -30,6 +30,7 @@ from gearscan.generalization import MOVING, STILL
 from gearscan.inference.predictor import DEFAULT_MODEL, THREE_STEP_NOISE, Predictor
 from gearscan.inference.still_gate_choice import choose_with_motion, gate_table
 from gearscan.inference.uncertainty import reliability
+from gearscan.provenance import code_edits
 from gearscan.twin.families import family_scenes
 
 HERE = Path(__file__).parent
@@ -121,7 +122,7 @@ def run(args) -> dict:
     for fam in table:
         table[fam]["verdict"] = verdict(table[fam])
     return {"commit": git("rev-parse", "--short", "HEAD"),
-            "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+            "dirty": bool(code_edits(HERE.resolve().parent)),
             "host": machine | {"loadavg_end": os.getloadavg()}, "threads": args.threads,
             "model": str(args.model or DEFAULT_MODEL), "precision": Predictor.load(args.model).precision,
             "shipped_gate": {"rad": shipped.get("rad"), "max_motion_share": shipped.get("max_motion_share")},

@@ -42,6 +42,7 @@ from gearscan.mocks.fuzz import (
     mutate,
     write_small_recording,
 )
+from gearscan.provenance import code_edits
 
 HERE = Path(__file__).resolve().parent
 BAD = ("changed", "traceback", "hang", "unnamed_error")
@@ -230,7 +231,7 @@ def host() -> dict:
 
     return {"cpu": model, "avx512_bf16": "avx512_bf16" in flags, "amx_bf16": "amx_bf16" in flags,
             "commit": git("rev-parse", "--short", "HEAD"),
-            "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
+            "dirty": bool(code_edits(HERE.resolve().parent))}
 
 
 def write_report(report: dict, stem: Path) -> None:

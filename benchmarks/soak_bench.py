@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gearscan.provenance import code_edits
+
 HERE = Path(__file__).parent
 
 CONFIG = """
@@ -80,8 +82,7 @@ def host() -> dict:
     except (OSError, StopIteration):
         pass
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=HERE, capture_output=True,
-                           text=True).stdout.strip()
+    dirty = code_edits(HERE.parent)
     return {"cpu": model, "cores": os.cpu_count(), "commit": commit + (" + uncommitted changes" if dirty else ""),
             "python": platform.python_version()}
 

@@ -41,6 +41,7 @@ from gearscan.evaluate import Scene, render_cases
 from gearscan.generalization import PAPER, PAPER_REVERSED, rig_orientation, scene_motions
 from gearscan.inference.models import prior_channels
 from gearscan.inference.predictor import Predictor
+from gearscan.provenance import code_edits
 from gearscan.recon.deviation import CadScorer
 from gearscan.recon.measure import Reconstructor
 from gearscan.recon.triangulate import to_turntable
@@ -211,8 +212,7 @@ def write_report(args, sums: Sums, scenes: list, dev_rows: list, timing: dict, t
                  extra: dict[str, str]) -> None:
     """``extra``: the further networks' names and weight files (``--prior-model``, ``--control``)."""
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True,
-                           text=True).stdout.strip()
+    dirty = code_edits(REPO)
     fams = [*args.families, "all"]
     methods = (*METHODS, *extra)
     flags = "".join(f" --{'prior-model' if n == PRIOR_NET else 'control'} {f}" for n, f in extra.items())
