@@ -47,10 +47,9 @@ def commit() -> str:
     Cached: the first call (before a report writes its own files) is the one that counts."""
     try:
         head = subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True).strip()
-        dirty = code_edits(HERE.parent)
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
-    return f"{head} + uncommitted edits" if dirty.strip() else head
+    return f"{head} + uncommitted edits" if code_edits(HERE.parent) else head
 
 
 def main() -> None:

@@ -39,6 +39,7 @@ from gearscan.inference.calibrate import calibrate_model
 from gearscan.inference.predictor import DEFAULT_MODEL, Predictor
 from gearscan.inference.uncertainty import reliability
 from gearscan.provenance import code_edits
+from gearscan.recon.measure import network_support_option
 from gearscan.twin.dataset import DatasetSpec, generate_dataset
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import refuse_test
@@ -159,7 +160,7 @@ def run(args) -> dict:
                         phases.append(res.phase)
                         err = phase_error(res.phase, case.truth.phase)[mask]
                         pool.add((name, mode, motion.kind), err, res.sigma_total[mask],
-                                 covered(res, case.frames, case.full_scale)[mask])
+                                 covered(res, case.frames, case.full_scale, pred.network_support)[mask])
                     if not np.array_equal(*phases):
                         raise SystemExit(f"{scene.name}, {motion.name}, {mode}: the two maps gave different phases")
             scenes_json.append({"name": scene.name, "family": fam, "seed": scene.seed, "params": dict(scene.params),
@@ -176,7 +177,8 @@ def run(args) -> dict:
             "host": machine | {"loadavg_end": os.getloadavg()}, "threads": args.threads,
             "model": str(args.model or DEFAULT_MODEL), "precision": Predictor.load(args.model).precision,
             "settings": {"scenes": args.scenes, "start_points": args.start_points, "seed": args.seed,
-                         "items": args.items, "mc": args.mc, "reps": args.reps},
+                         "items": args.items, "mc": args.mc, "reps": args.reps,
+                         "network_support_px": network_support_option(None, model=Predictor.load(args.model).network_support)},
             "minutes": (time.perf_counter() - t_start) / 60.0, "scenes": scenes_json, "table": table}
 
 
@@ -202,7 +204,8 @@ def markdown(res: dict) -> str:
         "- **Read with care**: the refit sees the test scene's own rig, gear and optics through the same twin that "
         "renders the test bursts: the twin workflow's best case. A real rig adds the twin-reality gap, not measured here.",
         "- ECE: 30 bins, eps 0.03 rad (as `generalization_report.md`); median |err|/sigma: 0.674 for a calibrated Gaussian; "
-        "coverage: share of the truth mask passing the reconstructor's keep test (modulation >= 0.05, sigma <= 0.3 rad, a network's pixel fringes in its frames within 2 px); "
+        "coverage: share of the truth mask passing the reconstructor's keep test (modulation >= 0.05, sigma <= 0.3 rad, a network's pixel fringes in its frames within "
+        f"{s.get('network_support_px', 2)} px, the model's per-burst test); "
         "kept RMSE over those pixels. The map changes sigma only: both maps decode each burst with the same dropout masks, and the run stops if their phases differ; the RMSE is one.",
         "",
         "## Per family (scenes pooled)",

@@ -21,8 +21,8 @@ values), so their counts add up to the pooled count. A stratum where the network
 the baseline's (three-step PS) is flagged. ECE uses the project's reliability diagram
 (:func:`gearscan.inference.uncertainty.reliability`); coverage is the share of the truth mask that
 passes the reconstructor's own keep test (modulation >= 0.05, sigma <= 0.3 rad, finite phase; a network's pixel also
-needs fringes in its frames within the per-burst fringe-support test, ``NETWORK_SUPPORT_PX``:
-:func:`gearscan.recon.measure.keep_candidates`).
+needs fringes in its frames within the decoding model's per-burst fringe-support test, its JSON's
+``network_support``, else the product's: :func:`gearscan.recon.measure.keep_candidates`).
 """
 
 from __future__ import annotations

@@ -15,18 +15,19 @@ def test_code_edits_ignore_written_reports_and_name_edited_code(tmp_path):
     repo = tmp_path / "repo"
     (repo / "benchmarks" / "sub").mkdir(parents=True)
     (repo / "recon").mkdir()
-    files = {"benchmarks/a_report.md": "x", "benchmarks/a_report.json": "{}", "benchmarks/sub/fig.png": "p",
-             "benchmarks/bench.py": "1", "recon/measure.py": "1", "README.md": "r"}
+    files = {"benchmarks/a_report.md": "x", "benchmarks/a_report.json": "{}", "benchmarks/sub/b_report.png": "p",
+             "benchmarks/bench.py": "1", "benchmarks/x_rule.md": "r", "recon/measure.py": "1", "README.md": "r"}
     for name, text in files.items():
         (repo / name).write_text(text)
     _git(repo, "init", "-q")
     _git(repo, "add", ".")
     _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "c")
     assert code_edits(repo) == []
-    for name in ("benchmarks/a_report.md", "benchmarks/a_report.json", "benchmarks/sub/fig.png"):
+    for name in ("benchmarks/a_report.md", "benchmarks/a_report.json", "benchmarks/sub/b_report.png"):
         (repo / name).write_text("rewritten by a run")
     assert code_edits(repo) == []  # an earlier run's report is not an edit of the code
     (repo / "benchmarks/bench.py").write_text("2")
+    (repo / "benchmarks/x_rule.md").write_text("a rule edited")  # rules count: they decide
     (repo / "README.md").write_text("edited")
-    assert code_edits(repo) == ["README.md", "benchmarks/bench.py"]
+    assert code_edits(repo) == ["README.md", "benchmarks/bench.py", "benchmarks/x_rule.md"]
     assert code_edits(tmp_path / "nowhere") == ["unknown"]
