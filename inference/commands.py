@@ -431,12 +431,11 @@ def train(
             raise typer.BadParameter(f"expected CPU minutes 'A,B,...', got {checkpoints_cpu_min!r}",
                                      param_hint="--checkpoints-cpu-min") from exc
     init_loss: dict = {}
-    init_support = None  # the init model's own fringe-support tests, inherited by the fine-tune
     if init is not None:  # fine-tuning: the network is the init's own
         try:
             meta = read_config(init)
             net_config = ModelConfig.from_json(meta["model"], str(init))
-            init_support = model_network_support(meta)
+            model_network_support(meta)  # a bad entry is refused here, before any training
         except (ModelFileError, ValueError, TypeError) as exc:
             typer.echo(f"error: --init: {exc}", err=True)
             raise typer.Exit(2) from exc
@@ -494,8 +493,6 @@ def train(
     except DatasetError as exc:  # e.g. --bank on data that are not twin dataset folders
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    if result.best_path is not None and init_support is not None:
-        inherit_network_support(result.best_path, init_support, init)
     if result.best_path is not None:
         budgets = ([f"CPU budget {budget_cpu_min:g} min"] if budget_cpu_min is not None else []) + (
             [f"wall-clock budget {wall_minutes:g} min"] if wall_minutes is not None else [])
@@ -504,19 +501,6 @@ def train(
             f"best model: {result.best_path} (val loss {result.best_val:.4g}, var scale {result.var_scale:.3g}, "
             f"{result.seconds:.0f} s, {result.cpu_seconds / 60:.1f} CPU min{budget})"
         )
-
-
-def inherit_network_support(weights: Path, support, init: Path) -> None:
-    """Write the init model's fringe-support tests (``network_support``) into a fine-tune's JSON, marked as inherited:
-    a fine-tune keeps its init's behaviour at shadow borders more than it keeps the product's default model's (v6's
-    fine-tunes invent phase there as v6 does). Rerun the val choices to choose for the fine-tune itself."""
-    from gearscan.inference.model_io import read_config, write_config
-    from gearscan.inference.predictor import NETWORK_SUPPORT_KEY
-
-    meta = read_config(weights)
-    meta[NETWORK_SUPPORT_KEY] = {"per_burst_px": support.per_burst_px, "frame_fit_px": support.frame_fit_px,
-                                 "chosen_by": f"inherited from --init {init} (not chosen for this fine-tune)"}
-    write_config(weights, meta)
 
 
 def calibrate_uncertainty(

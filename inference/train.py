@@ -282,6 +282,7 @@ class Trainer:
         if self.dist.main:
             self.out.mkdir(parents=True, exist_ok=True)
         self.model: PhaseNet = build_model(config.model).to(self.device)
+        self.inherited = inherited_meta(config.init) if config.init else {}  # in every model this run saves
         if config.init:
             state = load_state(config.init)
             if config.widen_inputs:
@@ -341,7 +342,7 @@ class Trainer:
     def _save_last(self) -> None:
         self.state["cpu_s"], self._cpu0, self._kids_s = self.cpu_seconds(), time.process_time(), 0.0
         save_model(
-            self.model, self.out / "last.safetensors", extra={"training": self.config.to_json()}
+            self.model, self.out / "last.safetensors", extra={**self.inherited, "training": self.config.to_json()}
         )
         torch.save(self.optimizer.state_dict(), self.out / "last_optim.pt")
         tmp = self.out / "last_state.json.tmp"
@@ -475,7 +476,7 @@ class Trainer:
         if kept:
             self.state["stage_best"] = row["val_loss"]
             if self.dist.main:
-                save_model(self.model, self.out / f"stage{stage}_best.safetensors", extra={"metrics": row})
+                save_model(self.model, self.out / f"stage{stage}_best.safetensors", extra={**self.inherited, "metrics": row})
         else:
             self.model.load_state_dict(trained)
         if self.dist.main:
@@ -492,7 +493,7 @@ class Trainer:
             src = self.out / f"stage{stage}_best.safetensors"
             if self.dist.main and src.is_file():
                 save_model(self._best_copy(src), self.out / f"cpu_{m:g}min.safetensors",
-                           extra={"cpu_min": cpu_min, "mark_cpu_min": m, "metrics": self.history[-1]})
+                           extra={**self.inherited, "cpu_min": cpu_min, "mark_cpu_min": m, "metrics": self.history[-1]})
 
     def _best_copy(self, src: Path) -> PhaseNet:
         net = build_model(self.config.model)
@@ -646,7 +647,7 @@ class Trainer:
             self.history.append(row)
             self.state["stage_best"] = row["val_loss"]
             if self.dist.main:
-                save_model(self.model, self.out / "stage1_best.safetensors", extra={"metrics": row})
+                save_model(self.model, self.out / "stage1_best.safetensors", extra={**self.inherited, "metrics": row})
         for stage, n_epochs in stages:
             if stage < self.state["stage"]:
                 continue
@@ -705,7 +706,7 @@ class Trainer:
                         save_model(
                             self.model,
                             self.out / f"stage{stage}_best.safetensors",
-                            extra={"metrics": row},
+                            extra={**self.inherited, "metrics": row},
                         )
                     self._save_checkpoints(stage)
                     self._save_last()
@@ -752,6 +753,7 @@ class Trainer:
                 self.out / "best.safetensors",
                 var_scale=var_scale,
                 extra={
+                    **self.inherited,
                     "training": cfg.to_json(),
                     "metrics": final,
                     "calibration": calib,
@@ -768,6 +770,20 @@ class Trainer:
             best_path, self.history, float(self.state["best"]), var_scale, time.perf_counter() - t0,
             fit_cpu, budget_hit,
         )
+
+
+def inherited_meta(init: str | Path) -> dict:
+    """What a fine-tune carries over from its init model's JSON: its fringe-support tests (``network_support``), marked
+    as inherited. A fine-tune keeps its init's behaviour at shadow borders more than the product default's (v6's
+    fine-tunes invent phase there as v6 does); rerun the val choices to choose for the fine-tune itself."""
+    from gearscan.inference.model_io import read_config
+    from gearscan.inference.predictor import NETWORK_SUPPORT_KEY, model_network_support
+
+    support = model_network_support(read_config(init))
+    if support is None:
+        return {}
+    return {NETWORK_SUPPORT_KEY: {"per_burst_px": support.per_burst_px, "frame_fit_px": support.frame_fit_px,
+                                  "chosen_by": f"inherited from the init model {init} (not chosen for this fine-tune)"}}
 
 
 def train(config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None) -> TrainResult:

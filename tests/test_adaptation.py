@@ -132,7 +132,7 @@ def test_cli_renders_a_users_rig_and_fine_tunes_within_a_cpu_budget(adapt, tmp_p
     assert best["training"]["loss"]["mse_weighting"] == "modulation"  # the init's loss, not the CLI default
     # the init's own fringe-support tests travel with the fine-tune, marked as inherited
     assert Predictor.load(run / "best.safetensors").network_support == Predictor.load(DEFAULT_MODEL).network_support
-    assert best["network_support"]["chosen_by"].startswith("inherited from --init")
+    assert best["network_support"]["chosen_by"].startswith("inherited from the init model")
 
 
 def test_cli_fine_tunes_from_the_bank_within_a_wall_clock_budget(adapt, tmp_path):

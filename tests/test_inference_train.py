@@ -534,3 +534,31 @@ def test_a_later_stage_compiles_only_with_room_left(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "compile: stage 1 runs eagerly" in out and "compile: stage 2 runs eagerly" in out
     assert not trainer._compiled and "torch.compile failed" not in out  # nothing was compiled
+
+
+def test_a_fine_tune_carries_its_inits_support_tests(tmp_path):
+    """Every model a fine-tune saves (stage best, checkpoints, last, best) carries its init's ``network_support``,
+    marked inherited; an init that names none passes none on (the product's then apply)."""
+    from gearscan.inference.model_io import read_config, save_model, write_config
+    from gearscan.inference.models import build_model
+    from gearscan.inference.predictor import NetworkSupport, model_network_support
+
+    ds = TensorBurstDataset(list(twin_items()))
+    init = save_model(build_model(ModelConfig(width=4)), tmp_path / "init.safetensors")
+    plain = _cfg(tmp_path, out_dir=str(tmp_path / "plain"), epochs_deterministic=1, epochs_dropout=0, init=str(init),
+                 calibrate=False)
+    train(plain, ds, ds)
+    assert model_network_support(read_config(tmp_path / "plain" / "best.safetensors")) is None
+    meta = read_config(init)
+    meta["network_support"] = {"per_burst_px": 3, "frame_fit_px": 1, "chosen_by": "val"}
+    write_config(init, meta)
+    own = _cfg(tmp_path, out_dir=str(tmp_path / "own"), epochs_deterministic=2, epochs_dropout=0, init=str(init),
+               calibrate=False, checkpoints_cpu_min=(1e-6,))
+    train(own, ds, ds)
+    saved = sorted((tmp_path / "own").glob("*.safetensors"))
+    assert {p.name for p in saved} >= {"best.safetensors", "last.safetensors", "stage1_best.safetensors",
+                                       "cpu_1e-06min.safetensors"}
+    for path in saved:
+        meta = read_config(path)
+        assert model_network_support(meta) == NetworkSupport(3, 1), path.name
+        assert meta["network_support"]["chosen_by"].startswith("inherited from the init model"), path.name
