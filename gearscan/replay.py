@@ -46,6 +46,7 @@ class ReplayMetrics:
     fused: FusedCloud | None = None  # the revolution fused in the gear frame (replay(fuse=...))
     refine: dict = field(default_factory=dict)  # replay(refine=True): what the frame fit refined
     decoder: dict = field(default_factory=dict)  # mode, still bursts, the fringe orientation used (Decoder)
+    recon: dict = field(default_factory=dict)  # the reconstructor's settings that ran (the fringe-support test)
 
     @property
     def bursts(self) -> int:
@@ -68,7 +69,7 @@ class ReplayMetrics:
 
     def to_json(self) -> dict:
         out = {"summary": self.summary(), "bursts": self.per_burst, "pipeline": self.pipeline,
-               "assembler": self.assembler, "damage": self.damage, "decoder": self.decoder}
+               "assembler": self.assembler, "damage": self.damage, "decoder": self.decoder, "recon": self.recon}
         if self.refine:
             out["refine"] = self.refine
         return out
@@ -293,6 +294,8 @@ def replay(
         logger = RerunLogger(save=save, connect=connect, spawn=spawn)
         logger.log_rig(rig)
     metrics = ReplayMetrics()
+    if recon is not None:  # None: no test; the decoding model's own unless the caller set one
+        metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px}
     refiner = None
     if refine:
         refiner = make_refiner(reader, rig, period, fuse)

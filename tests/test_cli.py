@@ -201,8 +201,9 @@ def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording,
         res = runner.invoke(app, ["replay", str(twin_recording), "--orientation", "normal", "--metrics",
                                   str(metrics), "--save", str(tmp_path / f"{label}.rrd"), *extra])
         assert res.exit_code == 0, res.output
-        rows = json.loads(metrics.read_text())["bursts"]
-        counts[label] = sum(r.get("unwrap_unsupported", 0) for r in rows)
+        data = json.loads(metrics.read_text())
+        counts[label] = sum(r.get("unwrap_unsupported", 0) for r in data["bursts"])
+        assert data["recon"]["network_support_px"] == (None if label == "off" else 0)  # the metrics say what ran
     assert model_network_support(read_config(DEFAULT_MODEL)).per_burst_px == 0
     assert counts["off"] == 0 and counts["default"] > 0
     res = runner.invoke(app, ["replay", str(twin_recording), "--network-support-px", "-2"])
