@@ -103,6 +103,14 @@ def scene_args(ap: argparse.ArgumentParser, report: str) -> None:
     ap.add_argument("--out", type=Path, default=HERE / report)
 
 
+def support_text(settings: dict) -> str:
+    """The coverage's fringe-support test as a run recorded it (runs before session 40 did not)."""
+    if "network_support_px" not in settings:
+        return "a px count not recorded"
+    px = settings["network_support_px"]
+    return "no test" if px is None else f"{px} px"
+
+
 def write_report(out: Path, res: dict, markdown) -> None:
     """``out``.json and ``out``.md, and the Markdown printed."""
     out.with_suffix(".json").write_text(json.dumps(res, indent=1))
@@ -205,7 +213,7 @@ def markdown(res: dict) -> str:
         "renders the test bursts: the twin workflow's best case. A real rig adds the twin-reality gap, not measured here.",
         "- ECE: 30 bins, eps 0.03 rad (as `generalization_report.md`); median |err|/sigma: 0.674 for a calibrated Gaussian; "
         "coverage: share of the truth mask passing the reconstructor's keep test (modulation >= 0.05, sigma <= 0.3 rad, a network's pixel fringes in its frames within "
-        f"{s.get('network_support_px', 2)} px, the model's per-burst test); "
+        f"{support_text(s)}, the model's per-burst test); "
         "kept RMSE over those pixels. The map changes sigma only: both maps decode each burst with the same dropout masks, and the run stops if their phases differ; the RMSE is one.",
         "",
         "## Per family (scenes pooled)",

@@ -6,12 +6,12 @@ import subprocess
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-# The reports the benchmarks write into the tree (``benchmarks/**/*_report*``: md, json, png): a run in a chain that
+# The reports the benchmarks write into the tree (``benchmarks/**/*_report.{md,json,png}``): a run in a chain that
 # finds an earlier run's fresh report has not run edited code. Not counted with them: a few benchmarks read another's
 # committed report for a context table (adaptation.py: generalization_report.json). Every other file counts, the
 # rules and the val-choice JSONs under benchmarks/ included; so does any other output a run writes there (a chain
 # of such runs is stamped dirty, the safe side).
-GENERATED = (":(exclude,glob)benchmarks/**/*_report*",)
+GENERATED = tuple(f":(exclude,glob)benchmarks/**/*_report.{ext}" for ext in ("md", "json", "png"))
 
 
 def code_edits(repo: str | Path = REPO) -> list[str]:

@@ -294,8 +294,9 @@ def replay(
         logger = RerunLogger(save=save, connect=connect, spawn=spawn)
         logger.log_rig(rig)
     metrics = ReplayMetrics()
-    if recon is not None:  # None: no test; the decoding model's own unless the caller set one
-        metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px}
+    if recon is not None:  # what the reconstructor ran: network_support_px None is no test
+        metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px,
+                         "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:
         refiner = make_refiner(reader, rig, period, fuse)

@@ -16,7 +16,8 @@
 - Output folder: ``best.safetensors/.json`` (a Predictor-ready model, with the fitted variance
   scale and the per-mode sigma calibration of :mod:`gearscan.inference.uncertainty`), ``last.*`` + ``last_optim.pt`` (resume), ``metrics.csv``, ``metrics.json``,
   ``loss_curve.png``, ``reliability.png``.
-- ``init``: start from pre-trained weights (transfer learning: pre-train on twin, fine-tune).
+- ``init``: start from pre-trained weights (transfer learning: pre-train on twin, fine-tune). Every model the run
+  saves carries the init's fringe-support tests (``network_support``), marked inherited (:func:`inherited_meta`).
   The initial weights are validated first (row ``epoch 0``), so the best-on-val weights are
   never worse on val than the ones fine-tuning started from.
 - ``budget_cpu_min``: stop cleanly when this process has used that many CPU minutes
@@ -776,9 +777,11 @@ def inherited_meta(init: str | Path) -> dict:
     """What a fine-tune carries over from its init model's JSON: its fringe-support tests (``network_support``), marked
     as inherited. A fine-tune keeps its init's behaviour at shadow borders more than the product default's (v6's
     fine-tunes invent phase there as v6 does); rerun the val choices to choose for the fine-tune itself."""
-    from gearscan.inference.model_io import read_config
+    from gearscan.inference.model_io import config_path, read_config
     from gearscan.inference.predictor import NETWORK_SUPPORT_KEY, model_network_support
 
+    if not config_path(init).is_file():  # bare weights: nothing to inherit (load_state needs only the weights)
+        return {}
     support = model_network_support(read_config(init))
     if support is None:
         return {}

@@ -27,7 +27,8 @@ NETWORK_SUPPORT_PX = 0
 # takes the pixels a test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
 # scripts/choose_fused_support.py -> benchmarks/fused_support_val.json): 0 px for v6, no test (None) for v9
 FRAME_FIT_NETWORK_SUPPORT_PX: int | None = None
-PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the product's test for the path taken
+PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the decoding model's test for the path
+# taken, else the product's (network_support_option)
 
 
 class ModelSupport(Protocol):

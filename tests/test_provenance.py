@@ -16,7 +16,8 @@ def test_code_edits_ignore_written_reports_and_name_edited_code(tmp_path):
     (repo / "benchmarks" / "sub").mkdir(parents=True)
     (repo / "recon").mkdir()
     files = {"benchmarks/a_report.md": "x", "benchmarks/a_report.json": "{}", "benchmarks/sub/b_report.png": "p",
-             "benchmarks/bench.py": "1", "benchmarks/x_rule.md": "r", "recon/measure.py": "1", "README.md": "r"}
+             "benchmarks/bench.py": "1", "benchmarks/x_rule.md": "r", "benchmarks/c_report.py": "1",
+             "recon/measure.py": "1", "README.md": "r"}
     for name, text in files.items():
         (repo / name).write_text(text)
     _git(repo, "init", "-q")
@@ -28,6 +29,7 @@ def test_code_edits_ignore_written_reports_and_name_edited_code(tmp_path):
     assert code_edits(repo) == []  # an earlier run's report is not an edit of the code
     (repo / "benchmarks/bench.py").write_text("2")
     (repo / "benchmarks/x_rule.md").write_text("a rule edited")  # rules count: they decide
+    (repo / "benchmarks/c_report.py").write_text("2")  # a report's writer is code
     (repo / "README.md").write_text("edited")
-    assert code_edits(repo) == ["README.md", "benchmarks/bench.py", "benchmarks/x_rule.md"]
+    assert code_edits(repo) == ["README.md", "benchmarks/bench.py", "benchmarks/c_report.py", "benchmarks/x_rule.md"]
     assert code_edits(tmp_path / "nowhere") == ["unknown"]
