@@ -89,7 +89,7 @@ from gearscan.inference.distributed import (
 )
 from gearscan.inference.losses import LossConfig, PhaseLoss
 from gearscan.inference.lr_schedule import SCHEDULES, TIMED_SCHEDULES, build_scheduler
-from gearscan.inference.model_io import load_into, load_state, save_model, widen_inputs
+from gearscan.inference.model_io import load_into, load_state, read_config, save_model, widen_inputs
 from gearscan.inference.models import ModelConfig, PhaseNet, build_model
 from gearscan.inference.plots import plot_history
 
@@ -326,6 +326,12 @@ class Trainer:
         if scored != here:  # the best-so-far score would be on another scale
             raise ValueError(f"resume {self.out}: its validation read {scored}, this config reads {here}")
         self.state, self.history = st["state"], st["history"]
+        from gearscan.inference.predictor import (
+            NETWORK_SUPPORT_KEY,  # what the run's saves so far carried
+        )
+
+        carried = read_config(self.out / "last.safetensors").get(NETWORK_SUPPORT_KEY)
+        self.inherited = {NETWORK_SUPPORT_KEY: carried} if carried is not None else {}
         self.state.setdefault("cpu_s", 0.0)
         self.state.setdefault("checkpoints", [])
         opt = self.out / "last_optim.pt"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -562,3 +563,9 @@ def test_a_fine_tune_carries_its_inits_support_tests(tmp_path):
         meta = read_config(path)
         assert model_network_support(meta) == NetworkSupport(3, 1), path.name
         assert meta["network_support"]["chosen_by"].startswith("inherited from the init model"), path.name
+    # a resumed run keeps what its saves carried, even if the init's JSON changed since
+    meta = read_config(init)
+    meta["network_support"] = {"per_burst_px": 5, "frame_fit_px": None}
+    write_config(init, meta)
+    train(dataclasses.replace(own, epochs_deterministic=3, resume=True), ds, ds)
+    assert model_network_support(read_config(tmp_path / "own" / "last.safetensors")) == NetworkSupport(3, 1)
