@@ -181,12 +181,13 @@ def run(args) -> dict:
                 shutil.rmtree(out / "data", ignore_errors=True)
     table = {fam: {f"{m}|{mode}|{kind}": pool.scores((m, mode, kind)) for m in MAPS for mode in MODES
                    for kind in (MOVING, STILL)} for fam, pool in pools.items()}
+    shipped = Predictor.load(args.model)
     return {"commit": git("rev-parse", "--short", "HEAD"), "dirty": bool(code_edits(HERE.resolve().parent)),
             "host": machine | {"loadavg_end": os.getloadavg()}, "threads": args.threads,
-            "model": str(args.model or DEFAULT_MODEL), "precision": Predictor.load(args.model).precision,
+            "model": str(args.model or DEFAULT_MODEL), "precision": shipped.precision,
             "settings": {"scenes": args.scenes, "start_points": args.start_points, "seed": args.seed,
                          "items": args.items, "mc": args.mc, "reps": args.reps,
-                         "network_support_px": network_support_option(None, model=Predictor.load(args.model).network_support)},
+                         "network_support_px": network_support_option(None, model=shipped.network_support)},
             "minutes": (time.perf_counter() - t_start) / 60.0, "scenes": scenes_json, "table": table}
 
 

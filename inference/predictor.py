@@ -582,6 +582,10 @@ class NetworkSupport:
     per_burst_px: int | None
     frame_fit_px: int | None
 
+    def to_json(self, chosen_by: str) -> dict:
+        """The JSON entry (:func:`model_network_support` reads it back), with what chose it."""
+        return {"per_burst_px": self.per_burst_px, "frame_fit_px": self.frame_fit_px, "chosen_by": chosen_by}
+
 
 def _support_px(raw: object, name: str) -> int | None:
     if raw is None:

@@ -326,11 +326,9 @@ class Trainer:
         if scored != here:  # the best-so-far score would be on another scale
             raise ValueError(f"resume {self.out}: its validation read {scored}, this config reads {here}")
         self.state, self.history = st["state"], st["history"]
-        from gearscan.inference.predictor import (
-            NETWORK_SUPPORT_KEY,  # what the run's saves so far carried
-        )
+        from gearscan.inference.predictor import NETWORK_SUPPORT_KEY
 
-        carried = read_config(self.out / "last.safetensors").get(NETWORK_SUPPORT_KEY)
+        carried = read_config(self.out / "last.safetensors").get(NETWORK_SUPPORT_KEY)  # what its saves carried
         self.inherited = {NETWORK_SUPPORT_KEY: carried} if carried is not None else {}
         self.state.setdefault("cpu_s", 0.0)
         self.state.setdefault("checkpoints", [])
@@ -348,9 +346,7 @@ class Trainer:
 
     def _save_last(self) -> None:
         self.state["cpu_s"], self._cpu0, self._kids_s = self.cpu_seconds(), time.process_time(), 0.0
-        save_model(
-            self.model, self.out / "last.safetensors", extra={**self.inherited, "training": self.config.to_json()}
-        )
+        self._save(self.model, "last", {"training": self.config.to_json()})
         torch.save(self.optimizer.state_dict(), self.out / "last_optim.pt")
         tmp = self.out / "last_state.json.tmp"
         tmp.write_text(json.dumps({"state": self.state, "history": self.history,
@@ -483,7 +479,7 @@ class Trainer:
         if kept:
             self.state["stage_best"] = row["val_loss"]
             if self.dist.main:
-                save_model(self.model, self.out / f"stage{stage}_best.safetensors", extra={**self.inherited, "metrics": row})
+                self._save(self.model, f"stage{stage}_best", {"metrics": row})
         else:
             self.model.load_state_dict(trained)
         if self.dist.main:
@@ -499,8 +495,13 @@ class Trainer:
             self.state["checkpoints"].append(m)
             src = self.out / f"stage{stage}_best.safetensors"
             if self.dist.main and src.is_file():
-                save_model(self._best_copy(src), self.out / f"cpu_{m:g}min.safetensors",
-                           extra={**self.inherited, "cpu_min": cpu_min, "mark_cpu_min": m, "metrics": self.history[-1]})
+                self._save(self._best_copy(src), f"cpu_{m:g}min",
+                           {"cpu_min": cpu_min, "mark_cpu_min": m, "metrics": self.history[-1]})
+
+    def _save(self, model: torch.nn.Module, name: str, extra: dict, var_scale: float = 1.0) -> Path:
+        """``out/<name>.safetensors`` with its JSON: ``extra`` plus what the run inherits from its init."""
+        return save_model(model, self.out / f"{name}.safetensors", var_scale=var_scale,
+                          extra={**self.inherited, **extra})
 
     def _best_copy(self, src: Path) -> PhaseNet:
         net = build_model(self.config.model)
@@ -654,7 +655,7 @@ class Trainer:
             self.history.append(row)
             self.state["stage_best"] = row["val_loss"]
             if self.dist.main:
-                save_model(self.model, self.out / "stage1_best.safetensors", extra={**self.inherited, "metrics": row})
+                self._save(self.model, "stage1_best", {"metrics": row})
         for stage, n_epochs in stages:
             if stage < self.state["stage"]:
                 continue
@@ -710,11 +711,7 @@ class Trainer:
                 self.history.append(row)
                 if self.dist.main:
                     if improved:
-                        save_model(
-                            self.model,
-                            self.out / f"stage{stage}_best.safetensors",
-                            extra={**self.inherited, "metrics": row},
-                        )
+                        self._save(self.model, f"stage{stage}_best", {"metrics": row})
                     self._save_checkpoints(stage)
                     self._save_last()
                     self._write_metrics()
@@ -755,12 +752,11 @@ class Trainer:
         best_path = None
         if self.dist.main:
             final = self.history[-1] if self.history else {}
-            best_path = save_model(
+            best_path = self._save(
                 self.model,
-                self.out / "best.safetensors",
+                "best",
                 var_scale=var_scale,
                 extra={
-                    **self.inherited,
                     "training": cfg.to_json(),
                     "metrics": final,
                     "calibration": calib,
@@ -783,7 +779,7 @@ def inherited_meta(init: str | Path) -> dict:
     """What a fine-tune carries over from its init model's JSON: its fringe-support tests (``network_support``), marked
     as inherited. A fine-tune keeps its init's behaviour at shadow borders more than the product default's (v6's
     fine-tunes invent phase there as v6 does); rerun the val choices to choose for the fine-tune itself."""
-    from gearscan.inference.model_io import config_path, read_config
+    from gearscan.inference.model_io import config_path
     from gearscan.inference.predictor import NETWORK_SUPPORT_KEY, model_network_support
 
     if not config_path(init).is_file():  # bare weights: nothing to inherit (load_state needs only the weights)
@@ -791,8 +787,7 @@ def inherited_meta(init: str | Path) -> dict:
     support = model_network_support(read_config(init))
     if support is None:
         return {}
-    return {NETWORK_SUPPORT_KEY: {"per_burst_px": support.per_burst_px, "frame_fit_px": support.frame_fit_px,
-                                  "chosen_by": f"inherited from the init model {init} (not chosen for this fine-tune)"}}
+    return {NETWORK_SUPPORT_KEY: support.to_json(f"inherited from the init model {init} (not chosen for this fine-tune)")}
 
 
 def train(config: TrainConfig, train_set: Dataset, val_set: Dataset | None = None) -> TrainResult:
