@@ -777,8 +777,8 @@ class Trainer:
 
 def inherited_meta(init: str | Path) -> dict:
     """What a fine-tune carries over from its init model's JSON: its fringe-support tests (``network_support``), marked
-    as inherited. A fine-tune keeps its init's behaviour at shadow borders more than the product default's (v6's
-    fine-tunes invent phase there as v6 does); rerun the val choices to choose for the fine-tune itself."""
+    as inherited. A fine-tune starts from its init's behaviour at shadow borders, not from the product default's (how
+    far fine-tuning moves it was not measured); rerun the val choices to choose for the fine-tune itself."""
     from gearscan.inference.model_io import config_path
     from gearscan.inference.predictor import NETWORK_SUPPORT_KEY, model_network_support
 
