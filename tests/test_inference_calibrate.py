@@ -144,3 +144,22 @@ def test_a_refit_of_the_mc_map_alone_keeps_the_deterministic_one(val_set, model_
         calibrate_model(out, val_set, items=8, mc=3, modes=("median",))
     with pytest.raises(ValueError, match="nothing to fit"):
         calibrate_model(out, val_set, items=8, mc=0, modes=("mc",))
+
+
+def test_the_mc_phase_table_scores_each_draw_against_the_truth(val_set, model_path):
+    """scripts/choose_mc_phase.py's table on a rendered val folder: the two-sided rule's four draws, each cell's
+    MC figure the mean of the draws' RMSEs, pooled moving = the one family's moving cell, and a verdict."""
+    from gearscan.inference.mc_phase_choice import mc_phase_table, verdict_two_sided
+
+    table = mc_phase_table(str(model_path), {"v": [str(val_set)]}, seed=1, moving=4, still=2, passes=3,
+                           rule="two-sided")
+    assert set(table) == {"v:moving", "v:still", "pooled:moving", "rule"}
+    row = table["v:moving"]
+    assert set(row) == {"det", "mc2", "mc3", "mc4", "mc5", "mc_mean_of_draws"}
+    assert row["mc_mean_of_draws"] == pytest.approx(np.mean([row[f"mc{s}"] for s in (2, 3, 4, 5)]))
+    assert table["pooled:moving"] == pytest.approx(row)
+    assert all(0 < v < np.pi for r in ("v:moving", "v:still") for v in table[r].values())
+    assert len({row[f"mc{s}"] for s in (2, 3, 4, 5)}) > 1  # the draws differ: dropout is sampled
+    assert table["rule"] == verdict_two_sided(table)
+    with pytest.raises(ValueError, match="rule"):
+        mc_phase_table(str(model_path), {"v": [str(val_set)]}, rule="median")

@@ -144,3 +144,30 @@ def test_the_rule_adopts_the_deterministic_phase_only_when_no_worse():
     one_family_still = {**good, "a:still": row(0.0520, 0.05)}  # 1.04x
     assert not verdict(one_family_still)["adopt"] and verdict(one_family_still)["1 pooled moving det <= MC"]
     assert verdict({**good, "a:still": row(0.0514, 0.05)})["adopt"]  # 1.028x: within the bound
+
+
+def test_the_two_sided_rule_picks_the_phase_with_the_lower_worst_cell():
+    """benchmarks/mc_phase_rule_v2.md on scripted tables: each phase is judged by its worst cell against the other;
+    within 1.03x everywhere, pooled moving RMSE decides (ties: deterministic)."""
+    from gearscan.inference.mc_phase_choice import verdict_two_sided
+
+    def row(det: float, mc: float) -> dict:
+        return {"det": det, "mc2": mc, "mc3": mc, "mc_mean_of_draws": mc}
+
+    # session 39's shape: det 1.04x on one family, the mean 1.22x on another -> deterministic
+    mixed = {"r:moving": row(0.1085, 0.1043), "d:moving": row(0.0987, 0.1207), "r:still": row(0.05, 0.05),
+             "pooled:moving": row(0.2727, 0.2759)}
+    v = verdict_two_sided(mixed)
+    assert v["phase"] == "deterministic" and v["adopt"] and v["decided by"].startswith("2")
+    assert v["worst cell if deterministic"] == pytest.approx(0.1085 / 0.1043)
+    assert v["worst cell if mean"] == pytest.approx(0.1207 / 0.0987)
+    # the mirror image keeps the mean, even though det wins pooled
+    mirror = {**mixed, "r:moving": row(0.1207, 0.0987), "d:moving": row(0.1043, 0.1085)}
+    assert verdict_two_sided(mirror)["phase"] == "mean"
+    # within 1.03x everywhere: pooled decides, either way
+    close = {"a:moving": row(0.100, 0.101), "a:still": row(0.0505, 0.050), "pooled:moving": row(0.100, 0.101)}
+    assert verdict_two_sided(close)["phase"] == "deterministic"
+    assert verdict_two_sided({**close, "pooled:moving": row(0.102, 0.101)})["phase"] == "mean"
+    assert verdict_two_sided({**close, "pooled:moving": row(0.101, 0.101)})["phase"] == "deterministic"
+    with pytest.raises(ValueError, match="no family"):
+        verdict_two_sided({"pooled:moving": row(0.1, 0.1)})
