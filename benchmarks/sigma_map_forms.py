@@ -7,10 +7,10 @@ per family (deterministic, moving). This study asks, on val only, which run-time
 needs. Per val family (``val_radial``; ``val_views``: side, oblique, face and radial views; the default rig's four
 val gears) the shipped model decodes a seeded sample of whole moving and still bursts, deterministic, with the
 shipped gates; per truth-mask pixel it keeps the error, the uncalibrated sigma, the departure from three-step PS, the
-local density of the network's fringes (|grad phase|, rad/px) and the frames' modulation. Each candidate form is fitted
+local density of the network's fringes (|grad phase|, rad/px). Each candidate form is fitted by the product's code
 (the event score of the ECE's event) on two families and scored on the third, so each family plays an unseen rig;
-cells are family or view x moving/still. Nothing here changes the product: the rule that would ship a form is
-written before a deciding run (``sigma_map_forms_report.md`` says what is next).
+cells are family or view x moving/still. It decides only as ``sigma_map_form_rule.md`` (written before its
+deciding run, seed 2) says; the seed-1 run reported (session 41, with a modulation row since dropped).
 """
 
 from __future__ import annotations
@@ -24,13 +24,15 @@ from pathlib import Path
 import numpy as np
 import torch
 from adaptation import git, host
-from scipy.optimize import minimize
 
-from gearscan.core.phase import wrap
 from gearscan.inference.calibrate import collect_errors, val_samples
-from gearscan.inference.models import classical_md
 from gearscan.inference.predictor import Predictor
-from gearscan.inference.uncertainty import SigmaCalibration, confidence, reliability
+from gearscan.inference.uncertainty import (
+    SigmaCalibration,
+    fit_additive_map,
+    fit_sigma_calibration,
+    reliability,
+)
 from gearscan.provenance import code_edits
 
 HERE = Path(__file__).parent
@@ -42,61 +44,52 @@ ECE_TARGET = 0.05
 
 @dataclass(frozen=True)
 class Form:
-    """A log-linear map in the named log features, with ``knots`` hinge terms per feature at val quantiles;
+    """A candidate map: the power law (``power``, the shipped form, fitted on every pixel alike) or the additive map
+    (:class:`~gearscan.inference.uncertainty.AdditiveSigmaMap`) in ``features`` with ``knots`` hinges each;
     ``balanced``: every family x kind cell weighs the same in the fit (else every pixel does, as shipped)."""
 
     features: tuple[str, ...]
     knots: int
     balanced: bool
+    power: bool = False
 
     @property
     def name(self) -> str:
-        return f"{' + '.join(self.features)}, {self.knots} knots, {'cells balanced' if self.balanced else 'pixels'}"
+        if self.power:
+            return "power law sigma + departure (the shipped form), pixels"
+        return (f"additive {' + '.join(self.features)}, {self.knots} knots, "
+                f"{'cells balanced' if self.balanced else 'pixels'}")
 
 
 FORMS = (
-    Form(("sigma", "departure"), 0, False),  # the shipped form and weighting
+    Form(("sigma", "departure"), 0, False, power=True),  # A of sigma_map_form_rule.md
     Form(("sigma", "departure"), 0, True),
     Form(("sigma", "departure"), 3, False),
     Form(("sigma", "departure"), 3, True),
-    Form(("sigma", "departure", "fringe density"), 0, False),
-    Form(("sigma", "departure", "fringe density"), 0, True),
-    Form(("sigma", "departure", "fringe density"), 3, False),
-    Form(("sigma", "departure", "fringe density"), 3, True),
-    Form(("sigma", "departure", "fringe density", "modulation"), 3, True),
+    Form(("sigma", "departure", "density"), 0, False),
+    Form(("sigma", "departure", "density"), 0, True),
+    Form(("sigma", "departure", "density"), 3, False),
+    Form(("sigma", "departure", "density"), 3, True),  # B of sigma_map_form_rule.md
 )
 
 
-def fringe_density(phase: np.ndarray) -> np.ndarray:
-    """|grad| of a wrapped phase (rad/px, forward differences wrapped): 2 pi / the local fringe period."""
-    gy = wrap(np.diff(phase, axis=0, append=phase[-1:]))
-    gx = wrap(np.diff(phase, axis=1, append=phase[:, -1:]))
-    return np.hypot(gx, gy).astype(np.float32)
-
-
 def collect(predictor: Predictor, seed: int, items: int) -> dict[str, np.ndarray]:
-    """Per truth-mask pixel of the sampled val bursts: error, sigma, departure, features, family, view, still."""
-    folders = [f for fs in FAMILIES.values() for f in fs]
-    fam_of = [name for name, fs in FAMILIES.items() for _ in fs]
-    views = {f: [e["rig"]["name"] for e in json.loads((Path(f) / "index.json").read_text())["entries"]] for f in folders}
-    cols: dict[str, list] = {k: [] for k in ("error", "sigma", "departure", "gated", "still", "family", "view",
-                                             "fringe density", "modulation")}
-    for k, ds, pick, still in val_samples(folders, items, seed, predictor.needs_angles):
+    """Per truth-mask pixel of the sampled val bursts (:func:`collect_errors`): error, sigma, departure, fringe
+    density, gated, still, family and view."""
+    names = list(FAMILIES)
+    views = {f: [e["rig"]["name"] for e in json.loads((Path(f) / "index.json").read_text())["entries"]]
+             for fs in FAMILIES.values() for f in fs}
+    cols: dict[str, list] = {k: [] for k in ("error", "sigma", "departure", "density", "gated", "still", "family",
+                                             "view")}
+    for k, ds, pick, still in val_samples(list(FAMILIES.values()), items, seed, predictor.needs_angles):
         for i in pick:
             px = collect_errors(predictor, ds, [i], 0, folder=k, still=still)
-            item = ds[int(i)]
-            x = torch.from_numpy(np.asarray(item["input"], np.float32))[None]
-            mask = np.asarray(item["mask"], bool)
-            md = classical_md(x[:, :3])[0].numpy()
-            net = predictor.predict_tensor(x, 0)
             n = px.error.size
-            for name, v in (("error", px.error), ("sigma", px.sigma), ("departure", px.departure),
-                            ("gated", px.gated), ("still", px.still)):
-                cols[name].append(v)
-            cols["family"].append(np.full(n, fam_of[k]))
-            cols["view"].append(np.full(n, view_label(fam_of[k], views[folders[k]][int(item["group"])])))
-            cols["fringe density"].append(fringe_density(net.phase)[mask])
-            cols["modulation"].append(np.hypot(*md)[mask].astype(np.float32))
+            for name in ("error", "sigma", "departure", "density", "gated", "still"):
+                cols[name].append(getattr(px, name))
+            cols["family"].append(np.full(n, names[k]))
+            rig_name = views[str(ds.root)][int(ds[int(i)]["group"])] if names[k] == "views" else ""
+            cols["view"].append(np.full(n, view_label(names[k], rig_name)))
     return {k: np.concatenate(v) for k, v in cols.items()}
 
 
@@ -105,48 +98,22 @@ def view_label(family: str, rig_name: str) -> str:
     return {"radial": "val_radial", "default": "default rig val gears"}.get(family, f"val_views {rig_name}")
 
 
-def log_features(px: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    return {"sigma": np.log(np.maximum(px["sigma"], 1e-6)).astype(np.float64),
-            "departure": np.log(px["departure"] + 0.01).astype(np.float64),
-            "fringe density": np.log(np.minimum(px["fringe density"], np.pi) + 0.02).astype(np.float64),
-            "modulation": np.log(px["modulation"] + 0.02).astype(np.float64)}
-
-
-def design(form: Form, feats: dict[str, np.ndarray], fit_on: np.ndarray) -> np.ndarray:
-    """Columns: 1, each feature, and its hinges at the quantiles of the fitting pixels."""
-    cols = [np.ones(next(iter(feats.values())).size)]
-    for f in form.features:
-        x = feats[f]
-        cols.append(x)
-        if form.knots:
-            for q in np.quantile(x[fit_on], np.linspace(0, 1, form.knots + 2)[1:-1]):
-                cols.append(np.maximum(x - q, 0.0))
-    return np.stack(cols, 1)
-
-
-def fit_held_out(form: Form, px: dict[str, np.ndarray], feats: dict[str, np.ndarray], held: str,
-                 max_pixels: int = 400_000, seed: int = 0) -> np.ndarray:
-    """Sigma of the ``held`` family's pixels from the form fitted on the others (gated bursts keep theirs)."""
+def fit_held_out(form: Form, px: dict[str, np.ndarray], held: str) -> np.ndarray:
+    """Sigma of the ``held`` family's pixels from the form fitted on the others by the product's fitting code
+    (gated bursts are not fitted and keep their sigma, as ``calibrate_model`` does)."""
     train = (px["family"] != held) & ~px["gated"]
-    X = design(form, feats, train)
-    w = np.zeros(train.size)
-    cells = [(px["family"] == f) & (px["still"] == s) & train for f in FAMILIES for s in (False, True)]
-    for c in cells:
-        w[c] = 1.0 / max(int(c.sum()), 1) if form.balanced else 1.0
-    idx = np.nonzero(train)[0]
-    if idx.size > max_pixels:
-        idx = np.random.default_rng(seed).choice(idx, max_pixels, replace=False, p=w[idx] / w[idx].sum())
-    Xs, hit = X[idx], (np.abs(px["error"][idx]) < EPS).astype(np.float64)
-
-    def loss(p: np.ndarray) -> float:
-        c = np.clip(confidence(np.exp(Xs @ p), EPS), 1e-9, 1 - 1e-9)
-        return float(-np.mean(hit * np.log(c) + (1 - hit) * np.log1p(-c)))
-
-    x0 = np.zeros(X.shape[1])
-    x0[1] = 1.0
-    p = minimize(loss, x0, method="L-BFGS-B", options={"maxiter": 500}).x
     m = px["family"] == held
-    return np.where(px["gated"][m], px["sigma"][m], np.exp(X[m] @ p))
+    if form.power:
+        cal, _ = fit_sigma_calibration(px["error"][train], px["sigma"][train], px["departure"][train])
+    else:
+        weights = None
+        if form.balanced:
+            cell = np.unique(np.stack([px["family"][train], px["still"][train].astype(str)], 1), axis=0,
+                             return_inverse=True)[1].ravel()
+            weights = 1.0 / np.bincount(cell)[cell]
+        cal, _ = fit_additive_map(px["error"][train], px["sigma"][train], px["departure"][train],
+                                  px["density"][train], weights=weights, features=form.features, knots=form.knots)
+    return np.where(px["gated"][m], px["sigma"][m], cal(px["sigma"][m], px["departure"][m], px["density"][m]))
 
 
 def cell_eces(px: dict[str, np.ndarray], sigma: np.ndarray, min_pixels: int = 5000) -> dict[str, float]:
@@ -173,16 +140,26 @@ def main() -> None:
     shipped = predictor.calibration.get("deterministic") or SigmaCalibration()
     predictor.calibration = {}  # the raw sigma, as calibrate_model fits it
     px = collect(predictor, args.seed, args.items)
-    feats = log_features(px)
-    rows = {"shipped map (fitted on val_radial + val_views: held out only on the default rig)":
-            cell_eces(px, np.where(px["gated"], px["sigma"], shipped(px["sigma"], px["departure"])))}
+    fitted_on = "; ".join((predictor.meta.get("uncertainty_calibration") or {}).get("data") or ["unknown"])
+    rows = {f"shipped map (fitted on {fitted_on}: not held out there)":
+            cell_eces(px, np.where(px["gated"], px["sigma"], shipped(px["sigma"], px["departure"], px["density"])))}
     for form in FORMS:
         sigma = np.zeros(px["error"].size)
         for fam in FAMILIES:
-            sigma[px["family"] == fam] = fit_held_out(form, px, feats, fam)
+            sigma[px["family"] == fam] = fit_held_out(form, px, fam)
         rows[form.name] = cell_eces(px, sigma)
         print(f"{form.name}: worst {max(rows[form.name].values()):.3f}", flush=True)
     write(args, rows, px, machine, time.time() - t0)
+
+
+def rule_verdict(rows: dict[str, dict[str, float]]) -> dict[str, float | bool]:
+    """``sigma_map_form_rule.md``: B (the last form) ships if its worst and its mean cell ECE are below A's (the
+    first, the shipped form), both held out by family."""
+    a, b = rows[FORMS[0].name], rows[FORMS[-1].name]
+    out = {"A worst": max(a.values()), "A mean": float(np.mean(list(a.values()))),
+           "B worst": max(b.values()), "B mean": float(np.mean(list(b.values())))}
+    out |= {"1 worst": out["B worst"] < out["A worst"], "2 mean": out["B mean"] < out["A mean"]}
+    return out | {"adopt": out["1 worst"] and out["2 mean"]}
 
 
 def write(args, rows: dict[str, dict[str, float]], px: dict[str, np.ndarray], machine: dict, seconds: float) -> None:
@@ -208,6 +185,14 @@ def write(args, rows: dict[str, dict[str, float]], px: dict[str, np.ndarray], ma
         lines.append(f"| {name} | " + " | ".join(
             f"**{r[c]:.3f}**" if r[c] > ECE_TARGET else f"{r[c]:.3f}" for c in cells) + f" | {worst:.3f} |")
     lines += ["", "Bold: above the issue's 0.05. Pixels per cell: " + ", ".join(f"{c} {n}" for c, n in pixels.items()) + "."]
+    verdict = rule_verdict(rows)
+    data["rule"] = verdict
+    args.out.with_suffix(".json").write_text(json.dumps(data, indent=1))
+    lines += ["", "## `sigma_map_form_rule.md` on this run (it decides only on its deciding run, seed 2)", "",
+              f"- A, {FORMS[0].name}: worst cell {verdict['A worst']:.3f}, mean {verdict['A mean']:.3f}",
+              f"- B, {FORMS[-1].name}: worst cell {verdict['B worst']:.3f}, mean {verdict['B mean']:.3f}",
+              f"- 1. B's worst below A's: {'yes' if verdict['1 worst'] else 'no'}; 2. B's mean below A's: "
+              f"{'yes' if verdict['2 mean'] else 'no'}. **{'Adopt B' if verdict['adopt'] else 'Nothing ships'}.**"]
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
 
 

@@ -3,11 +3,13 @@
 Per mode (deterministic, and Monte Carlo when the model has Concrete Dropout) the network
 predicts whole validation bursts, moving ones (both turning senses) and still ones: without
 angles the network cannot tell them apart, so neither can its sigma. The wrapped phase errors
-against the twin's truth, the predicted total sigmas and the departures from three-step PS fit
-``sigma' = a * sigma**b * (departure + d0)**c`` by the log score of the ECE's event
-(:func:`~gearscan.inference.uncertainty.fit_sigma_calibration`). To show that the map transfers,
-each validation folder is first scored by a map fitted on the others (one folder: on half of
-its start points, scored on the other half); the stored map is then fitted on all of them.
+against the twin's truth, the predicted total sigmas, the departures from three-step PS and the
+network's fringe density fit the map by the log score of the ECE's event: the power law
+``sigma' = a * sigma**b * (departure + d0)**c`` (:func:`~gearscan.inference.uncertainty.fit_sigma_calibration`)
+or the additive map (:func:`~gearscan.inference.uncertainty.fit_additive_map`, every validation family x kind
+weighing the same). A validation family is one folder, or several folders pooled (the same rig, other gears).
+To show that the map transfers, each family is first scored by a map fitted on the others (one family: on half
+of its start points, scored on the other half); the stored map is then fitted on all of them.
 :func:`calibrate_trained_model` fits the same maps (and the variance scale) on the validation
 loader at the end of training.
 """
@@ -35,25 +37,31 @@ from gearscan.inference.predictor import (
     still_burst_gate,
 )
 from gearscan.inference.uncertainty import (
-    SigmaCalibration,
+    MAP_FORMS,
+    SigmaMap,
     departure,
     event_log_score,
+    fit_additive_map,
     fit_sigma_calibration,
     fit_variance_scale,
+    fringe_density,
     gaussian_nll,
+    map_form,
     mc_moments,
     phase_sigma,
     plot_reliability,
     reliability,
+    sigma_map_from_json,
 )
 
 
 @dataclass(frozen=True, slots=True)
 class PixelErrors:
     """Per truth-mask pixel: wrapped phase error, uncalibrated total sigma, departure from
-    three-step PS (rad), the pixel's validation folder, start point and still flag, and whether the
+    three-step PS (rad), the pixel's validation family (``folder``), start point and still flag, whether the
     still-burst gate decoded its burst by three-step PS (its sigma is then three-step's own, which the map
-    never touches at run time: such pixels are scored, not fitted)."""
+    never touches at run time: such pixels are scored, not fitted), and the fringe density of the network's
+    phase (rad/px)."""
 
     error: np.ndarray
     sigma: np.ndarray
@@ -62,6 +70,7 @@ class PixelErrors:
     group: np.ndarray
     still: np.ndarray
     gated: np.ndarray
+    density: np.ndarray
 
     def take(self, keep: np.ndarray) -> PixelErrors:
         return PixelErrors(*(getattr(self, f)[keep] for f in self.__slots__))
@@ -105,7 +114,8 @@ def collect_errors(
         parts.append(PixelErrors(
             phase_error(r.phase, item["phase"])[mask].astype(np.float32), r.sigma_total[mask],
             departure(net.phase, np.arctan2(*classical))[mask], np.full(k, folder, np.int16),
-            np.full(k, int(item["group"]), np.int32), np.full(k, still, bool), np.full(k, r.mode == "three-step")))
+            np.full(k, int(item["group"]), np.int32), np.full(k, still, bool), np.full(k, r.mode == "three-step"),
+            fringe_density(net.phase)[mask]))
         if progress:
             progress(n + 1, len(items))
     return PixelErrors.concat(parts)
@@ -123,21 +133,28 @@ def _scores(px: PixelErrors, sigma: np.ndarray) -> dict[str, float]:
     return out
 
 
-def _fit(px: PixelErrors) -> tuple[SigmaCalibration, dict]:
-    """The map fitted on the pixels it applies to at run time (not those of gated bursts)."""
+def _fit(px: PixelErrors, form: str = "power") -> tuple[SigmaMap, dict]:
+    """The map of ``form`` fitted on the pixels it applies to at run time (not those of gated bursts); the
+    additive map with every family x kind weighing the same."""
     fit = px.take(~px.gated) if px.gated.any() and not px.gated.all() else px
-    return fit_sigma_calibration(fit.error, fit.sigma, fit.departure)
+    if form == "power":
+        return fit_sigma_calibration(fit.error, fit.sigma, fit.departure)
+    if form != "additive":
+        raise ValueError(f"form: expected one of {MAP_FORMS}, got {form!r}")
+    cell = fit.folder.astype(np.int64) * 2 + fit.still
+    counts = np.bincount(cell)
+    return fit_additive_map(fit.error, fit.sigma, fit.departure, fit.density, weights=1.0 / counts[cell])
 
 
-def _calibrated(cal: SigmaCalibration, px: PixelErrors) -> np.ndarray:
+def _calibrated(cal: SigmaMap, px: PixelErrors) -> np.ndarray:
     """Each pixel's sigma as the Predictor reports it with ``cal``: gated bursts keep three-step's."""
-    return np.where(px.gated, px.sigma, cal(px.sigma, px.departure)).astype(np.float32)
+    return np.where(px.gated, px.sigma, cal(px.sigma, px.departure, px.density)).astype(np.float32)
 
 
-def fit_mode(px: PixelErrors, folders: Sequence[str]) -> tuple[SigmaCalibration, dict]:
-    """Fit on all pixels; report each held-out piece scored by a map fitted without it.
+def fit_mode(px: PixelErrors, folders: Sequence[str], form: str = "power") -> tuple[SigmaMap, dict]:
+    """Fit a map of ``form`` on all pixels; report each held-out piece scored by a map fitted without it.
 
-    Several folders: leave one folder out. One folder: fit on half its start points, score the rest.
+    Several families: leave one family out. One family: fit on half its start points, score the rest.
     """
     report: dict = {"held_out": []}
     if len(folders) >= 2:
@@ -149,46 +166,54 @@ def fit_mode(px: PixelErrors, folders: Sequence[str]) -> tuple[SigmaCalibration,
     for name, held in pieces:
         if held.all() or not held.any():
             continue
-        part, _ = _fit(px.take(~held))
+        part, _ = _fit(px.take(~held), form)
         test = px.take(held)
         report["held_out"].append({
             "scored": name, "map": part.to_json(),
             "before": _scores(test, test.sigma), "after": _scores(test, _calibrated(part, test)),
         })
-    cal, metrics = _fit(px)
+    cal, metrics = _fit(px, form)
     report["all"] = metrics | {"after": _scores(px, _calibrated(cal, px)), "gated_pixels": int(px.gated.sum())}
     return cal, report
 
 
-def val_samples(folders: Sequence[str], items: int, seed: int, needs_angles: bool) -> list[tuple[int, object, list[int], bool]]:
-    """Per folder, a seeded sample of ``items`` moving bursts (both senses) and ``items // 2`` still
-    ones: ``(folder index, dataset, picked items, still)``, whole images."""
+def val_samples(folders: Sequence[str | Sequence[str]], items: int, seed: int,
+                needs_angles: bool) -> list[tuple[int, object, list[int], bool]]:
+    """Per validation family (a folder, or a list of folders pooled as one), a seeded sample of ``items`` moving
+    bursts (both senses) and ``items // 2`` still ones, shared out over its folders: ``(family index, dataset,
+    picked items, still)``, whole images."""
     from gearscan.inference.data import MotionInput
     from gearscan.twin.dataset import TwinBurstDataset
 
     sets = []
-    for k, folder in enumerate(folders):
-        rng = np.random.default_rng([seed, k])
-        for still in (False, True):
-            ds = (TwinBurstDataset(folder, crop=None, static=True, motion="uniform", max_span=0) if still
-                  else TwinBurstDataset(folder, crop=None, reverse=True))
-            if needs_angles:
-                ds = MotionInput(ds)
-            n = min(items // 2 if still else items, len(ds))
-            if n:
-                sets.append((k, ds, sorted(rng.choice(len(ds), n, replace=False).tolist()), still))
+    for k, family in enumerate(folders):
+        group = [family] if isinstance(family, str | Path) else list(family)
+        for j, folder in enumerate(group):
+            # one folder per family: the generator as before (seed, k), so a stored sample is drawn again
+            rng = np.random.default_rng([seed, k] if len(group) == 1 else [seed, k, j])
+            for still in (False, True):
+                ds = (TwinBurstDataset(folder, crop=None, static=True, motion="uniform", max_span=0) if still
+                      else TwinBurstDataset(folder, crop=None, reverse=True))
+                if needs_angles:
+                    ds = MotionInput(ds)
+                want = (items // 2 if still else items) // len(group)
+                n = min(want, len(ds))
+                if n:
+                    sets.append((k, ds, sorted(rng.choice(len(ds), n, replace=False).tolist()), still))
     return sets
 
 
 def calibrate_model(
-    model: str | Path | None, val: str | Path | Sequence[str | Path], *, items: int = 64, mc: int = 20,
-    seed: int = 0, output: str | Path | None = None, progress: Callable[[str], None] | None = None,
-    orientation: str = "normal", modes: Sequence[str] = ("deterministic", "mc"),
+    model: str | Path | None, val: str | Path | Sequence[str | Path | Sequence[str | Path]], *, items: int = 64,
+    mc: int = 20, seed: int = 0, output: str | Path | None = None, progress: Callable[[str], None] | None = None,
+    orientation: str = "normal", modes: Sequence[str] = ("deterministic", "mc"), form: str | None = None,
 ) -> dict:
     """Fit and store the sigma calibration of ``model`` (default: the shipped one) on ``val``.
 
-    ``val``: one or more twin validation folders; per folder ``items`` moving bursts and
-    ``items // 2`` still ones. Writes ``sigma_calibration`` and an ``uncertainty_calibration``
+    ``val``: one or more validation families, each a twin validation folder or a list of folders pooled as one
+    (e.g. one rig's gears; or comma-joined, as the report stores it); per family ``items`` moving bursts and ``items // 2`` still ones. ``form``: the map's
+    form, ``"power"`` or ``"additive"`` (:data:`~gearscan.inference.uncertainty.MAP_FORMS`); None: per mode, the
+    form of the model's stored map (none stored: the power law). Writes ``sigma_calibration`` and an ``uncertainty_calibration``
     report into the model's JSON (or into ``output``'s JSON, copying the weights there); returns
     that report. ``orientation``: the Predictor's fringe orientation on the val bursts; every twin
     rig's is ``"normal"``, as a user sets it for the rig (``"auto"``'s per-burst vote misreads some
@@ -198,22 +223,27 @@ def calibrate_model(
     unknown = set(modes) - {"deterministic", "mc"}
     if not modes or unknown:
         raise ValueError(f"modes: expected some of ('deterministic', 'mc'), got {tuple(modes)}")
+    if form is not None and form not in MAP_FORMS:
+        raise ValueError(f"form: expected one of {MAP_FORMS} or None (the model's), got {form!r}")
     path = model_path(model)
     if items < 2:
         raise ValueError(f"items: expected >= 2 validation bursts, got {items}")
-    folders = [str(v) for v in ([val] if isinstance(val, str | Path) else val)]
-    if not folders:
-        raise ValueError("val: expected at least one validation folder")
+    families = [str(v).split(",") if isinstance(v, str | Path) else [str(f) for f in v]  # "a,b": pooled, as stored
+                for v in ([val] if isinstance(val, str | Path) else val)]
+    if not families or not all(families):
+        raise ValueError("val: expected at least one validation folder in every family")
+    folders = [",".join(f) for f in families]  # each family's name in the report
     predictor = Predictor.load(path, orientation=orientation)
     predictor.calibration = {}  # fit on the uncalibrated sigma (var_scale stays applied)
-    sets = val_samples(folders, items, seed, predictor.needs_angles)
+    sets = val_samples(families, items, seed, predictor.needs_angles)
     fitting = ([("deterministic", 0)] if "deterministic" in modes else []) + (
         [("mc", mc)] if "mc" in modes and mc > 0 and predictor.has_dropout else [])
     if not fitting:
         raise ValueError(f"modes {tuple(modes)}: nothing to fit (MC needs mc > 0 and a model with Concrete Dropout)")
     meta = read_config(path)
-    calibration = {k: SigmaCalibration.from_json(v, f"sigma_calibration.{k}")
-                   for k, v in (meta.get("sigma_calibration") or {}).items() if k not in modes}
+    stored = {k: sigma_map_from_json(v, f"sigma_calibration.{k}")
+              for k, v in (meta.get("sigma_calibration") or {}).items()}
+    calibration = {k: v for k, v in stored.items() if k not in modes}
     report = {"data": folders, "items": {"moving": sum(len(p) for _, _, p, s in sets if not s),
                                          "still": sum(len(p) for _, _, p, s in sets if s)}, "seed": seed,
               "orientation": orientation}
@@ -227,9 +257,10 @@ def calibrate_model(
                     progress(f"{name}: {folders[k]} {'still' if still else 'moving'} {n}/{total} bursts")
 
             parts.append(collect_errors(predictor, ds, pick, passes, tick, folder=k, still=still))
-        cal, rep = fit_mode(PixelErrors.concat(parts), folders)
+        mode_form = form or map_form(stored.get(name))
+        cal, rep = fit_mode(PixelErrors.concat(parts), folders, mode_form)
         calibration[name] = cal
-        report[name] = {"passes": passes, "map": cal.to_json(), **rep}
+        report[name] = {"passes": passes, "form": mode_form, "map": cal.to_json(), **rep}
     meta["sigma_calibration"] = {k: v.to_json() for k, v in calibration.items()}
     meta["uncertainty_calibration"] = report
     target = path

@@ -526,17 +526,22 @@ def calibrate_uncertainty(
         typer.Option(help="the val bursts' fringe orientation (normal: every twin rig's; auto: the per-burst vote, "
                      "which misreads some fast bursts)"),
     ] = "normal",
+    form: Annotated[
+        str | None,
+        typer.Option(help="the map's form: power (sigma' = a sigma^b (departure + d0)^c) or additive (hinges in log "
+                     "sigma, departure and the network's fringe density); default: the form of the model's map"),
+    ] = None,
 ) -> None:
-    """Fit the uncertainty calibration (sigma' = a sigma^b (departure + d0)^c per mode, by the log
-    score of the ECE's event) and store it in the model's JSON; prints the ECE before and after on
-    held-out data (each folder scored by a map fitted on the others; one folder: half its start points)."""
+    """Fit the uncertainty calibration per mode (by the log score of the ECE's event) and store it in the
+    model's JSON; prints the ECE before and after on held-out data (each folder scored by a map fitted on the
+    others; one folder: half its start points)."""
     from gearscan.inference.calibrate import calibrate_model
     from gearscan.inference.model_io import ModelFileError
     from gearscan.twin.dataset import DatasetError
 
     try:
         report = calibrate_model(model, val, items=items, mc=mc, seed=seed, output=output,
-                                 progress=lambda s: typer.echo(f"- {s}"), orientation=orientation)
+                                 progress=lambda s: typer.echo(f"- {s}"), orientation=orientation, form=form)
     except (ModelFileError, DatasetError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -545,9 +550,13 @@ def calibrate_uncertainty(
             continue
         r = report[mode]
         m = r["map"]
-        line = f"{mode}: sigma' = {m['a']:.4g} * sigma^{m['b']:.3f}"
-        if "c" in m:
-            line += f" * (departure + {m['d0']:g})^{m['c']:.3f}"
+        if m.get("form") == "additive":
+            terms = ", ".join(f"{t['feature']} ({len(t['knots'])} knots)" for t in m["terms"])
+            line = f"{mode}: additive map in log {terms}"
+        else:
+            line = f"{mode}: sigma' = {m['a']:.4g} * sigma^{m['b']:.3f}"
+            if "c" in m:
+                line += f" * (departure + {m['d0']:g})^{m['c']:.3f}"
         typer.echo(line)
         for piece in r["held_out"]:
             b, a = piece["before"], piece["after"]

@@ -34,10 +34,11 @@ from gearscan.inference.model_io import ModelFileError, load_model
 from gearscan.inference.models import PRIOR_CHANNELS, classical_md, motion_channels
 from gearscan.inference.uncertainty import (
     MomentStats,
-    SigmaCalibration,
+    SigmaMap,
     deterministic_moments,
     mc_moments,
     moments_about,
+    sigma_map_from_json,
     to_phase_result,
 )
 
@@ -204,7 +205,7 @@ class Predictor:
     model : the network (any :class:`~gearscan.inference.models.PhaseNet`)
     var_scale : variance calibration factor stored with the model (1 = none)
     calibration : sigma calibration per mode (``"deterministic"``, ``"mc"``), applied after
-        propagation (:class:`~gearscan.inference.uncertainty.SigmaCalibration`); none: identity
+        propagation (:class:`~gearscan.inference.uncertainty.SigmaCalibration` or ``AdditiveSigmaMap``); none: identity
     device : ``"cpu"`` or ``"cuda"``
     precision : ``"auto"``, ``"fp32"`` or ``"bf16"`` (autocast); see :func:`resolve_precision`
     channels_last : channels_last memory format (default: on CPU, where it was faster in fp32
@@ -251,7 +252,7 @@ class Predictor:
         mc_chunk: int | None = None,
         meta: dict | None = None,
         channels_last: bool | None = None,
-        calibration: dict[str, SigmaCalibration] | None = None,
+        calibration: dict[str, SigmaMap] | None = None,
         still_gate_rad: float | None = None,
         orientation: str = "auto",
         still_burst_rad: float | None = None,
@@ -328,7 +329,7 @@ class Predictor:
             )
         for mode, entry in raw.items():
             try:
-                calibration[mode] = SigmaCalibration.from_json(entry, f"sigma_calibration.{mode}")
+                calibration[mode] = sigma_map_from_json(entry, f"sigma_calibration.{mode}")
             except ValueError as exc:
                 raise ModelFileError(f"{path.with_suffix('.json')}: {exc}") from exc
         return cls(
@@ -420,7 +421,7 @@ class Predictor:
                 return mc_moments(self.model, x, mc, chunk)
             return deterministic_moments(self.model, x)
 
-    def _result(self, stats: MomentStats, mc: int, mirror: bool, calibration: SigmaCalibration | None,
+    def _result(self, stats: MomentStats, mc: int, mirror: bool, calibration: SigmaMap | None,
                 classical: np.ndarray | None) -> PhaseResult:
         """The network's own :class:`PhaseResult` from its moments (``mc`` passes; 0: deterministic)."""
         if mirror:
@@ -659,7 +660,7 @@ def burst_departure(phase: np.ndarray, classical: np.ndarray) -> float | None:
 
 
 def still_burst_gate(
-    result: PhaseResult, classical: np.ndarray, rad: float, calibration: SigmaCalibration | None = None,
+    result: PhaseResult, classical: np.ndarray, rad: float, calibration: SigmaMap | None = None,
     sigma_map: BurstSigma | None = None, *, frames: np.ndarray | None = None,
     max_motion: float = NO_MOTION_CHECK,
 ) -> tuple[PhaseResult, bool]:
@@ -695,9 +696,9 @@ def still_burst_gate(
         mod = np.maximum(np.hypot(m3, d3), np.float32(0.01))
         f = (a * np.power(s, b - 1) * np.power(mod, c)).astype(np.float32)
     elif calibration is not None and calibration.needs_departure:
-        dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(m3, d3)))))
-        f = np.power(np.float32(calibration.d0) / (dep.astype(np.float32) + np.float32(calibration.d0)),
-                     np.float32(calibration.c)).astype(np.float32)
+        # the map read at three-step PS's own departure (0) instead of the network's
+        dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(m3, d3))))).astype(np.float32)
+        f = (calibration.departure_factor(np.zeros_like(dep)) / calibration.departure_factor(dep)).astype(np.float32)
     if f is None:
         return gated, True
     scale = {name: (getattr(result, name) * f).astype(np.float32)
@@ -719,7 +720,7 @@ def three_step_noise_sigma(modulation: np.ndarray, noise: float) -> dict[str, np
 
 def apply_still_gates(
     result: PhaseResult, classical: np.ndarray | None, *, pixel_rad: float, burst_rad: float,
-    calibration: SigmaCalibration | None = None, burst_sigma: BurstSigma | None = None,
+    calibration: SigmaMap | None = None, burst_sigma: BurstSigma | None = None,
     frames: np.ndarray | None = None, max_motion: float = NO_MOTION_CHECK,
 ) -> tuple[PhaseResult, bool]:
     """The burst gate (:func:`still_burst_gate`) on the network's ``result``, then, if it left the

@@ -236,11 +236,20 @@ class SigmaCalibration:
         """The map reads the departure from three-step PS (``c != 0``)."""
         return self.c != 0.0
 
-    def __call__(self, sigma: np.ndarray, departure: np.ndarray | None = None) -> np.ndarray:
+    needs_density = False  # the power law does not read the fringe density
+
+    def __call__(self, sigma: np.ndarray, departure: np.ndarray | None = None,
+                 density: np.ndarray | None = None) -> np.ndarray:
         return self.factor(sigma, departure) * np.maximum(np.asarray(sigma, np.float32), np.float32(1e-12))
 
-    def factor(self, sigma_total: np.ndarray, departure: np.ndarray | None = None) -> np.ndarray:
-        """``sigma'/sigma`` per pixel (float32: this runs on every burst)."""
+    def departure_factor(self, departure: np.ndarray) -> np.ndarray:
+        """The departure's own factor, ``(departure + d0)**c``: a still-burst gate swaps the network's departure
+        for three-step PS's own (zero) by the ratio of two of these."""
+        return np.power(np.asarray(departure, np.float32) + np.float32(self.d0), np.float32(self.c))
+
+    def factor(self, sigma_total: np.ndarray, departure: np.ndarray | None = None,
+               density: np.ndarray | None = None) -> np.ndarray:
+        """``sigma'/sigma`` per pixel (float32: this runs on every burst); ``density`` is not read."""
         s = np.maximum(np.asarray(sigma_total, np.float32), np.float32(1e-12))
         f = np.float32(self.a) * np.power(s, np.float32(self.b - 1.0))
         if self.needs_departure:
@@ -249,7 +258,7 @@ class SigmaCalibration:
                     f"sigma calibration with c={self.c:g}: expected a departure map of shape {s.shape} "
                     f"(|network - three-step| phase), got {None if departure is None else np.shape(departure)}"
                 )
-            f = f * np.power(np.asarray(departure, np.float32) + np.float32(self.d0), np.float32(self.c))
+            f = f * self.departure_factor(departure)
         return f
 
     def to_json(self) -> dict[str, float]:
@@ -267,6 +276,229 @@ class SigmaCalibration:
             return cls(**{k: float(v) for k, v in data.items()})
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{source}: {exc}") from exc
+
+
+SIGMA_FLOOR = 1e-6  # rad: the sigma feature's floor before its log
+DENSITY_FLOOR = 0.02  # rad/px: the fringe density's floor before its log
+MAP_FEATURES = ("sigma", "departure", "density")
+LOG_SIGMA_RANGE = (math.log(1e-5), math.log(10.0))  # a mapped sigma stays within 1e-5..10 rad, where hinges extrapolate
+
+
+def fringe_density(phase: np.ndarray) -> np.ndarray:
+    """``|grad phase|`` of a wrapped phase (rad/px; per axis the mean of the wrapped forward and backward
+    differences, so a mirrored image gives the mirrored map; an edge pixel has only its inner one, halved):
+    2 pi over the local fringe period, capped at pi. Dense fringes are where the network's phase errs most."""
+    p = np.pad(np.asarray(phase, np.float64), 1, mode="edge")
+    c = p[1:-1, 1:-1]
+    gx = 0.5 * (wrap(p[1:-1, 2:] - c) + wrap(c - p[1:-1, :-2]))
+    gy = 0.5 * (wrap(p[2:, 1:-1] - c) + wrap(c - p[:-2, 1:-1]))
+    return np.minimum(np.hypot(gx, gy), np.pi).astype(np.float32)
+
+
+def log_map_feature(name: str, values: np.ndarray) -> np.ndarray:
+    """The additive map's x for feature ``name`` (:data:`MAP_FEATURES`): log sigma, log(departure + 0.01),
+    log(min(density, pi) + 0.02)."""
+    v = np.asarray(values, np.float32)
+    if name == "sigma":
+        return np.log(np.maximum(v, np.float32(SIGMA_FLOOR)))
+    if name == "departure":
+        return np.log(v + np.float32(DEPARTURE_FLOOR))
+    if name == "density":
+        return np.log(np.minimum(v, np.float32(np.pi)) + np.float32(DENSITY_FLOOR))
+    raise ValueError(f"sigma map feature: expected one of {MAP_FEATURES}, got {name!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class HingeTerm:
+    """One feature's part of :class:`AdditiveSigmaMap`: ``slope * x + sum_k hinges[k] * max(x - knots[k], 0)``."""
+
+    feature: str
+    slope: float
+    knots: tuple[float, ...] = ()
+    hinges: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        values = (self.slope, *self.knots, *self.hinges)
+        if self.feature not in MAP_FEATURES or len(self.knots) != len(self.hinges) \
+                or not all(math.isfinite(v) for v in values) or list(self.knots) != sorted(self.knots):
+            raise ValueError(f"sigma map term: expected a feature of {MAP_FEATURES}, finite numbers and as many "
+                             f"hinges as sorted knots, got {self.feature!r}, slope {self.slope}, knots {self.knots}, "
+                             f"hinges {self.hinges}")
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        out = np.float32(self.slope) * x
+        for q, g in zip(self.knots, self.hinges, strict=True):
+            out = out + np.float32(g) * np.maximum(x - np.float32(q), np.float32(0))
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class AdditiveSigmaMap:
+    """Map of the total phase sigma, additive in log features: ``log sigma' = intercept + sum of terms``, each a
+    piecewise-linear function (:class:`HingeTerm`) of log sigma, log(departure + 0.01) or log(fringe density + 0.02).
+
+    Where the power law (:class:`SigmaCalibration`) is one curve for every rig, the hinges let each feature bend and
+    the fringe density (:func:`fringe_density`, the network's own phase, no CAD) tells dense fringes, where the
+    network errs most, from sparse ones (``benchmarks/sigma_map_form_rule.md``). Applied as one factor, like the
+    power law. Additive, so a still-burst gate can read it at zero departure (:meth:`departure_factor`).
+    """
+
+    intercept: float
+    terms: tuple[HingeTerm, ...]
+
+    def __post_init__(self) -> None:
+        names = [t.feature for t in self.terms]
+        if not math.isfinite(self.intercept) or "sigma" not in names or len(set(names)) != len(names):
+            raise ValueError(f"additive sigma map: expected a finite intercept and one term per feature, the sigma's "
+                             f"among them, got intercept {self.intercept}, features {names}")
+
+    identity = False
+
+    def _term(self, name: str) -> HingeTerm | None:
+        return next((t for t in self.terms if t.feature == name), None)
+
+    @property
+    def needs_departure(self) -> bool:
+        return self._term("departure") is not None
+
+    @property
+    def needs_density(self) -> bool:
+        return self._term("density") is not None
+
+    def log_sigma(self, sigma: np.ndarray, departure: np.ndarray | None = None,
+                  density: np.ndarray | None = None) -> np.ndarray:
+        values = {"sigma": sigma, "departure": departure, "density": density}
+        s = np.asarray(sigma)
+        out = np.full(s.shape, np.float32(self.intercept), np.float32)
+        for t in self.terms:
+            v = values[t.feature]
+            if v is None or np.shape(v) != s.shape:
+                raise ValueError(f"additive sigma map: reads the {t.feature}; expected a map of shape {s.shape}, "
+                                 f"got {None if v is None else np.shape(v)}")
+            out = out + t(log_map_feature(t.feature, v))
+        return np.clip(out, np.float32(LOG_SIGMA_RANGE[0]), np.float32(LOG_SIGMA_RANGE[1]))
+
+    def __call__(self, sigma: np.ndarray, departure: np.ndarray | None = None,
+                 density: np.ndarray | None = None) -> np.ndarray:
+        return np.exp(self.log_sigma(sigma, departure, density)).astype(np.float32)
+
+    def factor(self, sigma_total: np.ndarray, departure: np.ndarray | None = None,
+               density: np.ndarray | None = None) -> np.ndarray:
+        """``sigma'/sigma`` per pixel (float32)."""
+        s = np.maximum(np.asarray(sigma_total, np.float32), np.float32(1e-12))
+        return np.exp(self.log_sigma(s, departure, density) - np.log(s)).astype(np.float32)
+
+    def departure_factor(self, departure: np.ndarray) -> np.ndarray:
+        """``exp`` of the departure's term (1 without one)."""
+        t = self._term("departure")
+        d = np.asarray(departure, np.float32)
+        return np.ones_like(d) if t is None else np.exp(t(log_map_feature("departure", d))).astype(np.float32)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"form": "additive", "intercept": self.intercept,
+                "terms": [{"feature": t.feature, "slope": t.slope, "knots": list(t.knots), "hinges": list(t.hinges)}
+                          for t in self.terms]}
+
+    @classmethod
+    def from_json(cls, data: Any, source: str = "sigma_calibration") -> AdditiveSigmaMap:
+        try:
+            if not isinstance(data, dict) or data.get("form") != "additive" or set(data) != {"form", "intercept", "terms"}:
+                raise ValueError("keys")
+            terms = tuple(HingeTerm(str(t["feature"]), float(t["slope"]), tuple(float(q) for q in t["knots"]),
+                                    tuple(float(g) for g in t["hinges"])) for t in data["terms"])
+            return cls(float(data["intercept"]), terms)
+        except (TypeError, KeyError, ValueError) as exc:
+            raise ValueError(f"{source}: expected {{'form': 'additive', 'intercept': float, 'terms': [{{'feature', "
+                             f"'slope', 'knots', 'hinges'}}, ...]}}, got {data!r} ({exc})") from exc
+
+
+SigmaMap = SigmaCalibration | AdditiveSigmaMap
+MAP_FORMS = ("power", "additive")
+
+
+def sigma_map_from_json(data: Any, source: str = "sigma_calibration") -> SigmaMap:
+    """A stored sigma map: the additive form where the entry says ``"form": "additive"``, else the power law."""
+    if isinstance(data, dict) and "form" in data:
+        return AdditiveSigmaMap.from_json(data, source)
+    return SigmaCalibration.from_json(data, source)
+
+
+def map_form(cal: SigmaMap | None) -> str:
+    """``"additive"`` or ``"power"`` (:data:`MAP_FORMS`; no map: the power law)."""
+    return "additive" if isinstance(cal, AdditiveSigmaMap) else "power"
+
+
+def fit_additive_map(
+    error: np.ndarray,
+    sigma: np.ndarray,
+    departure: np.ndarray,
+    density: np.ndarray,
+    *,
+    weights: np.ndarray | None = None,
+    features: tuple[str, ...] = MAP_FEATURES,
+    knots: int = 3,
+    eps: float = 0.03,
+    max_pixels: int = 1_000_000,
+    seed: int = 0,
+) -> tuple[AdditiveSigmaMap, dict[str, float]]:
+    """Fit :class:`AdditiveSigmaMap` (``features``, the sigma among them; ``knots`` hinges each at the quantiles of
+    the fitted pixels) by the weighted event log score at ``eps`` (the ECE's event); returns it and the metrics as
+    :func:`fit_sigma_calibration` does. ``weights`` per pixel (e.g. every val family x kind the same total);
+    ``departure`` and ``density`` may be None where ``features`` leaves them out."""
+    from scipy.optimize import minimize
+
+    e = np.asarray(error, np.float64).ravel()
+    if "sigma" not in features or not set(features) <= set(MAP_FEATURES) or len(set(features)) != len(features):
+        raise ValueError(f"features: expected distinct names of {MAP_FEATURES}, the sigma among them, got {features}")
+    cols = {n: v for n, v in (("sigma", sigma), ("departure", departure), ("density", density)) if n in features}
+    if any(v is None for v in cols.values()):
+        raise ValueError(f"fit_additive_map: features {features} need a map for each")
+    if e.size == 0 or any(np.size(v) != e.size for v in cols.values()):
+        raise ValueError(f"fit_additive_map: expected equal non-empty error, sigma, departure and density, got sizes "
+                         f"{e.size}, {[np.size(v) for v in cols.values()]}")
+    w = np.ones(e.size) if weights is None else np.asarray(weights, np.float64).ravel()
+    if w.size != e.size or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+        raise ValueError(f"fit_additive_map: expected {e.size} finite non-negative weights with a positive sum")
+    pick = (np.sort(np.random.default_rng(seed).choice(e.size, max_pixels, replace=False))
+            if e.size > max_pixels else slice(None))
+    fe, fw = e[pick], w[pick] / w[pick].sum()
+    xs = {n: log_map_feature(n, np.asarray(v).ravel()[pick]).astype(np.float64) for n, v in cols.items()}
+    qs = {n: tuple(float(q) for q in np.quantile(x, np.linspace(0, 1, knots + 2)[1:-1])) if knots else ()
+          for n, x in xs.items()}
+    names = [n for n in MAP_FEATURES if n in cols]
+    X = np.stack([np.ones(fe.size)] + [c for n in names for c in
+                                       (xs[n], *(np.maximum(xs[n] - q, 0.0) for q in qs[n]))], 1)
+    hit = np.abs(fe) < eps
+    k = eps / math.sqrt(2.0)
+
+    def loss_grad(p: np.ndarray) -> tuple[float, np.ndarray]:
+        s = np.exp(np.clip(X @ p, *LOG_SIGMA_RANGE))
+        z = k / s
+        c = np.clip(erf(z), 1e-12, 1 - 1e-12)
+        loss = -np.sum(fw * np.where(hit, np.log(c), np.log1p(-c)))
+        dc = -(2 / math.sqrt(math.pi)) * z * np.exp(-z * z)  # d erf(k / s) / d log s
+        dl = -np.where(hit, 1 / c, -1 / (1 - c)) * dc
+        return float(loss), X.T @ (fw * dl)
+
+    start = np.zeros(X.shape[1])
+    start[1] = 1.0  # the identity: log sigma' = log sigma
+    res = minimize(loss_grad, start, jac=True, method="L-BFGS-B", options={"maxiter": 1000})
+    p = res.x if res.fun < loss_grad(start)[0] else start
+    terms, j = [], 1
+    for n in names:
+        m = 1 + len(qs[n])
+        terms.append(HingeTerm(n, float(p[j]), qs[n], tuple(float(v) for v in p[j + 1:j + m])))
+        j += m
+    cal = AdditiveSigmaMap(float(p[0]), tuple(terms))
+    s_all = np.maximum(np.asarray(sigma, np.float64).ravel(), 1e-12)
+    after = cal(s_all.astype(np.float32), *(None if v is None else np.asarray(v).ravel() for v in (departure, density)))
+    return cal, {
+        "score": "event", "form": "additive", "weighted": weights is not None,
+        "nll_before": gaussian_nll(e, s_all), "nll_after": gaussian_nll(e, after),
+        "event_score_before": event_log_score(e, s_all, eps), "event_score_after": event_log_score(e, after, eps),
+        "ece_before": reliability(e, s_all, eps=eps).ece, "ece_after": reliability(e, after, eps=eps).ece,
+        "pixels": int(e.size),
+    }
 
 
 def gaussian_nll(error: np.ndarray, sigma: np.ndarray) -> float:
@@ -360,16 +592,16 @@ def to_phase_result(
     *,
     mode: str = "deterministic",
     var_scale: float = 1.0,
-    calibration: SigmaCalibration | None = None,
+    calibration: SigmaMap | None = None,
     classical_phase: np.ndarray | None = None,
 ) -> PhaseResult:
     """Turn batch element ``index`` of ``stats`` into a :class:`PhaseResult`.
 
     ``var_scale`` multiplies every variance (model and data) before propagation, so the phase
     sigmas scale by ``sqrt(var_scale)`` (the calibration fitted by :func:`fit_variance_scale`);
-    ``calibration`` then maps the propagated sigmas (:class:`SigmaCalibration`), reading the
-    departure from ``classical_phase`` (three-step PS of the same frames, ``(H, W)``) when it
-    needs one.
+    ``calibration`` then maps the propagated sigmas (:class:`SigmaCalibration` or :class:`AdditiveSigmaMap`),
+    reading the departure from ``classical_phase`` (three-step PS of the same frames, ``(H, W)``) and the fringe
+    density from the phase when it needs them.
     """
 
     def np_(t: torch.Tensor) -> np.ndarray:
@@ -395,7 +627,8 @@ def to_phase_result(
                 raise ValueError("to_phase_result: this sigma calibration reads the departure from three-step PS; "
                                  "pass classical_phase")
             dep = departure(phase, classical_phase)
-        f = calibration.factor(s_total, dep)
+        density = fringe_density(phase) if calibration.needs_density else None
+        f = calibration.factor(s_total, dep, density)
         s_model, s_data, s_total = s_model * f, s_data * f, s_total * f
         var_M, var_D = var_M * f**2, var_D * f**2
     return PhaseResult(

@@ -83,6 +83,14 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
     assert res.exit_code == 2 and "empty" in res.output
     res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--orientation", "up"])
     assert res.exit_code == 2 and "orientation: expected one of auto, normal, mirrored, got 'up'" in res.output, res.output
+    res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--items", "4",
+                              "--mc", "0", "--form", "additive"])
+    assert res.exit_code == 0, res.output
+    assert "deterministic: additive map in log sigma (3 knots), departure (3 knots), density (3 knots)" in res.output
+    assert json.loads(model_path.with_suffix(".json").read_text())["sigma_calibration"]["deterministic"]["form"] == \
+        "additive"
+    res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--form", "spline"])
+    assert res.exit_code == 2 and "form: expected one of ('power', 'additive')" in res.output, res.output
 
 
 def test_collected_errors_follow_the_burst_gate_as_the_predictor_applies_it(val_set, model_path):
@@ -114,11 +122,12 @@ def test_the_sigma_map_is_fitted_without_the_gated_bursts():
     error = (rng.normal(0, 1, n) * 0.5 * sigma).astype(np.float32)  # the network's sigma is 2x too wide
     dep = np.abs(rng.normal(0, 0.05, n)).astype(np.float32)
     base = PixelErrors(error, sigma, dep, np.zeros(n, np.int16), np.arange(n, dtype=np.int32) % 8, np.zeros(n, bool),
-                       np.zeros(n, bool))
+                       np.zeros(n, bool), np.full(n, 0.3, np.float32))
     # gated pixels: tiny errors with a huge sigma, which would drag a map fitted on them
     g = 2000
     gated = PixelErrors(np.full(g, 1e-3, np.float32), np.full(g, 5.0, np.float32), np.zeros(g, np.float32),
-                        np.zeros(g, np.int16), np.arange(g, dtype=np.int32) % 8, np.ones(g, bool), np.ones(g, bool))
+                        np.zeros(g, np.int16), np.arange(g, dtype=np.int32) % 8, np.ones(g, bool), np.ones(g, bool),
+                        np.full(g, 0.3, np.float32))
     alone, _ = fit_mode(base, ["val"])
     mixed, report = fit_mode(PixelErrors.concat([base, gated]), ["val"])
     np.testing.assert_allclose(mixed(sigma, dep), alone(sigma, dep), rtol=1e-6)
@@ -163,3 +172,27 @@ def test_the_mc_phase_table_scores_each_draw_against_the_truth(val_set, model_pa
     assert table["rule"] == verdict_two_sided(table)
     with pytest.raises(ValueError, match="rule"):
         mc_phase_table(str(model_path), {"v": [str(val_set)]}, rule="median")
+
+
+def test_an_additive_map_is_fitted_kept_on_refit_and_applied(val_set, model_path, tmp_path):
+    """``form="additive"``: both modes' maps are stored in the additive form with their held-out check; a refit
+    without a form keeps the model's; a family of pooled folders is one family (also given comma-joined, as the
+    report stores it); the Predictor applies the stored map."""
+    from gearscan.inference.uncertainty import AdditiveSigmaMap
+
+    out = tmp_path / "add" / "net.safetensors"
+    report = calibrate_model(model_path, val_set, items=8, mc=3, output=out, form="additive")
+    meta = json.loads(out.with_suffix(".json").read_text())
+    for mode in ("deterministic", "mc"):
+        assert meta["sigma_calibration"][mode]["form"] == "additive" and report[mode]["form"] == "additive"
+        assert report[mode]["held_out"] and report[mode]["all"]["form"] == "additive"
+    pred = Predictor.load(out)
+    assert isinstance(pred.calibration["deterministic"], AdditiveSigmaMap)
+    again = calibrate_model(out, [[val_set, val_set]], items=8, mc=3, modes=("deterministic",))
+    assert again["deterministic"]["form"] == "additive"  # the model's form, kept
+    assert again["data"] == [f"{val_set},{val_set}"] and again["items"] == {"moving": 8, "still": 4}
+    assert calibrate_model(out, again["data"], items=8, mc=3, modes=("deterministic",))["items"] == again["items"]
+    power = calibrate_model(out, val_set, items=8, mc=3, modes=("deterministic",), form="power")
+    assert power["deterministic"]["form"] == "power" and "form" not in power["deterministic"]["map"]
+    with pytest.raises(ValueError, match="form"):
+        calibrate_model(out, val_set, items=8, form="spline")

@@ -420,6 +420,50 @@ def test_mirrored_fringes_are_decoded_in_the_trained_orientation(saved):
     np.testing.assert_allclose(b.sigma_total[:, ::-1], expected, rtol=1e-4)
 
 
+def test_a_stored_additive_map_reads_the_fringe_density_of_the_networks_phase(saved):
+    """An additive sigma map in the model's JSON: the Predictor reports sigma' from the raw sigma, the departure from
+    three-step PS and the density of its own phase (mirrored fringes alike); the still-burst gate reads it at zero
+    departure."""
+    from gearscan.core.phase import three_step
+    from gearscan.inference.models import classical_md
+    from gearscan.inference.predictor import still_burst_gate
+    from gearscan.inference.uncertainty import (
+        AdditiveSigmaMap,
+        HingeTerm,
+        departure,
+        fringe_density,
+    )
+
+    _, path = saved
+    h, w = 24, 40
+    xx = np.arange(w)[None, :] + 0.02 * np.arange(h)[:, None] ** 2
+    shifts = (0.0, 2 * np.pi / 3, 4 * np.pi / 3)
+    frames = np.stack([127 + 100 * np.cos(2 * np.pi * xx / 7 + d) for d in shifts]).astype(np.uint8)
+    cal = AdditiveSigmaMap(-0.5, (HingeTerm("sigma", 0.7, (-2.0,), (0.2,)), HingeTerm("departure", 0.2),
+                                  HingeTerm("density", 0.5, (-1.0,), (-0.3,))))
+    meta = json.loads(path.with_suffix(".json").read_text())
+    meta["sigma_calibration"] = {"deterministic": cal.to_json()}
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    pred = Predictor.load(path)
+    assert pred.calibration["deterministic"] == cal
+    raw = Predictor.load(path)
+    raw.calibration = {}
+    r = raw.predict(frames)
+    dep = departure(r.phase, three_step(frames, 255)[0])
+    expected = cal(r.sigma_total, dep, fringe_density(r.phase))
+    np.testing.assert_allclose(pred.predict(frames).sigma_total, expected, rtol=1e-4)
+    mirrored = pred.predict(np.ascontiguousarray(frames[:, :, ::-1]))
+    np.testing.assert_allclose(mirrored.sigma_total[:, ::-1], expected, rtol=1e-4)
+    # a burst the gate takes: three-step's phase, the map at zero departure
+    classical = classical_md(frames_to_tensor(frames).float())[0].numpy()
+    gated, taken = still_burst_gate(pred.predict(frames), classical, np.inf, cal)
+    assert taken and gated.mode == "three-step"
+    # the departure the gate swaps out: the network's phase against the gate's three-step phase
+    swapped = cal(r.sigma_total, departure(r.phase, gated.phase), fringe_density(r.phase))
+    at_zero = cal(r.sigma_total, np.zeros_like(dep), fringe_density(r.phase))
+    np.testing.assert_allclose(gated.sigma_total, expected / swapped * at_zero, rtol=1e-4)
+
+
 def test_predict_cli_sends_a_still_burst_to_three_step(saved, tmp_path):
     """With angles, predict follows the pipeline's rule: a burst that did not turn has no motion
     error, so three-step PS decodes it (exactly the closed form); a turning one goes to the network."""

@@ -345,3 +345,74 @@ def test_to_phase_result_reads_the_departure_from_the_classical_phase():
                                rtol=1e-4)
     with pytest.raises(ValueError, match="pass classical_phase"):
         to_phase_result(stats, calibration=cal)
+
+
+def _density_world(n: int, seed: int):
+    """Synthetic pixels whose true sigma doubles where the fringes are dense (density > 0.5 rad/px), which no power
+    law in the sigma and departure can see."""
+    rng = np.random.default_rng(seed)
+    raw = np.exp(rng.uniform(np.log(0.01), np.log(0.5), n)).astype(np.float32)
+    dep = np.exp(rng.uniform(np.log(0.001), np.log(1.0), n)).astype(np.float32)
+    den = np.exp(rng.uniform(np.log(0.05), np.log(2.0), n)).astype(np.float32)
+    true = 0.4 * raw**0.7 * (dep + 0.01) ** 0.2 * np.where(den > 0.5, 2.0, 1.0)
+    return rng.normal(0, true), raw, dep, den, true
+
+
+def test_the_additive_map_learns_what_the_fringe_density_says():
+    """fit_additive_map on one draw, scored on another: calibrated in the dense and the sparse fringes apart, where
+    the power law fitted on the same pixels is off in both (it averages them)."""
+    from gearscan.inference.uncertainty import fit_additive_map
+
+    err, raw, dep, den, _ = _density_world(60_000, 0)
+    cal, metrics = fit_additive_map(err, raw, dep, den)
+    power, _ = fit_sigma_calibration(err, raw, dep)
+    assert metrics["ece_after"] < 0.02 < metrics["ece_before"] and metrics["form"] == "additive"
+    err2, raw2, dep2, den2, true2 = _density_world(60_000, 1)
+    for part in (den2 > 0.6, den2 < 0.4):
+        assert reliability(err2[part], cal(raw2, dep2, den2)[part]).ece < 0.02
+        assert reliability(err2[part], power(raw2, dep2)[part]).ece > 0.05
+    np.testing.assert_allclose(np.median(cal(raw2, dep2, den2) / true2), 1.0, atol=0.05)
+    with pytest.raises(ValueError, match="features"):
+        fit_additive_map(err, raw, dep, den, features=("departure",))
+    with pytest.raises(ValueError, match="need a map"):
+        fit_additive_map(err, raw, None, den)
+    with pytest.raises(ValueError, match="weights"):
+        fit_additive_map(err, raw, dep, den, weights=-np.ones(err.size))
+
+
+def test_the_additive_map_round_trips_and_bad_entries_are_named():
+    from gearscan.inference.uncertainty import AdditiveSigmaMap, HingeTerm, sigma_map_from_json
+
+    cal = AdditiveSigmaMap(-1.0, (HingeTerm("sigma", 0.6, (-3.0, -2.0), (0.1, -0.2)), HingeTerm("density", 0.3)))
+    assert sigma_map_from_json(cal.to_json()) == cal and not cal.needs_departure and cal.needs_density
+    assert sigma_map_from_json({"a": 0.5, "b": 0.4}) == SigmaCalibration(0.5, 0.4)  # a stored power law
+    s, den = np.array([0.05, 0.2], np.float32), np.array([0.1, 1.5], np.float32)
+    x = np.log(s)
+    expected = np.exp(-1.0 + 0.6 * x + 0.1 * np.maximum(x + 3, 0) - 0.2 * np.maximum(x + 2, 0)
+                      + 0.3 * np.log(den + 0.02))
+    np.testing.assert_allclose(cal(s, None, den), expected, rtol=1e-5)
+    np.testing.assert_allclose(cal.factor(s, None, den) * s, expected, rtol=1e-5)
+    np.testing.assert_allclose(cal.departure_factor(np.ones(2)), 1.0)  # no departure term
+    with pytest.raises(ValueError, match="reads the density"):
+        cal(s)
+    bad = cal.to_json()
+    with pytest.raises(ValueError, match="sigma_calibration.mc"):
+        sigma_map_from_json(bad | {"form": "spline"}, "sigma_calibration.mc")
+    with pytest.raises(ValueError, match="sigma's"):
+        sigma_map_from_json(bad | {"terms": bad["terms"][1:]})
+    with pytest.raises(ValueError, match="sorted knots"):
+        sigma_map_from_json(bad | {"terms": [bad["terms"][0] | {"knots": [-2.0, -3.0]}]})
+    with pytest.raises(ValueError, match="expected"):
+        sigma_map_from_json(bad | {"extra": 1})
+
+
+def test_fringe_density_reads_the_local_fringe_period():
+    """A wrapped ramp of period P px has |grad phase| = 2 pi / P, across the wraps; a mirrored phase, the mirrored
+    map."""
+    from gearscan.inference.uncertainty import fringe_density
+
+    for period in (5.0, 17.0, 60.0):
+        ramp = np.angle(np.exp(1j * 2 * np.pi * np.arange(64)[None, :] / period)) * np.ones((8, 1))
+        np.testing.assert_allclose(fringe_density(ramp)[:, 1:-1], 2 * np.pi / period, rtol=1e-5)
+        bent = ramp + 0.3 * np.sin(np.arange(8)[:, None] * np.arange(64)[None, :] / 40)
+        np.testing.assert_allclose(fringe_density(-bent[:, ::-1])[:, ::-1], fringe_density(bent), atol=1e-6)
