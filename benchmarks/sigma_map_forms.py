@@ -171,7 +171,8 @@ def write(args, rows: dict[str, dict[str, float]], px: dict[str, np.ndarray], ma
     args.out.with_suffix(".json").write_text(json.dumps(data, indent=1))
     head = "| form (held out by family) | " + " | ".join(cells) + " | worst |"
     lines = [
-        "# Sigma-map forms, leave one val family out (issue 13, item 7; val only, decides nothing)", "",
+        "# Sigma-map forms, leave one val family out (issue 13, item 7; val only)", "",
+        "Decides only as `sigma_map_form_rule.md` says, on its deciding run (seed 2); other seeds report.", "",
         f"`python benchmarks/sigma_map_forms.py --seed {args.seed} --items {args.items}`; commit `{commit}`"
         f"{' (uncommitted edits)' if dirty else ''}; {seconds / 60:.1f} min; host {machine['cpu']}, "
         f"{machine['cores']} cores, AMX-BF16 {'yes' if machine['amx_bf16'] else 'no'}.", "",

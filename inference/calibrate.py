@@ -243,7 +243,8 @@ def calibrate_model(
     meta = read_config(path)
     stored = {k: sigma_map_from_json(v, f"sigma_calibration.{k}")
               for k, v in (meta.get("sigma_calibration") or {}).items()}
-    calibration = {k: v for k, v in stored.items() if k not in modes}
+    refit = {name for name, _ in fitting}  # a mode not fitted (e.g. MC with mc=0) keeps its stored map
+    calibration = {k: v for k, v in stored.items() if k not in refit}
     report = {"data": folders, "items": {"moving": sum(len(p) for _, _, p, s in sets if not s),
                                          "still": sum(len(p) for _, _, p, s in sets if s)}, "seed": seed,
               "orientation": orientation}

@@ -505,9 +505,9 @@ def train(
 
 def calibrate_uncertainty(
     val: Annotated[
-        list[Path],
-        typer.Argument(help="twin validation dataset folders (`gearscan twin dataset`), gears not trained on",
-                       exists=True, file_okay=False),
+        list[str],
+        typer.Argument(help="twin validation dataset folders (`gearscan twin dataset`), gears not trained on; "
+                       "comma-joined folders are one family (e.g. one rig's gears), held out together"),
     ],
     model: Annotated[
         Path | None,
@@ -539,6 +539,10 @@ def calibrate_uncertainty(
     from gearscan.inference.model_io import ModelFileError
     from gearscan.twin.dataset import DatasetError
 
+    missing = [f for v in val for f in v.split(",") if not Path(f).is_dir()]
+    if missing:
+        typer.echo(f"error: validation folder(s) {', '.join(missing)}: expected existing twin dataset folders", err=True)
+        raise typer.Exit(2)
     try:
         report = calibrate_model(model, val, items=items, mc=mc, seed=seed, output=output,
                                  progress=lambda s: typer.echo(f"- {s}"), orientation=orientation, form=form)

@@ -89,6 +89,8 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
     assert "deterministic: additive map in log sigma (3 knots), departure (3 knots), density (3 knots)" in res.output
     assert json.loads(model_path.with_suffix(".json").read_text())["sigma_calibration"]["deterministic"]["form"] == \
         "additive"
+    res = runner.invoke(app, ["calibrate-uncertainty", f"{val_set},{tmp_path / 'nowhere'}", "--model", str(model_path)])
+    assert res.exit_code == 2 and f"validation folder(s) {tmp_path / 'nowhere'}: expected existing" in res.output
     res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--form", "spline"])
     assert res.exit_code == 2 and "form: expected one of ('power', 'additive')" in res.output, res.output
 
@@ -192,7 +194,9 @@ def test_an_additive_map_is_fitted_kept_on_refit_and_applied(val_set, model_path
     assert again["deterministic"]["form"] == "additive"  # the model's form, kept
     assert again["data"] == [f"{val_set},{val_set}"] and again["items"] == {"moving": 8, "still": 4}
     assert calibrate_model(out, again["data"], items=8, mc=3, modes=("deterministic",))["items"] == again["items"]
-    power = calibrate_model(out, val_set, items=8, mc=3, modes=("deterministic",), form="power")
+    kept_mc = json.loads(out.with_suffix(".json").read_text())["sigma_calibration"]["mc"]
+    power = calibrate_model(out, val_set, items=8, mc=0, form="power")  # mc=0: the MC map is kept, not dropped
+    assert json.loads(out.with_suffix(".json").read_text())["sigma_calibration"]["mc"] == kept_mc
     assert power["deterministic"]["form"] == "power" and "form" not in power["deterministic"]["map"]
     with pytest.raises(ValueError, match="form"):
         calibrate_model(out, val_set, items=8, form="spline")
