@@ -261,7 +261,9 @@ def calibrate_model(
         mode_form = form or map_form(stored.get(name))
         cal, rep = fit_mode(PixelErrors.concat(parts), folders, mode_form)
         calibration[name] = cal
-        report[name] = {"passes": passes, "form": mode_form, "map": cal.to_json(), **rep}
+        # each mode names its own sample: a later refit of one mode may use other data
+        report[name] = {"passes": passes, "form": mode_form, "data": folders, "items": report["items"],
+                        "seed": seed, "map": cal.to_json(), **rep}
     meta["sigma_calibration"] = {k: v.to_json() for k, v in calibration.items()}
     meta["uncertainty_calibration"] = report
     target = path

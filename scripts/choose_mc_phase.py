@@ -9,8 +9,8 @@ Each argument is a val family (comma-joined folders are pooled into one). The ru
 ``benchmarks/mc_phase_rule_v2.md`` (``--rule two-sided``, the default: the phase whose worst family x kind cell
 against the other is lower) or, to reproduce the choices of sessions 38-39, ``benchmarks/mc_phase_rule.md``
 (``--rule one-sided --seed 9 --moving 48 --still 24``); :mod:`gearscan.inference.mc_phase_choice`. With ``--write`` the choice goes into the model's JSON (``mc_phase``) and,
-when it changes MC mode's phase, the MC sigma map is refitted on the sample the model's maps were fitted on
-(``uncertainty_calibration`` in its JSON: folders, items, seed, orientation; torch seeded 0); the deterministic map
+when it changes MC mode's phase, the MC sigma map is refitted on the sample the model's MC map was fitted on
+(``uncertainty_calibration.mc`` in its JSON, else the top level: folders, items, seed, orientation; torch seeded 0); the deterministic map
 is kept. Val only: the test split reports it (``benchmarks/generalization.py``, its MC section).
 """
 
@@ -61,6 +61,8 @@ def main() -> None:
     print(f"wrote mc_phase to {write_config(weights, meta)}")
     if phase != before:
         cal = meta.get("uncertainty_calibration") or {}
+        if (cal.get("mc") or {}).get("data"):  # the MC map's own sample (each mode names its own since session 41)
+            cal = cal["mc"]
         if not cal.get("data"):
             raise SystemExit(f"{weights.with_suffix('.json')}: no uncertainty_calibration.data to refit the MC map on; "
                              "run `gearscan calibrate-uncertainty` on your val folders")
