@@ -239,16 +239,22 @@ def markdown(res: dict) -> str:
               f"{'met' if met else 'not met'}.**", "", "## Per scene: the rig's map and its held-out check", "",
               "The held-out ECE is `calibrate_model`'s own check on the adaptation data (one folder: fitted on half its "
               "start points, scored on the other half), before any test burst.", "",
-              "| scene | orientation | det map a, b, c | MC map a, b, c | held-out ECE det, moving / still | seconds |", "|---|---|---|---|---|---|"]
+              "| scene | orientation | det map | MC map | held-out ECE det, moving / still | seconds |", "|---|---|---|---|---|---|"]
     for sc in res["scenes"]:
         d, m = sc["rig_map"], sc["rig_map_mc"] or {}
         pieces = sc["held_out"].get("deterministic") or []
         ho = pieces[0]["after"] if pieces else {}
         ho_ece = (f"{ho.get('ece_moving', math.nan):.3f} / {ho.get('ece_still', math.nan):.3f}" if ho else "-")
-        lines.append(f"| {sc['name']} | {sc['orientation']} | {d['a']:.3f}, {d['b']:.3f}, {d['c']:.3f} | "
-                     + (f"{m['a']:.3f}, {m['b']:.3f}, {m['c']:.3f}" if m else "-")
-                     + f" | {ho_ece} | {sc['seconds']:.0f} |")
+        lines.append(f"| {sc['name']} | {sc['orientation']} | {map_summary(d)} | {map_summary(m) if m else '-'} "
+                     f"| {ho_ece} | {sc['seconds']:.0f} |")
     return "\n".join(lines) + "\n"
+
+
+def map_summary(entry: dict) -> str:
+    """A stored sigma map in a table cell: the power law's a, b, c; the additive map's slopes per feature."""
+    if entry.get("form") == "additive":
+        return "additive, slopes " + ", ".join(f"{t['feature']} {t['slope']:.2f}" for t in entry["terms"])
+    return f"a, b, c {entry['a']:.3f}, {entry['b']:.3f}, {entry.get('c', 0.0):.3f}"
 
 
 def main() -> None:
