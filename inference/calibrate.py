@@ -143,7 +143,10 @@ def _fit(px: PixelErrors, form: str = "power") -> tuple[SigmaMap, dict]:
         raise ValueError(f"form: expected one of {MAP_FORMS}, got {form!r}")
     cell = fit.folder.astype(np.int64) * 2 + fit.still
     counts = np.bincount(cell)
-    return fit_additive_map(fit.error, fit.sigma, fit.departure, fit.density, weights=1.0 / counts[cell])
+    cal, metrics = fit_additive_map(fit.error, fit.sigma, fit.departure, fit.density, weights=1.0 / counts[cell])
+    # each family x kind weighs the same: say how many pixels carry each weight
+    metrics["cell_pixels"] = {f"{k // 2}:{'still' if k % 2 else 'moving'}": int(n) for k, n in enumerate(counts) if n}
+    return cal, metrics
 
 
 def _calibrated(cal: SigmaMap, px: PixelErrors) -> np.ndarray:
@@ -177,9 +180,18 @@ def fit_mode(px: PixelErrors, folders: Sequence[str], form: str = "power") -> tu
     return cal, report
 
 
+def family_folders(family: str | Path | Sequence[str | Path]) -> list[str]:
+    """One validation family's folders: a folder, a list pooled as one, or comma-joined (as reports store them)."""
+    group = str(family).split(",") if isinstance(family, str | Path) else [str(f) for f in family]
+    if not group or not all(f.strip() for f in group):
+        raise ValueError(f"val family {family!r}: expected one or more folder names (comma-joined: no empty one)")
+    return group
+
+
 def val_samples(folders: Sequence[str | Sequence[str]], items: int, seed: int,
                 needs_angles: bool) -> list[tuple[int, object, list[int], bool]]:
-    """Per validation family (a folder, or a list of folders pooled as one), a seeded sample of ``items`` moving
+    """Per validation family (a folder, or a list of folders pooled as one, or comma-joined), a seeded sample of
+    ``items`` moving
     bursts (both senses) and ``items // 2`` still ones, shared out over its folders: ``(family index, dataset,
     picked items, still)``, whole images."""
     from gearscan.inference.data import MotionInput
@@ -187,7 +199,7 @@ def val_samples(folders: Sequence[str | Sequence[str]], items: int, seed: int,
 
     sets = []
     for k, family in enumerate(folders):
-        group = [family] if isinstance(family, str | Path) else list(family)
+        group = family_folders(family)
         for j, folder in enumerate(group):
             # one folder per family: the generator as before (seed, k), so a stored sample is drawn again
             rng = np.random.default_rng([seed, k] if len(group) == 1 else [seed, k, j])
@@ -228,10 +240,9 @@ def calibrate_model(
     path = model_path(model)
     if items < 2:
         raise ValueError(f"items: expected >= 2 validation bursts, got {items}")
-    families = [str(v).split(",") if isinstance(v, str | Path) else [str(f) for f in v]  # "a,b": pooled, as stored
-                for v in ([val] if isinstance(val, str | Path) else val)]
-    if not families or not all(families):
-        raise ValueError("val: expected at least one validation folder in every family")
+    families = [family_folders(v) for v in ([val] if isinstance(val, str | Path) else val)]
+    if not families:
+        raise ValueError("val: expected at least one validation folder")
     folders = [",".join(f) for f in families]  # each family's name in the report
     predictor = Predictor.load(path, orientation=orientation)
     predictor.calibration = {}  # fit on the uncalibrated sigma (var_scale stays applied)
@@ -248,8 +259,11 @@ def calibrate_model(
     report = {"data": folders, "items": {"moving": sum(len(p) for _, _, p, s in sets if not s),
                                          "still": sum(len(p) for _, _, p, s in sets if s)}, "seed": seed,
               "orientation": orientation}
-    kept = {k: v for k, v in (meta.get("uncertainty_calibration") or {}).items() if k in calibration}
-    report.update(kept)
+    before = meta.get("uncertainty_calibration") or {}
+    sample = ("data", "items", "seed", "orientation")
+    for k in calibration:  # a kept mode keeps its report; one written before modes named their sample gets the old one
+        if k in before:
+            report[k] = {**{f: before[f] for f in sample if f in before}, **before[k]}
     for name, passes in fitting:
         parts = []
         for k, ds, pick, still in sets:
@@ -263,7 +277,8 @@ def calibrate_model(
         calibration[name] = cal
         # each mode names its own sample: a later refit of one mode may use other data
         report[name] = {"passes": passes, "form": mode_form, "data": folders, "items": report["items"],
-                        "seed": seed, "map": cal.to_json(), **rep}
+                        "seed": seed, "orientation": orientation, "map": cal.to_json(), **rep}
+    report["fitted"] = [name for name, _ in fitting]  # the modes this run fitted; the others are kept as they were
     meta["sigma_calibration"] = {k: v.to_json() for k, v in calibration.items()}
     meta["uncertainty_calibration"] = report
     target = path

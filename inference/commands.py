@@ -513,8 +513,8 @@ def calibrate_uncertainty(
         Path | None,
         typer.Option("--model", help="model .safetensors to calibrate; default: the shipped model"),
     ] = None,
-    items: Annotated[int, typer.Option(min=2, help="moving validation bursts per folder (whole images); "
-                                                   "half as many still ones")] = 64,
+    items: Annotated[int, typer.Option(min=2, help="moving validation bursts per family (whole images; shared out "
+                                                   "over a family's folders); half as many still ones")] = 64,
     mc: Annotated[int, typer.Option(min=0, help="Monte Carlo passes for the MC-mode map (0: deterministic only)")] = 20,
     seed: Annotated[int, typer.Option(help="seed of the burst sample")] = 0,
     output: Annotated[
@@ -533,13 +533,13 @@ def calibrate_uncertainty(
     ] = None,
 ) -> None:
     """Fit the uncertainty calibration per mode (by the log score of the ECE's event) and store it in the
-    model's JSON; prints the ECE before and after on held-out data (each folder scored by a map fitted on the
-    others; one folder: half its start points)."""
+    model's JSON; prints the ECE before and after on held-out data (each family scored by a map fitted on the
+    others; one family: half its start points)."""
     from gearscan.inference.calibrate import calibrate_model
     from gearscan.inference.model_io import ModelFileError
     from gearscan.twin.dataset import DatasetError
 
-    missing = [f for v in val for f in v.split(",") if not Path(f).is_dir()]
+    missing = [repr(f) for v in val for f in v.split(",") if not f.strip() or not Path(f).is_dir()]
     if missing:
         typer.echo(f"error: validation folder(s) {', '.join(missing)}: expected existing twin dataset folders", err=True)
         raise typer.Exit(2)
@@ -549,9 +549,7 @@ def calibrate_uncertainty(
     except (ModelFileError, DatasetError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    for mode in ("deterministic", "mc"):
-        if mode not in report:
-            continue
+    for mode in report["fitted"]:  # a mode not fitted (e.g. MC with --mc 0) kept its map and is not printed
         r = report[mode]
         m = r["map"]
         if m.get("form") == "additive":

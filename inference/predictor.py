@@ -696,8 +696,9 @@ def still_burst_gate(
         mod = np.maximum(np.hypot(m3, d3), np.float32(0.01))
         f = (a * np.power(s, b - 1) * np.power(mod, c)).astype(np.float32)
     elif calibration is not None and calibration.needs_departure:
-        # the map read at three-step PS's own departure (0) instead of the network's
-        dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(m3, d3))))).astype(np.float32)
+        # the map read at three-step PS's own departure (0) instead of the network's: the departure it read is the
+        # network's phase against three-step PS of the raw frames (to_phase_result), not against still_phase's
+        dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(*classical))))).astype(np.float32)
         f = (calibration.departure_factor(np.zeros_like(dep)) / calibration.departure_factor(dep)).astype(np.float32)
     if f is None:
         return gated, True

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.special import erf
+from scipy.special import erf, erfcx
 
 from gearscan.core.phase import wrap
 from gearscan.core.types import PhaseResult
@@ -417,8 +417,11 @@ MAP_FORMS = ("power", "additive")
 
 
 def sigma_map_from_json(data: Any, source: str = "sigma_calibration") -> SigmaMap:
-    """A stored sigma map: the additive form where the entry says ``"form": "additive"``, else the power law."""
+    """A stored sigma map: the additive form where the entry says ``"form": "additive"``, else the power law (its
+    entries name no form)."""
     if isinstance(data, dict) and "form" in data:
+        if data["form"] != "additive":
+            raise ValueError(f"{source}: form: expected 'additive' (a power law names no form), got {data['form']!r}")
         return AdditiveSigmaMap.from_json(data, source)
     return SigmaCalibration.from_json(data, source)
 
@@ -426,6 +429,22 @@ def sigma_map_from_json(data: Any, source: str = "sigma_calibration") -> SigmaMa
 def map_form(cal: SigmaMap | None) -> str:
     """``"additive"`` or ``"power"`` (:data:`MAP_FORMS`; no map: the power law)."""
     return "additive" if isinstance(cal, AdditiveSigmaMap) else "power"
+
+
+def event_loss_grad(p: np.ndarray, X: np.ndarray, hit: np.ndarray, weights: np.ndarray,
+                    eps: float = 0.03) -> tuple[float, np.ndarray]:
+    """The weighted event log score of ``log sigma = clip(X @ p)`` (:data:`LOG_SIGMA_RANGE`) and its gradient in
+    ``p``: ``log P(|e| < eps) = log erf z``, ``log P(|e| >= eps) = log erfcx z - z^2``, ``z = eps / (sigma sqrt 2)``,
+    exact where P is near 0 or 1, so the gradient matches the loss everywhere (0 where the clip holds)."""
+    lo, hi = LOG_SIGMA_RANGE
+    u = X @ p
+    z = (eps / math.sqrt(2.0)) * np.exp(-np.clip(u, lo, hi))
+    e = np.maximum(erf(z), 1e-300)
+    loss = -np.sum(weights * np.where(hit, np.log(e), np.log(erfcx(z)) - z * z))
+    d_hit = -(2 / math.sqrt(math.pi)) * z * np.exp(-z * z) / e  # d log erf z / d log sigma
+    d_miss = (2 / math.sqrt(math.pi)) * z / erfcx(z)  # d log erfc z / d log sigma
+    dl = -np.where(hit, d_hit, d_miss) * ((u > lo) & (u < hi))
+    return float(loss), X.T @ (weights * dl)
 
 
 def fit_additive_map(
@@ -456,6 +475,10 @@ def fit_additive_map(
     if e.size == 0 or any(np.size(v) != e.size for v in cols.values()):
         raise ValueError(f"fit_additive_map: expected equal non-empty error, sigma, departure and density, got sizes "
                          f"{e.size}, {[np.size(v) for v in cols.values()]}")
+    for name, v in (("error", e), *cols.items()):
+        bad = int(np.size(v) - np.count_nonzero(np.isfinite(np.asarray(v, np.float64))))
+        if bad:
+            raise ValueError(f"fit_additive_map: {name} has {bad} non-finite values; expected finite numbers")
     w = np.ones(e.size) if weights is None else np.asarray(weights, np.float64).ravel()
     if w.size != e.size or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
         raise ValueError(f"fit_additive_map: expected {e.size} finite non-negative weights with a positive sum")
@@ -469,16 +492,9 @@ def fit_additive_map(
     X = np.stack([np.ones(fe.size)] + [c for n in names for c in
                                        (xs[n], *(np.maximum(xs[n] - q, 0.0) for q in qs[n]))], 1)
     hit = np.abs(fe) < eps
-    k = eps / math.sqrt(2.0)
 
     def loss_grad(p: np.ndarray) -> tuple[float, np.ndarray]:
-        s = np.exp(np.clip(X @ p, *LOG_SIGMA_RANGE))
-        z = k / s
-        c = np.clip(erf(z), 1e-12, 1 - 1e-12)
-        loss = -np.sum(fw * np.where(hit, np.log(c), np.log1p(-c)))
-        dc = -(2 / math.sqrt(math.pi)) * z * np.exp(-z * z)  # d erf(k / s) / d log s
-        dl = -np.where(hit, 1 / c, -1 / (1 - c)) * dc
-        return float(loss), X.T @ (fw * dl)
+        return event_loss_grad(p, X, hit, fw, eps)
 
     start = np.zeros(X.shape[1])
     start[1] = 1.0  # the identity: log sigma' = log sigma

@@ -60,9 +60,8 @@ def main() -> None:
     meta["mc_phase"] = choice
     print(f"wrote mc_phase to {write_config(weights, meta)}")
     if phase != before:
-        cal = meta.get("uncertainty_calibration") or {}
-        if (cal.get("mc") or {}).get("data"):  # the MC map's own sample (each mode names its own since session 41)
-            cal = cal["mc"]
+        top = meta.get("uncertainty_calibration") or {}
+        cal = {**top, **(top.get("mc") or {})}  # the MC map's own sample where it names one (since session 41)
         if not cal.get("data"):
             raise SystemExit(f"{weights.with_suffix('.json')}: no uncertainty_calibration.data to refit the MC map on; "
                              "run `gearscan calibrate-uncertainty` on your val folders")

@@ -87,10 +87,13 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
                               "--mc", "0", "--form", "additive"])
     assert res.exit_code == 0, res.output
     assert "deterministic: additive map in log sigma (3 knots), departure (3 knots), density (3 knots)" in res.output
+    assert "mc:" not in res.output  # --mc 0: no MC map fitted, none printed
     assert json.loads(model_path.with_suffix(".json").read_text())["sigma_calibration"]["deterministic"]["form"] == \
         "additive"
     res = runner.invoke(app, ["calibrate-uncertainty", f"{val_set},{tmp_path / 'nowhere'}", "--model", str(model_path)])
-    assert res.exit_code == 2 and f"validation folder(s) {tmp_path / 'nowhere'}: expected existing" in res.output
+    assert res.exit_code == 2 and f"validation folder(s) '{tmp_path / 'nowhere'}': expected existing" in res.output
+    res = runner.invoke(app, ["calibrate-uncertainty", f"{val_set},", "--model", str(model_path)])
+    assert res.exit_code == 2 and "validation folder(s) '': expected existing" in res.output
     res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--form", "spline"])
     assert res.exit_code == 2 and "form: expected one of ('power', 'additive')" in res.output, res.output
 
@@ -194,9 +197,19 @@ def test_an_additive_map_is_fitted_kept_on_refit_and_applied(val_set, model_path
     assert again["deterministic"]["form"] == "additive"  # the model's form, kept
     assert again["data"] == [f"{val_set},{val_set}"] and again["items"] == {"moving": 8, "still": 4}
     assert calibrate_model(out, again["data"], items=8, mc=3, modes=("deterministic",))["items"] == again["items"]
-    kept_mc = json.loads(out.with_suffix(".json").read_text())["sigma_calibration"]["mc"]
-    power = calibrate_model(out, val_set, items=8, mc=0, form="power")  # mc=0: the MC map is kept, not dropped
-    assert json.loads(out.with_suffix(".json").read_text())["sigma_calibration"]["mc"] == kept_mc
+    before = json.loads(out.with_suffix(".json").read_text())
+    power = calibrate_model(out, val_set, items=8, mc=0, form="power", seed=3)  # mc=0: the MC map is kept
+    after = json.loads(out.with_suffix(".json").read_text())
+    assert after["sigma_calibration"]["mc"] == before["sigma_calibration"]["mc"] and power["fitted"] == ["deterministic"]
+    kept = after["uncertainty_calibration"]["mc"]  # its own sample, not this run's
+    assert kept["seed"] == 0 and kept["orientation"] == "normal" and after["uncertainty_calibration"]["seed"] == 3
     assert power["deterministic"]["form"] == "power" and "form" not in power["deterministic"]["map"]
     with pytest.raises(ValueError, match="form"):
         calibrate_model(out, val_set, items=8, form="spline")
+    with pytest.raises(ValueError, match=r"val family '.*,': expected one or more folder names"):
+        calibrate_model(out, f"{val_set},", items=8)
+    # a stored comma-joined family draws the same sample through val_samples (scripts/score_sigma_map.py)
+    from gearscan.inference.calibrate import val_samples
+
+    joined = val_samples(again["data"], 8, 0, False)
+    assert [(k, len(p), st) for k, _, p, st in joined] == [(0, 4, False), (0, 2, True), (0, 4, False), (0, 2, True)]

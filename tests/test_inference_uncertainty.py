@@ -416,3 +416,36 @@ def test_fringe_density_reads_the_local_fringe_period():
         np.testing.assert_allclose(fringe_density(ramp)[:, 1:-1], 2 * np.pi / period, rtol=1e-5)
         bent = ramp + 0.3 * np.sin(np.arange(8)[:, None] * np.arange(64)[None, :] / 40)
         np.testing.assert_allclose(fringe_density(-bent[:, ::-1])[:, ::-1], fringe_density(bent), atol=1e-6)
+
+
+def test_the_event_score_gradient_matches_the_loss_also_where_it_saturates():
+    """event_loss_grad against finite differences on pixels from tiny to huge sigma (P near 0 and 1) and past the
+    map's clip, where the gradient is 0."""
+    from scipy.optimize import approx_fprime
+
+    from gearscan.inference.uncertainty import LOG_SIGMA_RANGE, event_loss_grad
+
+    rng = np.random.default_rng(4)
+    n = 400
+    X = np.stack([np.ones(n), rng.uniform(-9, 1.5, n), rng.normal(0, 1, n)], 1)
+    hit = rng.random(n) < 0.5
+    w = rng.random(n)
+    w /= w.sum()
+    for p in (np.array([0.0, 1.0, 0.2]), np.array([-2.0, 0.7, -0.4])):
+        _, g = event_loss_grad(p, X, hit, w)
+        np.testing.assert_allclose(g, approx_fprime(p, lambda q: event_loss_grad(q, X, hit, w)[0], 1e-7),
+                                   rtol=1e-4, atol=1e-7)
+    clipped = np.array([LOG_SIGMA_RANGE[1] + 5.0, 0.0, 0.0])  # every pixel past the clip: flat loss, no slope
+    np.testing.assert_allclose(event_loss_grad(clipped, X, hit, w)[1], 0.0)
+    assert np.isfinite(event_loss_grad(np.array([-20.0, 0.0, 0.0]), X, hit, w)[0])  # z huge: no log(0)
+
+
+def test_the_additive_fit_names_non_finite_input():
+    from gearscan.inference.uncertainty import fit_additive_map, sigma_map_from_json
+
+    err, raw, dep, den, _ = _density_world(500, 2)
+    den[3] = np.nan
+    with pytest.raises(ValueError, match="density has 1 non-finite"):
+        fit_additive_map(err, raw, dep, den)
+    with pytest.raises(ValueError, match="a power law names no form"):
+        sigma_map_from_json({"form": "power", "a": 1.0, "b": 1.0})
