@@ -2,8 +2,8 @@
 
     .venv/bin/python benchmarks/sigma_map_forms.py [--seed 1] [--items 64]
 
-The shipped map ``sigma' = a sigma^b (departure + 0.01)^c`` is one power law for every rig; on test its ECE is 0.05-0.09
-per family (deterministic, moving). This study asks, on val only, which run-time features and which freedom a map
+The power law ``sigma' = a sigma^b (departure + 0.01)^c`` (shipped until session 41) is one curve for every rig; on
+test its ECE was 0.05-0.09 per family (deterministic, moving). This study asks, on val only, which run-time features and which freedom a map
 needs. Per val family (``val_radial``; ``val_views``: side, oblique, face and radial views; the default rig's four
 val gears) the shipped model decodes a seeded sample of whole moving and still bursts, deterministic, with the
 shipped gates; per truth-mask pixel it keeps the error, the uncalibrated sigma, the departure from three-step PS, the
@@ -44,7 +44,7 @@ ECE_TARGET = 0.05
 
 @dataclass(frozen=True)
 class Form:
-    """A candidate map: the power law (``power``, the shipped form, fitted on every pixel alike) or the additive map
+    """A candidate map: the power law (``power``, shipped until session 41, fitted on every pixel alike) or the additive map
     (:class:`~gearscan.inference.uncertainty.AdditiveSigmaMap`) in ``features`` with ``knots`` hinges each;
     ``balanced``: every family x kind cell weighs the same in the fit (else every pixel does, as shipped)."""
 
@@ -56,13 +56,13 @@ class Form:
     @property
     def name(self) -> str:
         if self.power:
-            return "power law sigma + departure (the shipped form), pixels"
+            return "power law sigma + departure (the shipped form until session 41), pixels"
         return (f"additive {' + '.join(self.features)}, {self.knots} knots, "
                 f"{'cells balanced' if self.balanced else 'pixels'}")
 
 
 FORMS = (
-    Form(("sigma", "departure"), 0, False, power=True),  # A of sigma_map_form_rule.md
+    Form(("sigma", "departure"), 0, False, power=True),  # A of sigma_map_form_rule.md (shipped until session 41)
     Form(("sigma", "departure"), 0, True),
     Form(("sigma", "departure"), 3, False),
     Form(("sigma", "departure"), 3, True),

@@ -15,10 +15,12 @@ Calibration: per pixel, ``confidence = P(|err| < eps) = erf(eps / (sigma sqrt 2)
 bin; ``ECE = sum_b (n_b / n) |acc_b - conf_b|``.
 
 Two calibration maps are stored with a model. ``var_scale`` (fitted by training) multiplies the
-M, D variances before propagation. ``sigma_calibration`` (:class:`SigmaCalibration`, fitted by
-``gearscan calibrate-uncertainty``, one per mode: deterministic and Monte Carlo) then maps the
-propagated total sigma, ``sigma' = a * sigma**b * (departure + d0)**c``, where the departure is
-how far the network's phase lies from three-step PS's on the same frames. It is fitted by the log
+M, D variances before propagation. ``sigma_calibration`` (fitted by ``gearscan calibrate-uncertainty``, one
+per mode: deterministic and Monte Carlo) then maps the propagated total sigma: the power law
+:class:`SigmaCalibration`, ``sigma' = a * sigma**b * (departure + d0)**c``, where the departure is
+how far the network's phase lies from three-step PS's on the same frames, or :class:`AdditiveSigmaMap`,
+piecewise-linear in log sigma, log departure and the log fringe density of the network's phase
+(v9's deterministic map since session 41, ``benchmarks/sigma_map_form_rule.md``). Either is fitted by the log
 score of the ECE's own event ``|err| < eps`` (:func:`event_log_score`), a proper scoring rule:
 ECE alone is minimised by a constant sigma (measured: ECE 0.001 with every pixel at 0.07 rad),
 which would erase where the network is unsure; the Gaussian NLL is pulled by the errors' heavy
