@@ -15,7 +15,7 @@ from gearscan.core.recording import RecordingReader
 from gearscan.core.rig import default_rig
 from gearscan.inference.decoder import Decoder
 from gearscan.inference.predictor import Predictor
-from gearscan.inference.uncertainty import departure
+from gearscan.inference.uncertainty import departure, fringe_density
 from gearscan.recon.fuse import CloudFuser
 from gearscan.recon.track import TrackRefiner
 from gearscan.twin.defects import GearDefects, true_mesh
@@ -88,7 +88,7 @@ def test_reversed_bursts_decode_to_the_true_phase(still_alternating):
 
     m = replay(still_alternating, decoder=Decoder(), reconstruct=False, truth=False).to_json()
     assert m["decoder"]["rig_orientation"] == "normal" and m["decoder"]["still_bursts"] == 4, m["decoder"]
-    # the shipped sigma map reads the same departure in either order: the network's phase against
+    # the shipped sigma map reads the same departure (and fringe density) in either order: the network's phase against
     # three-step PS's with the burst's real shifts, both in capture order (the still-burst gate off: it takes
     # these still bursts from the shipped v9, and a taken burst carries three-step's noise sigma, not the map's)
     shipped = Predictor.load(None, still_burst_rad=0.0)
@@ -100,7 +100,7 @@ def test_reversed_bursts_decode_to_the_true_phase(still_alternating):
         r, r0, c = shipped.predict_burst(b), raw.predict_burst(b), classical_result(b)
         lit = np.hypot(c.M, c.D) >= 0.05  # the keep test's modulation: unlit phase is noise either way
         assert lit.mean() > 0.5
-        want = cal(r0.sigma_total, departure(r0.phase, c.phase))
+        want = cal(r0.sigma_total, departure(r0.phase, c.phase), fringe_density(r0.phase))  # density: either sign
         np.testing.assert_allclose(r.sigma_total[lit], want[lit], rtol=1e-4)
 
 
