@@ -191,15 +191,17 @@ def family_folders(family: str | Path | Sequence[str | Path]) -> list[str]:
 def val_samples(folders: Sequence[str | Sequence[str]], items: int, seed: int,
                 needs_angles: bool) -> list[tuple[int, object, list[int], bool]]:
     """Per validation family (a folder, or a list of folders pooled as one, or comma-joined), a seeded sample of
-    ``items`` moving
-    bursts (both senses) and ``items // 2`` still ones, shared out over its folders: ``(family index, dataset,
-    picked items, still)``, whole images."""
+    ``items`` moving bursts (both senses) and ``items // 2`` still ones, shared out over its folders: ``(family
+    index, dataset, picked items, still)``, whole images."""
     from gearscan.inference.data import MotionInput
     from gearscan.twin.dataset import TwinBurstDataset
 
     sets = []
     for k, family in enumerate(folders):
         group = family_folders(family)
+        if items // 2 < len(group):
+            raise ValueError(f"items: {items} moving and {items // 2} still bursts cannot be shared out over the "
+                             f"{len(group)} folders of val family {family!r}; expected items >= {2 * len(group)}")
         for j, folder in enumerate(group):
             # one folder per family: the generator as before (seed, k), so a stored sample is drawn again
             rng = np.random.default_rng([seed, k] if len(group) == 1 else [seed, k, j])
@@ -223,10 +225,11 @@ def calibrate_model(
     """Fit and store the sigma calibration of ``model`` (default: the shipped one) on ``val``.
 
     ``val``: one or more validation families, each a twin validation folder or a list of folders pooled as one
-    (e.g. one rig's gears; or comma-joined, as the report stores it); per family ``items`` moving bursts and ``items // 2`` still ones. ``form``: the map's
-    form, ``"power"`` or ``"additive"`` (:data:`~gearscan.inference.uncertainty.MAP_FORMS`); None: per mode, the
-    form of the model's stored map (none stored: the power law). Writes ``sigma_calibration`` and an ``uncertainty_calibration``
-    report into the model's JSON (or into ``output``'s JSON, copying the weights there); returns
+    (e.g. one rig's gears; or comma-joined, as the report stores it); per family ``items`` moving bursts and
+    ``items // 2`` still ones. ``form``: the map's form, ``"power"`` or ``"additive"``
+    (:data:`~gearscan.inference.uncertainty.MAP_FORMS`); None: per mode, the form of the model's stored map (none
+    stored: the power law). Writes ``sigma_calibration`` and an ``uncertainty_calibration`` report into the model's
+    JSON (or into ``output``'s JSON, copying the weights there); returns
     that report. ``orientation``: the Predictor's fringe orientation on the val bursts; every twin
     rig's is ``"normal"``, as a user sets it for the rig (``"auto"``'s per-burst vote misreads some
     fast bursts, and their mirrored decode would enter the fit). ``modes``: which maps to refit; the JSON keeps

@@ -208,6 +208,8 @@ def test_an_additive_map_is_fitted_kept_on_refit_and_applied(val_set, model_path
         calibrate_model(out, val_set, items=8, form="spline")
     with pytest.raises(ValueError, match=r"val family '.*,': expected one or more folder names"):
         calibrate_model(out, f"{val_set},", items=8)
+    with pytest.raises(ValueError, match=r"cannot be shared out over the 3 folders .* expected items >= 6"):
+        calibrate_model(out, [[val_set] * 3], items=4)
     # a stored comma-joined family draws the same sample through val_samples (scripts/score_sigma_map.py)
     from gearscan.inference.calibrate import val_samples
 
