@@ -73,7 +73,7 @@ FORMS = (
 )
 
 
-def collect(predictor: Predictor, seed: int, items: int) -> dict[str, np.ndarray]:
+def collect(predictor: Predictor, seed: int, items: int, mc: int = 0) -> dict[str, np.ndarray]:
     """Per truth-mask pixel of the sampled val bursts (:func:`collect_errors`): error, sigma, departure, fringe
     density, gated, still, family and view."""
     names = list(FAMILIES)
@@ -83,7 +83,7 @@ def collect(predictor: Predictor, seed: int, items: int) -> dict[str, np.ndarray
                                              "view")}
     for k, ds, pick, still in val_samples(list(FAMILIES.values()), items, seed, predictor.needs_angles):
         for i in pick:
-            px = collect_errors(predictor, ds, [i], 0, folder=k, still=still)
+            px = collect_errors(predictor, ds, [i], mc, folder=k, still=still)
             n = px.error.size
             for name in ("error", "sigma", "departure", "density", "gated", "still"):
                 cols[name].append(getattr(px, name))
@@ -130,17 +130,22 @@ def cell_eces(px: dict[str, np.ndarray], sigma: np.ndarray, min_pixels: int = 50
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=1, help="draws the val bursts (session 41 explored on seed 0)")
-    ap.add_argument("--items", type=int, default=64, help="moving bursts per val folder (still: half)")
+    ap.add_argument("--items", type=int, default=64, help="moving bursts per val family, shared out over its folders (still: half)")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=HERE / "sigma_map_forms_report")
+    ap.add_argument("--mc", type=int, default=0, help="MC passes (0: the deterministic map's study)")
+    ap.add_argument("--out", type=Path, default=None, help="default: benchmarks/sigma_map_forms[_mc]_report")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0, machine = time.time(), host()
     predictor = Predictor.load(None, orientation="normal")
-    shipped = predictor.calibration.get("deterministic") or SigmaCalibration()
+    mode = "mc" if args.mc > 0 else "deterministic"
+    args.out = args.out or HERE / f"sigma_map_forms{'_mc' if args.mc > 0 else ''}_report"
+    shipped = predictor.calibration.get(mode) or SigmaCalibration()
+    torch.manual_seed(0)  # the MC passes' dropout draws
     predictor.calibration = {}  # the raw sigma, as calibrate_model fits it
-    px = collect(predictor, args.seed, args.items)
-    fitted_on = "; ".join((predictor.meta.get("uncertainty_calibration") or {}).get("data") or ["unknown"])
+    px = collect(predictor, args.seed, args.items, args.mc)
+    cal_report = predictor.meta.get("uncertainty_calibration") or {}
+    fitted_on = "; ".join((cal_report.get(mode) or {}).get("data") or cal_report.get("data") or ["unknown"])
     rows = {f"shipped map (fitted on {fitted_on}: not held out there)":
             cell_eces(px, np.where(px["gated"], px["sigma"], shipped(px["sigma"], px["departure"], px["density"])))}
     for form in FORMS:
@@ -171,13 +176,17 @@ def write(args, rows: dict[str, dict[str, float]], px: dict[str, np.ndarray], ma
     args.out.with_suffix(".json").write_text(json.dumps(data, indent=1))
     head = "| form (held out by family) | " + " | ".join(cells) + " | worst |"
     lines = [
-        "# Sigma-map forms, leave one val family out (issue 13, item 7; val only)", "",
-        "Decides only as `sigma_map_form_rule.md` says, on its deciding run (seed 2); other seeds report.", "",
-        f"`python benchmarks/sigma_map_forms.py --seed {args.seed} --items {args.items}`; commit `{commit}`"
+        f"# Sigma-map forms{', MC mode' if args.mc else ''}, leave one val family out (issue 13, item 7; val only)", "",
+        ("Decides only as `sigma_map_form_mc_rule.md` says, on its deciding run (seed 3, MC T=20); other runs report."
+         if args.mc else
+         "Decides only as `sigma_map_form_rule.md` says, on its deciding run (seed 2); other seeds report."), "",
+        f"`python benchmarks/sigma_map_forms.py --seed {args.seed} --items {args.items}"
+        f"{f' --mc {args.mc}' if args.mc else ''}`; commit `{commit}`"
         f"{' (uncommitted edits)' if dirty else ''}; {seconds / 60:.1f} min; host {machine['cpu']}, "
         f"{machine['cores']} cores, AMX-BF16 {'yes' if machine['amx_bf16'] else 'no'}.", "",
-        f"Shipped model, deterministic, shipped gates, fringe orientation normal. Per val folder {args.items} moving "
-        f"(both senses) and {args.items // 2} still whole bursts, seed {args.seed}. ECE: 30 bins, eps {EPS} rad, per "
+        f"Shipped model, {f'MC T={args.mc} (its phase as shipped)' if args.mc else 'deterministic'}, shipped gates, fringe orientation normal. Per val family {args.items} moving "
+        f"(both senses) and {args.items // 2} still whole bursts, shared out over its folders (the default rig's four "
+        f"gears), seed {args.seed}. ECE: 30 bins, eps {EPS} rad, per "
         "view x kind over the truth mask. Each row's sigma for a family comes from the form fitted on the other two.",
         "", head, "|" + "---|" * (len(cells) + 2),
     ]
@@ -189,7 +198,9 @@ def write(args, rows: dict[str, dict[str, float]], px: dict[str, np.ndarray], ma
     verdict = rule_verdict(rows)
     data["rule"] = verdict
     args.out.with_suffix(".json").write_text(json.dumps(data, indent=1))
-    lines += ["", "## `sigma_map_form_rule.md` on this run (it decides only on its deciding run, seed 2)", "",
+    rule = ("`sigma_map_form_mc_rule.md` on this run (it decides only on its deciding run, seed 3)" if args.mc else
+            "`sigma_map_form_rule.md` on this run (it decides only on its deciding run, seed 2)")
+    lines += ["", f"## {rule}", "",
               f"- A, {FORMS[0].name}: worst cell {verdict['A worst']:.3f}, mean {verdict['A mean']:.3f}",
               f"- B, {FORMS[-1].name}: worst cell {verdict['B worst']:.3f}, mean {verdict['B mean']:.3f}",
               f"- 1. B's worst below A's: {'yes' if verdict['1 worst'] else 'no'}; 2. B's mean below A's: "
