@@ -88,7 +88,7 @@ def collect(predictor: Predictor, seed: int, items: int, mc: int = 0) -> dict[st
             for name in ("error", "sigma", "departure", "density", "gated", "still"):
                 cols[name].append(getattr(px, name))
             cols["family"].append(np.full(n, names[k]))
-            rig_name = views[str(ds.root)][int(ds[int(i)]["group"])] if names[k] == "views" else ""
+            rig_name = views[str(ds.root)][int(px.group[0])] if names[k] == "views" else ""  # the burst's start point
             cols["view"].append(np.full(n, view_label(names[k], rig_name)))
     return {k: np.concatenate(v) for k, v in cols.items()}
 

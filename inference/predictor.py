@@ -699,7 +699,7 @@ def still_burst_gate(
         # the map read at three-step PS's own departure (0) instead of the network's: the departure it read is the
         # network's phase against three-step PS of the raw frames (to_phase_result), not against still_phase's
         dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(*classical))))).astype(np.float32)
-        f = (calibration.departure_factor(np.zeros_like(dep)) / calibration.departure_factor(dep)).astype(np.float32)
+        f = (calibration.departure_factor(np.zeros((), np.float32)) / calibration.departure_factor(dep)).astype(np.float32)
     if f is None:
         return gated, True
     scale = {name: (getattr(result, name) * f).astype(np.float32)
