@@ -7,10 +7,12 @@ test its ECE was 0.05-0.09 per family (deterministic, moving). This study asks, 
 needs. Per val family (``val_radial``; ``val_views``: side, oblique, face and radial views; the default rig's four
 val gears) the shipped model decodes a seeded sample of whole moving and still bursts, deterministic, with the
 shipped gates; per truth-mask pixel it keeps the error, the uncalibrated sigma, the departure from three-step PS, the
-local density of the network's fringes (|grad phase|, rad/px). Each candidate form is fitted by the product's code
+local density of the network's fringes (|grad phase|, rad/px), the phase's curvature (|wrapped Laplacian|) and the
+departure's RMS over 7x7 px. Each candidate form is fitted by the product's code
 (the event score of the ECE's event) on two families and scored on the third, so each family plays an unseen rig;
 cells are family or view x moving/still. It decides only as ``sigma_map_form_rule.md`` (written before its
-deciding run, seed 2) says; the seed-1 run reported (session 41, with a modulation row since dropped).
+deciding run, seed 2) says; the seed-1 run reported (session 41, with a modulation row since dropped). The two
+local terms (the last form) decide only as ``sigma_map_local_rule.md`` says, on its deciding run (seed 4).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from adaptation import git, host
 from gearscan.inference.calibrate import collect_errors, val_samples
 from gearscan.inference.predictor import Predictor
 from gearscan.inference.uncertainty import (
+    FORM_FEATURES,
     SigmaCalibration,
     fit_additive_map,
     fit_sigma_calibration,
@@ -69,8 +72,12 @@ FORMS = (
     Form(("sigma", "departure", "density"), 0, False),
     Form(("sigma", "departure", "density"), 0, True),
     Form(("sigma", "departure", "density"), 3, False),
-    Form(("sigma", "departure", "density"), 3, True),  # B of sigma_map_form_rule.md
+    Form(("sigma", "departure", "density"), 3, True),  # B of sigma_map_form_rule.md, A of sigma_map_local_rule.md
+    Form(FORM_FEATURES["additive-local"], 3, True),  # B of sigma_map_local_rule.md
 )
+FORM_RULE = (FORMS[0], FORMS[7])  # sigma_map_form_rule.md: A, B
+LOCAL_RULE = (FORMS[7], FORMS[8])  # sigma_map_local_rule.md: A, B
+LOCAL = ("curvature", "local_departure")
 
 
 def collect(predictor: Predictor, seed: int, items: int, mc: int = 0) -> dict[str, np.ndarray]:
@@ -79,13 +86,13 @@ def collect(predictor: Predictor, seed: int, items: int, mc: int = 0) -> dict[st
     names = list(FAMILIES)
     views = {f: [e["rig"]["name"] for e in json.loads((Path(f) / "index.json").read_text())["entries"]]
              for fs in FAMILIES.values() for f in fs}
-    cols: dict[str, list] = {k: [] for k in ("error", "sigma", "departure", "density", "gated", "still", "family",
-                                             "view")}
+    cols: dict[str, list] = {k: [] for k in ("error", "sigma", "departure", "density", *LOCAL, "gated", "still",
+                                             "family", "view")}
     for k, ds, pick, still in val_samples(list(FAMILIES.values()), items, seed, predictor.needs_angles):
         for i in pick:
             px = collect_errors(predictor, ds, [i], mc, folder=k, still=still)
             n = px.error.size
-            for name in ("error", "sigma", "departure", "density", "gated", "still"):
+            for name in ("error", "sigma", "departure", "density", *LOCAL, "gated", "still"):
                 cols[name].append(getattr(px, name))
             cols["family"].append(np.full(n, names[k]))
             rig_name = views[str(ds.root)][int(px.group[0])] if names[k] == "views" else ""  # the burst's start point
@@ -112,8 +119,14 @@ def fit_held_out(form: Form, px: dict[str, np.ndarray], held: str) -> np.ndarray
                              return_inverse=True)[1].ravel()
             weights = 1.0 / np.bincount(cell)[cell]
         cal, _ = fit_additive_map(px["error"][train], px["sigma"][train], px["departure"][train],
-                                  px["density"][train], weights=weights, features=form.features, knots=form.knots)
-    return np.where(px["gated"][m], px["sigma"][m], cal(px["sigma"][m], px["departure"][m], px["density"][m]))
+                                  px["density"][train], **{k: px[k][train] for k in LOCAL}, weights=weights,
+                                  features=form.features, knots=form.knots)
+    return np.where(px["gated"][m], px["sigma"][m], cal(px["sigma"][m], **inputs(px, m)))
+
+
+def inputs(px: dict[str, np.ndarray], m: np.ndarray) -> dict[str, np.ndarray]:
+    """The map inputs besides the sigma of the pixels ``m``."""
+    return {k: px[k][m] for k in ("departure", "density", *LOCAL)}
 
 
 def cell_eces(px: dict[str, np.ndarray], sigma: np.ndarray, min_pixels: int = 5000) -> dict[str, float]:
@@ -147,7 +160,7 @@ def main() -> None:
     cal_report = predictor.meta.get("uncertainty_calibration") or {}
     fitted_on = "; ".join((cal_report.get(mode) or {}).get("data") or cal_report.get("data") or ["unknown"])
     rows = {f"shipped map (fitted on {fitted_on}: not held out there)":
-            cell_eces(px, np.where(px["gated"], px["sigma"], shipped(px["sigma"], px["departure"], px["density"])))}
+            cell_eces(px, np.where(px["gated"], px["sigma"], shipped(px["sigma"], **inputs(px, slice(None)))))}
     for form in FORMS:
         sigma = np.zeros(px["error"].size)
         for fam in FAMILIES:
@@ -157,10 +170,11 @@ def main() -> None:
     write(args, rows, px, machine, time.time() - t0)
 
 
-def rule_verdict(rows: dict[str, dict[str, float]]) -> dict[str, float | bool]:
-    """``sigma_map_form_rule.md``: B (the last form) ships if its worst and its mean cell ECE are below A's (the
-    first, the shipped form), both held out by family."""
-    a, b = rows[FORMS[0].name], rows[FORMS[-1].name]
+def rule_verdict(rows: dict[str, dict[str, float]], rule: tuple[Form, Form] = FORM_RULE) -> dict[str, float | bool]:
+    """A rule's verdict (``sigma_map_form_rule.md``: A the power law, B the additive form; ``sigma_map_local_rule.md``:
+    A the additive form, B with the two local terms): B ships if its worst and its mean cell ECE are below A's,
+    both held out by family."""
+    a, b = rows[rule[0].name], rows[rule[1].name]
     out = {"A worst": max(a.values()), "A mean": float(np.mean(list(a.values()))),
            "B worst": max(b.values()), "B mean": float(np.mean(list(b.values())))}
     out |= {"1 worst": out["B worst"] < out["A worst"], "2 mean": out["B mean"] < out["A mean"]}
@@ -179,7 +193,8 @@ def write(args, rows: dict[str, dict[str, float]], px: dict[str, np.ndarray], ma
         f"# Sigma-map forms{', MC mode' if args.mc else ''}, leave one val family out (issue 13, item 7; val only)", "",
         ("Decides only as `sigma_map_form_mc_rule.md` says, on its deciding run (seed 3, MC T=20); other runs report."
          if args.mc else
-         "Decides only as `sigma_map_form_rule.md` says, on its deciding run (seed 2); other seeds report."), "",
+         "Decides only as `sigma_map_form_rule.md` (its deciding run: seed 2) and `sigma_map_local_rule.md` (seed 4) "
+         "say; other seeds report."), "",
         f"`python benchmarks/sigma_map_forms.py --seed {args.seed} --items {args.items}"
         f"{f' --mc {args.mc}' if args.mc else ''}`; commit `{commit}`"
         f"{' (uncommitted edits)' if dirty else ''}; {seconds / 60:.1f} min; host {machine['cpu']}, "
@@ -195,16 +210,20 @@ def write(args, rows: dict[str, dict[str, float]], px: dict[str, np.ndarray], ma
         lines.append(f"| {name} | " + " | ".join(
             f"**{r[c]:.3f}**" if r[c] > ECE_TARGET else f"{r[c]:.3f}" for c in cells) + f" | {worst:.3f} |")
     lines += ["", "Bold: above the issue's 0.05. Pixels per cell: " + ", ".join(f"{c} {n}" for c, n in pixels.items()) + "."]
-    verdict = rule_verdict(rows)
-    data["rule"] = verdict
+    rules = [(FORM_RULE, "`sigma_map_form_rule.md`", 2)] if args.mc else [
+        (FORM_RULE, "`sigma_map_form_rule.md`", 2), (LOCAL_RULE, "`sigma_map_local_rule.md`", 4)]
+    data["rule"] = {}
+    for rule, name, deciding in rules:
+        verdict = rule_verdict(rows, rule)
+        data["rule"][name.strip("`")] = verdict
+        if args.mc:
+            name, deciding = "`sigma_map_form_mc_rule.md`", 3
+        lines += ["", f"## {name} on this run (it decides only on its deciding run, seed {deciding})", "",
+                  f"- A, {rule[0].name}: worst cell {verdict['A worst']:.3f}, mean {verdict['A mean']:.3f}",
+                  f"- B, {rule[1].name}: worst cell {verdict['B worst']:.3f}, mean {verdict['B mean']:.3f}",
+                  f"- 1. B's worst below A's: {'yes' if verdict['1 worst'] else 'no'}; 2. B's mean below A's: "
+                  f"{'yes' if verdict['2 mean'] else 'no'}. **{'Adopt B' if verdict['adopt'] else 'Nothing ships'}.**"]
     args.out.with_suffix(".json").write_text(json.dumps(data, indent=1))
-    rule = ("`sigma_map_form_mc_rule.md` on this run (it decides only on its deciding run, seed 3)" if args.mc else
-            "`sigma_map_form_rule.md` on this run (it decides only on its deciding run, seed 2)")
-    lines += ["", f"## {rule}", "",
-              f"- A, {FORMS[0].name}: worst cell {verdict['A worst']:.3f}, mean {verdict['A mean']:.3f}",
-              f"- B, {FORMS[-1].name}: worst cell {verdict['B worst']:.3f}, mean {verdict['B mean']:.3f}",
-              f"- 1. B's worst below A's: {'yes' if verdict['1 worst'] else 'no'}; 2. B's mean below A's: "
-              f"{'yes' if verdict['2 mean'] else 'no'}. **{'Adopt B' if verdict['adopt'] else 'Nothing ships'}.**"]
     args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
 
 

@@ -37,6 +37,7 @@ from gearscan.inference.predictor import (
     still_burst_gate,
 )
 from gearscan.inference.uncertainty import (
+    FORM_FEATURES,
     MAP_FORMS,
     SigmaMap,
     departure,
@@ -46,8 +47,10 @@ from gearscan.inference.uncertainty import (
     fit_variance_scale,
     fringe_density,
     gaussian_nll,
+    local_departure,
     map_form,
     mc_moments,
+    phase_curvature,
     phase_sigma,
     plot_reliability,
     reliability,
@@ -60,8 +63,8 @@ class PixelErrors:
     """Per truth-mask pixel: wrapped phase error, uncalibrated total sigma, departure from
     three-step PS (rad), the pixel's validation family (``folder``), start point and still flag, whether the
     still-burst gate decoded its burst by three-step PS (its sigma is then three-step's own, which the map
-    never touches at run time: such pixels are scored, not fitted), and the fringe density of the network's
-    phase (rad/px)."""
+    never touches at run time: such pixels are scored, not fitted), the fringe density of the network's
+    phase (rad/px), its curvature (rad/px^2) and the local departure (rad): every feature a sigma map may read."""
 
     error: np.ndarray
     sigma: np.ndarray
@@ -71,6 +74,13 @@ class PixelErrors:
     still: np.ndarray
     gated: np.ndarray
     density: np.ndarray
+    curvature: np.ndarray
+    local_departure: np.ndarray
+
+    def features(self) -> dict[str, np.ndarray]:
+        """The map inputs besides the sigma, as :class:`~gearscan.inference.uncertainty.AdditiveSigmaMap` names them."""
+        return {"departure": self.departure, "density": self.density, "curvature": self.curvature,
+                "local_departure": self.local_departure}
 
     def take(self, keep: np.ndarray) -> PixelErrors:
         return PixelErrors(*(getattr(self, f)[keep] for f in self.__slots__))
@@ -111,11 +121,12 @@ def collect_errors(
             max_motion=predictor.still_burst_motion)[0]
         mask = np.asarray(item["mask"], bool)
         k = int(mask.sum())
+        dep = departure(net.phase, np.arctan2(*classical))
         parts.append(PixelErrors(
             phase_error(r.phase, item["phase"])[mask].astype(np.float32), r.sigma_total[mask],
-            departure(net.phase, np.arctan2(*classical))[mask], np.full(k, folder, np.int16),
+            dep[mask], np.full(k, folder, np.int16),
             np.full(k, int(item["group"]), np.int32), np.full(k, still, bool), np.full(k, r.mode == "three-step"),
-            fringe_density(net.phase)[mask]))
+            fringe_density(net.phase)[mask], phase_curvature(net.phase)[mask], local_departure(dep)[mask]))
         if progress:
             progress(n + 1, len(items))
     return PixelErrors.concat(parts)
@@ -139,11 +150,13 @@ def _fit(px: PixelErrors, form: str = "power") -> tuple[SigmaMap, dict]:
     fit = px.take(~px.gated) if px.gated.any() and not px.gated.all() else px
     if form == "power":
         return fit_sigma_calibration(fit.error, fit.sigma, fit.departure)
-    if form != "additive":
+    if form not in FORM_FEATURES:
         raise ValueError(f"form: expected one of {MAP_FORMS}, got {form!r}")
     cell = fit.folder.astype(np.int64) * 2 + fit.still
     counts = np.bincount(cell)
-    cal, metrics = fit_additive_map(fit.error, fit.sigma, fit.departure, fit.density, weights=1.0 / counts[cell])
+    f = fit.features()
+    cal, metrics = fit_additive_map(fit.error, fit.sigma, f.pop("departure"), f.pop("density"), **f,
+                                    weights=1.0 / counts[cell], features=FORM_FEATURES[form])
     # each family x kind weighs the same: say how many pixels carry each weight
     metrics["cell_pixels"] = {f"{k // 2}:{'still' if k % 2 else 'moving'}": int(n) for k, n in enumerate(counts) if n}
     return cal, metrics
@@ -151,7 +164,7 @@ def _fit(px: PixelErrors, form: str = "power") -> tuple[SigmaMap, dict]:
 
 def _calibrated(cal: SigmaMap, px: PixelErrors) -> np.ndarray:
     """Each pixel's sigma as the Predictor reports it with ``cal``: gated bursts keep three-step's."""
-    return np.where(px.gated, px.sigma, cal(px.sigma, px.departure, px.density)).astype(np.float32)
+    return np.where(px.gated, px.sigma, cal(px.sigma, **px.features())).astype(np.float32)
 
 
 def fit_mode(px: PixelErrors, folders: Sequence[str], form: str = "power") -> tuple[SigmaMap, dict]:
@@ -226,7 +239,7 @@ def calibrate_model(
 
     ``val``: one or more validation families, each a twin validation folder or a list of folders pooled as one
     (e.g. one rig's gears; or comma-joined, as the report stores it); per family ``items`` moving bursts and
-    ``items // 2`` still ones. ``form``: the map's form, ``"power"`` or ``"additive"``
+    ``items // 2`` still ones. ``form``: the map's form, ``"power"``, ``"additive"`` or ``"additive-local"``
     (:data:`~gearscan.inference.uncertainty.MAP_FORMS`); None: per mode, the form of the model's stored map (none
     stored: the power law). Writes ``sigma_calibration`` and an ``uncertainty_calibration`` report into the model's
     JSON (or into ``output``'s JSON, copying the weights there); returns

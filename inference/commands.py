@@ -528,8 +528,9 @@ def calibrate_uncertainty(
     ] = "normal",
     form: Annotated[
         str | None,
-        typer.Option(help="the map's form: power (sigma' = a sigma^b (departure + d0)^c) or additive (hinges in log "
-                     "sigma, departure and the network's fringe density); default: the form of the model's map"),
+        typer.Option(help="the map's form: power (sigma' = a sigma^b (departure + d0)^c), additive (hinges in log "
+                     "sigma, departure and the network's fringe density) or additive-local (also the phase's "
+                     "curvature and the departure's 7x7 RMS); default: the form of the model's map"),
     ] = None,
 ) -> None:
     """Fit the uncertainty calibration per mode (by the log score of the ECE's event) and store it in the

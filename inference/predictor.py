@@ -36,6 +36,7 @@ from gearscan.inference.uncertainty import (
     MomentStats,
     SigmaMap,
     deterministic_moments,
+    local_departure,
     mc_moments,
     moments_about,
     sigma_map_from_json,
@@ -699,7 +700,10 @@ def still_burst_gate(
         # the map read at three-step PS's own departure (0) instead of the network's: the departure it read is the
         # network's phase against three-step PS of the raw frames (to_phase_result), not against still_phase's
         dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(*classical))))).astype(np.float32)
-        f = (calibration.departure_factor(np.zeros((), np.float32)) / calibration.departure_factor(dep)).astype(np.float32)
+        local = local_departure(dep) if calibration.needs_local else None
+        zero = np.zeros((), np.float32)
+        f = (calibration.departure_factor(zero, None if local is None else zero)
+             / calibration.departure_factor(dep, local)).astype(np.float32)
     if f is None:
         return gated, True
     scale = {name: (getattr(result, name) * f).astype(np.float32)

@@ -240,19 +240,20 @@ class SigmaCalibration:
         return self.c != 0.0
 
     needs_density = False  # the power law does not read the fringe density
+    needs_local = False  # nor the curvature or the local departure
 
     def __call__(self, sigma: np.ndarray, departure: np.ndarray | None = None,
-                 density: np.ndarray | None = None) -> np.ndarray:
+                 density: np.ndarray | None = None, **local: np.ndarray | None) -> np.ndarray:
         return self.factor(sigma, departure) * np.maximum(np.asarray(sigma, np.float32), np.float32(1e-12))
 
-    def departure_factor(self, departure: np.ndarray) -> np.ndarray:
+    def departure_factor(self, departure: np.ndarray, local_departure: np.ndarray | None = None) -> np.ndarray:
         """The departure's own factor, ``(departure + d0)**c``: a still-burst gate swaps the network's departure
         for three-step PS's own (zero) by the ratio of two of these."""
         return np.power(np.asarray(departure, np.float32) + np.float32(self.d0), np.float32(self.c))
 
     def factor(self, sigma_total: np.ndarray, departure: np.ndarray | None = None,
-               density: np.ndarray | None = None) -> np.ndarray:
-        """``sigma'/sigma`` per pixel (float32: this runs on every burst); ``density`` is not read."""
+               density: np.ndarray | None = None, **local: np.ndarray | None) -> np.ndarray:
+        """``sigma'/sigma`` per pixel (float32: this runs on every burst); ``density`` and ``local`` are not read."""
         s = np.maximum(np.asarray(sigma_total, np.float32), np.float32(1e-12))
         f = np.float32(self.a) * np.power(s, np.float32(self.b - 1.0))
         if self.needs_departure:
@@ -283,7 +284,12 @@ class SigmaCalibration:
 
 SIGMA_FLOOR = 1e-6  # rad: the sigma feature's floor before its log
 DENSITY_FLOOR = 0.02  # rad/px: the fringe density's floor before its log
-MAP_FEATURES = ("sigma", "departure", "density")
+LOCAL_FLOOR = 0.01  # rad/px^2, rad: the curvature's and the local departure's floor before their logs
+MAP_FEATURES = ("sigma", "departure", "density", "curvature", "local_departure")
+# the additive forms by the features they read (benchmarks/sigma_map_form_rule.md, sigma_map_local_rule.md)
+FORM_FEATURES = {"additive": ("sigma", "departure", "density"),
+                 "additive-local": ("sigma", "departure", "density", "curvature", "local_departure")}
+LOCAL_WINDOW = 7  # px: the local departure's window (benchmarks/sigma_map_local_rule.md)
 LOG_SIGMA_RANGE = (math.log(1e-5), math.log(10.0))  # a mapped sigma stays within 1e-5..10 rad, where hinges extrapolate
 
 
@@ -298,9 +304,29 @@ def fringe_density(phase: np.ndarray) -> np.ndarray:
     return np.minimum(np.hypot(gx, gy), np.pi).astype(np.float32)
 
 
+def phase_curvature(phase: np.ndarray) -> np.ndarray:
+    """``|Laplacian|`` of a wrapped phase (rad/px^2; each neighbour difference wrapped, the image's edge repeated):
+    where the fringes bend or break (tooth tips, shadow and mask edges), which a sigma map reads as risk."""
+    p = np.pad(np.asarray(phase, np.float64), 1, mode="edge")
+    c = p[1:-1, 1:-1]
+    lap = wrap(p[1:-1, 2:] - c) + wrap(p[1:-1, :-2] - c) + wrap(p[2:, 1:-1] - c) + wrap(p[:-2, 1:-1] - c)
+    return np.abs(lap).astype(np.float32)
+
+
+def local_departure(departure_map: np.ndarray, window: int = LOCAL_WINDOW) -> np.ndarray:
+    """RMS of a departure map (:func:`departure`) over ``window`` x ``window`` pixels (edges mirrored): how hard the
+    network corrects around a pixel, where the pixel's own departure may be small by chance."""
+    from scipy.ndimage import uniform_filter
+
+    d = np.asarray(departure_map, np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"local_departure: expected an (H, W) departure map, got shape {d.shape}")
+    return np.sqrt(np.maximum(uniform_filter(d * d, window, mode="reflect"), 0.0)).astype(np.float32)
+
+
 def log_map_feature(name: str, values: np.ndarray) -> np.ndarray:
     """The additive map's x for feature ``name`` (:data:`MAP_FEATURES`): log sigma, log(departure + 0.01),
-    log(min(density, pi) + 0.02)."""
+    log(min(density, pi) + 0.02), log(curvature + 0.01), log(local departure + 0.01)."""
     v = np.asarray(values, np.float32)
     if name == "sigma":
         return np.log(np.maximum(v, np.float32(SIGMA_FLOOR)))
@@ -308,6 +334,8 @@ def log_map_feature(name: str, values: np.ndarray) -> np.ndarray:
         return np.log(v + np.float32(DEPARTURE_FLOOR))
     if name == "density":
         return np.log(np.minimum(v, np.float32(np.pi)) + np.float32(DENSITY_FLOOR))
+    if name in ("curvature", "local_departure"):
+        return np.log(v + np.float32(LOCAL_FLOOR))
     raise ValueError(f"sigma map feature: expected one of {MAP_FEATURES}, got {name!r}")
 
 
@@ -338,7 +366,9 @@ class HingeTerm:
 @dataclass(frozen=True, slots=True)
 class AdditiveSigmaMap:
     """Map of the total phase sigma, additive in log features: ``log sigma' = intercept + sum of terms``, each a
-    piecewise-linear function (:class:`HingeTerm`) of log sigma, log(departure + 0.01) or log(fringe density + 0.02).
+    piecewise-linear function (:class:`HingeTerm`) of log sigma, log(departure + 0.01) or log(fringe density + 0.02),
+    and in form ``"additive-local"`` also log(curvature + 0.01) and log(local departure + 0.01)
+    (:func:`phase_curvature`, :func:`local_departure`; ``benchmarks/sigma_map_local_rule.md``).
 
     Where the power law (:class:`SigmaCalibration`) is one curve for every rig, the hinges let each feature bend and
     the fringe density (:func:`fringe_density`, the network's own phase, no CAD) tells dense fringes, where the
@@ -368,9 +398,20 @@ class AdditiveSigmaMap:
     def needs_density(self) -> bool:
         return self._term("density") is not None
 
+    @property
+    def needs_local(self) -> bool:
+        """The map reads the curvature or the local departure (:data:`FORM_FEATURES` ``"additive-local"``)."""
+        return self._term("curvature") is not None or self._term("local_departure") is not None
+
+    @property
+    def features(self) -> tuple[str, ...]:
+        return tuple(t.feature for t in self.terms)
+
     def log_sigma(self, sigma: np.ndarray, departure: np.ndarray | None = None,
-                  density: np.ndarray | None = None) -> np.ndarray:
-        values = {"sigma": sigma, "departure": departure, "density": density}
+                  density: np.ndarray | None = None, *, curvature: np.ndarray | None = None,
+                  local_departure: np.ndarray | None = None) -> np.ndarray:
+        values = {"sigma": sigma, "departure": departure, "density": density, "curvature": curvature,
+                  "local_departure": local_departure}
         s = np.asarray(sigma)
         out = np.full(s.shape, np.float32(self.intercept), np.float32)
         for t in self.terms:
@@ -382,20 +423,34 @@ class AdditiveSigmaMap:
         return np.clip(out, np.float32(LOG_SIGMA_RANGE[0]), np.float32(LOG_SIGMA_RANGE[1]))
 
     def __call__(self, sigma: np.ndarray, departure: np.ndarray | None = None,
-                 density: np.ndarray | None = None) -> np.ndarray:
-        return np.exp(self.log_sigma(sigma, departure, density)).astype(np.float32)
+                 density: np.ndarray | None = None, *, curvature: np.ndarray | None = None,
+                 local_departure: np.ndarray | None = None) -> np.ndarray:
+        return np.exp(self.log_sigma(sigma, departure, density, curvature=curvature,
+                                     local_departure=local_departure)).astype(np.float32)
 
     def factor(self, sigma_total: np.ndarray, departure: np.ndarray | None = None,
-               density: np.ndarray | None = None) -> np.ndarray:
+               density: np.ndarray | None = None, *, curvature: np.ndarray | None = None,
+               local_departure: np.ndarray | None = None) -> np.ndarray:
         """``sigma'/sigma`` per pixel (float32)."""
         s = np.maximum(np.asarray(sigma_total, np.float32), np.float32(1e-12))
-        return np.exp(self.log_sigma(s, departure, density) - np.log(s)).astype(np.float32)
+        return np.exp(self.log_sigma(s, departure, density, curvature=curvature, local_departure=local_departure)
+                      - np.log(s)).astype(np.float32)
 
-    def departure_factor(self, departure: np.ndarray) -> np.ndarray:
-        """``exp`` of the departure's term (1 without one)."""
-        t = self._term("departure")
+    def departure_factor(self, departure: np.ndarray, local_departure: np.ndarray | None = None) -> np.ndarray:
+        """``exp`` of the departure's terms (1 without one): the pixel's own and, where the map reads it, the local
+        departure (which a still-burst gate, reading the map at zero departure, sets to zero too)."""
         d = np.asarray(departure, np.float32)
-        return np.ones_like(d) if t is None else np.exp(t(log_map_feature("departure", d))).astype(np.float32)
+        out = np.zeros_like(d)
+        t = self._term("departure")
+        if t is not None:
+            out = out + t(log_map_feature("departure", d))
+        t = self._term("local_departure")
+        if t is not None:
+            if local_departure is None or np.shape(local_departure) != d.shape:
+                raise ValueError(f"additive sigma map: reads the local departure; expected a map of shape {d.shape}, "
+                                 f"got {None if local_departure is None else np.shape(local_departure)}")
+            out = out + t(log_map_feature("local_departure", np.asarray(local_departure, np.float32)))
+        return np.exp(out).astype(np.float32)
 
     def to_json(self) -> dict[str, Any]:
         return {"form": "additive", "intercept": self.intercept,
@@ -416,7 +471,7 @@ class AdditiveSigmaMap:
 
 
 SigmaMap = SigmaCalibration | AdditiveSigmaMap
-MAP_FORMS = ("power", "additive")
+MAP_FORMS = ("power", *FORM_FEATURES)
 
 
 def sigma_map_from_json(data: Any, source: str = "sigma_calibration") -> SigmaMap:
@@ -430,8 +485,27 @@ def sigma_map_from_json(data: Any, source: str = "sigma_calibration") -> SigmaMa
 
 
 def map_form(cal: SigmaMap | None) -> str:
-    """``"additive"`` or ``"power"`` (:data:`MAP_FORMS`; no map: the power law)."""
-    return "additive" if isinstance(cal, AdditiveSigmaMap) else "power"
+    """The map's form (:data:`MAP_FORMS`): ``"power"`` (no map: the power law too), or the additive form whose
+    features it reads (:data:`FORM_FEATURES`; a map fitted on other features: ``"additive"`` if it reads no local
+    term)."""
+    if not isinstance(cal, AdditiveSigmaMap):
+        return "power"
+    return "additive-local" if cal.needs_local else "additive"
+
+
+def map_inputs(cal: SigmaMap, phase: np.ndarray, classical_phase: np.ndarray | None) -> dict[str, np.ndarray | None]:
+    """The per-pixel features ``cal`` reads besides the sigma, from the network's ``(H, W)`` phase and three-step
+    PS's: ``departure``, ``density``, ``curvature``, ``local_departure`` (None where the map does not read it)."""
+    dep = None
+    if cal.needs_departure or cal.needs_local:
+        if classical_phase is None:
+            raise ValueError("this sigma map reads the departure from three-step PS; pass classical_phase")
+        dep = departure(phase, classical_phase)
+    local = cal.needs_local
+    return {"departure": dep if cal.needs_departure else None,
+            "density": fringe_density(phase) if cal.needs_density else None,
+            "curvature": phase_curvature(phase) if local and "curvature" in cal.features else None,
+            "local_departure": local_departure(dep) if local and "local_departure" in cal.features else None}
 
 
 def event_loss_grad(p: np.ndarray, X: np.ndarray, hit: np.ndarray, weights: np.ndarray,
@@ -456,8 +530,10 @@ def fit_additive_map(
     departure: np.ndarray,
     density: np.ndarray,
     *,
+    curvature: np.ndarray | None = None,
+    local_departure: np.ndarray | None = None,
     weights: np.ndarray | None = None,
-    features: tuple[str, ...] = MAP_FEATURES,
+    features: tuple[str, ...] = FORM_FEATURES["additive"],
     knots: int = 3,
     eps: float = 0.03,
     max_pixels: int = 1_000_000,
@@ -466,17 +542,20 @@ def fit_additive_map(
     """Fit :class:`AdditiveSigmaMap` (``features``, the sigma among them; ``knots`` hinges each at the quantiles of
     the fitted pixels) by the weighted event log score at ``eps`` (the ECE's event); returns it and the metrics as
     :func:`fit_sigma_calibration` does. ``weights`` per pixel (e.g. every val family x kind the same total);
-    ``departure`` and ``density`` may be None where ``features`` leaves them out."""
+    ``departure``, ``density``, ``curvature`` and ``local_departure`` may be None where ``features`` leaves them
+    out."""
     from scipy.optimize import minimize
 
     e = np.asarray(error, np.float64).ravel()
     if "sigma" not in features or not set(features) <= set(MAP_FEATURES) or len(set(features)) != len(features):
         raise ValueError(f"features: expected distinct names of {MAP_FEATURES}, the sigma among them, got {features}")
-    cols = {n: v for n, v in (("sigma", sigma), ("departure", departure), ("density", density)) if n in features}
+    given = {"sigma": sigma, "departure": departure, "density": density, "curvature": curvature,
+             "local_departure": local_departure}
+    cols = {n: v for n, v in given.items() if n in features}
     if any(v is None for v in cols.values()):
         raise ValueError(f"fit_additive_map: features {features} need a map for each")
     if e.size == 0 or any(np.size(v) != e.size for v in cols.values()):
-        raise ValueError(f"fit_additive_map: expected equal non-empty error, sigma, departure and density, got sizes "
+        raise ValueError(f"fit_additive_map: expected equal non-empty error and feature maps, got sizes "
                          f"{e.size}, {[np.size(v) for v in cols.values()]}")
     for name, v in (("error", e), *cols.items()):
         bad = int(np.size(v) - np.count_nonzero(np.isfinite(np.asarray(v, np.float64))))
@@ -510,7 +589,8 @@ def fit_additive_map(
         j += m
     cal = AdditiveSigmaMap(float(p[0]), tuple(terms))
     s_all = np.maximum(np.asarray(sigma, np.float64).ravel(), 1e-12)
-    after = cal(s_all.astype(np.float32), *(None if v is None else np.asarray(v).ravel() for v in (departure, density)))
+    flat = {n: None if v is None else np.asarray(v).ravel() for n, v in given.items() if n != "sigma"}
+    after = cal(s_all.astype(np.float32), **flat)
     return cal, {
         "score": "event", "form": "additive", "weighted": weights is not None,
         "nll_before": gaussian_nll(e, s_all), "nll_after": gaussian_nll(e, after),
@@ -640,14 +720,11 @@ def to_phase_result(
         var_M, var_D = (mvM + dvM).astype(np.float32), (mvD + dvD).astype(np.float32)
     phase = np.arctan2(M, D).astype(np.float32)
     if calibration is not None and not calibration.identity:
-        dep = None
-        if calibration.needs_departure:
-            if classical_phase is None:
-                raise ValueError("to_phase_result: this sigma calibration reads the departure from three-step PS; "
-                                 "pass classical_phase")
-            dep = departure(phase, classical_phase)
-        density = fringe_density(phase) if calibration.needs_density else None
-        f = calibration.factor(s_total, dep, density)
+        try:
+            inputs = map_inputs(calibration, phase, classical_phase)
+        except ValueError as exc:
+            raise ValueError(f"to_phase_result: {exc}") from exc
+        f = calibration.factor(s_total, **inputs)
         s_model, s_data, s_total = s_model * f, s_data * f, s_total * f
         var_M, var_D = var_M * f**2, var_D * f**2
     return PhaseResult(

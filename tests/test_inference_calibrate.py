@@ -95,7 +95,7 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
     res = runner.invoke(app, ["calibrate-uncertainty", f"{val_set},", "--model", str(model_path)])
     assert res.exit_code == 2 and "validation folder(s) '': expected existing" in res.output
     res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--form", "spline"])
-    assert res.exit_code == 2 and "form: expected one of ('power', 'additive')" in res.output, res.output
+    assert res.exit_code == 2 and "form: expected one of ('power', 'additive', 'additive-local')" in res.output, res.output
 
 
 def test_collected_errors_follow_the_burst_gate_as_the_predictor_applies_it(val_set, model_path):
@@ -127,12 +127,12 @@ def test_the_sigma_map_is_fitted_without_the_gated_bursts():
     error = (rng.normal(0, 1, n) * 0.5 * sigma).astype(np.float32)  # the network's sigma is 2x too wide
     dep = np.abs(rng.normal(0, 0.05, n)).astype(np.float32)
     base = PixelErrors(error, sigma, dep, np.zeros(n, np.int16), np.arange(n, dtype=np.int32) % 8, np.zeros(n, bool),
-                       np.zeros(n, bool), np.full(n, 0.3, np.float32))
+                       np.zeros(n, bool), np.full(n, 0.3, np.float32), np.full(n, 0.1, np.float32), dep.copy())
     # gated pixels: tiny errors with a huge sigma, which would drag a map fitted on them
     g = 2000
     gated = PixelErrors(np.full(g, 1e-3, np.float32), np.full(g, 5.0, np.float32), np.zeros(g, np.float32),
                         np.zeros(g, np.int16), np.arange(g, dtype=np.int32) % 8, np.ones(g, bool), np.ones(g, bool),
-                        np.full(g, 0.3, np.float32))
+                        np.full(g, 0.3, np.float32), np.full(g, 0.1, np.float32), np.zeros(g, np.float32))
     alone, _ = fit_mode(base, ["val"])
     mixed, report = fit_mode(PixelErrors.concat([base, gated]), ["val"])
     np.testing.assert_allclose(mixed(sigma, dep), alone(sigma, dep), rtol=1e-6)
@@ -215,3 +215,21 @@ def test_an_additive_map_is_fitted_kept_on_refit_and_applied(val_set, model_path
 
     joined = val_samples(again["data"], 8, 0, False)
     assert [(k, len(p), st) for k, _, p, st in joined] == [(0, 4, False), (0, 2, True), (0, 4, False), (0, 2, True)]
+
+
+def test_a_local_map_is_fitted_on_every_feature_and_kept_on_refit(val_set, model_path, tmp_path):
+    """``form="additive-local"``: the deterministic map reads the curvature and the local departure too, the MC map
+    keeps its form; a refit without a form keeps the local one; the Predictor applies it."""
+    from gearscan.inference.uncertainty import FORM_FEATURES, map_form
+
+    out = tmp_path / "local" / "net.safetensors"
+    report = calibrate_model(model_path, val_set, items=8, mc=0, output=out, form="additive-local")
+    assert report["fitted"] == ["deterministic"] and report["deterministic"]["form"] == "additive-local"
+    pred = Predictor.load(out)
+    cal = pred.calibration["deterministic"]
+    assert map_form(cal) == "additive-local" and cal.features == FORM_FEATURES["additive-local"]
+    again = calibrate_model(out, val_set, items=8, mc=0)
+    assert again["deterministic"]["form"] == "additive-local"
+    r = pred.predict(np.stack([127 + 100 * np.cos(2 * np.pi * np.arange(48)[None, :] / 9 + d) * np.ones((32, 1))
+                               for d in (0.0, 2 * np.pi / 3, 4 * np.pi / 3)]).astype(np.uint8))
+    assert np.all(np.isfinite(r.sigma_total)) and np.all(r.sigma_total > 0)

@@ -420,6 +420,26 @@ def test_mirrored_fringes_are_decoded_in_the_trained_orientation(saved):
     np.testing.assert_allclose(b.sigma_total[:, ::-1], expected, rtol=1e-4)
 
 
+def _bent_burst() -> np.ndarray:
+    """A still 24x40 burst of 7 px fringes bending down the rows (three-step shifts, uint8)."""
+    xx = np.arange(40)[None, :] + 0.02 * np.arange(24)[:, None] ** 2
+    return np.stack([127 + 100 * np.cos(2 * np.pi * xx / 7 + d)
+                     for d in (0.0, 2 * np.pi / 3, 4 * np.pi / 3)]).astype(np.uint8)
+
+
+def _with_map(path, cal, frames):
+    """Store ``cal`` as the model's deterministic map; the Predictor that reads it, and the raw (unmapped)
+    result on ``frames``."""
+    meta = json.loads(path.with_suffix(".json").read_text())
+    meta["sigma_calibration"] = {"deterministic": cal.to_json()}
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    pred = Predictor.load(path)
+    assert pred.calibration["deterministic"] == cal
+    raw = Predictor.load(path)
+    raw.calibration = {}
+    return pred, raw.predict(frames)
+
+
 def test_a_stored_additive_map_reads_the_fringe_density_of_the_networks_phase(saved, monkeypatch):
     """An additive sigma map in the model's JSON: the Predictor reports sigma' from the raw sigma, the departure from
     three-step PS and the density of its own phase (mirrored fringes alike); the still-burst gate reads it at zero
@@ -435,20 +455,10 @@ def test_a_stored_additive_map_reads_the_fringe_density_of_the_networks_phase(sa
     )
 
     _, path = saved
-    h, w = 24, 40
-    xx = np.arange(w)[None, :] + 0.02 * np.arange(h)[:, None] ** 2
-    shifts = (0.0, 2 * np.pi / 3, 4 * np.pi / 3)
-    frames = np.stack([127 + 100 * np.cos(2 * np.pi * xx / 7 + d) for d in shifts]).astype(np.uint8)
+    frames = _bent_burst()
     cal = AdditiveSigmaMap(-0.5, (HingeTerm("sigma", 0.7, (-2.0,), (0.2,)), HingeTerm("departure", 0.2),
                                   HingeTerm("density", 0.5, (-1.0,), (-0.3,))))
-    meta = json.loads(path.with_suffix(".json").read_text())
-    meta["sigma_calibration"] = {"deterministic": cal.to_json()}
-    path.with_suffix(".json").write_text(json.dumps(meta))
-    pred = Predictor.load(path)
-    assert pred.calibration["deterministic"] == cal
-    raw = Predictor.load(path)
-    raw.calibration = {}
-    r = raw.predict(frames)
+    pred, r = _with_map(path, cal, frames)
     dep = departure(r.phase, three_step(frames, 255)[0])
     expected = cal(r.sigma_total, dep, fringe_density(r.phase))
     np.testing.assert_allclose(pred.predict(frames).sigma_total, expected, rtol=1e-4)
@@ -469,6 +479,44 @@ def test_a_stored_additive_map_reads_the_fringe_density_of_the_networks_phase(sa
     assert taken and gated.mode == "three-step"
     assert np.abs(departure(gated.phase, three_step(frames, 255)[0])).min() > 0.19  # still_phase moved it
     at_zero = cal(r.sigma_total, np.zeros_like(dep), fringe_density(r.phase))
+    np.testing.assert_allclose(gated.sigma_total, at_zero, rtol=1e-4)
+
+
+def test_a_stored_local_map_reads_the_curvature_and_local_departure(saved, monkeypatch):
+    """An additive-local sigma map: the Predictor reads the curvature of its own phase and the 7x7 RMS of its
+    departure (mirrored fringes alike); the still-burst gate reads the map at zero departure, its own and the
+    local one."""
+    from gearscan.core.phase import three_step
+    from gearscan.inference.models import classical_md
+    from gearscan.inference.predictor import still_burst_gate
+    from gearscan.inference.uncertainty import (
+        AdditiveSigmaMap,
+        HingeTerm,
+        departure,
+        fringe_density,
+        local_departure,
+        phase_curvature,
+    )
+
+    _, path = saved
+    frames = _bent_burst()
+    cal = AdditiveSigmaMap(-0.5, (HingeTerm("sigma", 0.7), HingeTerm("departure", 0.2),
+                                  HingeTerm("density", 0.5), HingeTerm("curvature", 0.3, (-2.0,), (0.2,)),
+                                  HingeTerm("local_departure", 0.4)))
+    pred, r = _with_map(path, cal, frames)
+    dep = departure(r.phase, three_step(frames, 255)[0])
+    loc = local_departure(dep)
+    expected = cal(r.sigma_total, dep, fringe_density(r.phase), curvature=phase_curvature(r.phase),
+                   local_departure=loc)
+    np.testing.assert_allclose(pred.predict(frames).sigma_total, expected, rtol=1e-4)
+    mirrored = pred.predict(np.ascontiguousarray(frames[:, :, ::-1]))
+    np.testing.assert_allclose(mirrored.sigma_total[:, ::-1], expected, rtol=1e-4)
+    classical = classical_md(frames_to_tensor(frames).float())[0].numpy()
+    gated, taken = still_burst_gate(pred.predict(frames), classical, np.inf, cal)
+    assert taken and gated.mode == "three-step"
+    zero = np.zeros_like(dep)
+    at_zero = cal(r.sigma_total, zero, fringe_density(r.phase), curvature=phase_curvature(r.phase),
+                  local_departure=zero)
     np.testing.assert_allclose(gated.sigma_total, at_zero, rtol=1e-4)
 
 

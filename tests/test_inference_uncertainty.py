@@ -449,3 +449,73 @@ def test_the_additive_fit_names_non_finite_input():
         fit_additive_map(err, raw, dep, den)
     with pytest.raises(ValueError, match="a power law names no form"):
         sigma_map_from_json({"form": "power", "a": 1.0, "b": 1.0})
+
+
+def test_phase_curvature_and_local_departure_read_known_fields():
+    """The curvature of a wrapped ramp is 0 across its wraps and that of a parabola its Laplacian; a mirrored phase
+    gives the mirrored map. The local departure of a constant map is that constant; a single spike spreads as its
+    RMS over the 7x7 window."""
+    from gearscan.inference.uncertainty import LOCAL_WINDOW, local_departure, phase_curvature
+
+    ramp = np.angle(np.exp(1j * 2 * np.pi * np.arange(64)[None, :] / 9.0)) * np.ones((16, 1))
+    np.testing.assert_allclose(phase_curvature(ramp)[1:-1, 1:-1], 0.0, atol=1e-5)
+    yy, xx = np.mgrid[:16, :64].astype(np.float64)
+    parabola = np.angle(np.exp(1j * (0.01 * xx**2 + 0.03 * yy**2)))
+    np.testing.assert_allclose(phase_curvature(parabola)[1:-1, 1:-1], 2 * 0.01 + 2 * 0.03, rtol=1e-4)
+    np.testing.assert_allclose(phase_curvature(-parabola[:, ::-1])[:, ::-1], phase_curvature(parabola), atol=1e-6)
+    np.testing.assert_allclose(local_departure(np.full((20, 20), 0.2, np.float32)), 0.2, rtol=1e-5)
+    spike = np.zeros((21, 21), np.float32)
+    spike[10, 10] = 0.7
+    loc = local_departure(spike)
+    h = LOCAL_WINDOW // 2
+    np.testing.assert_allclose(loc[10 - h:11 + h, 10 - h:11 + h], 0.7 / LOCAL_WINDOW, rtol=1e-4)
+    assert loc[10, 10 + h + 1] < 1e-6
+    with pytest.raises(ValueError, match="departure map"):
+        local_departure(np.zeros(5))
+
+
+def _local_world(n: int, seed: int):
+    """Synthetic pixels whose true sigma grows with the local departure (as its 0.6th power) whatever the pixel's
+    own departure: what a map in the sigma, departure and density cannot see."""
+    rng = np.random.default_rng(seed)
+    raw = np.exp(rng.uniform(np.log(0.01), np.log(0.5), n)).astype(np.float32)
+    dep = np.exp(rng.uniform(np.log(0.001), np.log(1.0), n)).astype(np.float32)
+    den = np.exp(rng.uniform(np.log(0.05), np.log(2.0), n)).astype(np.float32)
+    curv = np.exp(rng.uniform(np.log(0.001), np.log(2.0), n)).astype(np.float32)
+    loc = np.exp(rng.uniform(np.log(0.01), np.log(1.0), n)).astype(np.float32)
+    true = 0.4 * raw**0.7 * (loc / 0.1) ** 0.6
+    return rng.normal(0, true), raw, dep, den, curv, loc
+
+
+def test_the_local_form_learns_what_the_local_departure_says():
+    """fit_additive_map in the additive-local form on one draw, scored on another: calibrated where the
+    neighbourhood is corrected hard and where it is not, where the plain additive form is off in both."""
+    from gearscan.inference.uncertainty import (
+        FORM_FEATURES,
+        fit_additive_map,
+        map_form,
+        sigma_map_from_json,
+    )
+
+    err, raw, dep, den, curv, loc = _local_world(60_000, 0)
+    cal, _ = fit_additive_map(err, raw, dep, den, curvature=curv, local_departure=loc,
+                              features=FORM_FEATURES["additive-local"])
+    plain, _ = fit_additive_map(err, raw, dep, den)
+    assert map_form(cal) == "additive-local" and map_form(plain) == "additive" and cal.needs_local
+    assert sigma_map_from_json(cal.to_json()) == cal
+    err2, raw2, dep2, den2, curv2, loc2 = _local_world(60_000, 1)
+    local = cal(raw2, dep2, den2, curvature=curv2, local_departure=loc2)
+    for part in (loc2 > 0.3, loc2 < 0.03):
+        assert reliability(err2[part], local[part]).ece < 0.02
+        assert reliability(err2[part], plain(raw2, dep2, den2)[part]).ece > 0.05
+    with pytest.raises(ValueError, match="reads the curvature"):
+        cal(raw2, dep2, den2, local_departure=loc2)
+    with pytest.raises(ValueError, match="need a map"):
+        fit_additive_map(err, raw, dep, den, features=FORM_FEATURES["additive-local"])
+    # a still-burst gate reads the map at zero departure, its own and the local one
+    zero = np.zeros_like(dep2)
+    ratio = cal.departure_factor(zero, zero) / cal.departure_factor(dep2, loc2)
+    at_zero = cal(raw2, zero, den2, curvature=curv2, local_departure=zero)
+    np.testing.assert_allclose(local * ratio, at_zero, rtol=1e-4)
+    with pytest.raises(ValueError, match="local departure"):
+        cal.departure_factor(dep2)
