@@ -253,7 +253,9 @@ def markdown(res: dict) -> str:
 def map_summary(entry: dict) -> str:
     """A stored sigma map in a table cell: the power law's a, b, c; the additive map's slopes per feature."""
     if entry.get("form") == "additive":
-        return "additive, slopes " + ", ".join(f"{t['feature']} {t['slope']:.2f}" for t in entry["terms"])
+        form = "additive-local" if any(t["feature"] in ("curvature", "local_departure") for t in entry["terms"]) \
+            else "additive"
+        return f"{form}, slopes " + ", ".join(f"{t['feature']} {t['slope']:.2f}" for t in entry["terms"])
     return f"a, b, c {entry['a']:.3f}, {entry['b']:.3f}, {entry.get('c', 0.0):.3f}"
 
 

@@ -382,7 +382,7 @@ class Predictor:
         x = x.to(self.device)
         calibration = self.calibration.get("mc" if mc > 0 else "deterministic")
         needs_classical = (self.still_gate_rad > 0 or self.still_burst_rad > 0
-                           or (calibration is not None and calibration.needs_departure))
+                           or (calibration is not None and calibration.needs_classical))
         classical = classical_md(x[:, :3].float())[0].cpu().numpy() if needs_classical else None
         frames = x[0, :3].float().cpu().numpy() if self.still_burst_rad > 0 else None
         if mirror is None:
@@ -696,7 +696,7 @@ def still_burst_gate(
         s = np.maximum(result.sigma_total.astype(np.float32), np.float32(1e-12))
         mod = np.maximum(np.hypot(m3, d3), np.float32(0.01))
         f = (a * np.power(s, b - 1) * np.power(mod, c)).astype(np.float32)
-    elif calibration is not None and calibration.needs_departure:
+    elif calibration is not None and calibration.needs_classical:
         # the map read at three-step PS's own departure (0) instead of the network's: the departure it read is the
         # network's phase against three-step PS of the raw frames (to_phase_result), not against still_phase's
         dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(*classical))))).astype(np.float32)

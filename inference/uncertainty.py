@@ -242,6 +242,11 @@ class SigmaCalibration:
     needs_density = False  # the power law does not read the fringe density
     needs_local = False  # nor the curvature or the local departure
 
+    @property
+    def needs_classical(self) -> bool:
+        """The map reads three-step PS's phase (through the departure)."""
+        return self.needs_departure
+
     def __call__(self, sigma: np.ndarray, departure: np.ndarray | None = None,
                  density: np.ndarray | None = None, **local: np.ndarray | None) -> np.ndarray:
         return self.factor(sigma, departure) * np.maximum(np.asarray(sigma, np.float32), np.float32(1e-12))
@@ -309,19 +314,27 @@ def phase_curvature(phase: np.ndarray) -> np.ndarray:
     where the fringes bend or break (tooth tips, shadow and mask edges), which a sigma map reads as risk."""
     p = np.pad(np.asarray(phase, np.float64), 1, mode="edge")
     c = p[1:-1, 1:-1]
-    lap = wrap(p[1:-1, 2:] - c) + wrap(p[1:-1, :-2] - c) + wrap(p[2:, 1:-1] - c) + wrap(p[:-2, 1:-1] - c)
+
+    def wrapped(v: np.ndarray) -> np.ndarray:  # as gearscan.core.phase.wrap, without its complex exponentials
+        return np.remainder(v + np.pi, 2 * np.pi) - np.pi
+
+    lap = wrapped(p[1:-1, 2:] - c) + wrapped(p[1:-1, :-2] - c) + wrapped(p[2:, 1:-1] - c) + wrapped(p[:-2, 1:-1] - c)
     return np.abs(lap).astype(np.float32)
 
 
 def local_departure(departure_map: np.ndarray, window: int = LOCAL_WINDOW) -> np.ndarray:
     """RMS of a departure map (:func:`departure`) over ``window`` x ``window`` pixels (edges mirrored): how hard the
     network corrects around a pixel, where the pixel's own departure may be small by chance."""
-    from scipy.ndimage import uniform_filter
+    from scipy.ndimage import maximum_filter, uniform_filter
 
     d = np.asarray(departure_map, np.float64)
     if d.ndim != 2:
         raise ValueError(f"local_departure: expected an (H, W) departure map, got shape {d.shape}")
-    return np.sqrt(np.maximum(uniform_filter(d * d, window, mode="reflect"), 0.0)).astype(np.float32)
+    bad = ~np.isfinite(d)  # the filter's running sum would carry a NaN along the whole row: keep it in its window
+    out = np.sqrt(np.maximum(uniform_filter(np.where(bad, 0.0, d * d), window, mode="reflect"), 0.0))
+    if bad.any():
+        out[maximum_filter(bad, window, mode="reflect")] = np.nan
+    return out.astype(np.float32)
 
 
 def log_map_feature(name: str, values: np.ndarray) -> np.ndarray:
@@ -402,6 +415,11 @@ class AdditiveSigmaMap:
     def needs_local(self) -> bool:
         """The map reads the curvature or the local departure (:data:`FORM_FEATURES` ``"additive-local"``)."""
         return self._term("curvature") is not None or self._term("local_departure") is not None
+
+    @property
+    def needs_classical(self) -> bool:
+        """The map reads three-step PS's phase (through the departure or the local departure)."""
+        return self.needs_departure or self._term("local_departure") is not None
 
     @property
     def features(self) -> tuple[str, ...]:
@@ -497,7 +515,7 @@ def map_inputs(cal: SigmaMap, phase: np.ndarray, classical_phase: np.ndarray | N
     """The per-pixel features ``cal`` reads besides the sigma, from the network's ``(H, W)`` phase and three-step
     PS's: ``departure``, ``density``, ``curvature``, ``local_departure`` (None where the map does not read it)."""
     dep = None
-    if cal.needs_departure or cal.needs_local:
+    if cal.needs_classical:
         if classical_phase is None:
             raise ValueError("this sigma map reads the departure from three-step PS; pass classical_phase")
         dep = departure(phase, classical_phase)
@@ -592,7 +610,7 @@ def fit_additive_map(
     flat = {n: None if v is None else np.asarray(v).ravel() for n, v in given.items() if n != "sigma"}
     after = cal(s_all.astype(np.float32), **flat)
     return cal, {
-        "score": "event", "form": "additive", "weighted": weights is not None,
+        "score": "event", "form": map_form(cal), "weighted": weights is not None,
         "nll_before": gaussian_nll(e, s_all), "nll_after": gaussian_nll(e, after),
         "event_score_before": event_log_score(e, s_all, eps), "event_score_after": event_log_score(e, after, eps),
         "ece_before": reliability(e, s_all, eps=eps).ece, "ece_after": reliability(e, after, eps=eps).ece,
@@ -700,7 +718,7 @@ def to_phase_result(
     sigmas scale by ``sqrt(var_scale)`` (the calibration fitted by :func:`fit_variance_scale`);
     ``calibration`` then maps the propagated sigmas (:class:`SigmaCalibration` or :class:`AdditiveSigmaMap`),
     reading the departure from ``classical_phase`` (three-step PS of the same frames, ``(H, W)``) and the fringe
-    density from the phase when it needs them.
+    density, curvature and local departure from the phase when it needs them (:func:`map_inputs`).
     """
 
     def np_(t: torch.Tensor) -> np.ndarray:

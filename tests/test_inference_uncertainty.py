@@ -472,6 +472,11 @@ def test_phase_curvature_and_local_departure_read_known_fields():
     assert loc[10, 10 + h + 1] < 1e-6
     with pytest.raises(ValueError, match="departure map"):
         local_departure(np.zeros(5))
+    holed = np.full((30, 60), 0.1, np.float32)
+    holed[10, 10] = np.nan  # a bad pixel stays within its window, not along the filter's rows
+    loc = local_departure(holed)
+    assert np.isnan(loc).sum() == LOCAL_WINDOW**2
+    np.testing.assert_allclose(loc[20:, 20:], 0.1, rtol=1e-5)
 
 
 def _local_world(n: int, seed: int):
