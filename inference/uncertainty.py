@@ -20,8 +20,9 @@ per mode: deterministic and Monte Carlo) then maps the propagated total sigma: t
 :class:`SigmaCalibration`, ``sigma' = a * sigma**b * (departure + d0)**c``, where the departure is
 how far the network's phase lies from three-step PS's on the same frames, or :class:`AdditiveSigmaMap`,
 piecewise-linear in log sigma, log departure and the log fringe density of the network's phase
-(v9's maps in both modes since session 41, ``benchmarks/sigma_map_form_rule.md`` and
-``sigma_map_form_mc_rule.md``). Either is fitted by the log
+(session 41, ``benchmarks/sigma_map_form_rule.md`` and ``sigma_map_form_mc_rule.md``) and, in form
+``"additive-local"``, also the log curvature of that phase and the log local departure (v9's maps in both modes
+since session 42, ``sigma_map_local_rule.md`` and ``sigma_map_local_mc_rule.md``). Either is fitted by the log
 score of the ECE's own event ``|err| < eps`` (:func:`event_log_score`), a proper scoring rule:
 ECE alone is minimised by a constant sigma (measured: ECE 0.001 with every pixel at 0.07 rad),
 which would erase where the network is unsure; the Gaussian NLL is pulled by the errors' heavy

@@ -14,8 +14,14 @@ from gearscan.core.phase import classical_result, phase_error, three_step
 from gearscan.core.recording import RecordingReader
 from gearscan.core.rig import default_rig
 from gearscan.inference.decoder import Decoder
-from gearscan.inference.predictor import Predictor
-from gearscan.inference.uncertainty import departure, fringe_density
+from gearscan.inference.models import classical_md
+from gearscan.inference.predictor import Predictor, frames_to_tensor
+from gearscan.inference.uncertainty import (
+    departure,
+    fringe_density,
+    local_departure,
+    phase_curvature,
+)
 from gearscan.recon.fuse import CloudFuser
 from gearscan.recon.track import TrackRefiner
 from gearscan.twin.defects import GearDefects, true_mesh
@@ -88,7 +94,7 @@ def test_reversed_bursts_decode_to_the_true_phase(still_alternating):
 
     m = replay(still_alternating, decoder=Decoder(), reconstruct=False, truth=False).to_json()
     assert m["decoder"]["rig_orientation"] == "normal" and m["decoder"]["still_bursts"] == 4, m["decoder"]
-    # the shipped sigma map reads the same departure (and fringe density) in either order: the network's phase against
+    # the shipped sigma map reads the same departure (and fringe density, curvature, local departure) in either order: the network's phase against
     # three-step PS's with the burst's real shifts, both in capture order (the still-burst gate off: it takes
     # these still bursts from the shipped v9, and a taken burst carries three-step's noise sigma, not the map's)
     shipped = Predictor.load(None, still_burst_rad=0.0)
@@ -100,7 +106,13 @@ def test_reversed_bursts_decode_to_the_true_phase(still_alternating):
         r, r0, c = shipped.predict_burst(b), raw.predict_burst(b), classical_result(b)
         lit = np.hypot(c.M, c.D) >= 0.05  # the keep test's modulation: unlit phase is noise either way
         assert lit.mean() > 0.5
-        want = cal(r0.sigma_total, departure(r0.phase, c.phase), fringe_density(r0.phase))  # density: either sign
+        # the Predictor's departure: its phase before in_capture_order against three-step PS of the frames as given
+        # (the same as against c's in the lit pixels; the local departure's 7x7 window also reads unlit ones)
+        forward = np.arctan2(*classical_md(frames_to_tensor(b.images, b.full_scale))[0].numpy())
+        dep = departure(-r0.phase if b.reversed_order else r0.phase, forward)
+        np.testing.assert_allclose(dep[lit], departure(r0.phase, c.phase)[lit], atol=1e-4)
+        want = cal(r0.sigma_total, dep, fringe_density(r0.phase), curvature=phase_curvature(r0.phase),
+                   local_departure=local_departure(dep))
         np.testing.assert_allclose(r.sigma_total[lit], want[lit], rtol=1e-4)
 
 
