@@ -31,6 +31,7 @@ from gearscan.inference.calibrate import collect_errors, val_samples
 from gearscan.inference.predictor import Predictor
 from gearscan.inference.uncertainty import (
     FORM_FEATURES,
+    MAP_FEATURES,
     SigmaCalibration,
     fit_additive_map,
     fit_sigma_calibration,
@@ -77,7 +78,7 @@ FORMS = (
 )
 FORM_RULE = (FORMS[0], FORMS[7])  # sigma_map_form_rule.md: A, B
 LOCAL_RULE = (FORMS[7], FORMS[8])  # sigma_map_local_rule.md: A, B
-LOCAL = ("curvature", "local_departure")
+INPUTS = MAP_FEATURES[1:]  # what a map reads besides the sigma
 
 
 def collect(predictor: Predictor, seed: int, items: int, mc: int = 0) -> dict[str, np.ndarray]:
@@ -86,13 +87,12 @@ def collect(predictor: Predictor, seed: int, items: int, mc: int = 0) -> dict[st
     names = list(FAMILIES)
     views = {f: [e["rig"]["name"] for e in json.loads((Path(f) / "index.json").read_text())["entries"]]
              for fs in FAMILIES.values() for f in fs}
-    cols: dict[str, list] = {k: [] for k in ("error", "sigma", "departure", "density", *LOCAL, "gated", "still",
-                                             "family", "view")}
+    cols: dict[str, list] = {k: [] for k in ("error", "sigma", *INPUTS, "gated", "still", "family", "view")}
     for k, ds, pick, still in val_samples(list(FAMILIES.values()), items, seed, predictor.needs_angles):
         for i in pick:
             px = collect_errors(predictor, ds, [i], mc, folder=k, still=still)
             n = px.error.size
-            for name in ("error", "sigma", "departure", "density", *LOCAL, "gated", "still"):
+            for name in ("error", "sigma", *INPUTS, "gated", "still"):
                 cols[name].append(getattr(px, name))
             cols["family"].append(np.full(n, names[k]))
             rig_name = views[str(ds.root)][int(px.group[0])] if names[k] == "views" else ""  # the burst's start point
@@ -118,15 +118,14 @@ def fit_held_out(form: Form, px: dict[str, np.ndarray], held: str) -> np.ndarray
             cell = np.unique(np.stack([px["family"][train], px["still"][train].astype(str)], 1), axis=0,
                              return_inverse=True)[1].ravel()
             weights = 1.0 / np.bincount(cell)[cell]
-        cal, _ = fit_additive_map(px["error"][train], px["sigma"][train], px["departure"][train],
-                                  px["density"][train], **{k: px[k][train] for k in LOCAL}, weights=weights,
+        cal, _ = fit_additive_map(px["error"][train], px["sigma"][train], **inputs(px, train), weights=weights,
                                   features=form.features, knots=form.knots)
     return np.where(px["gated"][m], px["sigma"][m], cal(px["sigma"][m], **inputs(px, m)))
 
 
 def inputs(px: dict[str, np.ndarray], m: np.ndarray) -> dict[str, np.ndarray]:
     """The map inputs besides the sigma of the pixels ``m``."""
-    return {k: px[k][m] for k in ("departure", "density", *LOCAL)}
+    return {k: px[k][m] for k in INPUTS}
 
 
 def cell_eces(px: dict[str, np.ndarray], sigma: np.ndarray, min_pixels: int = 5000) -> dict[str, float]:

@@ -38,6 +38,7 @@ from gearscan.inference.predictor import (
 )
 from gearscan.inference.uncertainty import (
     FORM_FEATURES,
+    MAP_FEATURES,
     MAP_FORMS,
     SigmaMap,
     departure,
@@ -79,8 +80,7 @@ class PixelErrors:
 
     def features(self) -> dict[str, np.ndarray]:
         """The map inputs besides the sigma, as :class:`~gearscan.inference.uncertainty.AdditiveSigmaMap` names them."""
-        return {"departure": self.departure, "density": self.density, "curvature": self.curvature,
-                "local_departure": self.local_departure}
+        return {name: getattr(self, name) for name in MAP_FEATURES[1:]}
 
     def take(self, keep: np.ndarray) -> PixelErrors:
         return PixelErrors(*(getattr(self, f)[keep] for f in self.__slots__))
@@ -154,9 +154,8 @@ def _fit(px: PixelErrors, form: str = "power") -> tuple[SigmaMap, dict]:
         raise ValueError(f"form: expected one of {MAP_FORMS}, got {form!r}")
     cell = fit.folder.astype(np.int64) * 2 + fit.still
     counts = np.bincount(cell)
-    f = fit.features()
-    cal, metrics = fit_additive_map(fit.error, fit.sigma, f.pop("departure"), f.pop("density"), **f,
-                                    weights=1.0 / counts[cell], features=FORM_FEATURES[form])
+    cal, metrics = fit_additive_map(fit.error, fit.sigma, **fit.features(), weights=1.0 / counts[cell],
+                                    features=FORM_FEATURES[form])
     # each family x kind weighs the same: say how many pixels carry each weight
     metrics["cell_pixels"] = {f"{k // 2}:{'still' if k % 2 else 'moving'}": int(n) for k, n in enumerate(counts) if n}
     return cal, metrics

@@ -35,6 +35,7 @@ from gearscan.inference.models import PRIOR_CHANNELS, classical_md, motion_chann
 from gearscan.inference.uncertainty import (
     MomentStats,
     SigmaMap,
+    departure,
     deterministic_moments,
     local_departure,
     mc_moments,
@@ -699,7 +700,7 @@ def still_burst_gate(
     elif calibration is not None and calibration.needs_classical:
         # the map read at three-step PS's own departure (0) instead of the network's: the departure it read is the
         # network's phase against three-step PS of the raw frames (to_phase_result), not against still_phase's
-        dep = np.abs(np.angle(np.exp(1j * (result.phase.astype(np.float64) - np.arctan2(*classical))))).astype(np.float32)
+        dep = departure(result.phase, np.arctan2(*classical))
         local = local_departure(dep) if calibration.needs_local else None
         zero = np.zeros((), np.float32)
         f = (calibration.departure_factor(zero, None if local is None else zero)

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from scipy.special import erf, erfcx
 
-from gearscan.core.phase import wrap
+from gearscan.core.phase import phase_error
 from gearscan.core.types import PhaseResult
 from gearscan.inference.concrete_dropout import set_stochastic
 from gearscan.inference.models import PhaseNet
@@ -203,7 +203,7 @@ def departure(phase: np.ndarray, classical_phase: np.ndarray) -> np.ndarray:
     A run-time witness of the network's error: on a still burst three-step PS is right and this is
     the network's error; on a moving one it is the correction the network dared.
     """
-    return np.abs(wrap(np.asarray(phase, np.float64) - classical_phase)).astype(np.float32)
+    return np.abs(phase_error(phase, classical_phase)).astype(np.float32)
 
 
 @dataclass(frozen=True, slots=True)
@@ -305,8 +305,8 @@ def fringe_density(phase: np.ndarray) -> np.ndarray:
     2 pi over the local fringe period, capped at pi. Dense fringes are where the network's phase errs most."""
     p = np.pad(np.asarray(phase, np.float64), 1, mode="edge")
     c = p[1:-1, 1:-1]
-    gx = 0.5 * (wrap(p[1:-1, 2:] - c) + wrap(c - p[1:-1, :-2]))
-    gy = 0.5 * (wrap(p[2:, 1:-1] - c) + wrap(c - p[:-2, 1:-1]))
+    gx = 0.5 * (phase_error(p[1:-1, 2:], c) + phase_error(c, p[1:-1, :-2]))
+    gy = 0.5 * (phase_error(p[2:, 1:-1], c) + phase_error(c, p[:-2, 1:-1]))
     return np.minimum(np.hypot(gx, gy), np.pi).astype(np.float32)
 
 
@@ -315,11 +315,7 @@ def phase_curvature(phase: np.ndarray) -> np.ndarray:
     where the fringes bend or break (tooth tips, shadow and mask edges), which a sigma map reads as risk."""
     p = np.pad(np.asarray(phase, np.float64), 1, mode="edge")
     c = p[1:-1, 1:-1]
-
-    def wrapped(v: np.ndarray) -> np.ndarray:  # as gearscan.core.phase.wrap, without its complex exponentials
-        return np.remainder(v + np.pi, 2 * np.pi) - np.pi
-
-    lap = wrapped(p[1:-1, 2:] - c) + wrapped(p[1:-1, :-2] - c) + wrapped(p[2:, 1:-1] - c) + wrapped(p[:-2, 1:-1] - c)
+    lap = sum(phase_error(n, c) for n in (p[1:-1, 2:], p[1:-1, :-2], p[2:, 1:-1], p[:-2, 1:-1]))
     return np.abs(lap).astype(np.float32)
 
 
