@@ -73,8 +73,8 @@ precision = "auto"           # "auto", "fp32" or "bf16"
 # workers = 2                # bursts decoded at once; default: 2 on a CPU (faster than 1), 1 on a GPU
 still_span_deg = 0.075       # bursts spanning less turntable angle go to three-step PS (0: never)
 orientation = "auto"         # fringe phase along the camera's columns: "normal" (rising, as the twin's
-                             # rigs), "mirrored", or "auto" (a vote per burst, which misreads fast bursts,
-                             # until 3 still bursts agree on the rig's)
+                             # rigs), "mirrored", or "auto" (from the rig calibration's geometry; 3 still
+                             # bursts that agree against it win, with a warning)
 
 [recon]
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S

@@ -182,6 +182,9 @@ def run_live(
     decoder = decoder or Decoder(cfg.model.path, mc=cfg.model.mc, precision=cfg.model.precision,
                                  workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg,
                                  orientation=cfg.model.orientation)
+    adopt_rig = getattr(decoder, "adopt_rig", None)  # the network's fringe orientation from the calibration
+    if adopt_rig is not None:
+        adopt_rig(rig)
     support = network_support_option(cfg.recon.network_support_px,  # unset: the model's own (its JSON)
                                      model=getattr(decoder, "network_support", None))
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,

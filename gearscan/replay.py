@@ -272,6 +272,9 @@ def replay(
         raise RecordingError(f"{reader.path}: {len(reader)} complete frames, a burst needs 3")
     decoder = decoder or Decoder(classical=True)
     rig = recording_rig(reader, rig)
+    adopt_rig = getattr(decoder, "adopt_rig", None)  # the network's fringe orientation from the calibration
+    if adopt_rig is not None:
+        adopt_rig(rig)
     patterns = reader.patterns
     period = patterns.periods[0]
     coarse_period = patterns.coarse_period_px

@@ -171,6 +171,11 @@ def predict(
         typer.Option(help="the rig's fringe phase along the camera columns: normal (rising, as on the twin's rigs), "
                      "mirrored, or auto (a vote on this burst; it misreads fast bursts on large gears)"),
     ] = "auto",
+    rig: Annotated[
+        Path | None,
+        typer.Option(help="the rig's calibration JSON (`gearscan calibrate`): with --orientation auto the fringe "
+                     "orientation comes from its geometry, which no motion can fool, instead of a vote on the burst"),
+    ] = None,
     still_burst_rad: Annotated[
         float | None,
         typer.Option(
@@ -213,6 +218,21 @@ def predict(
     check_device(device)
     if orientation not in ORIENTATIONS:
         raise typer.BadParameter(f"expected one of {', '.join(ORIENTATIONS)}, got {orientation!r}", param_hint="--orientation")
+    calibrated = None
+    if rig is not None:
+        from gearscan.core.rig import Rig, RigError, fringe_orientation
+
+        try:
+            calibrated = fringe_orientation(Rig.load(rig))
+        except RigError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--rig") from exc
+        if calibrated.orientation is None:
+            typer.secho(f"warning: --rig {rig}: {calibrated.describe()}", fg=typer.colors.YELLOW, err=True)
+        elif orientation == "auto":
+            orientation = calibrated.orientation
+        elif orientation != calibrated.orientation:
+            typer.secho(f"warning: --orientation {orientation}, but --rig {rig} says {calibrated.describe()}: "
+                        f"decoding as --orientation says", fg=typer.colors.YELLOW, err=True)
     frames, full_scale, npz_angles = load_frames(inputs)
     if np.array_equal(frames.min(axis=0), frames.max(axis=0)):  # no pixel changes between the three steps
         what = "all zero" if not frames.any() else "the same at every pixel"
@@ -245,7 +265,9 @@ def predict(
             mirror = (fringe_phase_decreases_along_columns(frames_to_tensor(frames, full_scale))
                       if orientation == "auto" else orientation == "mirrored")
             result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles, mirror=mirror)
-            fringes = ("mirrored" if mirror else "normal") + (" (voted on this burst)" if orientation == "auto" else " (set)")
+            how = (" (voted on this burst)" if orientation == "auto" else
+                   " (rig calibration)" if calibrated is not None and calibrated.orientation == orientation else " (set)")
+            fringes = ("mirrored" if mirror else "normal") + how
     except ValueError as exc:  # a motion-input model without angles, or bad angles
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -265,7 +287,7 @@ def predict(
     if fringes.endswith("(voted on this burst)"):
         typer.secho("note: the fringe orientation was voted on this burst (--orientation auto); the vote "
                     "misreads some fast bursts (fringes drifting about a third of a period per frame), and a "
-                    "misread burst decodes about 1.9 rad off: set --orientation normal|mirrored for your rig",
+                    "misread burst decodes about 1.9 rad off: pass --rig rig.json or set --orientation normal|mirrored",
                     fg=typer.colors.YELLOW, err=True)
 
 

@@ -6,6 +6,7 @@ error on a still gear, and it decodes the coarse bursts the network was not trai
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import queue
@@ -14,10 +15,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from gearscan.core.phase import classical_result, still_result
+from gearscan.core.rig import FringeOrientation, Rig, fringe_orientation
 from gearscan.core.types import Burst, PhaseResult
 
 if TYPE_CHECKING:  # the predictor (torch) is imported only when a network decodes
     from gearscan.inference.predictor import NetworkSupport
+
+logger = logging.getLogger(__name__)
 
 STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beat the network on radial val rigs (Decoder)
 ORIENTATION_VOTES = 3  # still bursts whose agreeing votes set the rig's fringe orientation (Decoder, "auto")
@@ -46,11 +50,13 @@ class Decoder:
     still gears: a compromise for the radial rigs. 0 sends every burst to the network.
 
     ``orientation``: the rig's fringe direction for the network (:class:`Predictor`):
-    ``"normal"``/``"mirrored"`` fix it for the whole run. ``"auto"`` votes per burst until
-    :data:`ORIENTATION_VOTES` still bursts (routed to three-step PS, where no motion can fool the
-    vote) agree and none disagrees; from then on theirs is the rig's (:attr:`rig_orientation`). The
-    per-burst vote misreads fast bursts (likely because a drift of a third of a period per frame
-    reverses the three-step set): on the test split 35 of 800 bursts, on large gears and side views.
+    ``"normal"``/``"mirrored"`` fix it for the whole run. ``"auto"`` takes it from the rig's calibration
+    (:meth:`adopt_rig`, :func:`~gearscan.core.rig.fringe_orientation`) when the caller has one, else votes
+    per burst until :data:`ORIENTATION_VOTES` still bursts (routed to three-step PS, where no motion can
+    fool the vote) agree and none disagrees; from then on theirs is the rig's (:attr:`rig_orientation`).
+    Still bursts that outvote the calibration win (the network reads the frames; a camera that mirrors its
+    images would do that) and are reported. The per-burst vote misreads fast bursts: a drift of a third of
+    a period per frame makes the reversed three-step set, on the test split 35 of 800 bursts.
     """
 
     def __init__(self, model: str | Path | None = None, *, mc: int = 0, classical: bool = False,
@@ -64,6 +70,7 @@ class Decoder:
         self.still_bursts = 0
         self.orientation = orientation
         self.rig_orientation: str | None = None if orientation == "auto" else orientation
+        self.orientation_source: str | None = None if orientation == "auto" else "set"
         self._votes = {"normal": 0, "mirrored": 0}
         self._lock = threading.Lock()
         self._predictors: list = []
@@ -112,9 +119,34 @@ class Decoder:
 
     def summary(self) -> dict:
         """What decoded the run: mode, bursts sent to three-step PS as still, the fringe orientation
-        asked for and the rig's as adopted (None: voted per burst throughout)."""
+        asked for and the rig's as adopted (None: voted per burst throughout) with where it came from."""
         return {"mode": self.mode, "still_bursts": self.still_bursts, "orientation": self.orientation,
-                "rig_orientation": self.rig_orientation, "orientation_votes": dict(self._votes)}
+                "rig_orientation": self.rig_orientation, "orientation_source": self.orientation_source,
+                "orientation_votes": dict(self._votes)}
+
+    def adopt_rig(self, rig: Rig) -> FringeOrientation | None:
+        """With ``orientation="auto"``, take the rig's fringe orientation from its calibration (no burst can
+        fool it); returns what the calibration says (None: not asked for, or three-step mode)."""
+        if self.orientation != "auto" or self.predictor is None:
+            return None
+        found = fringe_orientation(rig)
+        if found.orientation is None:
+            logger.warning("rig calibration: %s; voting per burst", found.describe())
+            return found
+        with self._lock:
+            if self.orientation_source == "still bursts":  # the frames have spoken already
+                if self.rig_orientation != found.orientation:
+                    logger.warning("the still bursts read the fringes %s, the rig calibration %s: decoding as the "
+                                   "frames show; check that the calibration belongs to this camera and projector",
+                                   self.rig_orientation, found.orientation)
+                return found
+            self._set_rig_orientation(found.orientation, "calibration")
+        return found
+
+    def _set_rig_orientation(self, side: str, source: str) -> None:
+        self.rig_orientation, self.orientation_source = side, source
+        for p in self._predictors:
+            p.orientation = side
 
     def orientation_status(self) -> str | None:
         """The fringe orientation the network decodes with, in a few words for a status line
@@ -125,6 +157,10 @@ class Decoder:
             n, m = self._votes["normal"], self._votes["mirrored"]
         if self.orientation != "auto":
             return f"fringes {self.orientation} (set)"
+        if self.orientation_source == "calibration":
+            against = m if self.rig_orientation == "normal" else n
+            return f"fringes {self.rig_orientation} (rig calibration" + (
+                f"; {against} still bursts disagree)" if against else ")")
         if self.rig_orientation is not None:
             return f"fringes {self.rig_orientation} (from {max(n, m)} still bursts)"
         if n and m:
@@ -132,8 +168,9 @@ class Decoder:
         return f"fringes voted per burst ({max(n, m)} of {ORIENTATION_VOTES} still bursts)"
 
     def _vote_orientation(self, burst: Burst) -> None:
-        """Count a still burst's fringe orientation; set the rig's once :data:`ORIENTATION_VOTES` agree."""
-        if self.rig_orientation is not None or self.predictor is None:
+        """Count a still burst's fringe orientation; set the rig's once :data:`ORIENTATION_VOTES` agree (over
+        the calibration's too: the network reads the frames)."""
+        if self.orientation_source in ("set", "still bursts") or self.predictor is None:
             return
         from gearscan.inference.predictor import falling_phase_share, frames_to_tensor
 
@@ -146,7 +183,12 @@ class Decoder:
             self._votes["mirrored" if mirrored else "normal"] += 1
             for side, other in (("normal", "mirrored"), ("mirrored", "normal")):
                 if self._votes[side] >= ORIENTATION_VOTES and self._votes[other] == 0:
-                    self.rig_orientation = side
-                    for p in self._predictors:
-                        p.orientation = side
+                    if self.orientation_source == "calibration":
+                        if side == self.rig_orientation:
+                            continue
+                        logger.warning("%d still bursts read the fringes %s, the rig calibration %s: decoding as the "
+                                       "frames show from now on; check that the calibration belongs to this camera "
+                                       "and projector (a camera mirroring its images also mirrors the points)",
+                                       self._votes[side], side, self.rig_orientation)
+                    self._set_rig_orientation(side, "still bursts")
 

@@ -107,9 +107,41 @@ def test_orientation_is_checked_and_mirrored_flips_the_decode(tmp_path):
     # auto votes on the burst, says what it chose, and warns that the vote can misread fast bursts
     res = runner.invoke(app, ["predict", str(mirrored_in), "-o", str(tmp_path / "auto.npz")])
     assert res.exit_code == 0 and "fringes mirrored (voted on this burst)" in res.output, res.output
-    assert "set --orientation normal|mirrored for your rig" in res.output
+    assert "pass --rig rig.json or set --orientation normal|mirrored" in res.output
     with np.load(tmp_path / "auto.npz") as c, np.load(tmp_path / "mm.npz") as b:
         np.testing.assert_array_equal(c["phase"], b["phase"])
     # a burst the encoder saw standing still goes to three-step PS: no orientation, no note
     res = runner.invoke(app, ["predict", str(path), "--angles-deg", "0,0,0", "-o", str(tmp_path / "s.npz")])
     assert res.exit_code == 0 and "fringes not used (three-step PS)" in res.output and "note:" not in res.output
+
+
+def test_predict_takes_the_fringe_orientation_from_a_rig_calibration(tmp_path):
+    """``--rig`` sets the orientation from the rig's geometry (a projector hung upside down: mirrored), says so in the
+    output, warns where ``--orientation`` contradicts it, and a file that is not a rig is exit 2 naming ``--rig``."""
+    from dataclasses import replace
+
+    from gearscan.core.rig import default_rig
+
+    rig = default_rig(64, 64)
+    t = rig.projector.T_from_world.copy()
+    t[:2] *= -1  # turned 180 deg about its optical axis
+    upside_down = tmp_path / "rig.json"
+    replace(rig, projector=replace(rig.projector, T_from_world=t)).save(upside_down)
+    normal_rig = tmp_path / "normal.json"
+    rig.save(normal_rig)
+    frames = _fringes()
+    path = _frames(tmp_path, frames)
+    res = runner.invoke(app, ["predict", str(path), "--rig", str(upside_down), "-o", str(tmp_path / "r.npz")])
+    assert res.exit_code == 0 and "fringes mirrored (rig calibration)" in res.output and "note:" not in res.output, res.output
+    runner.invoke(app, ["predict", str(path), "--orientation", "mirrored", "-o", str(tmp_path / "m.npz")])
+    with np.load(tmp_path / "r.npz") as a, np.load(tmp_path / "m.npz") as b:
+        np.testing.assert_array_equal(a["phase"], b["phase"])
+    res = runner.invoke(app, ["predict", str(path), "--rig", str(normal_rig), "--orientation", "mirrored",
+                              "-o", str(tmp_path / "c.npz")])
+    assert res.exit_code == 0 and "--orientation mirrored, but --rig" in res.output and "fringes mirrored (set)" in res.output
+    not_rig = tmp_path / "x.json"
+    not_rig.write_text("{}")
+    res = runner.invoke(app, ["predict", str(path), "--rig", str(not_rig), "-o", str(tmp_path / "x.npz")])
+    said = " ".join(res.output.replace("│", " ").split())  # the error box wraps its lines
+    assert res.exit_code == 2 and "Invalid value for --rig" in said and "not a gearscan rig file" in said, res.output
+    assert not (tmp_path / "x.npz").exists()

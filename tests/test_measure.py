@@ -347,3 +347,49 @@ def test_the_support_test_brings_the_shipped_networks_still_cloud_toward_the_tru
     rms = lambda d: float(np.sqrt(np.mean(d.astype(np.float64) ** 2)))  # noqa: E731
     assert rms(d_open[dropped]) > 2 * rms(d_open[~dropped])  # 122 against 43 um when written
     assert rms(d_guard) < 0.9 * rms(d_open)  # 43 against 56 um when written
+
+
+def test_auto_orientation_comes_from_the_calibration_and_still_bursts_that_outvote_it_win(noisy_renderer, caplog):
+    """With a rig calibration (replay, live, inspect) "auto" decodes by the rig's geometric fringe orientation from
+    the first burst: a burst turning 3 deg per frame, whose fringes drift about a third of a period and fool the
+    per-burst vote, decodes as the rig is. Still bursts whose frames read the other way (a camera mirroring its
+    images) outvote the calibration, and the change is logged."""
+    from gearscan.core.phase import wrapped_rmse
+    from gearscan.core.rig import fringe_orientation
+    from gearscan.inference.decoder import ORIENTATION_VOTES, Decoder
+    from gearscan.inference.predictor import frames_to_tensor, fringe_phase_decreases_along_columns
+
+    ps = PatternSet.three_step(PERIOD)
+    rig = noisy_renderer.rig
+
+    def burst(start_deg, step_deg, mirror=False):
+        angles = [math.radians(start_deg + step_deg * i) for i in range(3)]
+        images, truths = noisy_renderer.render_sequence(angles, ps, [0, 1, 2], rng=1)
+        if mirror:
+            images = [np.ascontiguousarray(im[:, ::-1]) for im in images]
+        fr = tuple(Frame(im, i, 1000 * i, p) for i, (im, p) in enumerate(zip(images, (0, 1, 2), strict=True)))
+        return Burst(fr, tuple(angles)), truths[0]
+
+    fast, truth = burst(3.0, 3.0)
+    assert fringe_phase_decreases_along_columns(frames_to_tensor(fast.images, fast.full_scale))  # the vote misreads it
+    calibrated, voted = Decoder(workers=1), Decoder(workers=1)
+    assert calibrated.adopt_rig(rig) == fringe_orientation(rig) and fringe_orientation(rig).orientation == "normal"
+    assert calibrated.rig_orientation == "normal" and calibrated.orientation_status() == "fringes normal (rig calibration)"
+    assert Decoder(workers=1, orientation="mirrored").adopt_rig(rig) is None  # a set orientation stays set
+    assert Decoder(classical=True).adopt_rig(rig) is None
+    a, v = calibrated(fast), voted(fast)
+    normal = Decoder(workers=1, orientation="normal")(fast)
+    assert wrapped_rmse(a.phase, normal.phase) < 1e-6
+    m = truth.mask
+    assert wrapped_rmse(a.phase[m], truth.phase[m]) < 0.5 * wrapped_rmse(v.phase[m], truth.phase[m])
+    # still bursts of mirrored images outvote the calibration: the network reads the frames
+    with caplog.at_level("WARNING", logger="gearscan.inference.decoder"):
+        for k in range(ORIENTATION_VOTES):
+            calibrated(burst(10.0 + k, 0.0, mirror=True)[0])
+    assert calibrated.rig_orientation == "mirrored" and calibrated.summary()["orientation_source"] == "still bursts"
+    assert calibrated.predictor.orientation == "mirrored"
+    assert any("rig calibration normal" in r.getMessage() for r in caplog.records)
+    # adopting a calibration after the still bursts have spoken keeps theirs, and says so
+    with caplog.at_level("WARNING", logger="gearscan.inference.decoder"):
+        calibrated.adopt_rig(rig)
+    assert calibrated.rig_orientation == "mirrored"

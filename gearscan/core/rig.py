@@ -302,3 +302,87 @@ def default_rig(
     camera = device(0.0, width, height, field_mm, distortion)
     projector = device(triangulation_deg, projector_size[0], projector_size[1], projector_field_mm, False)
     return Rig(camera=camera, projector=projector, counts_per_rev=0, name="default")
+
+
+FRINGE_ORIENTATION_AGREEMENT = 0.9
+"""Share of the sampled camera pixels whose fringe phase must run one way for a rig to have an orientation."""
+
+
+@dataclass(frozen=True, slots=True)
+class FringeOrientation:
+    """Which way the projector's fringe phase runs along the camera's columns, from the calibration alone.
+
+    ``rising``: the share of sampled camera pixels (over the image, on the plane through the rig's working
+    point that faces both devices, and on the one facing the camera) where the phase rises along the
+    columns. ``orientation``: ``"normal"`` (rising, as on the twin's rigs), ``"mirrored"``, or None where
+    neither side holds :data:`FRINGE_ORIENTATION_AGREEMENT` of them (fringes nearly along the columns).
+    """
+
+    orientation: str | None
+    rising: float
+
+    def describe(self) -> str:
+        if self.orientation is None:
+            return (f"fringe phase rises along the camera columns at {self.rising:.0%} of the image and falls at the "
+                    "rest: the fringes run nearly along the columns, so the rig has no fringe orientation")
+        side = self.rising if self.orientation == "normal" else 1.0 - self.rising
+        return f"fringes {self.orientation} (the calibration: {side:.0%} of the image)"
+
+
+def working_point(rig: Rig) -> np.ndarray:
+    """Where the camera's and the projector's optical axes pass closest (world, mm): what both aim at."""
+    c, p = rig.camera.center_world, rig.projector.center_world
+    dc, dp = rig.camera.T_world_from[:3, 2], rig.projector.T_world_from[:3, 2]
+    w, b = c - p, float(dc @ dp)
+    denom = 1.0 - b * b
+    if denom < 1e-9:  # parallel axes: a point at the camera's mean distance to the projector
+        return c + dc * float(np.linalg.norm(w))
+    s = (b * float(dp @ w) - float(dc @ w)) / denom
+    t = (float(dp @ w) - b * float(dc @ w)) / denom
+    return 0.5 * ((c + s * dc) + (p + t * dp))
+
+
+def fringe_orientation(rig: Rig, samples: int = 17) -> FringeOrientation:
+    """The rig's fringe orientation (:class:`FringeOrientation`), from its geometry.
+
+    A lit surface that both devices see from the same side keeps the order of its points in both images,
+    so the sign of d(projector column)/d(camera column) is the rig's, not the surface's: the network's
+    "normal" (trained on) or "mirrored" (decoded flipped). Read on two planes through the working point
+    (facing the camera; facing the bisector of both devices) at a ``samples`` x ``samples`` grid of
+    camera pixels. No frames needed: unlike a vote on a burst's phase, motion cannot fool it.
+    """
+    cam = rig.camera
+    target = working_point(rig)
+    to_cam = cam.center_world - target
+    to_proj = rig.projector.center_world - target
+    to_cam, to_proj = to_cam / np.linalg.norm(to_cam), to_proj / np.linalg.norm(to_proj)
+    normals = [to_cam, (to_cam + to_proj) / np.linalg.norm(to_cam + to_proj)]
+    u, v = np.meshgrid(np.linspace(0.1, 0.9, samples) * (cam.width - 1), np.linspace(0.1, 0.9, samples) * (cam.height - 1))
+    pix = np.stack([u.ravel(), v.ravel()], axis=1)
+    k_inv, r_wc = np.linalg.inv(cam.K), cam.T_world_from[:3, :3]
+    import cv2
+
+    signs = []
+    for n in normals:
+        cols = []
+        for du in (-0.5, 0.5):
+            pts = (pix + [du, 0.0]).reshape(-1, 1, 2)
+            norm = cv2.undistortPoints(pts, cam.K, cam.dist).reshape(-1, 2) if np.any(cam.dist != 0) else \
+                (np.c_[pts.reshape(-1, 2), np.ones(len(pix))] @ k_inv.T)[:, :2]
+            rays = np.c_[norm, np.ones(len(norm))] @ r_wc.T  # world directions from the camera centre
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = ((target - cam.center_world) @ n) / (rays @ n)
+            pts_w = cam.center_world + rays * depth[:, None]
+            uv = rig.projector.project(pts_w)
+            cols.append(np.where(depth > 0, uv[:, 0], np.nan))
+        signs.append(np.sign(cols[1] - cols[0]))
+    s = np.concatenate(signs)
+    s = s[np.isfinite(s) & (s != 0)]
+    if s.size == 0:
+        raise RigError("fringe orientation: no camera pixel sees the working point's planes in front of the projector")
+    rising = float(np.mean(s > 0))
+    if rising >= FRINGE_ORIENTATION_AGREEMENT:
+        return FringeOrientation("normal", rising)
+    if rising <= 1.0 - FRINGE_ORIENTATION_AGREEMENT:
+        return FringeOrientation("mirrored", rising)
+    return FringeOrientation(None, rising)

@@ -1,0 +1,68 @@
+"""The rig's fringe orientation from its calibration (gearscan.core.rig.fringe_orientation), checked against
+the ray caster's own projector columns and against the per-burst vote on still bursts, where no motion can fool it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from gearscan.core.gear import GearSpec
+from gearscan.core.patterns import PatternSet
+from gearscan.core.rig import FringeOrientation, Rig, default_rig, fringe_orientation
+
+
+def rolled(rig: Rig, device: str, deg: float) -> Rig:
+    """``rig`` with its camera or projector turned ``deg`` about its own optical axis."""
+    dev = getattr(rig, device)
+    a = np.radians(deg)
+    roll = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    t = dev.T_from_world.copy()
+    t[:3] = roll @ t[:3]
+    return replace(rig, **{device: replace(dev, T_from_world=t)})
+
+
+def test_a_device_turned_upside_down_mirrors_the_fringes_and_a_quarter_turn_has_no_orientation():
+    rig = default_rig(128, 128)
+    assert fringe_orientation(rig) == FringeOrientation("normal", 1.0)
+    for device in ("camera", "projector"):
+        assert fringe_orientation(rolled(rig, device, 180.0)).orientation == "mirrored"
+        assert fringe_orientation(rolled(rig, device, 20.0)).orientation == "normal"
+    quarter = fringe_orientation(rolled(rig, "camera", 90.0))
+    assert quarter.orientation is None and 0.1 < quarter.rising < 0.9
+    assert "no fringe orientation" in quarter.describe()
+    assert fringe_orientation(rolled(rig, "camera", 180.0)).describe() == "fringes mirrored (the calibration: 100% of the image)"
+
+
+@pytest.mark.parametrize("view", ["radial", "side", "oblique", "face"])
+def test_every_view_the_twin_trains_on_is_normal(view):
+    """The network was trained on these rigs only: their calibration must read as the orientation it knows."""
+    from gearscan.twin.randomize import view_rig
+
+    gear = GearSpec(module=2.0, teeth=30)
+    for angle in (0.0, 17.0):
+        assert fringe_orientation(view_rig(128, 128, gear, view=view, angle_deg=angle)).orientation == "normal"
+
+
+@pytest.mark.parametrize("turn", [0.0, 180.0])
+def test_the_calibration_agrees_with_the_rendered_fringes_and_the_still_burst_vote(turn):
+    """Ground truth from the ray caster: the projector column at each lit pixel (``u_proj``) rises along the camera's
+    columns on a normal rig and falls on one whose projector hangs upside down; the per-burst vote on a still burst
+    (no motion to fool it) says the same as the calibration."""
+    from gearscan.inference.predictor import frames_to_tensor, fringe_phase_decreases_along_columns
+    from gearscan.twin.render import Optics, TwinRenderer
+
+    gear = GearSpec(module=2.0, teeth=20)
+    rig = rolled(default_rig(128, 128, working_radius=gear.pitch_radius), "projector", turn)
+    expected = "normal" if turn == 0.0 else "mirrored"
+    assert fringe_orientation(rig).orientation == expected
+    twin = TwinRenderer(rig, gear, Optics())
+    u = twin.surface(0.0).u_proj
+    step = np.diff(u, axis=1)
+    step = step[np.isfinite(step)]
+    assert step.size > 1000
+    rising = float(np.mean(step > 0))
+    assert (rising > 0.9) if expected == "normal" else (rising < 0.1)
+    images, _ = twin.render(0.0, PatternSet.three_step(20.0))
+    assert fringe_phase_decreases_along_columns(frames_to_tensor(images[:3], 255)) == (expected == "mirrored")
