@@ -74,6 +74,7 @@ def run(speed_deg: float, every: int, decoder: Decoder, size: int = 512) -> dict
     cad_gear, true_gear = GearSpec(teeth=20, module=2.0), GearSpec(teeth=20, module=2.06)
     rig = default_rig(size, size, working_radius=cad_gear.pitch_radius)
     renderer = TwinRenderer(rig, true_gear, Optics())
+    decoder.adopt_rig(rig)  # as the pipeline: the fringe orientation from the calibration
     surface, cad = SurfaceDistance(true_gear.mesh()), CadScorer(cad_gear)
     rng = np.random.default_rng(3)
     angles = [math.radians(11.0 + speed_deg * k) for k in range(3 * (every + 1))]

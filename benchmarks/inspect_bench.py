@@ -66,8 +66,8 @@ def main() -> None:
     ap.add_argument("--report", type=Path, default=HERE / "inspect_report",
                     help="path prefix of the report (.md, .json); default benchmarks/inspect_report")
     ap.add_argument("--orientation", choices=("auto", "normal", "mirrored"), default="auto",
-                    help="the network's fringe orientation (the Decoder's; auto: the shipped default, voted per burst "
-                         "as this revolution has no still burst to adopt it from; normal: the twin rig's, set)")
+                    help="the network's fringe orientation (the Decoder's; auto: the shipped default, from the rig "
+                         "calibration since session 43; normal: the twin rig's, set)")
     ap.add_argument("--network-support-px", type=int, default=None,
                     help="the reconstructor's fringe-support test for network pixels (-1: none; default: the model's own, else the product's)")
     ap.add_argument("--voxel-mm", type=float, default=0.1)

@@ -74,7 +74,8 @@ precision = "auto"           # "auto", "fp32" or "bf16"
 still_span_deg = 0.075       # bursts spanning less turntable angle go to three-step PS (0: never)
 orientation = "auto"         # fringe phase along the camera's columns: "normal" (rising, as the twin's
                              # rigs), "mirrored", or "auto" (from the rig calibration's geometry; 3 still
-                             # bursts that agree against it win, with a warning)
+                             # bursts that agree against it win, with a warning; a calibration without
+                             # one: a vote per burst until 3 still bursts agree)
 
 [recon]
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S

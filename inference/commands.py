@@ -169,7 +169,8 @@ def predict(
     orientation: Annotated[
         str,
         typer.Option(help="the rig's fringe phase along the camera columns: normal (rising, as on the twin's rigs), "
-                     "mirrored, or auto (a vote on this burst; it misreads fast bursts on large gears)"),
+                     "mirrored, or auto (from --rig's calibration; without one a vote on this burst, which misreads "
+                     "fast bursts on large gears)"),
     ] = "auto",
     rig: Annotated[
         Path | None,
@@ -218,19 +219,24 @@ def predict(
     check_device(device)
     if orientation not in ORIENTATIONS:
         raise typer.BadParameter(f"expected one of {', '.join(ORIENTATIONS)}, got {orientation!r}", param_hint="--orientation")
-    calibrated = None
+    from_rig = False  # the orientation came from --rig's calibration
     if rig is not None:
         from gearscan.core.rig import Rig, RigError, fringe_orientation
 
         try:
-            calibrated = fringe_orientation(Rig.load(rig))
+            loaded = Rig.load(rig)
         except RigError as exc:
             raise typer.BadParameter(str(exc), param_hint="--rig") from exc
-        if calibrated.orientation is None:
-            typer.secho(f"warning: --rig {rig}: {calibrated.describe()}", fg=typer.colors.YELLOW, err=True)
+        try:
+            calibrated, why = fringe_orientation(loaded), None
+        except RigError as exc:
+            calibrated, why = None, str(exc)
+        side = calibrated.orientation if calibrated is not None else None
+        if side is None:
+            typer.secho(f"warning: --rig {rig}: {why or calibrated.describe()}", fg=typer.colors.YELLOW, err=True)
         elif orientation == "auto":
-            orientation = calibrated.orientation
-        elif orientation != calibrated.orientation:
+            orientation, from_rig = side, True
+        elif orientation != side:
             typer.secho(f"warning: --orientation {orientation}, but --rig {rig} says {calibrated.describe()}: "
                         f"decoding as --orientation says", fg=typer.colors.YELLOW, err=True)
     frames, full_scale, npz_angles = load_frames(inputs)
@@ -265,8 +271,7 @@ def predict(
             mirror = (fringe_phase_decreases_along_columns(frames_to_tensor(frames, full_scale))
                       if orientation == "auto" else orientation == "mirrored")
             result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles, mirror=mirror)
-            how = (" (voted on this burst)" if orientation == "auto" else
-                   " (rig calibration)" if calibrated is not None and calibrated.orientation == orientation else " (set)")
+            how = " (voted on this burst)" if orientation == "auto" else " (rig calibration)" if from_rig else " (set)"
             fringes = ("mirrored" if mirror else "normal") + how
     except ValueError as exc:  # a motion-input model without angles, or bad angles
         typer.echo(f"error: {exc}", err=True)
@@ -287,7 +292,9 @@ def predict(
     if fringes.endswith("(voted on this burst)"):
         typer.secho("note: the fringe orientation was voted on this burst (--orientation auto); the vote "
                     "misreads some fast bursts (fringes drifting about a third of a period per frame), and a "
-                    "misread burst decodes about 1.9 rad off: pass --rig rig.json or set --orientation normal|mirrored",
+                    "misread burst decodes about 1.9 rad off: "
+                    + ("set --orientation normal|mirrored" if rig is not None else
+                       "pass --rig rig.json or set --orientation normal|mirrored"),
                     fg=typer.colors.YELLOW, err=True)
 
 

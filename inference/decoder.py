@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from gearscan.core.phase import classical_result, still_result
-from gearscan.core.rig import FringeOrientation, Rig, fringe_orientation
+from gearscan.core.rig import FringeOrientation, Rig, RigError, fringe_orientation
 from gearscan.core.types import Burst, PhaseResult
 
 if TYPE_CHECKING:  # the predictor (torch) is imported only when a network decodes
@@ -72,6 +72,7 @@ class Decoder:
         self.rig_orientation: str | None = None if orientation == "auto" else orientation
         self.orientation_source: str | None = None if orientation == "auto" else "set"
         self._votes = {"normal": 0, "mirrored": 0}
+        self._outvoted = False  # still bursts overruled the rig calibration's orientation
         self._lock = threading.Lock()
         self._predictors: list = []
         self.mc = mc
@@ -125,22 +126,29 @@ class Decoder:
                 "orientation_votes": dict(self._votes)}
 
     def adopt_rig(self, rig: Rig) -> FringeOrientation | None:
-        """With ``orientation="auto"``, take the rig's fringe orientation from its calibration (no burst can
-        fool it); returns what the calibration says (None: not asked for, or three-step mode)."""
+        """A run starts on ``rig``: with ``orientation="auto"``, forget the still-burst votes of any earlier run
+        and take the rig's fringe orientation from its calibration (no burst can fool it). Returns what the
+        calibration says; None where not asked for (a set orientation, three-step mode) or where the geometry
+        gives none (then the bursts vote, as without a calibration; a warning says why)."""
         if self.orientation != "auto" or self.predictor is None:
             return None
-        found = fringe_orientation(rig)
-        if found.orientation is None:
-            logger.warning("rig calibration: %s; voting per burst", found.describe())
-            return found
+        try:
+            found = fringe_orientation(rig)
+        except RigError as exc:
+            found, why = None, str(exc)
+        else:
+            why = found.describe()
         with self._lock:
-            if self.orientation_source == "still bursts":  # the frames have spoken already
-                if self.rig_orientation != found.orientation:
-                    logger.warning("the still bursts read the fringes %s, the rig calibration %s: decoding as the "
-                                   "frames show; check that the calibration belongs to this camera and projector",
-                                   self.rig_orientation, found.orientation)
-                return found
-            self._set_rig_orientation(found.orientation, "calibration")
+            self._votes, self._outvoted = {"normal": 0, "mirrored": 0}, False
+            side = found.orientation if found is not None else None
+            self.rig_orientation, self.orientation_source = None, None
+            for p in self._predictors:
+                p.orientation = "auto"
+            if side is None:
+                logger.warning("rig calibration: %s; the fringe orientation is voted per burst until %d still "
+                               "bursts agree", why, ORIENTATION_VOTES)
+                return None
+            self._set_rig_orientation(side, "calibration")
         return found
 
     def _set_rig_orientation(self, side: str, source: str) -> None:
@@ -162,7 +170,8 @@ class Decoder:
             return f"fringes {self.rig_orientation} (rig calibration" + (
                 f"; {against} still bursts disagree)" if against else ")")
         if self.rig_orientation is not None:
-            return f"fringes {self.rig_orientation} (from {max(n, m)} still bursts)"
+            return f"fringes {self.rig_orientation} (from {max(n, m)} still bursts" + (
+                ", against the rig calibration)" if self._outvoted else ")")
         if n and m:
             return f"fringes voted per burst: still bursts disagree ({n} normal, {m} mirrored); set model.orientation"
         return f"fringes voted per burst ({max(n, m)} of {ORIENTATION_VOTES} still bursts)"
@@ -186,6 +195,7 @@ class Decoder:
                     if self.orientation_source == "calibration":
                         if side == self.rig_orientation:
                             continue
+                        self._outvoted = True
                         logger.warning("%d still bursts read the fringes %s, the rig calibration %s: decoding as the "
                                        "frames show from now on; check that the calibration belongs to this camera "
                                        "and projector (a camera mirroring its images also mirrors the points)",

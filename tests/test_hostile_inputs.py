@@ -133,12 +133,16 @@ def test_predict_takes_the_fringe_orientation_from_a_rig_calibration(tmp_path):
     path = _frames(tmp_path, frames)
     res = runner.invoke(app, ["predict", str(path), "--rig", str(upside_down), "-o", str(tmp_path / "r.npz")])
     assert res.exit_code == 0 and "fringes mirrored (rig calibration)" in res.output and "note:" not in res.output, res.output
-    runner.invoke(app, ["predict", str(path), "--orientation", "mirrored", "-o", str(tmp_path / "m.npz")])
+    res = runner.invoke(app, ["predict", str(path), "--orientation", "mirrored", "-o", str(tmp_path / "m.npz")])
+    assert res.exit_code == 0 and "fringes mirrored (set)" in res.output, res.output
     with np.load(tmp_path / "r.npz") as a, np.load(tmp_path / "m.npz") as b:
         np.testing.assert_array_equal(a["phase"], b["phase"])
     res = runner.invoke(app, ["predict", str(path), "--rig", str(normal_rig), "--orientation", "mirrored",
                               "-o", str(tmp_path / "c.npz")])
     assert res.exit_code == 0 and "--orientation mirrored, but --rig" in res.output and "fringes mirrored (set)" in res.output
+    res = runner.invoke(app, ["predict", str(path), "--rig", str(normal_rig), "--orientation", "normal",
+                              "-o", str(tmp_path / "n.npz")])
+    assert res.exit_code == 0 and "fringes normal (set)" in res.output and "warning" not in res.output, res.output
     not_rig = tmp_path / "x.json"
     not_rig.write_text("{}")
     res = runner.invoke(app, ["predict", str(path), "--rig", str(not_rig), "-o", str(tmp_path / "x.npz")])

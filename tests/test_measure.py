@@ -389,7 +389,9 @@ def test_auto_orientation_comes_from_the_calibration_and_still_bursts_that_outvo
     assert calibrated.rig_orientation == "mirrored" and calibrated.summary()["orientation_source"] == "still bursts"
     assert calibrated.predictor.orientation == "mirrored"
     assert any("rig calibration normal" in r.getMessage() for r in caplog.records)
-    # adopting a calibration after the still bursts have spoken keeps theirs, and says so
-    with caplog.at_level("WARNING", logger="gearscan.inference.decoder"):
-        calibrated.adopt_rig(rig)
-    assert calibrated.rig_orientation == "mirrored"
+    assert calibrated.orientation_status() == "fringes mirrored (from 3 still bursts, against the rig calibration)"
+    # the next run (adopt_rig at its start) forgets this run's votes and starts from its own calibration
+    assert calibrated.adopt_rig(rig).orientation == "normal"
+    assert calibrated.summary()["orientation_votes"] == {"normal": 0, "mirrored": 0}
+    assert calibrated.orientation_status() == "fringes normal (rig calibration)"
+    assert calibrated.predictor.orientation == "normal"

@@ -10,7 +10,14 @@ import pytest
 
 from gearscan.core.gear import GearSpec
 from gearscan.core.patterns import PatternSet
-from gearscan.core.rig import FringeOrientation, Rig, default_rig, fringe_orientation
+from gearscan.core.rig import (
+    FringeOrientation,
+    PinholeDevice,
+    Rig,
+    default_rig,
+    fringe_orientation,
+    look_at,
+)
 
 
 def rolled(rig: Rig, device: str, deg: float) -> Rig:
@@ -66,3 +73,55 @@ def test_the_calibration_agrees_with_the_rendered_fringes_and_the_still_burst_vo
     assert (rising > 0.9) if expected == "normal" else (rising < 0.1)
     images, _ = twin.render(0.0, PatternSet.three_step(20.0))
     assert fringe_phase_decreases_along_columns(frames_to_tensor(images[:3], 255)) == (expected == "mirrored")
+
+
+def _device(eye, target, width: int, height: int, focal: float) -> PinholeDevice:
+    k = np.array([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    return PinholeDevice(width, height, k, np.zeros(5), look_at(np.asarray(eye, float), np.asarray(target, float),
+                                                                np.array([0.0, 0.0, 1.0])))
+
+
+@pytest.mark.parametrize("toe_deg", [0.0, 0.3, -0.3])
+def test_parallel_and_toed_out_rigs_have_an_orientation_and_a_projector_facing_away_has_none(toe_deg):
+    """A side-by-side rig whose calibration came out parallel or a little toed-out (axes that never meet in front)
+    still reads normal; a projector that faces away from the camera's axis is a RigError, and the Decoder then
+    votes per burst instead of failing the run."""
+    from gearscan.core.rig import RigError
+    from gearscan.inference.decoder import Decoder
+
+    cam = _device([200.0, 0.0, 0.0], [0.0, 0.0, 0.0], 128, 128, 1000.0)
+    proj = _device([200.0, 100.0, 0.0], [0.0, 100.0 + 200.0 * np.tan(np.radians(toe_deg)), 0.0], 1280, 800, 5000.0)
+    assert fringe_orientation(Rig(cam, proj)).orientation == "normal"
+    away = Rig(cam, _device([200.0, 100.0, 0.0], [400.0, 100.0, 0.0], 1280, 800, 5000.0))
+    with pytest.raises(RigError, match="nowhere in front of the projector"):
+        fringe_orientation(away)
+    dec = Decoder(workers=1)
+    assert dec.adopt_rig(away) is None and dec.rig_orientation is None and dec.predictor.orientation == "auto"
+
+
+@pytest.mark.parametrize("bad", [
+    "folder", "binary", {"camera.width": "wide"}, {"camera.dist": "x"}, {"turntable": []},
+    {"turntable": {"counts_per_rev": "abc"}}, {"projector": [1, 2]},
+])
+def test_a_broken_rig_file_is_a_rig_error_naming_the_file(tmp_path, bad):
+    """Every malformed rig file is a RigError that names it (replay --rig and predict --rig turn it into exit 2)."""
+    import json
+
+    from gearscan.core.rig import RigError
+
+    path = tmp_path / "rig.json"
+    if bad == "folder":
+        path.mkdir()
+    elif bad == "binary":
+        path.write_bytes(bytes(range(256)))
+    else:
+        data = default_rig(64, 64).to_json()
+        for key, value in bad.items():
+            *head, last = key.split(".")
+            node = data
+            for h in head:
+                node = node[h]
+            node[last] = value
+        path.write_text(json.dumps(data))
+    with pytest.raises(RigError, match="rig"):
+        Rig.load(path)

@@ -188,13 +188,18 @@ class PinholeDevice:
 
     @classmethod
     def from_json(cls, data: dict, name: str) -> PinholeDevice:
-        missing = [k for k in ("width", "height", "K", "dist", "T_from_world") if k not in data]
+        keys = ("width", "height", "K", "dist", "T_from_world")
+        if not isinstance(data, dict):
+            raise RigError(f"{name}: expected an object with {', '.join(keys)}, got {type(data).__name__}")
+        missing = [k for k in keys if k not in data]
         if missing:
             raise RigError(f"{name}: missing keys {missing}")
         try:
             return cls(int(data["width"]), int(data["height"]), data["K"], data["dist"], data["T_from_world"])
         except RigError as exc:
             raise RigError(f"{name}.{exc}") from exc
+        except (TypeError, ValueError) as exc:  # "width": "wide", "dist": "x"
+            raise RigError(f"{name}: {exc}") from exc
 
 
 @dataclass(frozen=True)
@@ -239,10 +244,18 @@ class Rig:
         for key in ("camera", "projector"):
             if key not in data:
                 raise RigError(f"{source}: missing section \"{key}\"")
+        turntable = data.get("turntable", {})
+        if not isinstance(turntable, dict):
+            raise RigError(f"{source}: \"turntable\" must be an object, got {turntable!r}")
+        try:
+            counts = int(turntable.get("counts_per_rev", 0))
+        except (TypeError, ValueError) as exc:
+            raise RigError(f"{source}: turntable.counts_per_rev: expected an integer, got "
+                           f"{turntable.get('counts_per_rev')!r}") from exc
         return cls(
             camera=PinholeDevice.from_json(data["camera"], f"{source}: camera"),
             projector=PinholeDevice.from_json(data["projector"], f"{source}: projector"),
-            counts_per_rev=int(data.get("turntable", {}).get("counts_per_rev", 0)),
+            counts_per_rev=counts,
             name=str(data.get("name", "rig")),
         )
 
@@ -261,6 +274,8 @@ class Rig:
             raise RigError(f"rig file not found: {path}") from exc
         except json.JSONDecodeError as exc:
             raise RigError(f"{path}: invalid JSON at line {exc.lineno}: {exc.msg}") from exc
+        except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, a binary file
+            raise RigError(f"{path}: cannot read a rig file ({exc})") from exc
         return cls.from_json(data, str(path))
 
 
@@ -315,7 +330,8 @@ class FringeOrientation:
     ``rising``: the share of sampled camera pixels (over the image, on the plane through the rig's working
     point that faces both devices, and on the one facing the camera) where the phase rises along the
     columns. ``orientation``: ``"normal"`` (rising, as on the twin's rigs), ``"mirrored"``, or None where
-    neither side holds :data:`FRINGE_ORIENTATION_AGREEMENT` of them (fringes nearly along the columns).
+    neither side holds :data:`FRINGE_ORIENTATION_AGREEMENT` of them (fringes within about a degree
+    of the columns, or rows that cross the epipolar lines steeply).
     """
 
     orientation: str | None
@@ -323,33 +339,37 @@ class FringeOrientation:
 
     def describe(self) -> str:
         if self.orientation is None:
-            return (f"fringe phase rises along the camera columns at {self.rising:.0%} of the image and falls at the "
-                    "rest: the fringes run nearly along the columns, so the rig has no fringe orientation")
+            return (f"the calibration's fringe phase rises along the camera columns at {self.rising:.0%} of the image "
+                    "and falls at the rest (fringes along the columns?): no fringe orientation")
         side = self.rising if self.orientation == "normal" else 1.0 - self.rising
         return f"fringes {self.orientation} (the calibration: {side:.0%} of the image)"
 
 
 def working_point(rig: Rig) -> np.ndarray:
-    """Where the camera's and the projector's optical axes pass closest (world, mm): what both aim at."""
-    c, p = rig.camera.center_world, rig.projector.center_world
-    dc, dp = rig.camera.T_world_from[:3, 2], rig.projector.T_world_from[:3, 2]
-    w, b = c - p, float(dc @ dp)
-    denom = 1.0 - b * b
-    if denom < 1e-9:  # parallel axes: a point at the camera's mean distance to the projector
-        return c + dc * float(np.linalg.norm(w))
-    s = (b * float(dp @ w) - float(dc @ w)) / denom
-    t = (float(dp @ w) - b * float(dc @ w)) / denom
-    return 0.5 * ((c + s * dc) + (p + t * dp))
+    """The point on the camera's optical axis that the projector shows nearest its image centre (world, mm): what
+    both devices look at. The axes' closest approach is no answer for parallel or diverging axes (a calibration
+    of a parallel rig comes out a little toed-out) nor for a projector with lens shift."""
+    cam, proj = rig.camera, rig.projector
+    depths = np.geomspace(1.0, 1e5, 4001)
+    pts = cam.center_world + depths[:, None] * cam.T_world_from[:3, 2]
+    uv = proj.project(pts)
+    miss = np.hypot(uv[:, 0] - (proj.width - 1) / 2, uv[:, 1] - (proj.height - 1) / 2)
+    if not np.isfinite(miss).any():
+        raise RigError("fringe orientation: the camera's optical axis is nowhere in front of the projector")
+    return pts[int(np.nanargmin(miss))]
 
 
 def fringe_orientation(rig: Rig, samples: int = 17) -> FringeOrientation:
     """The rig's fringe orientation (:class:`FringeOrientation`), from its geometry.
 
-    A lit surface that both devices see from the same side keeps the order of its points in both images,
-    so the sign of d(projector column)/d(camera column) is the rig's, not the surface's: the network's
-    "normal" (trained on) or "mirrored" (decoded flipped). Read on two planes through the working point
-    (facing the camera; facing the bisector of both devices) at a ``samples`` x ``samples`` grid of
-    camera pixels. No frames needed: unlike a vote on a burst's phase, motion cannot fool it.
+    Along an epipolar line a lit surface that both devices see from the same side keeps the order of its
+    points in both images, so where the camera's rows run along the epipolar lines (the fringes cross the
+    columns, as the network needs) the sign of d(projector column)/d(camera column) is the rig's, not the
+    surface's: the network's "normal" (trained on) or "mirrored" (decoded flipped). With rows across the
+    epipolar lines, steep surfaces can flip it locally (checked on the twin's views: none do). Read on two
+    planes through :func:`working_point` (facing the camera; facing the bisector of both devices) at a
+    ``samples`` x ``samples`` grid of camera pixels. No frames needed: unlike a vote on a burst's phase,
+    motion cannot fool it. :class:`RigError` where no sampled pixel sees those planes in front of both.
     """
     cam = rig.camera
     target = working_point(rig)
