@@ -191,7 +191,7 @@ def test_twin_render_alternate_order_replays_both_orders(tmp_path):
 
 def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording, tmp_path):
     """`--network-support-px -1` turns the fringe-support test of the network's pixels off; the default keeps
-    the shipped model's own test (0 px for v9: the pixel's own frames), and the metrics count the pixels it drops."""
+    the shipped model's own test (1 px for v9 since session 43), and the metrics count the pixels it drops."""
     from gearscan.inference.model_io import read_config
     from gearscan.inference.predictor import DEFAULT_MODEL, model_network_support
 
@@ -203,8 +203,8 @@ def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording,
         assert res.exit_code == 0, res.output
         data = json.loads(metrics.read_text())
         counts[label] = sum(r.get("unwrap_unsupported", 0) for r in data["bursts"])
-        assert data["recon"]["network_support_px"] == (None if label == "off" else 0)  # the metrics say what ran
-    assert model_network_support(read_config(DEFAULT_MODEL)).per_burst_px == 0
+        assert data["recon"]["network_support_px"] == (None if label == "off" else 1)  # the metrics say what ran
+    assert model_network_support(read_config(DEFAULT_MODEL)).per_burst_px == 1
     assert counts["off"] == 0 and counts["default"] > 0
     res = runner.invoke(app, ["replay", str(twin_recording), "--network-support-px", "-2"])
     assert res.exit_code == 2
