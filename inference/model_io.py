@@ -95,6 +95,20 @@ def read_config(path: str | Path) -> dict:
     return meta
 
 
+DECODE_KEYS = ("var_scale", "sigma_calibration", "uncertainty_calibration", "still_gate", "still_burst_gate")
+"""A model JSON's entries that its decode reads besides the weights: sigma maps and still gates."""
+
+
+def model_fingerprint(path: str | Path) -> str:
+    """12 hex digits of sha256 over the weights and the JSON entries their decode reads (:data:`DECODE_KEYS`): a
+    val choice recorded with one fingerprint was made for exactly this decode (refitted sigma maps change it)."""
+    import hashlib
+
+    meta = read_config(path)
+    decode = json.dumps({k: meta.get(k) for k in DECODE_KEYS}, sort_keys=True).encode()
+    return hashlib.sha256(Path(path).read_bytes() + decode).hexdigest()[:12]
+
+
 def load_state(path: str | Path) -> dict[str, torch.Tensor]:
     """Tensors of a safetensors file; raises :class:`ModelFileError` naming the file."""
     from safetensors import SafetensorError

@@ -14,7 +14,6 @@ revolution only report afterwards.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import sys
@@ -60,10 +59,13 @@ def val_cells(recordings: Path, bursts: int):
 
 
 def shipped_sha256() -> str:
-    """The shipped weights a run scores as "the shipped model" (the default changes between sessions)."""
+    """The shipped model a run scores as "the shipped model" (the default changes between sessions): since session 43
+    its :func:`~gearscan.inference.model_io.model_fingerprint` (weights and sigma maps), so a run with refitted maps is
+    never resumed into cells scored with others; before, the weights' sha alone."""
+    from gearscan.inference.model_io import model_fingerprint
     from gearscan.inference.predictor import DEFAULT_MODEL
 
-    return hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]
+    return model_fingerprint(DEFAULT_MODEL)
 
 
 def load_or_start(out: Path, **fresh) -> dict:

@@ -33,6 +33,7 @@ from gearscan.evaluate import (
     render_cases,
     scenes_from_dataset,
 )
+from gearscan.inference.model_io import model_fingerprint
 from gearscan.inference.predictor import Predictor, model_path
 from gearscan.recon.measure import Reconstructor
 
@@ -106,6 +107,7 @@ def main() -> None:
     res = {"rule": "benchmarks/network_support_rule.md", "split": "val", "scenes": [s.name for s in scenes],
            "seed": args.seed, "per_motion": args.per_motion, "model": str(args.model or "inference/weights/default.safetensors"),
            "weights_sha256": hashlib.sha256(model_path(args.model).read_bytes()).hexdigest()[:12],
+           "model_fingerprint": model_fingerprint(model_path(args.model)),  # weights and sigma maps (since session 43)
            "orientation": "normal", "table": table, "chosen_network_support_px": chosen}
     args.out.write_text(json.dumps(res, indent=1))
     for name in [key(px) for px in CANDIDATES] + ["three-step"]:
