@@ -96,7 +96,9 @@ def read_config(path: str | Path) -> dict:
 
 
 DECODE_KEYS = ("var_scale", "sigma_calibration", "uncertainty_calibration", "still_gate", "still_burst_gate")
-"""A model JSON's entries that its decode reads besides the weights: sigma maps and still gates."""
+"""A model JSON's entries that its deterministic decode reads besides the weights: sigma maps and still gates
+(``uncertainty_calibration``, the maps' fit report, changes with them). Not in it: ``model`` (the architecture,
+which changes only with the weights) and ``mc_phase`` (MC mode only; no val choice keyed on this decodes MC)."""
 
 
 def model_fingerprint(path: str | Path) -> str:

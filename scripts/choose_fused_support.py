@@ -70,13 +70,14 @@ def shipped_sha256() -> str:
 
 def load_or_start(out: Path, **fresh) -> dict:
     """The run's json: resumed from ``out`` (its resumes stamped) or a new one with this commit, host and the shipped
-    weights' sha; a json whose cells were scored with other shipped weights is refused."""
+    model's fingerprint (:func:`shipped_sha256`); a json whose cells were scored with another shipped decode (other
+    weights or sigma maps) is refused."""
     sha = shipped_sha256()
     if not out.exists():
         return {"commit": commit(), "host": host(), "shipped_sha256": sha, "cells": [], **fresh}
     done = json.loads(out.read_text())
     if done["cells"] and done.get("shipped_sha256") != sha:
-        raise SystemExit(f"{out}: its shipped model's cells were scored with other weights "
+        raise SystemExit(f"{out}: its shipped model's cells were scored with another decode (weights or sigma maps) "
                          f"({done.get('shipped_sha256', 'not recorded')}, now {sha}); write to another --out")
     if done["cells"]:
         done.setdefault("resumed_at", []).append(commit())

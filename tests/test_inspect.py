@@ -190,7 +190,7 @@ def test_the_shipped_support_tests_are_the_val_choices():
     import json
     from pathlib import Path
 
-    from gearscan.inference.model_io import read_config
+    from gearscan.inference.model_io import model_fingerprint, read_config
     from gearscan.inference.predictor import DEFAULT_MODEL, NetworkSupport, model_network_support
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
 
@@ -213,8 +213,15 @@ def test_the_shipped_support_tests_are_the_val_choices():
         del sys.path[:2]
     assert choose_network_support.choose(per_burst["table"]) == NETWORK_SUPPORT_PX
     assert choose_fused_support.choose(fused["cells"], fused["incumbent_px"])["chosen_px"] == FRAME_FIT_NETWORK_SUPPORT_PX
-    shipped = hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]  # chosen for these weights
-    assert per_burst["weights_sha256"] == shipped == fused["shipped_sha256"]
+    # chosen for this decode: the weights and the sigma maps and gates of their JSON (a refit changes the fingerprint)
+    shipped = model_fingerprint(DEFAULT_MODEL)
+    assert per_burst["weights_sha256"] == hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]
+    assert per_burst["model_fingerprint"] == shipped == fused["shipped_sha256"]
+    # and the unfitted points' sigma scale was calibrated for it too
+    from gearscan.recon.track import REST_SIGMA_SCALE
+
+    rest = json.loads((bench / "rest_sigma_val.json").read_text())
+    assert rest["shipped_sha256"] == shipped and rest["scale"] == REST_SIGMA_SCALE
 
 
 def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkeypatch, own_support_decoder,
