@@ -196,10 +196,13 @@ def main() -> None:
     rows = list(zip(names, truths, quantities(insp), quantities(plain.inspection), strict=True))
     fp_err, plain_fp_err = fp_error(insp), fp_error(plain.inspection)
     ok = lambda t, m: abs(m - t) <= 5 + 0.05 * abs(t)  # noqa: E731
+    ran = decoder.summary()  # the orientation the run decoded with, and whence
+    fringes = (f"set: {args.orientation}" if args.orientation != "auto" else
+               f"auto, the shipped default: {ran['rig_orientation'] or 'voted per burst'} "
+               f"from the {ran['orientation_source'] or 'per-burst vote'}")
     decoder_obj, decoder = decoder, "three-step PS" if args.classical else (
         (f"network `{args.model}` (deterministic" if args.model else "shipped network (deterministic")
-        + (", fringe orientation voted per burst: the shipped default; no still burst to adopt it from)"
-           if args.orientation == "auto" else f", fringe orientation set: {args.orientation})"))
+        + f", fringe orientation {fringes})")
     if not args.classical:
         whose = "the model's own" if decoder_obj.network_support is not None else "the product's"
         px = lambda v: "off" if v is None else f"{v} px"  # noqa: E731

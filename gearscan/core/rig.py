@@ -371,6 +371,8 @@ def fringe_orientation(rig: Rig, samples: int = 17) -> FringeOrientation:
     ``samples`` x ``samples`` grid of camera pixels. No frames needed: unlike a vote on a burst's phase,
     motion cannot fool it. :class:`RigError` where no sampled pixel sees those planes in front of both.
     """
+    import cv2
+
     cam = rig.camera
     target = working_point(rig)
     to_cam = cam.center_world - target
@@ -380,8 +382,6 @@ def fringe_orientation(rig: Rig, samples: int = 17) -> FringeOrientation:
     u, v = np.meshgrid(np.linspace(0.1, 0.9, samples) * (cam.width - 1), np.linspace(0.1, 0.9, samples) * (cam.height - 1))
     pix = np.stack([u.ravel(), v.ravel()], axis=1)
     k_inv, r_wc = np.linalg.inv(cam.K), cam.T_world_from[:3, :3]
-    import cv2
-
     signs = []
     for n in normals:
         cols = []
@@ -390,10 +390,9 @@ def fringe_orientation(rig: Rig, samples: int = 17) -> FringeOrientation:
             norm = cv2.undistortPoints(pts, cam.K, cam.dist).reshape(-1, 2) if np.any(cam.dist != 0) else \
                 (np.c_[pts.reshape(-1, 2), np.ones(len(pix))] @ k_inv.T)[:, :2]
             rays = np.c_[norm, np.ones(len(norm))] @ r_wc.T  # world directions from the camera centre
-            with np.errstate(divide="ignore", invalid="ignore"):
+            with np.errstate(divide="ignore", invalid="ignore"):  # a ray along the plane: no point, NaN below
                 depth = ((target - cam.center_world) @ n) / (rays @ n)
-            pts_w = cam.center_world + rays * depth[:, None]
-            uv = rig.projector.project(pts_w)
+                uv = rig.projector.project(cam.center_world + rays * depth[:, None])
             cols.append(np.where(depth > 0, uv[:, 0], np.nan))
         signs.append(np.sign(cols[1] - cols[0]))
     s = np.concatenate(signs)
