@@ -416,7 +416,8 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         cells_table(mc_rows).replace(f"{NETWORK} RMSE", "det RMSE"),
         "",
         "MC as shipped (`predict` without `--rig`: the per-burst orientation vote) and with the rig's orientation "
-        "(what `live`, `replay` and `inspect` use: the rig calibration's; the same dropout draws):",
+        "(the scene's still-burst orientation, as in the tables above; it equals the rig calibration's, what `live`, "
+        "`replay` and `inspect` use, in every scene where the section above says so; the same dropout draws):",
         "",
         "| family | motions | MC RMSE (rad) | gain | ECE MC | MC RMSE, rig orientation (rad) | gain | ECE MC, rig orientation |",
         "|---|---|---|---|---|---|---|---|",

@@ -196,10 +196,10 @@ def main() -> None:
     rows = list(zip(names, truths, quantities(insp), quantities(plain.inspection), strict=True))
     fp_err, plain_fp_err = fp_error(insp), fp_error(plain.inspection)
     ok = lambda t, m: abs(m - t) <= 5 + 0.05 * abs(t)  # noqa: E731
-    ran = decoder.summary()  # the orientation the run decoded with, and whence
+    ran = decoder.summary()  # the orientation the last run decoded with (every run here replays the same rig), and whence
     fringes = (f"set: {args.orientation}" if args.orientation != "auto" else
-               f"auto, the shipped default: {ran['rig_orientation'] or 'voted per burst'} "
-               f"from the {ran['orientation_source'] or 'per-burst vote'}")
+               f"auto, the shipped default: {ran['rig_orientation']} from the {ran['orientation_source']}"
+               if ran["rig_orientation"] else "auto, the shipped default: voted per burst")
     decoder_obj, decoder = decoder, "three-step PS" if args.classical else (
         (f"network `{args.model}` (deterministic" if args.model else "shipped network (deterministic")
         + f", fringe orientation {fringes})")

@@ -130,6 +130,7 @@ class Decoder:
         and take the rig's fringe orientation from its calibration (no burst can fool it). Returns what the
         calibration says; None where not asked for (a set orientation, three-step mode) or where the geometry
         gives none (then the bursts vote, as without a calibration; a warning says why)."""
+        self.still_bursts = 0  # the run's own count (summary)
         if self.orientation != "auto" or self.predictor is None:
             return None
         try:

@@ -125,3 +125,21 @@ def test_a_broken_rig_file_is_a_rig_error_naming_the_file(tmp_path, bad):
         path.write_text(json.dumps(data))
     with pytest.raises(RigError, match="rig"):
         Rig.load(path)
+
+
+def test_a_singular_camera_matrix_is_a_rig_error_and_each_run_counts_its_own_still_bursts():
+    """A K whose last row is zero cannot back-project: a RigError the Decoder survives (it votes instead); and
+    ``adopt_rig``, a run's start, resets the run's still-burst count that ``summary`` reports."""
+    from gearscan.core.rig import RigError
+    from gearscan.inference.decoder import Decoder
+
+    rig = default_rig(64, 64)
+    k = rig.camera.K.copy()
+    k[2] = 0.0
+    broken = replace(rig, camera=replace(rig.camera, K=k))
+    with pytest.raises(RigError, match="singular"):
+        fringe_orientation(broken)
+    dec = Decoder(workers=1)
+    dec.still_bursts = 5  # an earlier run's
+    assert dec.adopt_rig(broken) is None and dec.still_bursts == 0 and dec.rig_orientation is None
+    assert dec.adopt_rig(rig).orientation == "normal" and dec.summary()["orientation_source"] == "calibration"

@@ -381,7 +381,11 @@ def fringe_orientation(rig: Rig, samples: int = 17) -> FringeOrientation:
     normals = [to_cam, (to_cam + to_proj) / np.linalg.norm(to_cam + to_proj)]
     u, v = np.meshgrid(np.linspace(0.1, 0.9, samples) * (cam.width - 1), np.linspace(0.1, 0.9, samples) * (cam.height - 1))
     pix = np.stack([u.ravel(), v.ravel()], axis=1)
-    k_inv, r_wc = np.linalg.inv(cam.K), cam.T_world_from[:3, :3]
+    try:
+        k_inv = np.linalg.inv(cam.K)
+    except np.linalg.LinAlgError as exc:
+        raise RigError(f"fringe orientation: the camera's K is singular: {cam.K.tolist()}") from exc
+    r_wc = cam.T_world_from[:3, :3]
     signs = []
     for n in normals:
         cols = []
