@@ -37,7 +37,7 @@ from gearscan.generalization import (
 )
 from gearscan.inference.calibrate import calibrate_model
 from gearscan.inference.predictor import DEFAULT_MODEL, Predictor
-from gearscan.inference.uncertainty import reliability
+from gearscan.inference.uncertainty import map_form, reliability, sigma_map_from_json
 from gearscan.provenance import code_edits
 from gearscan.recon.measure import network_support_option
 from gearscan.twin.dataset import DatasetSpec, generate_dataset
@@ -253,8 +253,7 @@ def markdown(res: dict) -> str:
 def map_summary(entry: dict) -> str:
     """A stored sigma map in a table cell: the power law's a, b, c; the additive map's slopes per feature."""
     if entry.get("form") == "additive":
-        form = "additive-local" if any(t["feature"] in ("curvature", "local_departure") for t in entry["terms"]) \
-            else "additive"
+        form = map_form(sigma_map_from_json(entry))
         return f"{form}, slopes " + ", ".join(f"{t['feature']} {t['slope']:.2f}" for t in entry["terms"])
     return f"a, b, c {entry['a']:.3f}, {entry['b']:.3f}, {entry.get('c', 0.0):.3f}"
 
