@@ -367,7 +367,7 @@ def fringe_orientation(rig: Rig, samples: int = 17) -> FringeOrientation:
     columns, as the network needs) the sign of d(projector column)/d(camera column) is the rig's, not the
     surface's: the network's "normal" (trained on) or "mirrored" (decoded flipped). With rows across the
     epipolar lines, steep surfaces can flip it locally (the twin's four views, 20 and 60 teeth, two angles each: none
-    of 541,000 column steps of the ray caster's projector column falls; session 43). Read on two
+    of 564,930 column steps of the ray caster's projector column falls; session 43). Read on two
     planes through :func:`working_point` (facing the camera; facing the bisector of both devices) at a
     ``samples`` x ``samples`` grid of camera pixels. No frames needed: unlike a vote on a burst's phase,
     motion cannot fool it. :class:`RigError` where no sampled pixel sees those planes in front of both.
