@@ -253,3 +253,64 @@ def scores_table(scores: list[Score], baseline: str = "three-step PS") -> str:
             f"{'' if s.coverage is None else f'{100 * s.coverage:.1f} %'} | {s.seconds_per_burst:.3f} |"
         )
     return "\n".join(lines)
+
+
+GROSS_MM = 0.5  # a point this far from the true surface has a wrong fringe order or none of the surface's light
+
+
+def val_cloud_table(predictor, scenes: list[Scene], configs: dict[str, dict], *, seed: int, per_motion: int,
+                    three_step: str, progress: Callable[[str], None] | None = None) -> dict[str, dict[str, dict]]:
+    """Per-burst clouds of still and moving bursts scored against the true gear surface, for the val choices of
+    the reconstructor's keep tests (``scripts/choose_network_support.py``, ``scripts/choose_keep_bound.py``).
+
+    Per scene, ``per_motion`` bursts of each motion (still, the paper's two motions both ways; seeds ``seed`` +
+    scene index); ``predictor`` (deterministic) decodes each burst once and every ``configs`` entry (keyword
+    arguments of :class:`~gearscan.recon.measure.Reconstructor`) reconstructs it; three-step PS's phase goes
+    through the reconstructor of ``configs[three_step]`` as row "three-step". ``table[name][kind]`` (kinds
+    "still", "moving"): points, RMS over every point, RMS with each distance clipped at :data:`GROSS_MM`, the
+    points beyond it ("gross"), coverage of the truth mask and the pixels the fringe-support test removed."""
+    from dataclasses import replace
+
+    import open3d as o3d
+
+    from gearscan.core.types import Burst, Frame
+    from gearscan.recon.measure import Reconstructor
+
+    sums: dict[tuple[str, str], list[float]] = {}
+    for i, scene in enumerate(scenes):
+        surface = scene.cad[1]  # the true gear surface cloud_accuracy scores against
+        recons = {name: Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, **kw) for name, kw in configs.items()}
+        try:
+            for case in render_cases(scene, {**STATIC, **PAPER_MOTIONS, **REVERSED}, per_motion, seed=seed + i):
+                fr = tuple(Frame(f, j, 0, j, bit_depth=int(case.full_scale).bit_length()) for j, f in enumerate(case.frames))
+                burst = Burst(fr, tuple(math.radians(a) for a in case.angles_deg))
+                kind = "still" if case.motion == "static" else "moving"
+                net = replace(predictor.predict(case.frames, 0, full_scale=case.full_scale), angle=burst.angles[0])
+                three = replace(classical_method(case.frames, case.full_scale), angle=burst.angles[0])
+                runs = [(name, rc, net) for name, rc in recons.items()] + [("three-step", recons[three_step], three)]
+                for name, rc, result in runs:
+                    m = rc(burst, result)
+                    acc = sums.setdefault((name, kind), [0.0] * 7)
+                    acc[3] += float(case.truth.mask.sum())
+                    acc[4] += m.unwrap.get("unsupported", 0)
+                    if m.cloud is None or not len(m.cloud):
+                        continue
+                    pts = o3d.core.Tensor(np.ascontiguousarray(m.cloud.points, dtype=np.float32))
+                    d = surface.compute_distance(pts).numpy().astype(np.float64)
+                    acc[0] += d.size
+                    acc[1] += float(np.sum(d**2))
+                    acc[2] += float(case.truth.mask[m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]].sum())
+                    acc[5] += float(np.sum(np.minimum(d, GROSS_MM) ** 2))
+                    acc[6] += float(np.sum(d > GROSS_MM))
+        finally:
+            for rc in recons.values():
+                rc.close()
+        if progress is not None:
+            progress(f"{i + 1}/{len(scenes)} {scene.name}")
+    table: dict[str, dict[str, dict]] = {}
+    for (name, kind), (n, sse, hit, truth, unsupported, clipped, gross) in sums.items():
+        table.setdefault(name, {})[kind] = {
+            "points": int(n), "rms_um": 1000 * math.sqrt(sse / n) if n else math.nan,
+            "clipped_rms_um": 1000 * math.sqrt(clipped / n) if n else math.nan, "gross": int(gross),
+            "coverage": hit / truth, "unsupported": int(unsupported)}
+    return table

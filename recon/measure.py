@@ -30,6 +30,9 @@ NETWORK_SUPPORT_PX = 1
 FRAME_FIT_NETWORK_SUPPORT_PX: int | None = None
 PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the decoding model's test for the path
 # taken, else the product's (network_support_option)
+# The sigma bound on the pixels the unwrapper may use; None: the keep bound itself (``max_sigma``), so a pixel the
+# keep test drops is no neighbour for the fringe orders either
+UNWRAP_MAX_SIGMA: float | None = None
 
 
 class ModelSupport(Protocol):
@@ -120,7 +123,8 @@ class Reconstructor:
     def __init__(self, rig: Rig, period_px: float, gear, *, min_modulation: float = 0.05,
                  max_sigma: float = 0.3, margin: float = 0.3, unwrap: str = "cad",
                  envelope_mm: float = ENVELOPE_MM, silhouette_mm: float = 0.4, mixed_border_px: int | None = 1,
-                 network_support_px: int | None = NETWORK_SUPPORT_PX, threads: int | None = None) -> None:
+                 network_support_px: int | None = NETWORK_SUPPORT_PX, unwrap_max_sigma: float | None = UNWRAP_MAX_SIGMA,
+                 threads: int | None = None) -> None:
         from gearscan.recon.reconstruct import SingleFrequencyReconstructor
         from gearscan.recon.triangulate import Triangulator
         from gearscan.recon.unwrap import CadDepthBounds, phase_bounds
@@ -131,6 +135,10 @@ class Reconstructor:
             raise ValueError(f"margin: expected 0 <= margin < pi/2 rad, got {margin}")
         if network_support_px is not None and network_support_px < 0:
             raise ValueError(f"network_support_px: expected None or >= 0 px, got {network_support_px}")
+        if not max_sigma > 0:
+            raise ValueError(f"max_sigma: expected > 0 rad, got {max_sigma}")
+        if unwrap_max_sigma is not None and not unwrap_max_sigma >= max_sigma:
+            raise ValueError(f"unwrap_max_sigma: expected None or >= max_sigma ({max_sigma} rad), got {unwrap_max_sigma}")
         self.rig = rig
         self.period_px = period_px
         self.mode = unwrap
@@ -159,6 +167,7 @@ class Reconstructor:
             self.triangulator = Triangulator(rig, period_px)
         self.min_modulation = min_modulation
         self.max_sigma = max_sigma
+        self.unwrap_max_sigma = max_sigma if unwrap_max_sigma is None else float(unwrap_max_sigma)
         self.margin = margin
         self.mixed_border_px = mixed_border_px
         self.network_support_px = network_support_px
@@ -213,18 +222,21 @@ class Reconstructor:
                 f"phase map {result.phase.shape} does not match the rig camera "
                 f"{cam_shape}: wrong rig file for this camera/ROI?"
             )
-        candidate, unsupported = keep_candidates(result, burst.images, burst.full_scale, min_modulation=self.min_modulation,
-                                                 max_sigma=self.max_sigma, network_support_px=self.network_support_px)
+        # the unwrapper sees every pixel within the looser unwrap bound; the keep bound then picks the reported points
+        usable, unsupported = keep_candidates(result, burst.images, burst.full_scale, min_modulation=self.min_modulation,
+                                              max_sigma=self.unwrap_max_sigma, network_support_px=self.network_support_px)
+        candidate = usable & (result.sigma_total <= self.max_sigma)
+        unsupported &= result.sigma_total <= self.max_sigma
         if self.mode in ("cad", "coarse"):
             source = self.cad if self.mode == "cad" else self.prior
-            depth = (source.depth(burst.angles[0], candidate) if source is not None
+            depth = (source.depth(burst.angles[0], usable) if source is not None
                      else np.full(cam_shape, np.nan, np.float32))
             prior = (self.fused.phase_of_depth(depth) if self.fused is not None
                      else phase_bounds(self.rig, DepthBounds(depth, depth), self.period_px)[0])
-            regions = prior_unwrap(result.phase, candidate, prior, margin=self.margin,
+            regions = prior_unwrap(result.phase, usable, prior, margin=self.margin,
                                    silhouette_px=self.silhouette_px)
         else:
-            regions = envelope_unwrap(result.phase, candidate, *self._envelope, margin=self.margin)
+            regions = envelope_unwrap(result.phase, usable, *self._envelope, margin=self.margin)
         estimate = regions.phase_abs.astype(np.float32)  # the order: the phase is re-read from the burst
         if self.fused is not None:
             tri, order = self.fused(result.phase, result.sigma_total, centre_phase=estimate)

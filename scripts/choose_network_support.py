@@ -16,26 +16,13 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import math
-from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-import open3d as o3d
 import torch
 
-from gearscan.core.types import Burst, Frame
-from gearscan.evaluate import (
-    PAPER_MOTIONS,
-    REVERSED,
-    STATIC,
-    classical_method,
-    render_cases,
-    scenes_from_dataset,
-)
+from gearscan.evaluate import scenes_from_dataset, val_cloud_table
 from gearscan.inference.model_io import model_fingerprint
 from gearscan.inference.predictor import Predictor, model_path
-from gearscan.recon.measure import Reconstructor
 
 VAL = ["data/repro/val_radial", "data/repro/val_views"] + [f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)]
 CANDIDATES: tuple[int | None, ...] = (None, 0, 1, 2, 3, 4)
@@ -71,38 +58,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     predictor = Predictor.load(args.model, orientation="normal")
     scenes = [s for root in VAL for s in scenes_from_dataset(root)]
-    sums: dict[tuple[str, str], list[float]] = {}
-    for i, scene in enumerate(scenes):
-        surface = scene.cad[1]  # the true gear surface evaluate.cloud_accuracy scores against
-        recons = {key(px): Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, network_support_px=px)
-                  for px in CANDIDATES}
-        for case in render_cases(scene, {**STATIC, **PAPER_MOTIONS, **REVERSED}, args.per_motion, seed=args.seed + i):
-            burst = Burst(tuple(Frame(f, j, 0, j, bit_depth=int(case.full_scale).bit_length()) for j, f in enumerate(case.frames)),
-                          tuple(math.radians(a) for a in case.angles_deg))
-            kind = "still" if case.motion == "static" else "moving"
-            net = replace(predictor.predict(case.frames, 0, full_scale=case.full_scale), angle=burst.angles[0])
-            three = replace(classical_method(case.frames, case.full_scale), angle=burst.angles[0])
-            runs = [(k, rc, net) for k, rc in recons.items()] + [("three-step", recons["none"], three)]
-            for name, rc, result in runs:
-                m = rc(burst, result)
-                acc = sums.setdefault((name, kind), [0.0, 0.0, 0.0, 0.0, 0.0])
-                acc[3] += float(case.truth.mask.sum())
-                acc[4] += m.unwrap.get("unsupported", 0)
-                if m.cloud is None or not len(m.cloud):
-                    continue
-                pts = o3d.core.Tensor(np.ascontiguousarray(m.cloud.points, dtype=np.float32))
-                d = surface.compute_distance(pts).numpy().astype(np.float64)
-                rows, cols = m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]
-                acc[0] += d.size
-                acc[1] += float(np.sum(d**2))
-                acc[2] += float(case.truth.mask[rows, cols].sum())
-        for rc in recons.values():
-            rc.close()
-        print(f"{i + 1}/{len(scenes)} {scene.name}", flush=True)
-    table: dict[str, dict[str, dict[str, float]]] = {}
-    for (name, kind), (n, sse, hit, truth, unsupported) in sums.items():
-        table.setdefault(name, {})[kind] = {"points": int(n), "rms_um": 1000 * math.sqrt(sse / n) if n else math.nan,
-                                            "coverage": hit / truth, "unsupported": int(unsupported)}
+    configs = {key(px): {"network_support_px": px} for px in CANDIDATES}
+    table = val_cloud_table(predictor, scenes, configs, seed=args.seed, per_motion=args.per_motion, three_step="none",
+                            progress=lambda line: print(line, flush=True))
     chosen = choose(table)
     res = {"rule": "benchmarks/network_support_rule.md", "split": "val", "scenes": [s.name for s in scenes],
            "seed": args.seed, "per_motion": args.per_motion, "model": str(args.model or "inference/weights/default.safetensors"),
