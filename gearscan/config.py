@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from gearscan.acquisition.config import AcquisitionConfig, ConfigError, format_errors
 from gearscan.core.gear import GearSpec
 from gearscan.inference.decoder import STILL_SPAN_DEG
+from gearscan.recon.measure import MAX_SIGMA_RAD
 
 TEMPLATE = """\
 # gearscan live configuration. Lengths in mm, angles in degrees, times as named.
@@ -79,7 +80,8 @@ orientation = "auto"         # fringe phase along the camera's columns: "normal"
 
 [recon]
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S
-max_sigma_rad = 0.3          # drop pixels whose total phase uncertainty exceeds this
+max_sigma_rad = 0.5          # report no point whose total phase uncertainty exceeds this (val choice;
+                             # the fringe orders are found on every modulated pixel first)
 # network_support_px = 1     # a network's pixel needs fringes in its own frames on every pixel within this
                              # many px (-1: no such test). Unset: the model's own, from its JSON
                              # (network_support.per_burst_px: 1 for the shipped v9, 2 for v6, which invents
@@ -123,7 +125,7 @@ class ReconSection(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # a setting is a finite number
 
     min_modulation: float = Field(0.05, ge=0, le=1)
-    max_sigma_rad: float = Field(0.3, gt=0)
+    max_sigma_rad: float = Field(MAX_SIGMA_RAD, gt=0)
     network_support_px: int | None = Field(None, ge=-1, le=16)  # None: the model's; -1: off (TOML has no null)
     unwrap: Literal["cad", "envelope", "coarse"] = "cad"
     cad_deviation: bool = True

@@ -30,9 +30,14 @@ NETWORK_SUPPORT_PX = 1
 FRAME_FIT_NETWORK_SUPPORT_PX: int | None = None
 PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the decoding model's test for the path
 # taken, else the product's (network_support_option)
-# The sigma bound on the pixels the unwrapper may use; None: the keep bound itself (``max_sigma``), so a pixel the
-# keep test drops is no neighbour for the fringe orders either
-UNWRAP_MAX_SIGMA: float | None = None
+# The keep bound: a point is reported where its total phase sigma is at most this (rad). 0.3 until session 44 (never
+# chosen on data); 0.5 is the val choice (benchmarks/keep_bound_rule.md; scripts/choose_keep_bound.py ->
+# benchmarks/keep_bound_val.json) ...
+MAX_SIGMA_RAD = 0.5
+# ... applied after unwrapping: the unwrapper sees every modulated pixel within this bound (inf: all of them; None: the
+# keep bound itself, as before session 44, when pixels the keep test dropped hid the neighbours that expose a wrong
+# fringe order: on val 2,723 still-burst points beyond 0.5 mm at 0.3 rad against none)
+UNWRAP_MAX_SIGMA: float | None = math.inf
 
 
 class ModelSupport(Protocol):
@@ -67,8 +72,8 @@ def envelope_bounds(rig: Rig, gear, envelope_mm: float = ENVELOPE_MM):
 
 
 def keep_candidates(result: PhaseResult, images: np.ndarray, full_scale: float, *, min_modulation: float = 0.05,
-                    max_sigma: float = 0.3, network_support_px: int | None = NETWORK_SUPPORT_PX) -> tuple[np.ndarray, np.ndarray]:
-    """The reconstructor's keep test before unwrapping: ``(candidate, unsupported)`` pixel masks.
+                    max_sigma: float = MAX_SIGMA_RAD, network_support_px: int | None = NETWORK_SUPPORT_PX) -> tuple[np.ndarray, np.ndarray]:
+    """The reconstructor's keep test: ``(candidate, unsupported)`` pixel masks.
 
     Candidates have a finite phase, modulation >= ``min_modulation`` and total sigma <= ``max_sigma``; a network's
     (:attr:`~gearscan.core.types.PhaseResult.from_network`) also need fringes in the burst's own ``images`` on every pixel
@@ -108,6 +113,9 @@ class Reconstructor:
     Pixels are candidates where the modulation is above ``min_modulation`` (2B/S) and the total
     phase sigma is below ``max_sigma`` rad; a candidate without a point is ``unresolved`` and
     counted in ``Measurement.unwrap`` (no order could be trusted there), never dropped silently.
+    The fringe orders are found first on every modulated pixel with a sigma within
+    ``unwrap_max_sigma`` (inf: all; None: ``max_sigma``): the sigma bound picks the reported points,
+    not the neighbours that expose a wrong order (benchmarks/keep_bound_rule.md).
     Points whose pixel may blend two surfaces (at a silhouette or depth step, camera blur mixes
     their fringes) are dropped and counted as ``mixed`` (:func:`~gearscan.recon.edges.mixed_pixels`,
     ``mixed_border_px=None`` keeps them). A network's phase (``PhaseResult.from_network``: mode "deterministic" or "mc<T>")
@@ -121,7 +129,7 @@ class Reconstructor:
     """
 
     def __init__(self, rig: Rig, period_px: float, gear, *, min_modulation: float = 0.05,
-                 max_sigma: float = 0.3, margin: float = 0.3, unwrap: str = "cad",
+                 max_sigma: float = MAX_SIGMA_RAD, margin: float = 0.3, unwrap: str = "cad",
                  envelope_mm: float = ENVELOPE_MM, silhouette_mm: float = 0.4, mixed_border_px: int | None = 1,
                  network_support_px: int | None = NETWORK_SUPPORT_PX, unwrap_max_sigma: float | None = UNWRAP_MAX_SIGMA,
                  threads: int | None = None) -> None:
