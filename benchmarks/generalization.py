@@ -55,7 +55,7 @@ from gearscan.generalization import (
 from gearscan.inference.predictor import THREE_STEP_NOISE, Predictor, model_path
 from gearscan.inference.uncertainty import reliability
 from gearscan.provenance import code_edits
-from gearscan.recon.measure import network_support_option
+from gearscan.recon.measure import MAX_SIGMA_RAD, network_support_option
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import SHIPPED, SHIPPED_DEFAULT_RIG, SHIPPED_V5, SHIPPED_V6, describe
 
@@ -374,7 +374,7 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "- RMSE over the truth's valid pixels (analytic wrapped phase at the first frame's pose); gain = "
         "three-step RMSE / network RMSE (< 1: the network is worse); ECE: 30 bins, eps 0.03 rad "
         "(`inference.uncertainty.reliability`); coverage: share of the truth mask passing the reconstructor's "
-        f"keep test (modulation >= 0.05, sigma <= 0.3 rad; a network's pixel also needs fringes in its frames within "
+        f"keep test (modulation >= 0.05, sigma <= {MAX_SIGMA_RAD} rad; a network's pixel also needs fringes in its frames within "
         f"{support_px} px, the model's own per-burst setting or else the product's, `recon.measure.network_support_option`); RMSE of the kept pixels: over the truth-mask pixels "
         "that each method's own keep test passes (what reaches the cloud; three-step PS's sigma is its noise "
         "propagation, blind to motion).",

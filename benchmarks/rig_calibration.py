@@ -39,7 +39,7 @@ from gearscan.inference.calibrate import calibrate_model
 from gearscan.inference.predictor import DEFAULT_MODEL, Predictor
 from gearscan.inference.uncertainty import map_form, reliability, sigma_map_from_json
 from gearscan.provenance import code_edits
-from gearscan.recon.measure import network_support_option
+from gearscan.recon.measure import MAX_SIGMA_RAD, network_support_option
 from gearscan.twin.dataset import DatasetSpec, generate_dataset
 from gearscan.twin.families import FAMILIES, family_scenes
 from gearscan.twin.splits import refuse_test
@@ -213,7 +213,7 @@ def markdown(res: dict) -> str:
         "- **Read with care**: the refit sees the test scene's own rig, gear and optics through the same twin that "
         "renders the test bursts: the twin workflow's best case. A real rig adds the twin-reality gap, not measured here.",
         "- ECE: 30 bins, eps 0.03 rad (as `generalization_report.md`); median |err|/sigma: 0.674 for a calibrated Gaussian; "
-        "coverage: share of the truth mask passing the reconstructor's keep test (modulation >= 0.05, sigma <= 0.3 rad, a network's pixel fringes in its frames within "
+        f"coverage: share of the truth mask passing the reconstructor's keep test (modulation >= 0.05, sigma <= {MAX_SIGMA_RAD} rad, a network's pixel fringes in its frames within "
         f"{support_text(s)}, the model's per-burst test); "
         "kept RMSE over those pixels. The map changes sigma only: both maps decode each burst with the same dropout masks, and the run stops if their phases differ; the RMSE is one.",
         "",

@@ -20,7 +20,7 @@ Strata of one axis partition the pixels of their group (a last ``n/a`` bin takes
 values), so their counts add up to the pooled count. A stratum where the network's RMSE is above
 the baseline's (three-step PS) is flagged. ECE uses the project's reliability diagram
 (:func:`gearscan.inference.uncertainty.reliability`); coverage is the share of the truth mask that
-passes the reconstructor's own keep test (modulation >= 0.05, sigma <= 0.3 rad, finite phase; a network's pixel also
+passes the reconstructor's own keep test (modulation >= 0.05, sigma <= ``MAX_SIGMA_RAD``, finite phase; a network's pixel also
 needs fringes in its frames within the decoding model's per-burst fringe-support test, its JSON's
 ``network_support``, else the product's: :func:`gearscan.recon.measure.keep_candidates`).
 """

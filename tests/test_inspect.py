@@ -222,6 +222,22 @@ def test_the_shipped_support_tests_are_the_val_choices():
 
     rest = json.loads((bench / "rest_sigma_val.json").read_text())
     assert rest["shipped_sha256"] == shipped and rest["scale"] == REST_SIGMA_SCALE
+    # and the keep bound, applied after unwrapping (benchmarks/keep_bound_rule.md)
+    from gearscan.config import ReconSection
+    from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA, Reconstructor, keep_candidates
+
+    keep = json.loads((bench / "keep_bound_val.json").read_text())
+    sys.path.insert(0, str(bench.parent / "scripts"))
+    try:
+        import choose_keep_bound
+    finally:
+        del sys.path[0]
+    assert choose_keep_bound.choose(keep["table"]) == (keep["chosen_unwrap"], keep["chosen_max_sigma"])
+    assert (keep["chosen_unwrap"], keep["chosen_max_sigma"]) == ("all", MAX_SIGMA_RAD) and UNWRAP_MAX_SIGMA == math.inf
+    assert keep["model_fingerprint"] == shipped and keep["network_support_px"] == NETWORK_SUPPORT_PX
+    # one bound everywhere: the reconstructor, the keep test the reports score and the live config's default
+    assert (Reconstructor.__init__.__kwdefaults__["max_sigma"] == keep_candidates.__kwdefaults__["max_sigma"]
+            == ReconSection().max_sigma_rad == MAX_SIGMA_RAD)
 
 
 def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkeypatch, own_support_decoder,

@@ -395,3 +395,40 @@ def test_auto_orientation_comes_from_the_calibration_and_still_bursts_that_outvo
     assert calibrated.summary()["orientation_votes"] == {"normal": 0, "mirrored": 0}
     assert calibrated.orientation_status() == "fringes normal (rig calibration)"
     assert calibrated.predictor.orientation == "normal"
+
+
+def test_the_keep_bound_picks_points_not_fringe_orders(rig256):
+    """The sigma bound is applied after unwrapping (benchmarks/keep_bound_rule.md): on the shipped network's still
+    burst the bounded cloud is the unbounded one on the pixels within the bound, with the same fringe orders, and no
+    point lies a fringe order off the true surface. Before, the unwrapper saw only the kept pixels, and the holes
+    hid the neighbours that expose a wrong order (2,723 still-burst points beyond 0.5 mm on val)."""
+    import open3d as o3d
+
+    from gearscan.core.gear import GearSpec
+    from gearscan.inference.predictor import Predictor
+    from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA
+    from gearscan.twin.render import Optics, TwinRenderer
+
+    assert UNWRAP_MAX_SIGMA == math.inf  # the val choice: every modulated pixel
+    gear = GearSpec(teeth=25)  # a val tooth count: no test gear in a test of the code
+    renderer = TwinRenderer(rig256, gear, Optics())
+    angle = math.radians(1.0)
+    frames, _ = renderer.render(angle, PatternSet.three_step(PERIOD), np.random.default_rng(4))
+    burst = _burst(frames, (angle,) * 3)
+    from dataclasses import replace
+
+    net = replace(Predictor.load(orientation="normal", still_burst_rad=0.0).predict(frames, 0, full_scale=burst.full_scale),
+                  angle=angle)
+    kw = {"network_support_px": 1, "mixed_border_px": None}
+    bounded = Reconstructor.for_gear(rig256, PERIOD, gear, **kw)(burst, net)
+    unbounded = Reconstructor.for_gear(rig256, PERIOD, gear, max_sigma=math.inf, **kw)(burst, net)
+    assert bounded.unwrap["points"] < unbounded.unwrap["points"]  # the bound drops points on this burst ...
+    within = np.isfinite(unbounded.phase_abs) & (net.sigma_total <= MAX_SIGMA_RAD)
+    np.testing.assert_array_equal(np.isfinite(bounded.phase_abs), within)  # ... and only those beyond it
+    np.testing.assert_array_equal(bounded.phase_abs[within], unbounded.phase_abs[within])  # the same orders
+    surface = o3d.t.geometry.RaycastingScene()
+    surface.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh()))
+    d = surface.compute_distance(o3d.core.Tensor(np.ascontiguousarray(bounded.cloud.points, np.float32))).numpy()
+    assert (d > 0.5).sum() == 0  # no point a fringe order (about 2.8 mm) off
+    with pytest.raises(ValueError, match="unwrap_max_sigma"):
+        Reconstructor.for_gear(rig256, PERIOD, gear, max_sigma=0.5, unwrap_max_sigma=0.3)
