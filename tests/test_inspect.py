@@ -224,7 +224,12 @@ def test_the_shipped_support_tests_are_the_val_choices():
     assert rest["shipped_sha256"] == shipped and rest["scale"] == REST_SIGMA_SCALE
     # and the keep bound, applied after unwrapping (benchmarks/keep_bound_rule.md)
     from gearscan.config import ReconSection
-    from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA, Reconstructor, keep_candidates
+    from gearscan.recon.measure import (
+        MAX_SIGMA_RAD,
+        UNWRAP_MAX_SIGMA,
+        Reconstructor,
+        keep_candidates,
+    )
 
     keep = json.loads((bench / "keep_bound_val.json").read_text())
     sys.path.insert(0, str(bench.parent / "scripts"))
