@@ -32,9 +32,9 @@ FRAME_FIT_NETWORK_SUPPORT_PX: int | None = None
 PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the decoding model's test for the path
 # taken, else the product's (network_support_option)
 # The keep bound: a point is reported where its total phase sigma is at most this (rad). 0.3 until session 44 (never
-# chosen on data); 0.5 is the val choice (benchmarks/keep_bound_rule.md; scripts/choose_keep_bound.py ->
-# benchmarks/keep_bound_val.json) ...
-MAX_SIGMA_RAD = 0.5
+# chosen on data); the val choice (benchmarks/keep_bound_rule.md; scripts/choose_keep_bound.py ->
+# benchmarks/keep_bound_val.json): 0.5 with v9's per-burst fringe-support test at 1 px, 0.7 without it (session 44) ...
+MAX_SIGMA_RAD = 0.7
 # ... applied after unwrapping: the unwrapper sees every modulated pixel within this bound (inf: all of them; None: the
 # keep bound itself, as before session 44, when pixels the keep test dropped hid the neighbours that expose a wrong
 # fringe order: on val 2,723 still-burst points beyond 0.5 mm at 0.3 rad against none)
