@@ -36,7 +36,7 @@ from gearscan.evaluate import (
 )
 from gearscan.generalization import vote_mirrored
 from gearscan.inference.predictor import Predictor
-from gearscan.recon.measure import network_support_option
+from gearscan.recon.measure import MAX_SIGMA_RAD, network_support_option
 from gearscan.twin.families import family_scenes
 
 HERE = Path(__file__).parent
@@ -67,6 +67,8 @@ def main() -> None:
     rig = Predictor.load(args.model, orientation=orientation)
     methods = {"three-step PS": classical_method, SHIPPED: network_method(shipped), RIG: network_method(rig)}
     support_px = network_support_option(None, model=rig.network_support)  # the model's own per-burst keep test
+    support_text = ("no test, v9's val choice since session 44 (E = 0-2 px in sessions 32-43)" if support_px is None
+                    else f"E = {support_px} px")
     if rig.still_burst_rad > 0:
         alone = Predictor.load(args.model, orientation=orientation, still_burst_rad=0.0)
         methods[f"{RIG}, no still-burst gate"] = network_method(alone)
@@ -120,8 +122,11 @@ def main() -> None:
         "triangulates (geometric-constraint unwrapping, the reconstructor's keep test), coverage the share of the "
         "truth mask that got a point. The timing column is this run's wall time per burst including the decode's "
         "own overheads (speed: `inference_speed*.md`).",
-        *(["- Since session 32 the reconstructor keeps a network's pixel only where the burst's own frames show fringes on "
-        f"every pixel within {support_px} px (`recon.measure.keep_candidates`, the model's own setting, chosen on val for the shipped model: "
+        f"- The keep test reports a point where its total phase sigma is at most {MAX_SIGMA_RAD} rad, applied after the fringe "
+        "orders are found on every modulated pixel (since session 44, `benchmarks/keep_bound_rule.md`; 0.3 rad, applied "
+        "before unwrapping, until then).",
+        *(["- Since session 32 the reconstructor can keep a network's pixel only where the burst's own frames show fringes on "
+        f"every pixel within E px (`recon.measure.keep_candidates`; this run: {support_text}, the model's own setting, chosen on val for the shipped model: "
         "`benchmarks/network_support_rule.md`, 2 px for v6; "
         "the problem was first seen on these test bursts, so they are no clean held-out measure of the guard). The "
         "same run without it (commit 8482663, AMX host; history, not this run): per-burst cloud RMS on still bursts "
