@@ -26,6 +26,7 @@ from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
 from gearscan.recon.measure import (
+    MAX_SIGMA_RAD,
     PRODUCT_SUPPORT,
     CoarseStage,
     Reconstructor,
@@ -238,6 +239,7 @@ def replay(
     export: CloudExport | None = None,
     refine: bool = False,
     network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
+    max_sigma: float = MAX_SIGMA_RAD,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
@@ -245,7 +247,8 @@ def replay(
     the decoding model's own for this call, its ``frame_fit_px`` when ``fuse`` and ``refine`` fit the fused points
     to the frames, else its ``per_burst_px`` (``decoder.network_support``); where it names none, the product's,
     :data:`~gearscan.recon.measure.FRAME_FIT_NETWORK_SUPPORT_PX` or :data:`~gearscan.recon.measure.NETWORK_SUPPORT_PX`).
-    ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
+    ``max_sigma``: the keep bound, rad (a point is reported where its total phase sigma is at most this; the fringe
+    orders are found on every modulated pixel first). ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
     ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.recon.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
 
@@ -285,7 +288,8 @@ def replay(
     if network_support_px == PRODUCT_SUPPORT:
         network_support_px = network_support_option(None, frame_fit=refine and fuse is not None,
                                                      model=getattr(decoder, "network_support", None))
-    recon = (Reconstructor.for_gear(rig, period, gear, unwrap=unwrap, network_support_px=network_support_px)
+    recon = (Reconstructor.for_gear(rig, period, gear, unwrap=unwrap, network_support_px=network_support_px,
+                                    max_sigma=max_sigma)
              if (reconstruct and gear is not None) else None)
     coarse = CoarseStage(rig, coarse_period, gear, recon if unwrap == "coarse" else None)
     scorer = TruthScorer(reader) if (truth and reader.has_truth()) else None
@@ -298,7 +302,7 @@ def replay(
         logger.log_rig(rig)
     metrics = ReplayMetrics()
     if recon is not None:  # what the reconstructor ran: network_support_px None is no test
-        metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px,
+        metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px, "max_sigma_rad": max_sigma,
                          "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:

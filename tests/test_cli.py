@@ -189,25 +189,34 @@ def test_twin_render_alternate_order_replays_both_orders(tmp_path):
     assert data["summary"]["bursts"] == 2 and data["summary"]["three-step_rmse_rad"] < 0.05, data["summary"]
 
 
-def test_replay_network_support_switch_reaches_the_reconstructor(twin_recording, tmp_path):
-    """`--network-support-px -1` turns the fringe-support test of the network's pixels off; the default keeps
-    the shipped model's own test (1 px for v9 since session 43), and the metrics count the pixels it drops."""
+def test_replay_keep_settings_reach_the_reconstructor(twin_recording, tmp_path):
+    """`--network-support-px N` turns a fringe-support test of the network's pixels on (the shipped v9 runs none per
+    burst since session 44; -1 is off), `--max-sigma-rad` sets the keep bound; the metrics say what ran and count
+    the pixels the support test drops, and a tighter bound reports fewer points."""
     from gearscan.inference.model_io import read_config
     from gearscan.inference.predictor import DEFAULT_MODEL, model_network_support
+    from gearscan.recon.measure import MAX_SIGMA_RAD
 
-    counts = {}
-    for label, extra in (("default", []), ("off", ["--network-support-px", "-1"])):
+    runs = {}
+    for label, extra in (("default", []), ("off", ["--network-support-px", "-1"]), ("2 px", ["--network-support-px", "2"]),
+                         ("tight", ["--max-sigma-rad", "0.1"])):
         metrics = tmp_path / f"{label}.json"
         res = runner.invoke(app, ["replay", str(twin_recording), "--orientation", "normal", "--metrics",
                                   str(metrics), "--save", str(tmp_path / f"{label}.rrd"), *extra])
         assert res.exit_code == 0, res.output
-        data = json.loads(metrics.read_text())
-        counts[label] = sum(r.get("unwrap_unsupported", 0) for r in data["bursts"])
-        assert data["recon"]["network_support_px"] == (None if label == "off" else 1)  # the metrics say what ran
-    assert model_network_support(read_config(DEFAULT_MODEL)).per_burst_px == 1
-    assert counts["off"] == 0 and counts["default"] > 0
-    res = runner.invoke(app, ["replay", str(twin_recording), "--network-support-px", "-2"])
-    assert res.exit_code == 2
+        runs[label] = data = json.loads(metrics.read_text())
+        assert data["recon"]["network_support_px"] == (2 if label == "2 px" else None)  # the metrics say what ran
+        assert data["recon"]["max_sigma_rad"] == (0.1 if label == "tight" else MAX_SIGMA_RAD)
+    assert model_network_support(read_config(DEFAULT_MODEL)).per_burst_px is None
+
+    def total(label, key):
+        return sum(r.get(key, 0) for r in runs[label]["bursts"])
+
+    assert total("default", "unwrap_unsupported") == total("off", "unwrap_unsupported") == 0
+    assert total("2 px", "unwrap_unsupported") > 0
+    assert 0 < total("tight", "unwrap_points") < total("default", "unwrap_points")
+    for bad in (["--network-support-px", "-2"], ["--max-sigma-rad", "0"]):
+        assert runner.invoke(app, ["replay", str(twin_recording), *bad]).exit_code == 2, bad
 
 
 def test_replay_with_the_frame_fit_gets_the_frame_fit_paths_support_test(twin_recording, tmp_path, replay_spy,
