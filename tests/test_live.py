@@ -79,10 +79,10 @@ def test_template_is_valid_and_errors_name_the_key(tmp_path):
     with pytest.raises(ValueError, match="model.orientation"):
         LiveConfig.from_toml(TEMPLATE.replace('orientation = "auto"', 'orientation = "upside"'), "rig.toml")
     assert cfg.recon.network_support_px is None  # the template leaves it to the model's own val choice
-    off = LiveConfig.from_toml(TEMPLATE.replace("# network_support_px = 1 ", "network_support_px = -1 "))
+    off = LiveConfig.from_toml(TEMPLATE.replace("# network_support_px = 2 ", "network_support_px = -1 "))
     assert off.recon.network_support_px == -1
     with pytest.raises(ValueError, match="recon.network_support_px"):
-        LiveConfig.from_toml(TEMPLATE.replace("# network_support_px = 1 ", "network_support_px = -3 "), "rig.toml")
+        LiveConfig.from_toml(TEMPLATE.replace("# network_support_px = 2 ", "network_support_px = -3 "), "rig.toml")
     assert LiveConfig.from_toml(TEMPLATE.replace('orientation = "auto"', 'orientation = "mirrored"')).model.orientation == "mirrored"
     res = runner.invoke(app, ["config", "init", str(tmp_path / "rig.toml")])
     assert res.exit_code == 0 and (tmp_path / "rig.toml").read_text() == TEMPLATE
