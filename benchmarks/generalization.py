@@ -375,7 +375,7 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "three-step RMSE / network RMSE (< 1: the network is worse); ECE: 30 bins, eps 0.03 rad "
         "(`inference.uncertainty.reliability`); coverage: share of the truth mask passing the reconstructor's "
         f"keep test (modulation >= 0.05, sigma <= {MAX_SIGMA_RAD} rad; a network's pixel also needs fringes in its frames within "
-        f"{support_px} px, the model's own per-burst setting or else the product's, `recon.measure.network_support_option`); RMSE of the kept pixels: over the truth-mask pixels "
+        f"E px: {'no such test' if support_px is None else f'E = {support_px}'}, the model's own per-burst setting or else the product's, `recon.measure.network_support_option`); RMSE of the kept pixels: over the truth-mask pixels "
         "that each method's own keep test passes (what reaches the cloud; three-step PS's sigma is its noise "
         "propagation, blind to motion).",
         "",
