@@ -312,6 +312,8 @@ def replay_cmd(
             fuser = CloudFuser(voxel_mm, min_bursts)
         from gearscan.recon.measure import MAX_SIGMA_RAD, network_support_option
 
+        if max_sigma_rad is not None and not math.isfinite(max_sigma_rad):
+            raise typer.BadParameter(f"expected a finite bound in rad, got {max_sigma_rad}", param_hint="--max-sigma-rad")
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
                         truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None,
                         network_support_px=network_support_option(network_support_px,

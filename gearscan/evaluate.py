@@ -256,6 +256,8 @@ def scores_table(scores: list[Score], baseline: str = "three-step PS") -> str:
 
 
 GROSS_MM = 0.5  # a point this far from the true surface has a wrong fringe order or none of the surface's light
+# the val scenes of the reconstruction's per-burst choices: every gear of the twin's val sets and the default rig's
+VAL_CLOUD_SETS = ("data/repro/val_radial", "data/repro/val_views", *(f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)))
 
 
 def val_cloud_table(predictor, scenes: list[Scene], configs: dict[str, dict], *, seed: int, per_motion: int,

@@ -31,6 +31,7 @@ from gearscan.recon.measure import (
     CoarseStage,
     Reconstructor,
     network_support_option,
+    unwrapper_sees,
 )
 
 log = logging.getLogger(__name__)
@@ -303,6 +304,7 @@ def replay(
     metrics = ReplayMetrics()
     if recon is not None:  # what the reconstructor ran: network_support_px None is no test
         metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px, "max_sigma_rad": max_sigma,
+                         "unwrapper_sees": unwrapper_sees(recon.unwrap_max_sigma),
                          "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:

@@ -9,7 +9,8 @@ reconstructs it, with the model's own per-burst fringe-support test. Candidates:
 unwrapping (``"same/B"``: the unwrapper sees only the kept pixels, as before session 44) and after it
 (``"all/B"``: the unwrapper sees every modulated pixel, the bound picks the reported points), B in
 :data:`BOUNDS`. Scored per kind (still, moving): clipped cloud RMS, gross points (beyond 0.5 mm), coverage.
-Val only: the test split reports it (``benchmarks/inference_accuracy.py``).
+Val only: the test split reports it (``benchmarks/inference_accuracy.py``). A chosen "none" (``chosen_max_sigma``
+null) would ship as a finite bound above every sigma the maps give (the live config takes finite numbers only).
 """
 
 from __future__ import annotations
@@ -21,12 +22,11 @@ from pathlib import Path
 
 import torch
 
-from gearscan.evaluate import scenes_from_dataset, val_cloud_table
+from gearscan.evaluate import VAL_CLOUD_SETS, scenes_from_dataset, val_cloud_table
 from gearscan.inference.model_io import model_fingerprint
 from gearscan.inference.predictor import Predictor, model_path
 from gearscan.recon.measure import network_support_option
 
-VAL = ["data/repro/val_radial", "data/repro/val_views"] + [f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)]
 BOUNDS: tuple[float, ...] = (0.2, 0.3, 0.4, 0.5, 0.7, 1.0, math.inf)
 SHIPPED = "same/0.3"  # the product before session 44
 STILL_COVERAGE, MOVING_COVERAGE, CLIPPED_TIE, TIE = 0.98, 0.90, 0.01, 0.01
@@ -75,7 +75,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     predictor = Predictor.load(None, orientation="normal")
     support = network_support_option(None, model=predictor.network_support)
-    scenes = [s for root in VAL for s in scenes_from_dataset(root)]
+    scenes = [s for root in VAL_CLOUD_SETS for s in scenes_from_dataset(root)]
     configs = {key(mask, b): {"network_support_px": support, "max_sigma": b,
                               "unwrap_max_sigma": None if mask == "same" else math.inf}
                for mask in ("same", "all") for b in BOUNDS}

@@ -20,11 +20,10 @@ from pathlib import Path
 
 import torch
 
-from gearscan.evaluate import scenes_from_dataset, val_cloud_table
+from gearscan.evaluate import VAL_CLOUD_SETS, scenes_from_dataset, val_cloud_table
 from gearscan.inference.model_io import model_fingerprint
 from gearscan.inference.predictor import Predictor, model_path
 
-VAL = ["data/repro/val_radial", "data/repro/val_views"] + [f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)]
 CANDIDATES: tuple[int | None, ...] = (None, 0, 1, 2, 3, 4)
 STILL_COVERAGE, MOVING_COVERAGE, TIE = 0.98, 0.90, 0.01
 
@@ -47,6 +46,14 @@ def choose(table: dict) -> int | None:
     return next(px for px in ok if mean[px] <= best * (1 + TIE))  # ok is in CANDIDATES order: None, then smaller E
 
 
+def keep_bound_settings() -> dict:
+    """The reconstructor's keep bound as this run used it (the product's: ``recon.measure``)."""
+    from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA, unwrapper_sees
+
+    return {"max_sigma_rad": MAX_SIGMA_RAD,
+            "unwrapper_sees": unwrapper_sees(MAX_SIGMA_RAD if UNWRAP_MAX_SIGMA is None else UNWRAP_MAX_SIGMA)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=900)
@@ -57,7 +64,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     predictor = Predictor.load(args.model, orientation="normal")
-    scenes = [s for root in VAL for s in scenes_from_dataset(root)]
+    scenes = [s for root in VAL_CLOUD_SETS for s in scenes_from_dataset(root)]
     configs = {key(px): {"network_support_px": px} for px in CANDIDATES}
     table = val_cloud_table(predictor, scenes, configs, seed=args.seed, per_motion=args.per_motion, three_step="none",
                             progress=lambda line: print(line, flush=True))
@@ -66,7 +73,8 @@ def main() -> None:
            "seed": args.seed, "per_motion": args.per_motion, "model": str(args.model or "inference/weights/default.safetensors"),
            "weights_sha256": hashlib.sha256(model_path(args.model).read_bytes()).hexdigest()[:12],
            "model_fingerprint": model_fingerprint(model_path(args.model)),  # weights and sigma maps (since session 43)
-           "orientation": "normal", "table": table, "chosen_network_support_px": chosen}
+           "orientation": "normal", "table": table, "chosen_network_support_px": chosen,
+           "keep_bound": keep_bound_settings()}  # the keep bound every candidate ran with (since session 44)
     args.out.write_text(json.dumps(res, indent=1))
     for name in [key(px) for px in CANDIDATES] + ["three-step"]:
         row = table[name]

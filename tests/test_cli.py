@@ -207,6 +207,7 @@ def test_replay_keep_settings_reach_the_reconstructor(twin_recording, tmp_path):
         runs[label] = data = json.loads(metrics.read_text())
         assert data["recon"]["network_support_px"] == (2 if label == "2 px" else None)  # the metrics say what ran
         assert data["recon"]["max_sigma_rad"] == (0.1 if label == "tight" else MAX_SIGMA_RAD)
+        assert data["recon"]["unwrapper_sees"] == "every modulated pixel"
     assert model_network_support(read_config(DEFAULT_MODEL)).per_burst_px is None
 
     def total(label, key):
@@ -215,7 +216,8 @@ def test_replay_keep_settings_reach_the_reconstructor(twin_recording, tmp_path):
     assert total("default", "unwrap_unsupported") == total("off", "unwrap_unsupported") == 0
     assert total("2 px", "unwrap_unsupported") > 0
     assert 0 < total("tight", "unwrap_points") < total("default", "unwrap_points")
-    for bad in (["--network-support-px", "-2"], ["--max-sigma-rad", "0"]):
+    for bad in (["--network-support-px", "-2"], ["--max-sigma-rad", "0"], ["--max-sigma-rad", "nan"],
+                ["--max-sigma-rad", "inf"]):
         assert runner.invoke(app, ["replay", str(twin_recording), *bad]).exit_code == 2, bad
 
 
