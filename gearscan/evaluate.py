@@ -218,8 +218,6 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None) -> tuple[np
     """
     from dataclasses import replace
 
-    import open3d as o3d
-
     from gearscan.core.types import Burst, Frame
     from gearscan.recon.measure import network_support_option
 
@@ -234,9 +232,14 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None) -> tuple[np
     if m.cloud is None or not len(m.cloud):
         return np.zeros(0), 0
     rows, cols = m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]
-    pts = o3d.core.Tensor(np.ascontiguousarray(m.cloud.points, dtype=np.float32))
-    dist = surface.compute_distance(pts).numpy().astype(np.float64)
-    return dist, int(case.truth.mask[rows, cols].sum())
+    return surface_distances(surface, m.cloud.points), int(case.truth.mask[rows, cols].sum())
+
+
+def surface_distances(surface, points: np.ndarray) -> np.ndarray:
+    """Distance (mm, float64) of each of ``points`` (N, 3) to ``surface`` (an open3d ``RaycastingScene``)."""
+    import open3d as o3d
+
+    return surface.compute_distance(o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))).numpy().astype(np.float64)
 
 
 def scores_table(scores: list[Score], baseline: str = "three-step PS") -> str:
@@ -273,8 +276,6 @@ def val_cloud_table(predictor, scenes: list[Scene], configs: dict[str, dict], *,
     points beyond it ("gross"), coverage of the truth mask and the pixels the fringe-support test removed."""
     from dataclasses import replace
 
-    import open3d as o3d
-
     from gearscan.core.types import Burst, Frame
     from gearscan.recon.measure import Reconstructor
 
@@ -297,8 +298,7 @@ def val_cloud_table(predictor, scenes: list[Scene], configs: dict[str, dict], *,
                     acc[4] += m.unwrap.get("unsupported", 0)
                     if m.cloud is None or not len(m.cloud):
                         continue
-                    pts = o3d.core.Tensor(np.ascontiguousarray(m.cloud.points, dtype=np.float32))
-                    d = surface.compute_distance(pts).numpy().astype(np.float64)
+                    d = surface_distances(surface, m.cloud.points)
                     acc[0] += d.size
                     acc[1] += float(np.sum(d**2))
                     acc[2] += float(case.truth.mask[m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]].sum())

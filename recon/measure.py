@@ -239,8 +239,9 @@ class Reconstructor:
         # the unwrapper sees every pixel within the looser unwrap bound; the keep bound then picks the reported points
         usable, unsupported = keep_candidates(result, burst.images, burst.full_scale, min_modulation=self.min_modulation,
                                               max_sigma=self.unwrap_max_sigma, network_support_px=self.network_support_px)
-        candidate = usable & (result.sigma_total <= self.max_sigma)
-        unsupported &= result.sigma_total <= self.max_sigma
+        within = result.sigma_total <= self.max_sigma
+        candidate = usable & within
+        unsupported &= within
         if self.mode in ("cad", "coarse"):
             source = self.cad if self.mode == "cad" else self.prior
             depth = (source.depth(burst.angles[0], usable) if source is not None

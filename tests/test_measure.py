@@ -314,29 +314,32 @@ def test_which_results_come_from_a_network(mode, network):
     assert r.from_network is network
 
 
+def _shipped_network_still_burst(rig, seed: int):
+    """The shipped network's decode of a still burst of a val-split gear (25 teeth: no test gear in a test of the
+    code), with the still-burst gate off: ``(gear, burst, result, distances)``, ``distances(m)`` of a measurement's
+    points to the true gear surface (mm)."""
+    from dataclasses import replace
+
+    from gearscan.core.gear import GearSpec
+    from gearscan.evaluate import surface_distances
+    from gearscan.inference.predictor import Predictor
+    from gearscan.recon.deviation import SurfaceDistance
+    from gearscan.twin.render import Optics, TwinRenderer
+
+    gear = GearSpec(teeth=25)
+    angle = math.radians(1.0)
+    frames, _ = TwinRenderer(rig, gear, Optics()).render(angle, PatternSet.three_step(PERIOD), np.random.default_rng(seed))
+    burst = _burst(frames, (angle,) * 3)
+    net = replace(Predictor.load(orientation="normal", still_burst_rad=0.0).predict(frames, 0, full_scale=burst.full_scale),
+                  angle=angle)
+    surface = SurfaceDistance(gear.mesh()).scene
+    return gear, burst, net, lambda m: surface_distances(surface, m.cloud.points)
+
+
 def test_the_support_test_brings_the_shipped_networks_still_cloud_toward_the_true_surface(rig256):
     """The shipped network on a still burst (a val-split gear): the points the fringe-support test drops lie
     far off the true surface, and the cloud it keeps is closer to it than the unguarded one."""
-    import open3d as o3d
-
-    from gearscan.core.gear import GearSpec
-    from gearscan.inference.predictor import Predictor
-    from gearscan.twin.render import Optics, TwinRenderer
-
-    gear = GearSpec(teeth=25)  # a val tooth count: no test gear in a test of the code
-    renderer = TwinRenderer(rig256, gear, Optics())
-    angle = math.radians(1.0)
-    frames, _ = renderer.render(angle, PatternSet.three_step(PERIOD), np.random.default_rng(3))
-    burst = _burst(frames, (angle,) * 3)
-    from dataclasses import replace
-
-    net = replace(Predictor.load(orientation="normal", still_burst_rad=0.0).predict(frames, 0, full_scale=burst.full_scale),
-                  angle=angle)
-    surface = o3d.t.geometry.RaycastingScene()
-    surface.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh()))
-
-    def distances(m):
-        return surface.compute_distance(o3d.core.Tensor(np.ascontiguousarray(m.cloud.points, np.float32))).numpy()
+    gear, burst, net, distances = _shipped_network_still_burst(rig256, seed=3)
 
     m_open = Reconstructor.for_gear(rig256, PERIOD, gear, network_support_px=None)(burst, net)
     m_guard = Reconstructor.for_gear(rig256, PERIOD, gear, network_support_px=2)(burst, net)
@@ -402,24 +405,11 @@ def test_the_keep_bound_picks_points_not_fringe_orders(rig256):
     burst the bounded cloud is the unbounded one on the pixels within the bound, with the same fringe orders (the
     mixed-pixel filter off, which reads the kept points' depths), and no shipped point lies a fringe order off the
     true surface. Before, the unwrapper saw only the kept pixels, and the holes
-    hid the neighbours that expose a wrong order (2,723 still-burst points beyond 0.5 mm on val)."""
-    import open3d as o3d
-
-    from gearscan.core.gear import GearSpec
-    from gearscan.inference.predictor import Predictor
+    hid the neighbours that expose a wrong order (on val 2,731 still-burst points beyond 0.5 mm at 0.3 rad)."""
     from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA
-    from gearscan.twin.render import Optics, TwinRenderer
 
     assert UNWRAP_MAX_SIGMA == math.inf  # the val choice: every modulated pixel
-    gear = GearSpec(teeth=25)  # a val tooth count: no test gear in a test of the code
-    renderer = TwinRenderer(rig256, gear, Optics())
-    angle = math.radians(1.0)
-    frames, _ = renderer.render(angle, PatternSet.three_step(PERIOD), np.random.default_rng(4))
-    burst = _burst(frames, (angle,) * 3)
-    from dataclasses import replace
-
-    net = replace(Predictor.load(orientation="normal", still_burst_rad=0.0).predict(frames, 0, full_scale=burst.full_scale),
-                  angle=angle)
+    gear, burst, net, distances = _shipped_network_still_burst(rig256, seed=4)
     kw = {"mixed_border_px": None}  # the shipped keep settings otherwise (v9: no per-burst support test)
     bounded = Reconstructor.for_gear(rig256, PERIOD, gear, **kw)(burst, net)
     unbounded = Reconstructor.for_gear(rig256, PERIOD, gear, max_sigma=math.inf, **kw)(burst, net)
@@ -427,10 +417,8 @@ def test_the_keep_bound_picks_points_not_fringe_orders(rig256):
     within = np.isfinite(unbounded.phase_abs) & (net.sigma_total <= MAX_SIGMA_RAD)
     np.testing.assert_array_equal(np.isfinite(bounded.phase_abs), within)  # ... and only those beyond it
     np.testing.assert_array_equal(bounded.phase_abs[within], unbounded.phase_abs[within])  # the same orders
-    surface = o3d.t.geometry.RaycastingScene()
-    surface.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh()))
     shipped = Reconstructor.for_gear(rig256, PERIOD, gear)(burst, net)  # every setting as shipped, mixed pixels dropped
-    d = surface.compute_distance(o3d.core.Tensor(np.ascontiguousarray(shipped.cloud.points, np.float32))).numpy()
+    d = distances(shipped)
     assert len(d) > 30000 and (d > 0.5).sum() == 0  # no point a fringe order (about 2.8 mm) off
     with pytest.raises(ValueError, match="unwrap_max_sigma"):
         Reconstructor.for_gear(rig256, PERIOD, gear, max_sigma=0.5, unwrap_max_sigma=0.3)
