@@ -260,16 +260,22 @@ def scores_table(scores: list[Score], baseline: str = "three-step PS") -> str:
 
 GROSS_MM = 0.5  # a point this far from the true surface has a wrong fringe order or none of the surface's light
 # the val scenes of the reconstruction's per-burst choices: every gear of the twin's val sets and the default rig's
+# the motions of a val cloud sample: the paper's (still, the paper's two motions both ways; the choices until session
+# 45) or wide (those and the 0.5-3 deg steps users and the test split bring: GENERALISATION)
+VAL_MOTIONS: dict[str, dict[str, tuple[float, float]]] = {
+    "paper": {**STATIC, **PAPER_MOTIONS, **REVERSED},
+    "wide": {**STATIC, **PAPER_MOTIONS, **REVERSED, **GENERALISATION},
+}
 VAL_CLOUD_SETS = ("data/repro/val_radial", "data/repro/val_views", *(f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)))
 
 
 def val_cloud_table(predictor, scenes: list[Scene], configs: dict[str, dict], *, seed: int, per_motion: int,
-                    three_step: str, progress: Callable[[str], None] | None = None) -> dict[str, dict[str, dict]]:
+                    three_step: str, progress: Callable[[str], None] | None = None,
+                    motions: str = "paper") -> dict[str, dict[str, dict]]:
     """Per-burst clouds of still and moving bursts scored against the true gear surface, for the val choices of
     the reconstructor's keep tests (``scripts/choose_network_support.py``, ``scripts/choose_keep_bound.py``).
 
-    Per scene, ``per_motion`` bursts of each motion (still, the paper's two motions both ways; seeds ``seed`` +
-    scene index); ``predictor`` (deterministic) decodes each burst once and every ``configs`` entry (keyword
+    Per scene, ``per_motion`` bursts of each motion of ``VAL_MOTIONS[motions]`` (seeds ``seed`` + scene index); ``predictor`` (deterministic) decodes each burst once and every ``configs`` entry (keyword
     arguments of :class:`~gearscan.recon.measure.Reconstructor`) reconstructs it; three-step PS's phase goes
     through the reconstructor of ``configs[three_step]`` as row "three-step". ``table[name][kind]`` (kinds
     "still", "moving"): points, RMS over every point, RMS with each distance clipped at :data:`GROSS_MM`, the
@@ -279,12 +285,14 @@ def val_cloud_table(predictor, scenes: list[Scene], configs: dict[str, dict], *,
     from gearscan.core.types import Burst, Frame
     from gearscan.recon.measure import Reconstructor
 
+    if motions not in VAL_MOTIONS:
+        raise ValueError(f"motions: expected one of {', '.join(VAL_MOTIONS)}, got {motions!r}")
     sums: dict[tuple[str, str], list[float]] = {}
     for i, scene in enumerate(scenes):
         surface = scene.cad[1]  # the true gear surface cloud_accuracy scores against
         recons = {name: Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, **kw) for name, kw in configs.items()}
         try:
-            for case in render_cases(scene, {**STATIC, **PAPER_MOTIONS, **REVERSED}, per_motion, seed=seed + i):
+            for case in render_cases(scene, VAL_MOTIONS[motions], per_motion, seed=seed + i):
                 fr = tuple(Frame(f, j, 0, j, bit_depth=int(case.full_scale).bit_length()) for j, f in enumerate(case.frames))
                 burst = Burst(fr, tuple(math.radians(a) for a in case.angles_deg))
                 kind = "still" if case.motion == "static" else "moving"

@@ -4,7 +4,8 @@
 
 Rule, written before this ran: ``benchmarks/network_support_rule.md``. Per val scene (one per gear of
 ``data/repro/val_radial``, ``data/repro/val_views`` and the default rig's val gears ``data/default_rig/val/z*``),
-``--per-motion`` bursts of each motion (still, the paper's two motions both ways), seeds ``--seed`` + scene; the
+``--per-motion`` bursts of each motion (``--motions``: "wide", since session 45, still, the paper's two motions
+both ways and the 0.5-3 deg steps of ``evaluate.GENERALISATION``; "paper" without those), seeds ``--seed`` + scene; the
 shipped model (deterministic, rig orientation, still-burst gate as shipped) decodes each burst once and every
 candidate ``network_support_px`` reconstructs it. Scored: cloud RMS over every point against the true gear
 surface, and coverage of the truth mask, per kind (still, moving). Val only: the test split reports it
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from gearscan.evaluate import VAL_CLOUD_SETS, scenes_from_dataset, val_cloud_table
+from gearscan.evaluate import VAL_CLOUD_SETS, VAL_MOTIONS, scenes_from_dataset, val_cloud_table
 from gearscan.inference.model_io import model_fingerprint
 from gearscan.inference.predictor import Predictor, model_path
 
@@ -58,6 +59,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=900)
     ap.add_argument("--per-motion", type=int, default=2)
+    ap.add_argument("--motions", choices=sorted(VAL_MOTIONS), default="wide", help="the val sample's motions")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/network_support_val.json"))
     ap.add_argument("--model", type=Path, default=None, help="weights to score (default: the shipped model)")
@@ -67,10 +69,10 @@ def main() -> None:
     scenes = [s for root in VAL_CLOUD_SETS for s in scenes_from_dataset(root)]
     configs = {key(px): {"network_support_px": px} for px in CANDIDATES}
     table = val_cloud_table(predictor, scenes, configs, seed=args.seed, per_motion=args.per_motion, three_step="none",
-                            progress=lambda line: print(line, flush=True))
+                            progress=lambda line: print(line, flush=True), motions=args.motions)
     chosen = choose(table)
     res = {"rule": "benchmarks/network_support_rule.md", "split": "val", "scenes": [s.name for s in scenes],
-           "seed": args.seed, "per_motion": args.per_motion, "model": str(args.model or "inference/weights/default.safetensors"),
+           "seed": args.seed, "per_motion": args.per_motion, "motions": args.motions, "model": str(args.model or "inference/weights/default.safetensors"),
            "weights_sha256": hashlib.sha256(model_path(args.model).read_bytes()).hexdigest()[:12],
            "model_fingerprint": model_fingerprint(model_path(args.model)),  # weights and sigma maps (since session 43)
            "orientation": "normal", "table": table, "chosen_network_support_px": chosen,
