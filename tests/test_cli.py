@@ -191,7 +191,7 @@ def test_twin_render_alternate_order_replays_both_orders(tmp_path):
 
 def test_replay_keep_settings_reach_the_reconstructor(twin_recording, tmp_path):
     """`--network-support-px N` turns a fringe-support test of the network's pixels on (without it, the model's own:
-    0 px for the shipped v9 since session 45; -1 is off), `--max-sigma-rad` sets the keep bound; the metrics say what ran and count
+    none for the shipped v9; -1 is off), `--max-sigma-rad` sets the keep bound; the metrics say what ran and count
     the pixels the support test drops, and a tighter bound reports fewer points."""
     from gearscan.inference.model_io import read_config
     from gearscan.inference.predictor import DEFAULT_MODEL, model_network_support

@@ -601,9 +601,9 @@ def test_a_model_carries_its_own_fringe_support_tests(saved, tmp_path):
         save_model(model, path, extra={"network_support": bad})
         with pytest.raises(ModelFileError, match=match):
             Predictor.load(path)
-    # the shipped files: v9 its own val choices (0 px per burst since session 45, none with the frame fit), v6 and
+    # the shipped files: v9 its own val choices (no test per burst since session 44, none with the frame fit), v6 and
     # the option 2 px / 0 px
     shipped = {name: model_network_support(read_config(WEIGHTS_DIR / f"{name}.safetensors"))
                for name in ("default", "v6", "default_rig")}
-    assert shipped == {"default": NetworkSupport(0, None), "v6": NetworkSupport(2, 0),
+    assert shipped == {"default": NetworkSupport(None, None), "v6": NetworkSupport(2, 0),
                        "default_rig": NetworkSupport(2, 0)}

@@ -410,7 +410,7 @@ def test_the_keep_bound_picks_points_not_fringe_orders(rig256):
 
     assert UNWRAP_MAX_SIGMA == math.inf  # the val choice: every modulated pixel
     gear, burst, net, distances = _shipped_network_still_burst(rig256, seed=4)
-    kw = {"mixed_border_px": None}  # the shipped keep settings otherwise (v9: the 0 px per-burst support test)
+    kw = {"mixed_border_px": None}  # the shipped keep settings otherwise (v9: no per-burst support test)
     bounded = Reconstructor.for_gear(rig256, PERIOD, gear, **kw)(burst, net)
     unbounded = Reconstructor.for_gear(rig256, PERIOD, gear, max_sigma=math.inf, **kw)(burst, net)
     assert bounded.unwrap["points"] < unbounded.unwrap["points"]  # the bound drops points on this burst ...
