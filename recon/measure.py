@@ -36,10 +36,12 @@ PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the d
 # chosen on data); the val choice (benchmarks/keep_bound_rule.md; scripts/choose_keep_bound.py ->
 # benchmarks/keep_bound_val.json): 0.5 with v9's per-burst fringe-support test at 1 px, 0.7 without it (session 44) ...
 MAX_SIGMA_RAD = 0.7
-# ... applied after unwrapping: the unwrapper sees every modulated pixel within this bound (inf: all of them; None: the
-# keep bound itself, as before session 44, when pixels the keep test dropped hid the neighbours that expose a wrong
-# fringe order: on val (seed 1100) 2,731 still-burst points beyond 0.5 mm at 0.3 rad against 4 with every pixel seen)
-UNWRAP_MAX_SIGMA: float | None = math.inf
+# ... and the unwrapper sees the modulated pixels within this bound (inf: all of them; None: the keep bound itself).
+# Session 44 chose inf on the paper's motions (at 0.3 rad the bound first hid the neighbours that expose a wrong
+# fringe order: 2,731 still-burst points beyond 0.5 mm against 4); session 45's rerun on a val sample with the 0.5-3
+# deg motions chose the keep bound itself (None): there every modulated pixel gave more moving gross points at 0.3 rad
+# (41,075 against 39,501), which the rule's first step does not allow, and at 0.7 rad the two are close
+UNWRAP_MAX_SIGMA: float | None = None
 
 
 class ModelSupport(Protocol):

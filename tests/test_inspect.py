@@ -238,7 +238,8 @@ def test_the_shipped_support_tests_are_the_val_choices():
     finally:
         del sys.path[0]
     assert choose_keep_bound.choose(keep["table"]) == (keep["chosen_unwrap"], keep["chosen_max_sigma"])
-    assert (keep["chosen_unwrap"], keep["chosen_max_sigma"]) == ("all", MAX_SIGMA_RAD) and UNWRAP_MAX_SIGMA == math.inf
+    assert keep["chosen_max_sigma"] == MAX_SIGMA_RAD
+    assert UNWRAP_MAX_SIGMA == {"all": math.inf, "same": None}[keep["chosen_unwrap"]]
     assert keep["model_fingerprint"] == shipped
     assert keep["network_support_px"] == model_network_support(read_config(DEFAULT_MODEL)).per_burst_px  # the model's own
     # one bound everywhere: the reconstructor, the keep test the reports score and the live config's default

@@ -401,16 +401,16 @@ def test_auto_orientation_comes_from_the_calibration_and_still_bursts_that_outvo
 
 
 def test_the_keep_bound_picks_points_not_fringe_orders(rig256):
-    """The sigma bound is applied after unwrapping (benchmarks/keep_bound_rule.md): on the shipped network's still
-    burst the bounded cloud is the unbounded one on the pixels within the bound, with the same fringe orders (the
-    mixed-pixel filter off, which reads the kept points' depths), and no shipped point lies a fringe order off the
-    true surface. Before, the unwrapper saw only the kept pixels, and the holes
-    hid the neighbours that expose a wrong order (on val 2,731 still-burst points beyond 0.5 mm at 0.3 rad)."""
-    from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA
+    """With ``unwrap_max_sigma=inf`` the sigma bound is applied after unwrapping (benchmarks/keep_bound_rule.md): on
+    the shipped network's still burst the bounded cloud is the unbounded one on the pixels within the bound, with the
+    same fringe orders (the mixed-pixel filter off, which reads the kept points' depths). With the shipped settings
+    (since session 45 the unwrapper sees the keep bound's pixels, the val choice on the wide sample) no point lies a
+    fringe order off the true surface. At 0.3 rad with the bound first, the holes hid the neighbours that expose a
+    wrong order (on val 2,731 still-burst points beyond 0.5 mm); at the shipped 0.7 rad they do not on this burst."""
+    from gearscan.recon.measure import MAX_SIGMA_RAD
 
-    assert UNWRAP_MAX_SIGMA == math.inf  # the val choice: every modulated pixel
     gear, burst, net, distances = _shipped_network_still_burst(rig256, seed=4)
-    kw = {"mixed_border_px": None}  # the shipped keep settings otherwise (v9: no per-burst support test)
+    kw = {"mixed_border_px": None, "unwrap_max_sigma": math.inf}  # v9: no per-burst support test
     bounded = Reconstructor.for_gear(rig256, PERIOD, gear, **kw)(burst, net)
     unbounded = Reconstructor.for_gear(rig256, PERIOD, gear, max_sigma=math.inf, **kw)(burst, net)
     assert bounded.unwrap["points"] < unbounded.unwrap["points"]  # the bound drops points on this burst ...
