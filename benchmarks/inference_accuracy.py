@@ -36,7 +36,7 @@ from gearscan.evaluate import (
 )
 from gearscan.generalization import vote_mirrored
 from gearscan.inference.predictor import Predictor
-from gearscan.recon.measure import MAX_SIGMA_RAD, network_support_option
+from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA, network_support_option, unwrapper_sees
 from gearscan.twin.families import family_scenes
 
 HERE = Path(__file__).parent
@@ -122,9 +122,10 @@ def main() -> None:
         "triangulates (geometric-constraint unwrapping, the reconstructor's keep test), coverage the share of the "
         "truth mask that got a point. The timing column is this run's wall time per burst including the decode's "
         "own overheads (speed: `inference_speed*.md`).",
-        f"- The keep test reports a point where its total phase sigma is at most {MAX_SIGMA_RAD} rad, applied after the fringe "
-        "orders are found on every modulated pixel (since session 44, `benchmarks/keep_bound_rule.md`; 0.3 rad, applied "
-        "before unwrapping, until then).",
+        f"- The keep test reports a point where its total phase sigma is at most {MAX_SIGMA_RAD} rad; the fringe orders are "
+        f"found on the {unwrapper_sees(MAX_SIGMA_RAD if UNWRAP_MAX_SIGMA is None else UNWRAP_MAX_SIGMA)} "
+        "(`benchmarks/keep_bound_rule.md`: every modulated pixel in session 44, the keep bound's pixels since session 45's "
+        "rerun on val with the 0.5-3 deg motions; 0.3 rad, applied before unwrapping, until session 44).",
         *(["- Since session 32 the reconstructor can keep a network's pixel only where the burst's own frames show fringes on "
         f"every pixel within E px (`recon.measure.keep_candidates`; this run: {support_text}, the model's own setting, chosen on val for the shipped model: "
         "`benchmarks/network_support_rule.md`, 2 px for v6; "

@@ -81,7 +81,7 @@ orientation = "auto"         # fringe phase along the camera's columns: "normal"
 [recon]
 min_modulation = 0.05        # drop pixels below this normalised modulation 2B/S
 max_sigma_rad = 0.7          # report no point whose total phase uncertainty exceeds this (val choice;
-                             # the fringe orders are found on every modulated pixel first)
+                             # the fringe orders are found on the pixels within it)
 # network_support_px = 2     # a network's pixel needs fringes in its own frames on every pixel within this
                              # many px (-1: no such test). Unset: the model's own, from its JSON
                              # (network_support.per_burst_px: none for the shipped v9, 2 for v6, which invents

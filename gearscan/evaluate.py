@@ -259,13 +259,13 @@ def scores_table(scores: list[Score], baseline: str = "three-step PS") -> str:
 
 
 GROSS_MM = 0.5  # a point this far from the true surface has a wrong fringe order or none of the surface's light
-# the val scenes of the reconstruction's per-burst choices: every gear of the twin's val sets and the default rig's
 # the motions of a val cloud sample: the paper's (still, the paper's two motions both ways; the choices until session
 # 45) or wide (those and the 0.5-3 deg steps users and the test split bring: GENERALISATION)
 VAL_MOTIONS: dict[str, dict[str, tuple[float, float]]] = {
     "paper": {**STATIC, **PAPER_MOTIONS, **REVERSED},
     "wide": {**STATIC, **PAPER_MOTIONS, **REVERSED, **GENERALISATION},
 }
+# the val scenes of the reconstruction's per-burst choices: every gear of the twin's val sets and the default rig's
 VAL_CLOUD_SETS = ("data/repro/val_radial", "data/repro/val_views", *(f"data/default_rig/val/z{z}" for z in (25, 32, 46, 62)))
 
 

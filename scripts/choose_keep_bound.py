@@ -1,10 +1,11 @@
 """Choose the reconstructor's sigma keep bound, and which pixels the unwrapper sees, on the VAL split.
 
-    python scripts/choose_keep_bound.py [--seed 1100] [--out benchmarks/keep_bound_val.json]
+    python scripts/choose_keep_bound.py [--seed 1400] [--motions wide] [--out benchmarks/keep_bound_val.json]
 
-Rule, written before this ran: ``benchmarks/keep_bound_rule.md``. The val sample of
-``scripts/choose_network_support.py`` (its scenes, still and the paper's motions both ways, seeds ``--seed`` +
-scene): the shipped model decodes each burst once (deterministic, rig orientation) and every candidate
+Rule, written before this ran: ``benchmarks/keep_bound_rule.md``. The val scenes of
+``scripts/choose_network_support.py``, ``--per-motion`` bursts of each motion (``--motions``: "wide", since session
+45, still, the paper's two motions both ways and the 0.5-3 deg steps of ``evaluate.GENERALISATION``; "paper", the
+runs of session 44 and the first two of session 45, without those), seeds ``--seed`` + scene: the shipped model decodes each burst once (deterministic, rig orientation) and every candidate
 reconstructs it, with the model's own per-burst fringe-support test. Candidates: the keep bound applied before
 unwrapping (``"same/B"``: the unwrapper sees only the kept pixels, as before session 44) and after it
 (``"all/B"``: the unwrapper sees every modulated pixel, the bound picks the reported points), B in
@@ -69,7 +70,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=1100)
     ap.add_argument("--per-motion", type=int, default=2)
-    ap.add_argument("--motions", choices=sorted(VAL_MOTIONS), default="paper", help="the val sample's motions")
+    ap.add_argument("--motions", choices=sorted(VAL_MOTIONS), default="wide", help="the val sample's motions")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/keep_bound_val.json"))
     args = ap.parse_args()

@@ -9,7 +9,8 @@ and, for each orientation the network could decode with, statistics a decision c
 network's sigma over the frames' modulated pixels, the falling share of its own phase in its input's frame) beside
 the truth's RMSE. Every scene is rendered upright (the twin's orientation is "normal"); a mirrored rig is the same
 burst with its columns flipped, which flips every statistic here with it, so a rule symmetric in the two decodes
-reads it the same. The rule that reads this sample: ``benchmarks/orientation_rule.md``.
+reads it the same. No rule reads it yet: ``benchmarks/orientation_vote_look.md`` is a dev look on seed 16000, so a
+rule written later needs fresh seeds.
 """
 
 from __future__ import annotations
@@ -121,7 +122,16 @@ def main() -> None:
             records.append(burst_record(predictor, case))
         print(f"{i + 1}/{len(scenes)} {scene.name} {time.time() - t0:.0f} s", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"split": "val", "seed": args.seed, "scenes": [s.name for s in scenes],
+    import platform
+    import subprocess
+
+    from gearscan.provenance import REPO, code_edits
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.processor()) if Path("/proc/cpuinfo").exists() else platform.processor()
+    args.out.write_text(json.dumps({"split": "val", "seed": args.seed, "commit": commit, "uncommitted_edits": code_edits(),
+                                    "host": cpu, "scenes": [s.name for s in scenes],
                                     "motions": list(MOTIONS), "records": records}, indent=1))
 
 

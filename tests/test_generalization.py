@@ -240,3 +240,15 @@ def test_evaluate_scores_each_models_cloud_with_its_own_support_test(cases, monk
     monkeypatch.setattr(ev, "cloud_accuracy", lambda case, result, model=None: (seen.append(model), (np.zeros(1), 1))[1])
     ev.score({BASELINE: classical_method, NETWORK: ev.network_method(Stub())}, cases[:1], clouds=True)
     assert seen == [None, NetworkSupport(3, None)]
+
+
+def test_val_cloud_samples_name_their_motions() -> None:
+    """The reconstruction's val choices score a named sample of motions: the paper's (still, the two paper motions
+    both ways) or "wide", which adds the 0.5-3 deg steps users bring; an unknown name is refused before any work."""
+    from gearscan.evaluate import GENERALISATION, PAPER_MOTIONS, REVERSED, STATIC, VAL_MOTIONS, val_cloud_table
+
+    assert VAL_MOTIONS["paper"] == {**STATIC, **PAPER_MOTIONS, **REVERSED}
+    assert VAL_MOTIONS["wide"] == {**VAL_MOTIONS["paper"], **GENERALISATION}
+    assert max(sum(steps) for steps in VAL_MOTIONS["wide"].values()) == 5.0  # 2 + 3 deg
+    with pytest.raises(ValueError, match="motions: expected one of paper, wide, got 'fast'"):
+        val_cloud_table(None, [], {}, seed=0, per_motion=1, three_step="none", motions="fast")

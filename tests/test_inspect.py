@@ -240,6 +240,9 @@ def test_the_shipped_support_tests_are_the_val_choices():
     assert choose_keep_bound.choose(keep["table"]) == (keep["chosen_unwrap"], keep["chosen_max_sigma"])
     assert keep["chosen_max_sigma"] == MAX_SIGMA_RAD
     assert UNWRAP_MAX_SIGMA == {"all": math.inf, "same": None}[keep["chosen_unwrap"]]
+    # the two choices read one another: the support test was scored at the shipped bound, on the same kind of sample
+    assert per_burst["keep_bound"]["max_sigma_rad"] == MAX_SIGMA_RAD
+    assert per_burst["motions"] == keep["motions"] == "wide"
     assert keep["model_fingerprint"] == shipped
     assert keep["network_support_px"] == model_network_support(read_config(DEFAULT_MODEL)).per_burst_px  # the model's own
     # one bound everywhere: the reconstructor, the keep test the reports score and the live config's default
