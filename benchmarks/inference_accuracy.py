@@ -36,7 +36,12 @@ from gearscan.evaluate import (
 )
 from gearscan.generalization import vote_mirrored
 from gearscan.inference.predictor import Predictor
-from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA, network_support_option, unwrapper_sees
+from gearscan.recon.measure import (
+    MAX_SIGMA_RAD,
+    UNWRAP_MAX_SIGMA,
+    network_support_option,
+    unwrapper_sees,
+)
 from gearscan.twin.families import family_scenes
 
 HERE = Path(__file__).parent

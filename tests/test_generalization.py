@@ -245,7 +245,14 @@ def test_evaluate_scores_each_models_cloud_with_its_own_support_test(cases, monk
 def test_val_cloud_samples_name_their_motions() -> None:
     """The reconstruction's val choices score a named sample of motions: the paper's (still, the two paper motions
     both ways) or "wide", which adds the 0.5-3 deg steps users bring; an unknown name is refused before any work."""
-    from gearscan.evaluate import GENERALISATION, PAPER_MOTIONS, REVERSED, STATIC, VAL_MOTIONS, val_cloud_table
+    from gearscan.evaluate import (
+        GENERALISATION,
+        PAPER_MOTIONS,
+        REVERSED,
+        STATIC,
+        VAL_MOTIONS,
+        val_cloud_table,
+    )
 
     assert VAL_MOTIONS["paper"] == {**STATIC, **PAPER_MOTIONS, **REVERSED}
     assert VAL_MOTIONS["wide"] == {**VAL_MOTIONS["paper"], **GENERALISATION}
