@@ -23,3 +23,18 @@ def code_edits(repo: str | Path = REPO) -> list[str]:
     except (OSError, subprocess.CalledProcessError):
         return ["unknown"]
     return [line[3:] for line in out.splitlines() if line.strip()]
+
+
+def run_stamp(repo: str | Path = REPO) -> dict:
+    """What a val run's json records about where it ran: the commit, the files edited beyond it, the CPU."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True,
+                                check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    cpuinfo = Path("/proc/cpuinfo")
+    models = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
+              if line.startswith("model name")] if cpuinfo.exists() else []
+    import platform
+
+    return {"commit": commit, "uncommitted_edits": code_edits(repo), "host": models[0] if models else platform.processor()}

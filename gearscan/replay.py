@@ -249,7 +249,7 @@ def replay(
     to the frames, else its ``per_burst_px`` (``decoder.network_support``); where it names none, the product's,
     :data:`~gearscan.recon.measure.FRAME_FIT_NETWORK_SUPPORT_PX` or :data:`~gearscan.recon.measure.NETWORK_SUPPORT_PX`).
     ``max_sigma``: the keep bound, rad (a point is reported where its total phase sigma is at most this; the fringe
-    orders are found on every modulated pixel first). ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
+    orders are found on the pixels within ``recon.measure.UNWRAP_MAX_SIGMA``, since session 45 the keep bound itself). ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
     ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.recon.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
 

@@ -23,8 +23,9 @@ UNWRAP_MODES = ("cad", "envelope", "coarse")
 # benchmarks/network_support_rule.md; scripts/choose_network_support.py -> benchmarks/network_support_val.json):
 # 2 px for v6; for v9 0 px (its own pixel only: the outside-mask loss taught it not to invent phase there), and
 # 1 px since its additive-local sigma maps (session 43's rerun: within 1 % of the best mean RMS, the smallest E), and
-# no test (None) since the keep bound comes after unwrapping (session 44), kept by session 45's rerun on a val sample
-# with the 0.5-3 deg motions users bring (0 px, chosen for an hour on the paper's motions alone, missed both coverage floors)
+# no test (None) since session 44, kept by session 45's reruns on a val sample with the 0.5-3 deg motions users bring
+# (0 px, chosen for an hour on the paper's motions alone, missed both coverage floors there), the last under the
+# unwrap setting that ships (seed 1500)
 NETWORK_SUPPORT_PX: int | None = None
 # ... and where the fused points are then fitted to the raw frames (`inspect`, `replay --fuse`): the frame fit
 # takes the pixels a test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
@@ -123,8 +124,8 @@ class Reconstructor:
     phase sigma is below ``max_sigma`` rad; a candidate without a point is ``unresolved`` and
     counted in ``Measurement.unwrap`` (no order could be trusted there), never dropped silently.
     The fringe orders are found first on every modulated pixel with a sigma within
-    ``unwrap_max_sigma`` (inf: all; None: ``max_sigma``): the sigma bound picks the reported points,
-    not the neighbours that expose a wrong order (benchmarks/keep_bound_rule.md).
+    ``unwrap_max_sigma`` (inf: all, so the sigma bound picks the reported points, not the neighbours that expose a
+    wrong order; None: ``max_sigma``, the default since session 45's val rerun, benchmarks/keep_bound_rule.md).
     Points whose pixel may blend two surfaces (at a silhouette or depth step, camera blur mixes
     their fringes) are dropped and counted as ``mixed`` (:func:`~gearscan.recon.edges.mixed_pixels`,
     ``mixed_border_px=None`` keeps them). A network's phase (``PhaseResult.from_network``: mode "deterministic" or "mc<T>")
@@ -239,7 +240,7 @@ class Reconstructor:
                 f"phase map {result.phase.shape} does not match the rig camera "
                 f"{cam_shape}: wrong rig file for this camera/ROI?"
             )
-        # the unwrapper sees every pixel within the looser unwrap bound; the keep bound then picks the reported points
+        # the unwrapper sees every pixel within the unwrap bound (by default the keep bound); the keep bound then picks the points
         usable, unsupported = keep_candidates(result, burst.images, burst.full_scale, min_modulation=self.min_modulation,
                                               max_sigma=self.unwrap_max_sigma, network_support_px=self.network_support_px)
         within = result.sigma_total <= self.max_sigma

@@ -1,13 +1,13 @@
 """Choose the reconstructor's sigma keep bound, and which pixels the unwrapper sees, on the VAL split.
 
-    python scripts/choose_keep_bound.py [--seed 1400] [--motions wide] [--out benchmarks/keep_bound_val.json]
+    python scripts/choose_keep_bound.py --seed FRESH [--motions wide] [--out benchmarks/keep_bound_val.json]
 
 Rule, written before this ran: ``benchmarks/keep_bound_rule.md``. The val scenes of
 ``scripts/choose_network_support.py``, ``--per-motion`` bursts of each motion (``--motions``: "wide", since session
 45, still, the paper's two motions both ways and the 0.5-3 deg steps of ``evaluate.GENERALISATION``; "paper", the
 runs of session 44 and the first two of session 45, without those), seeds ``--seed`` + scene: the shipped model decodes each burst once (deterministic, rig orientation) and every candidate
 reconstructs it, with the model's own per-burst fringe-support test. Candidates: the keep bound applied before
-unwrapping (``"same/B"``: the unwrapper sees only the kept pixels, as before session 44) and after it
+unwrapping (``"same/B"``: the unwrapper sees only the kept pixels, as before session 44 and since session 45) and after it
 (``"all/B"``: the unwrapper sees every modulated pixel, the bound picks the reported points), B in
 :data:`BOUNDS`. Scored per kind (still, moving): clipped cloud RMS, gross points (beyond 0.5 mm), coverage.
 Val only: the test split reports it (``benchmarks/inference_accuracy.py``). A chosen "none" (``chosen_max_sigma``
@@ -26,6 +26,7 @@ import torch
 from gearscan.evaluate import VAL_CLOUD_SETS, VAL_MOTIONS, scenes_from_dataset, val_cloud_table
 from gearscan.inference.model_io import model_fingerprint
 from gearscan.inference.predictor import Predictor, model_path
+from gearscan.provenance import run_stamp
 from gearscan.recon.measure import network_support_option
 
 BOUNDS: tuple[float, ...] = (0.2, 0.3, 0.4, 0.5, 0.7, 1.0, math.inf)
@@ -68,7 +69,7 @@ def choose(table: dict) -> tuple[str, float | None]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seed", type=int, default=1100)
+    ap.add_argument("--seed", type=int, required=True, help="fresh val burst seeds seed + scene (used: 1100, 1400)")
     ap.add_argument("--per-motion", type=int, default=2)
     ap.add_argument("--motions", choices=sorted(VAL_MOTIONS), default="wide", help="the val sample's motions")
     ap.add_argument("--threads", type=int, default=2)
@@ -89,7 +90,7 @@ def main() -> None:
     res = {"rule": "benchmarks/keep_bound_rule.md", "split": "val", "scenes": [s.name for s in scenes],
            "seed": args.seed, "per_motion": args.per_motion, "motions": args.motions, "network_support_px": support,
            "model_fingerprint": model_fingerprint(model_path(None)), "orientation": "normal", "table": table,
-           "chosen_unwrap": mask, "chosen_max_sigma": bound}
+           "chosen_unwrap": mask, "chosen_max_sigma": bound, **run_stamp()}
     args.out.write_text(json.dumps(res, indent=1))
     for name, row in table.items():
         print(f"{name:>10}: still {row['still']['clipped_rms_um']:.1f} um clipped ({row['still']['gross']} gross), "

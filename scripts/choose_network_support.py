@@ -1,6 +1,6 @@
 """Choose the reconstructor's fringe-support guard for network phase on the VAL split.
 
-    python scripts/choose_network_support.py [--seed 900] [--out benchmarks/network_support_val.json]
+    python scripts/choose_network_support.py --seed FRESH [--motions wide] [--out benchmarks/network_support_val.json]
 
 Rule, written before this ran: ``benchmarks/network_support_rule.md``. Per val scene (one per gear of
 ``data/repro/val_radial``, ``data/repro/val_views`` and the default rig's val gears ``data/default_rig/val/z*``),
@@ -24,6 +24,7 @@ import torch
 from gearscan.evaluate import VAL_CLOUD_SETS, VAL_MOTIONS, scenes_from_dataset, val_cloud_table
 from gearscan.inference.model_io import model_fingerprint
 from gearscan.inference.predictor import Predictor, model_path
+from gearscan.provenance import run_stamp
 
 CANDIDATES: tuple[int | None, ...] = (None, 0, 1, 2, 3, 4)
 STILL_COVERAGE, MOVING_COVERAGE, TIE = 0.98, 0.90, 0.01
@@ -57,7 +58,7 @@ def keep_bound_settings() -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seed", type=int, default=900)
+    ap.add_argument("--seed", type=int, required=True, help="fresh val burst seeds seed + scene (used: 900, 1300, 1500)")
     ap.add_argument("--per-motion", type=int, default=2)
     ap.add_argument("--motions", choices=sorted(VAL_MOTIONS), default="wide", help="the val sample's motions")
     ap.add_argument("--threads", type=int, default=2)
@@ -76,7 +77,7 @@ def main() -> None:
            "weights_sha256": hashlib.sha256(model_path(args.model).read_bytes()).hexdigest()[:12],
            "model_fingerprint": model_fingerprint(model_path(args.model)),  # weights and sigma maps (since session 43)
            "orientation": "normal", "table": table, "chosen_network_support_px": chosen,
-           "keep_bound": keep_bound_settings()}  # the keep bound every candidate ran with (since session 44)
+           "keep_bound": keep_bound_settings(), **run_stamp()}  # the keep bound every candidate ran with (since session 44)
     args.out.write_text(json.dumps(res, indent=1))
     for name in [key(px) for px in CANDIDATES] + ["three-step"]:
         row = table[name]

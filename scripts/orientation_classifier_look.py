@@ -4,8 +4,7 @@ per-burst vote misreads fast bursts? ``benchmarks/orientation_vote_look.md`` has
     python scripts/orientation_classifier_look.py train --bursts 1600 --epochs 8 --out out/orient_clf.pt
     python scripts/orientation_classifier_look.py eval --seed 16000 --weights out/orient_clf.pt --out out/orient_eval.json
 
-The classifier reads three-step PS's normalised M, D of a burst (order-free of nothing: they carry the frames' shift
-direction) and sums local evidence for "mirrored" over the image; it is antisymmetric by construction (evidence of
+The classifier reads three-step PS's normalised M, D of a burst (they carry the frames' shift direction) and sums local evidence for "mirrored" over the image; it is antisymmetric by construction (evidence of
 the column-flipped burst is the negated evidence), so a mirrored rig gets exactly the opposite call. Trained on
 train-split twin bursts (radial-random and view-random rigs, train gears and seeds, 256x256, steps of 0-3 deg per
 frame either way, 15 % still), each shown as rendered or column-flipped at random, and rows flipped at random (which
@@ -132,6 +131,7 @@ def train(args: argparse.Namespace) -> None:
             correct += int(((logit > 0).float() == y).sum())
         print(f"epoch {ep}: loss {tot / (n // bs * bs):.4f} train accuracy {correct / (n // bs * bs):.3f} "
               f"{time.time() - t1:.0f} s", flush=True)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         torch.save(model.state_dict(), args.out)
 
 
@@ -153,7 +153,10 @@ def evaluate(args: argparse.Namespace) -> None:
                 x = frames_to_tensor(case.frames, case.full_scale)
                 rows.append({"scene": scene.name, "motion": case.motion, "vote_share": falling_phase_share(x),
                              "logit": float(model(classical_md(x[:, :3].float()))[0])})
-    args.out.write_text(json.dumps({"split": "val", "seed": args.seed, "rows": rows}, indent=1))
+    from gearscan.provenance import run_stamp
+
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"split": "val", "seed": args.seed, **run_stamp(), "rows": rows}, indent=1))
     logit = np.array([r["logit"] for r in rows])
     vote = np.array([r["vote_share"] or 0.0 for r in rows])
     print(f"{len(rows)} bursts (every rig normal): classifier misreads {int((logit > 0).sum())}, vote misreads "

@@ -122,16 +122,9 @@ def main() -> None:
             records.append(burst_record(predictor, case))
         print(f"{i + 1}/{len(scenes)} {scene.name} {time.time() - t0:.0f} s", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    import platform
-    import subprocess
+    from gearscan.provenance import run_stamp
 
-    from gearscan.provenance import REPO, code_edits
-
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor()) if Path("/proc/cpuinfo").exists() else platform.processor()
-    args.out.write_text(json.dumps({"split": "val", "seed": args.seed, "commit": commit, "uncommitted_edits": code_edits(),
-                                    "host": cpu, "scenes": [s.name for s in scenes],
+    args.out.write_text(json.dumps({"split": "val", "seed": args.seed, **run_stamp(), "scenes": [s.name for s in scenes],
                                     "motions": list(MOTIONS), "records": records}, indent=1))
 
 

@@ -222,7 +222,7 @@ def test_the_shipped_support_tests_are_the_val_choices():
 
     rest = json.loads((bench / "rest_sigma_val.json").read_text())
     assert rest["shipped_sha256"] == shipped and rest["scale"] == REST_SIGMA_SCALE
-    # and the keep bound, applied after unwrapping (benchmarks/keep_bound_rule.md)
+    # and the keep bound with the pixels the unwrapper sees (benchmarks/keep_bound_rule.md)
     from gearscan.config import ReconSection
     from gearscan.recon.measure import (
         MAX_SIGMA_RAD,
