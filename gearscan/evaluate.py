@@ -275,10 +275,11 @@ def val_cloud_table(predictor, scenes: list[Scene], configs: dict[str, dict], *,
     """Per-burst clouds of still and moving bursts scored against the true gear surface, for the val choices of
     the reconstructor's keep tests (``scripts/choose_network_support.py``, ``scripts/choose_keep_bound.py``).
 
-    Per scene, ``per_motion`` bursts of each motion of ``VAL_MOTIONS[motions]`` (seeds ``seed`` + scene index); ``predictor`` (deterministic) decodes each burst once and every ``configs`` entry (keyword
-    arguments of :class:`~gearscan.recon.measure.Reconstructor`) reconstructs it; three-step PS's phase goes
-    through the reconstructor of ``configs[three_step]`` as row "three-step". ``table[name][kind]`` (kinds
-    "still", "moving"): points, RMS over every point, RMS with each distance clipped at :data:`GROSS_MM`, the
+    Per scene, ``per_motion`` bursts of each motion of ``VAL_MOTIONS[motions]`` (seeds ``seed`` + scene index);
+    ``predictor`` (deterministic) decodes each burst once and every ``configs`` entry (keyword arguments of
+    :class:`~gearscan.recon.measure.Reconstructor`) reconstructs it; three-step PS's phase goes through the
+    reconstructor of ``configs[three_step]`` as row "three-step". ``table[name][kind]`` (kinds "still",
+    "moving"): points, RMS over every point, RMS with each distance clipped at :data:`GROSS_MM`, the
     points beyond it ("gross"), coverage of the truth mask and the pixels the fringe-support test removed."""
     from dataclasses import replace
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import platform
 import subprocess
 from pathlib import Path
 
@@ -35,6 +36,4 @@ def run_stamp(repo: str | Path = REPO) -> dict:
     cpuinfo = Path("/proc/cpuinfo")
     models = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
               if line.startswith("model name")] if cpuinfo.exists() else []
-    import platform
-
     return {"commit": commit, "uncommitted_edits": code_edits(repo), "host": models[0] if models else platform.processor()}
