@@ -38,7 +38,6 @@ from gearscan.generalization import vote_mirrored
 from gearscan.inference.predictor import Predictor
 from gearscan.recon.measure import (
     MAX_SIGMA_RAD,
-    UNWRAP_MAX_SIGMA,
     network_support_option,
     unwrapper_sees,
 )
@@ -128,7 +127,7 @@ def main() -> None:
         "truth mask that got a point. The timing column is this run's wall time per burst including the decode's "
         "own overheads (speed: `inference_speed*.md`).",
         f"- The keep test reports a point where its total phase sigma is at most {MAX_SIGMA_RAD} rad; the fringe orders are "
-        f"found on {unwrapper_sees(MAX_SIGMA_RAD if UNWRAP_MAX_SIGMA is None else UNWRAP_MAX_SIGMA)} "
+        f"found on {unwrapper_sees()} "
         "(`benchmarks/keep_bound_rule.md`: every modulated pixel in session 44, the keep bound's pixels since session 45's "
         "rerun on val with the 0.5-3 deg motions; 0.3 rad, applied before unwrapping, until session 44).",
         *(["- Since session 32 the reconstructor can keep a network's pixel only where the burst's own frames show fringes on "

@@ -190,8 +190,12 @@ def falling_phase_share(x: torch.Tensor, min_modulation: float = 0.05) -> float 
     """The modulation-weighted share of falling column steps of the three-step phase of ``x``
     (:func:`fringe_phase_decreases_along_columns`); None where no pixel pair is modulated."""
     md = classical_md(x[:, :3].float())
-    phase = torch.atan2(md[:, 0], md[:, 1])
-    mod = torch.hypot(md[:, 0], md[:, 1])
+    return falling_step_share(torch.atan2(md[:, 0], md[:, 1]), torch.hypot(md[:, 0], md[:, 1]), min_modulation)
+
+
+def falling_step_share(phase: torch.Tensor, mod: torch.Tensor, min_modulation: float = 0.05) -> float | None:
+    """The share of falling column steps of a wrapped ``phase``, each weighted by the smaller ``mod`` of its pair
+    (pairs below ``min_modulation`` weigh nothing); None where no pair is modulated."""
     step = torch.remainder(phase[..., 1:] - phase[..., :-1] + math.pi, 2 * math.pi) - math.pi
     weight = torch.minimum(mod[..., 1:], mod[..., :-1])
     weight = torch.where(weight >= min_modulation, weight, torch.zeros_like(weight))

@@ -76,9 +76,11 @@ def envelope_bounds(rig: Rig, gear, envelope_mm: float = ENVELOPE_MM):
                              gear.face_width + 2 * envelope_mm)
 
 
-def unwrapper_sees(unwrap_max_sigma: float) -> str:
-    """Which pixels the unwrapper sees, in words (the replay metrics and the val choices' records)."""
-    return "every modulated pixel" if math.isinf(unwrap_max_sigma) else f"modulated pixels with sigma <= {unwrap_max_sigma} rad"
+def unwrapper_sees(unwrap_max_sigma: float | None = UNWRAP_MAX_SIGMA, max_sigma: float = MAX_SIGMA_RAD) -> str:
+    """Which pixels the unwrapper sees, in words (the replay metrics and the val choices' records); None: those
+    within the keep bound ``max_sigma``, as the reconstructor reads it. Defaults: what ships."""
+    bound = max_sigma if unwrap_max_sigma is None else unwrap_max_sigma
+    return "every modulated pixel" if math.isinf(bound) else f"modulated pixels with sigma <= {bound} rad"
 
 
 def keep_candidates(result: PhaseResult, images: np.ndarray, full_scale: float, *, min_modulation: float = 0.05,

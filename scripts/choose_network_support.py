@@ -50,10 +50,10 @@ def choose(table: dict) -> int | None:
 
 def keep_bound_settings() -> dict:
     """The reconstructor's keep bound as this run used it (the product's: ``recon.measure``)."""
-    from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA, unwrapper_sees
+    from gearscan.recon.measure import MAX_SIGMA_RAD, unwrapper_sees
 
     return {"max_sigma_rad": MAX_SIGMA_RAD,
-            "unwrapper_sees": unwrapper_sees(MAX_SIGMA_RAD if UNWRAP_MAX_SIGMA is None else UNWRAP_MAX_SIGMA)}
+            "unwrapper_sees": unwrapper_sees()}
 
 
 def main() -> None:

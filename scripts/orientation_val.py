@@ -40,6 +40,7 @@ from gearscan.inference.predictor import (
     Predictor,
     burst_departure,
     falling_phase_share,
+    falling_step_share,
     frames_to_tensor,
 )
 from gearscan.twin.splits import SPLITS
@@ -65,12 +66,8 @@ def view_scenes(count: int, seed: int, size: int = 256) -> list[Scene]:
     return out
 
 
-def falling_share(phase: np.ndarray, weight: np.ndarray) -> float:
-    """Weighted share of falling column steps of a wrapped phase (weights: the smaller of each pair's)."""
-    step = np.remainder(phase[:, 1:] - phase[:, :-1] + math.pi, 2 * math.pi) - math.pi
-    w = np.minimum(weight[:, 1:], weight[:, :-1])
-    total = float(w.sum())
-    return float(w[step < 0].sum()) / total if total > 0 else float("nan")
+def nan_if_none(value: float | None) -> float:
+    return float("nan") if value is None else value
 
 
 def agree_share(phase: np.ndarray, three_step: np.ndarray, weight: np.ndarray) -> float:
@@ -99,7 +96,8 @@ def burst_record(predictor: Predictor, case) -> dict:
                      "sigma_median": float(np.median(s)) if s.size else float("nan"),
                      "sigma_mean": float(np.mean(s)) if s.size else float("nan"),
                      "sigma_p90": float(np.percentile(s, 90)) if s.size else float("nan"),
-                     "own_falling": falling_share(own, weight[:, ::-1] if mirror else weight),
+                     "own_falling": nan_if_none(falling_step_share(torch.from_numpy(own.copy()), torch.from_numpy(
+                         (mod[:, ::-1] if mirror else mod).copy()), MIN_MODULATION)),
                      "departure": burst_departure(r.phase, np.stack([m3, d3])),
                      "agree_share": agree_share(r.phase, np.arctan2(m3, d3), weight),
                      "net_modulation": float(np.median(r.modulation[lit])) if lit.any() else float("nan")}

@@ -195,7 +195,7 @@ def test_replay_keep_settings_reach_the_reconstructor(twin_recording, tmp_path):
     the pixels the support test drops, and a tighter bound reports fewer points."""
     from gearscan.inference.model_io import read_config
     from gearscan.inference.predictor import DEFAULT_MODEL, model_network_support
-    from gearscan.recon.measure import MAX_SIGMA_RAD, UNWRAP_MAX_SIGMA, unwrapper_sees
+    from gearscan.recon.measure import MAX_SIGMA_RAD, unwrapper_sees
 
     shipped = model_network_support(read_config(DEFAULT_MODEL)).per_burst_px
     expected = {"default": shipped, "off": None, "2 px": 2, "tight": shipped}
@@ -210,7 +210,7 @@ def test_replay_keep_settings_reach_the_reconstructor(twin_recording, tmp_path):
         assert data["recon"]["network_support_px"] == expected[label]  # the metrics say what ran
         assert data["recon"]["max_sigma_rad"] == (0.1 if label == "tight" else MAX_SIGMA_RAD)
         bound = data["recon"]["max_sigma_rad"]
-        assert data["recon"]["unwrapper_sees"] == unwrapper_sees(bound if UNWRAP_MAX_SIGMA is None else UNWRAP_MAX_SIGMA)
+        assert data["recon"]["unwrapper_sees"] == unwrapper_sees(max_sigma=bound)
 
     def total(label, key):
         return sum(r.get(key, 0) for r in runs[label]["bursts"])

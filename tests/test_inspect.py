@@ -242,8 +242,7 @@ def test_the_shipped_support_tests_are_the_val_choices():
     assert keep["chosen_max_sigma"] == MAX_SIGMA_RAD
     assert UNWRAP_MAX_SIGMA == {"all": math.inf, "same": None}[keep["chosen_unwrap"]]
     # the two choices read one another: the support test was scored at the shipped bound, on the same kind of sample
-    assert per_burst["keep_bound"] == {"max_sigma_rad": MAX_SIGMA_RAD, "unwrapper_sees": unwrapper_sees(
-        MAX_SIGMA_RAD if UNWRAP_MAX_SIGMA is None else UNWRAP_MAX_SIGMA)}
+    assert per_burst["keep_bound"] == {"max_sigma_rad": MAX_SIGMA_RAD, "unwrapper_sees": unwrapper_sees()}
     assert per_burst["motions"] == keep["motions"] == "wide"
     assert keep["model_fingerprint"] == shipped
     assert keep["network_support_px"] == model_network_support(read_config(DEFAULT_MODEL)).per_burst_px  # the model's own
