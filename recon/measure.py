@@ -41,7 +41,8 @@ MAX_SIGMA_RAD = 0.7
 # Session 44 chose inf on the paper's motions (at 0.3 rad the bound first hid the neighbours that expose a wrong
 # fringe order: 2,731 still-burst points beyond 0.5 mm against 4); session 45's rerun on a val sample with the 0.5-3
 # deg motions chose the keep bound itself (None): there every modulated pixel gave more moving gross points at 0.3 rad
-# (41,075 against 39,501), which the rule's first step does not allow, and at 0.7 rad the two are close
+# (41,075 against 39,501), which the rule's first step then did not allow, and at 0.7 rad the two are close; session
+# 46's amended first step compares them at the bounds that ship and kept None on a fresh sample (seed 1600)
 UNWRAP_MAX_SIGMA: float | None = None
 
 

@@ -71,7 +71,7 @@ def adopt_unwrap_all(table: dict) -> bool:
 
 
 def choose(table: dict) -> tuple[str, float | None]:
-    """The rule: (unwrap mask, keep bound), None for no bound (or none admissible, then 0.3 stays)."""
+    """The rule: (unwrap mask, keep bound); the bound None for no bound, 0.3 where the mask admits none."""
     mask = "all" if adopt_unwrap_all(table) else "same"
     chosen = bound_under(table, mask)
     return mask, None if math.isinf(chosen) else chosen
