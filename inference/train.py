@@ -498,6 +498,13 @@ class Trainer:
                 self._save(self._best_copy(src), f"cpu_{m:g}min",
                            {"cpu_min": cpu_min, "mark_cpu_min": m, "metrics": self.history[-1]})
 
+    def _kept_metrics(self, final: dict) -> dict:
+        """The validation row of the weights the run ends with (its last stage's best, which ``fit`` loads back), not
+        the last epoch's: a model's JSON describes the weights beside it."""
+        stage = max((int(h["stage"]) for h in self.history), default=1)
+        best = self.out / f"stage{stage}_best.json"
+        return json.loads(best.read_text()).get("metrics", final) if best.is_file() else final
+
     def _save(self, model: torch.nn.Module, name: str, extra: dict, var_scale: float = 1.0) -> Path:
         """``out/<name>.safetensors`` with its JSON: ``extra`` plus what the run inherits from its init."""
         return save_model(model, self.out / f"{name}.safetensors", var_scale=var_scale,
@@ -752,13 +759,15 @@ class Trainer:
         best_path = None
         if self.dist.main:
             final = self.history[-1] if self.history else {}
+            kept = self._kept_metrics(final)
             best_path = self._save(
                 self.model,
                 "best",
                 var_scale=var_scale,
                 extra={
                     "training": cfg.to_json(),
-                    "metrics": final,
+                    "metrics": kept,
+                    "final_metrics": final,
                     "calibration": calib,
                     **({"sigma_calibration": sigma_cal} if sigma_cal else {}),
                     "train_seconds": time.perf_counter() - t0,

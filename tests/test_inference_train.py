@@ -115,6 +115,11 @@ def test_two_stages_split_files_and_rates_move(tmp_path):
     assert (
         meta["var_scale"] > 0 and "calibration" in meta and meta["training"]["epochs_dropout"] == 3
     )
+    # its metrics are the kept weights' (the last stage's best on val), the last epoch's beside them
+    kept = min((h for h in hist if h["stage"] == 2), key=lambda h: h["val_loss"])
+    assert (meta["metrics"]["stage"], meta["metrics"]["epoch"]) == (2, kept["epoch"])
+    assert meta["metrics"]["val_loss"] == pytest.approx(kept["val_loss"])
+    assert (meta["final_metrics"]["stage"], meta["final_metrics"]["epoch"]) == (2, hist[-1]["epoch"])
     # the sigma maps are fitted per mode by the event score on the validation truth, and the predictor applies them
     fits = meta["calibration"]["sigma_calibration"]
     assert set(meta["sigma_calibration"]) == {"deterministic", "mc"} and fits["mc"]["passes"] == 20
