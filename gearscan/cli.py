@@ -259,7 +259,7 @@ def replay_cmd(
     model: Annotated[Path | None, typer.Option(help="model weights (.safetensors); default: the shipped model")] = None,
     truth: Annotated[bool, typer.Option(help="score against the recording's truth when it has one (--no-truth: what a live run does per burst)")] = True,
     workers: Annotated[int | None, typer.Option(min=1, help="bursts decoded at once (default: 2 on a CPU, 1 on a GPU)")] = None,
-    still_span_deg: Annotated[float | None, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never; default 0.075)")] = None,
+    still_span_deg: Annotated[float | None, typer.Option(min=0, help="bursts spanning less turntable angle go to three-step PS (0: never; default 0.0375, the val choice for v9)")] = None,
     orientation: Annotated[str, typer.Option(help="the rig's fringe phase along the camera columns: normal (rising, the twin's rigs), mirrored, or auto (from the rig calibration; 3 still bursts that agree against it win; without a usable calibration a vote per burst, which misreads fast bursts)")] = "auto",
     strict: Annotated[bool, typer.Option(help="exit 1 when the recording has damage (default: skip it, measure the rest, exit 0)")] = False,
     unwrap: Annotated[str, typer.Option(help="fringe orders from the gear's CAD ('cad'), or CAD-free from its envelope ('envelope') or from the recording's coarse bursts ('coarse')")] = "cad",

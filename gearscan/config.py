@@ -72,7 +72,7 @@ bore = 10.0
 mc = 0                       # Monte Carlo passes for model uncertainty (0: one deterministic pass)
 precision = "auto"           # "auto", "fp32" or "bf16"
 # workers = 2                # bursts decoded at once; default: 2 on a CPU (faster than 1), 1 on a GPU
-still_span_deg = 0.075       # bursts spanning less turntable angle go to three-step PS (0: never)
+still_span_deg = 0.0375      # bursts spanning less turntable angle go to three-step PS (0: never; val choice)
 orientation = "auto"         # fringe phase along the camera's columns: "normal" (rising, as the twin's
                              # rigs), "mirrored", or "auto" (from the rig calibration's geometry; 3 still
                              # bursts that agree against it win, with a warning; a calibration without

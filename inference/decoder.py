@@ -23,7 +23,9 @@ if TYPE_CHECKING:  # the predictor (torch) is imported only when a network decod
 
 logger = logging.getLogger(__name__)
 
-STILL_SPAN_DEG = 0.075  # below this burst span three-step PS beat the network on radial val rigs (Decoder)
+# below this burst span three-step PS beat the shipped network on radial val rigs (Decoder); v6 0.075, v9 0.0375 since
+# session 46 (benchmarks/still_span_rule.md, benchmarks/still_crossover_report.md)
+STILL_SPAN_DEG = 0.0375
 ORIENTATION_VOTES = 3  # still bursts whose agreeing votes set the rig's fringe orientation (Decoder, "auto")
 
 

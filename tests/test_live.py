@@ -76,6 +76,11 @@ def test_template_is_valid_and_errors_name_the_key(tmp_path):
     assert "camera.exposure_us" in msg and "(got -1)" in msg
     assert "projector.backend" in msg and "'laser'" in msg
     assert cfg.model.orientation == "auto"
+    # the template states the val choices the code ships (a user's copy keeps what it says)
+    from gearscan.inference.decoder import STILL_SPAN_DEG
+    from gearscan.recon.measure import MAX_SIGMA_RAD
+
+    assert cfg.model.still_span_deg == STILL_SPAN_DEG and cfg.recon.max_sigma_rad == MAX_SIGMA_RAD
     with pytest.raises(ValueError, match="model.orientation"):
         LiveConfig.from_toml(TEMPLATE.replace('orientation = "auto"', 'orientation = "upside"'), "rig.toml")
     assert cfg.recon.network_support_px is None  # the template leaves it to the model's own val choice

@@ -194,14 +194,15 @@ def test_still_bursts_go_to_three_step_and_moving_ones_to_the_network(noisy_rend
         angles = [math.radians(3.0 + step_deg * i) for i in range(3)]
         return _burst(noisy_renderer.render_sequence(angles, ps, [0, 1, 2], rng=1)[0], angles)
 
-    still, moving = burst(0.02), burst(0.6)  # spans 0.04 and 1.2 deg
+    still, moving = burst(0.015), burst(0.6)  # spans 0.03 and 1.2 deg
+    assert Decoder.__init__.__kwdefaults__["still_span_deg"] > 0.03  # the shipped route takes the first
     dec = Decoder(workers=1)
     r = dec(still)
     assert r.mode == "three-step" and dec.still_bursts == 1
     np.testing.assert_array_equal(r.phase, classical_result(still).phase)
     assert dec(moving).mode == "deterministic" and dec.still_bursts == 1
     # without the encoder route the network's path decodes it: there the shipped still-burst gate (0.03 rad; this
-    # burst's interior departure is 0.021 rad) hands it to three-step PS, and with that gate off the network's
+    # burst's interior departure is below it) hands it to three-step PS, and with that gate off the network's
     # own phase stands
     no_route = Decoder(workers=1, still_span_deg=0)
     assert no_route(still).mode == "three-step" and no_route.still_bursts == 0
