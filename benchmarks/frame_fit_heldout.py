@@ -62,8 +62,9 @@ def render_stretch(out: Path, stretch: dict, alternate: bool, bursts: int) -> Pa
     return rec
 
 
-def score_stretch(rec: Path, decoder, network_support_px: int | None) -> dict:
-    """Replay ``rec`` with fusion and the frame fit, and score the fused cloud against the twin's true surface."""
+def score_stretch(rec: Path, decoder, network_support_px: int | None, max_sigma: float | None = None) -> dict:
+    """Replay ``rec`` with fusion and the frame fit, and score the fused cloud against the twin's true surface
+    (``max_sigma``: the keep bound; None: the product's for this path, ``recon.measure.FRAME_FIT_MAX_SIGMA_RAD``)."""
     import open3d as o3d
 
     from gearscan.core.recording import RecordingReader
@@ -73,7 +74,7 @@ def score_stretch(rec: Path, decoder, network_support_px: int | None) -> dict:
 
     t = time.perf_counter()
     m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True,
-               network_support_px=network_support_px)
+               network_support_px=network_support_px, max_sigma=max_sigma)
     seconds = time.perf_counter() - t
     reader = RecordingReader(rec)
     scene = o3d.t.geometry.RaycastingScene()

@@ -271,7 +271,7 @@ def replay_cmd(
     csv: Annotated[Path | None, typer.Option(help="write every burst's cloud as DIR/burst_NNNNNN.csv (x_mm,y_mm,z_mm,sigma_mm[,deviation_mm])")] = None,
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON for a recording made without one (replaces the recording's own)")] = None,
     network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: per burst none for the shipped v9, 2 px for v6 and the default-rig option; with --fuse and its frame fit none for v9, 0 px for v6 and the option; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
-    max_sigma_rad: Annotated[float | None, typer.Option(min=0.01, help="report no point whose total phase sigma exceeds this, rad (the fringe orders are found on the pixels within it, recon.measure.UNWRAP_MAX_SIGMA; default: the product's val choice, recon.measure.MAX_SIGMA_RAD)")] = None,
+    max_sigma_rad: Annotated[float | None, typer.Option(min=0.01, help="report no point whose total phase sigma exceeds this, rad (the fringe orders are found on the pixels within it, recon.measure.UNWRAP_MAX_SIGMA; default: the product's val choice for the path, recon.measure.MAX_SIGMA_RAD per burst, FRAME_FIT_MAX_SIGMA_RAD with --fuse and its frame fit)")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
 
@@ -310,7 +310,7 @@ def replay_cmd(
             from gearscan.recon.fuse import CloudFuser
 
             fuser = CloudFuser(voxel_mm, min_bursts)
-        from gearscan.recon.measure import MAX_SIGMA_RAD, network_support_option
+        from gearscan.recon.measure import network_support_option
 
         if max_sigma_rad is not None and not math.isfinite(max_sigma_rad):
             raise typer.BadParameter(f"expected a finite bound in rad, got {max_sigma_rad}", param_hint="--max-sigma-rad")
@@ -319,7 +319,7 @@ def replay_cmd(
                         network_support_px=network_support_option(network_support_px,
                                                                   frame_fit=refine and fuser is not None,
                                                                   model=decoder.network_support),
-                        max_sigma=MAX_SIGMA_RAD if max_sigma_rad is None else max_sigma_rad)
+                        max_sigma=max_sigma_rad)
         if fuse is not None:
             from gearscan.inspect import dropped_note
             from gearscan.recon.fuse import save_fused

@@ -26,10 +26,10 @@ from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
 from gearscan.recon.measure import (
-    MAX_SIGMA_RAD,
     PRODUCT_SUPPORT,
     CoarseStage,
     Reconstructor,
+    keep_bound_option,
     network_support_option,
     unwrapper_sees,
 )
@@ -240,7 +240,7 @@ def replay(
     export: CloudExport | None = None,
     refine: bool = False,
     network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
-    max_sigma: float = MAX_SIGMA_RAD,
+    max_sigma: float | None = None,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
@@ -249,7 +249,9 @@ def replay(
     to the frames, else its ``per_burst_px`` (``decoder.network_support``); where it names none, the product's,
     :data:`~gearscan.recon.measure.FRAME_FIT_NETWORK_SUPPORT_PX` or :data:`~gearscan.recon.measure.NETWORK_SUPPORT_PX`).
     ``max_sigma``: the keep bound, rad (a point is reported where its total phase sigma is at most this; the fringe
-    orders are found on the pixels within ``recon.measure.UNWRAP_MAX_SIGMA``, since session 45 the keep bound itself). ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
+    orders are found on the pixels within ``recon.measure.UNWRAP_MAX_SIGMA``, since session 45 the keep bound itself);
+    None: the product's for the path, :data:`~gearscan.recon.measure.FRAME_FIT_MAX_SIGMA_RAD` when ``fuse`` and
+    ``refine`` fit the fused points to the frames, else :data:`~gearscan.recon.measure.MAX_SIGMA_RAD`. ``unwrap`` picks how fringe orders are found (``"cad"``, or CAD-free ``"envelope"`` or
     ``"coarse"`` around the recording's coarse bursts, :class:`~gearscan.recon.measure.Reconstructor`). ``truth=False`` skips the scoring against a twin recording's truth (CAD distance of every
     point, a three-step baseline), so the run costs what a live run costs.
 
@@ -289,6 +291,7 @@ def replay(
     if network_support_px == PRODUCT_SUPPORT:
         network_support_px = network_support_option(None, frame_fit=refine and fuse is not None,
                                                      model=getattr(decoder, "network_support", None))
+    max_sigma = keep_bound_option(max_sigma, frame_fit=refine and fuse is not None)
     recon = (Reconstructor.for_gear(rig, period, gear, unwrap=unwrap, network_support_px=network_support_px,
                                     max_sigma=max_sigma)
              if (reconstruct and gear is not None) else None)

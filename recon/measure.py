@@ -44,6 +44,19 @@ MAX_SIGMA_RAD = 0.7
 # (41,075 against 39,501), which the rule's first step then did not allow, and at 0.7 rad the two are close; session
 # 46's amended first step compares them at the bounds that ship and kept None on a fresh sample (seed 1600)
 UNWRAP_MAX_SIGMA: float | None = None
+# ... and on the path that fits fused points to the raw frames (`inspect`, `replay --fuse`), its own keep bound: a
+# fused voxel's frame fit can settle on a wrong solution from per-burst points the bound let in (held-out stretch
+# seed 23, fixed order, session 46); val choice, benchmarks/frame_fit_keep_bound_rule.md
+# (scripts/choose_frame_fit_keep_bound.py -> benchmarks/frame_fit_keep_bound_val.json)
+FRAME_FIT_MAX_SIGMA_RAD = 0.7
+
+
+def keep_bound_option(max_sigma: float | None, *, frame_fit: bool = False) -> float:
+    """A ``--max-sigma-rad`` as the reconstructor's keep bound: None keeps the product's for the path taken
+    (:data:`FRAME_FIT_MAX_SIGMA_RAD` where fused points are fitted to the frames, else :data:`MAX_SIGMA_RAD`)."""
+    if max_sigma is None:
+        return FRAME_FIT_MAX_SIGMA_RAD if frame_fit else MAX_SIGMA_RAD
+    return max_sigma
 
 
 class ModelSupport(Protocol):
