@@ -70,7 +70,8 @@ def main() -> None:
                               **score_stretch(rec, decoder, support, max_sigma=b)})
                 print({k: cells[-1][k] for k in ("seed", "order", "max_sigma", "rms_um", "coverage")}, flush=True)
     res = {"rule": "benchmarks/frame_fit_keep_bound_rule.md", "split": "val", "model_fingerprint":
-           model_fingerprint(DEFAULT_MODEL), "network_support_px": support, "unwrapper_sees": unwrapper_sees(),
+           model_fingerprint(DEFAULT_MODEL), "network_support_px": support,
+           "unwrapper_sees": {str(b): unwrapper_sees(max_sigma=b) for b in CANDIDATES},
            "cells": cells, "choice": choose(cells), **run_stamp()}
     args.out.write_text(json.dumps(res, indent=1))
     print(json.dumps(res["choice"], indent=1))

@@ -251,6 +251,33 @@ def test_the_shipped_support_tests_are_the_val_choices():
             == ReconSection().max_sigma_rad == MAX_SIGMA_RAD)
 
 
+def test_the_keep_bound_follows_the_path(tmp_path, monkeypatch, support_spy):
+    """``replay`` and ``run_inspection`` without a bound give the reconstructor the product's for the path they take:
+    the frame-fit path's own (``FRAME_FIT_MAX_SIGMA_RAD``) where fused points are fitted to the frames, the per-burst
+    one (``MAX_SIGMA_RAD``) elsewhere (set apart here: 0.45 / 0.65 rad); an explicit bound wins."""
+    from gearscan.core.rig import default_rig
+    from gearscan.inspect import run_inspection
+    from gearscan.recon import measure
+    from gearscan.recon.fuse import CloudFuser
+    from gearscan.replay import replay
+    from gearscan.twin.recordings import render_recording
+
+    monkeypatch.setattr(measure, "MAX_SIGMA_RAD", 0.65)
+    monkeypatch.setattr(measure, "FRAME_FIT_MAX_SIGMA_RAD", 0.45)
+    rec = tmp_path / "rec"
+    render_recording(rec, rig=default_rig(64, 64), motion="static", bursts=1)
+    cases = [(lambda: replay(rec), 0.65),
+             (lambda: replay(rec, fuse=CloudFuser(0.1, 3), refine=True), 0.45),
+             (lambda: replay(rec, fuse=CloudFuser(0.1, 3)), 0.65),
+             (lambda: replay(rec, fuse=CloudFuser(0.1, 3), refine=True, max_sigma=0.9), 0.9),
+             (lambda: run_inspection(rec, tmp_path / "out"), 0.45),
+             (lambda: run_inspection(rec, tmp_path / "out", refine=False), 0.65)]
+    for call, expected in cases:
+        with pytest.raises(support_spy.Called):
+            call()
+        assert support_spy.calls[-1]["max_sigma"] == expected
+
+
 def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkeypatch, own_support_decoder,
                                                                  support_spy):
     """``replay`` and ``run_inspection`` without ``network_support_px`` give the reconstructor the test for the path
