@@ -246,7 +246,19 @@ def test_the_shipped_support_tests_are_the_val_choices():
     assert per_burst["motions"] == keep["motions"] == "wide"
     assert keep["model_fingerprint"] == shipped
     assert keep["network_support_px"] == model_network_support(read_config(DEFAULT_MODEL)).per_burst_px  # the model's own
-    # one bound everywhere: the reconstructor, the keep test the reports score and the live config's default
+    # the frame-fit path's own bound (benchmarks/frame_fit_keep_bound_rule.md), chosen for this decode
+    from gearscan.recon.measure import FRAME_FIT_MAX_SIGMA_RAD
+
+    sys.path.insert(0, str(bench.parent / "scripts"))
+    try:
+        import choose_frame_fit_keep_bound
+    finally:
+        del sys.path[0]
+    ffkb = json.loads((bench / "frame_fit_keep_bound_val.json").read_text())
+    assert choose_frame_fit_keep_bound.choose(ffkb["cells"]) == ffkb["choice"]
+    assert ffkb["choice"]["chosen"] == FRAME_FIT_MAX_SIGMA_RAD and ffkb["model_fingerprint"] == shipped
+    assert ffkb["network_support_px"] == model_network_support(read_config(DEFAULT_MODEL)).frame_fit_px  # as shipped
+    # one per-burst bound: the reconstructor, the keep test the reports score and the live config's default
     assert (Reconstructor.__init__.__kwdefaults__["max_sigma"] == keep_candidates.__kwdefaults__["max_sigma"]
             == ReconSection().max_sigma_rad == MAX_SIGMA_RAD)
 
