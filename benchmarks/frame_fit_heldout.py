@@ -106,7 +106,7 @@ def main() -> None:
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     from gearscan.inference.decoder import Decoder
-    from gearscan.recon.measure import network_support_option
+    from gearscan.recon.measure import keep_bound_option, network_support_option
     from gearscan.recon.track import REST_SIGMA_SCALE
 
     started, rows = host(), []
@@ -117,6 +117,8 @@ def main() -> None:
                     f"{'off' if support is None else f'{support} px'}" if args.network_support_px is None
                     else "no fringe-support test" if args.network_support_px < 0
                     else f"fringe-support test {args.network_support_px} px")
+    bound = keep_bound_option(None, frame_fit=True)
+    support_text += f"; keep bound {bound:g} rad, the frame-fit path's"
     for s in STRETCHES:
         for alternate in (True, False):
             rec = render_stretch(args.out, s, alternate, args.bursts)
@@ -157,7 +159,7 @@ def main() -> None:
     args.report.with_suffix(".json").write_text(json.dumps({"commit": commit(), "host": started, "rows": rows,
                                                           "network_support_px": args.network_support_px,  # the option; None: the model's own
                                                           "support_px_run": support,  # what ran (None: no test)
-                                                          "support_test": support_text}, indent=2))
+                                                          "support_test": support_text, "max_sigma_rad": bound}, indent=2))
     print("\n".join(lines))
 
 

@@ -80,7 +80,7 @@ def main() -> None:
     from gearscan.core.recording import RecordingReader
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
-    from gearscan.recon.measure import network_support_option
+    from gearscan.recon.measure import keep_bound_option, network_support_option
     from gearscan.recon.track import REST_SIGMA_SCALE
     from gearscan.twin.defects import GearDefects, true_mesh
 
@@ -104,9 +104,10 @@ def main() -> None:
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
     decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
-    # the frame-fit path's test (the model's own for inspect, else the product's) on both runs: the fused-only run is
-    # the same fused cloud before the fit, voxel for voxel (the 'before' figures below rely on it)
+    # the frame-fit path's test (the model's own for inspect, else the product's) and keep bound on both runs: the
+    # fused-only run is the same fused cloud before the fit, voxel for voxel (the 'before' figures below rely on it)
     support = network_support_option(args.network_support_px, frame_fit=True, model=decoder.network_support)
+    bound = keep_bound_option(None, frame_fit=True)
     per_burst = network_support_option(None, frame_fit=False, model=decoder.network_support)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
@@ -117,13 +118,14 @@ def main() -> None:
     # the same revolution without the frame fit: what the fit adds, on this run's host and commit
     t = time.perf_counter()
     plain = run_inspection(args.recording, args.out / "plain", decoder=decoder, grade=8, voxel_mm=args.voxel_mm,
-                           min_bursts=args.min_bursts, refine=False, progress=print, network_support_px=support)
+                           min_bursts=args.min_bursts, refine=False, progress=print, network_support_px=support,
+                           max_sigma=bound)
     plain_seconds = time.perf_counter() - t
     plain_dist = distance(plain.fused.points)
     t = time.perf_counter()
     report = run_inspection(args.recording, args.out, decoder=decoder, grade=8,
                             voxel_mm=args.voxel_mm, min_bursts=args.min_bursts, refine=True, progress=print,
-                            network_support_px=support)
+                            network_support_px=support, max_sigma=bound)
     seconds = time.perf_counter() - t
     insp, fused = report.inspection, report.fused
     dist = distance(fused.points)
@@ -209,6 +211,7 @@ def main() -> None:
         decoder += (f"; fringe-support test {px(support)} ({whose} with the frame fit; "
                     f"`replay --fuse --no-refine` runs {px(per_burst)}) on both runs" if args.network_support_px is None
                     else "; no fringe-support test" if support is None else f"; fringe-support test {support} px")
+    decoder += f"; keep bound {bound:g} rad (the frame-fit path's) on both runs"
     lines = [
         "# Inspection benchmark (issue 14: fused revolution, ISO 1328-1 pitch and runout)",
         "",
@@ -309,7 +312,7 @@ def main() -> None:
     ]
     args.report.with_suffix(".md").write_text("\n".join(lines))
     args.report.with_suffix(".json").write_text(json.dumps({
-        "commit": commit(), "host": started, "seconds": seconds, "decoder": decoder,
+        "commit": commit(), "host": started, "seconds": seconds, "decoder": decoder, "max_sigma_rad": bound,
         "fused_rms_mm": rms, "fused_p95_mm": float(np.percentile(dist, 95)), "coverage": coverage,
         "fused_only_rms_mm": plain_rms, "refined_fraction": float(refined.mean()), "refined_rms_mm": rms_refined,
         "refined_before_rms_mm": before_refined, "kept_rms_mm": rms_kept, "plain_seconds": plain_seconds,

@@ -107,6 +107,7 @@ def run_inspection(
     refine: bool = True,
     progress: Callable[[str], None] | None = None,
     network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
+    max_sigma: float | None = None,
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
@@ -115,7 +116,8 @@ def run_inspection(
     write the rerun stream (bursts and the fused model) there; ``refine``: fit the fused points
     to the raw frames (:class:`~gearscan.recon.track.TrackRefiner`); ``network_support_px``: the reconstructor's
     fringe-support test for a network's pixels (None: none; ``"product"``: the decoding model's own for the path,
-    else the product's, as :func:`~gearscan.replay.replay` resolves it with ``refine``). ``inspect_options`` go to
+    else the product's, as :func:`~gearscan.replay.replay` resolves it with ``refine``); ``max_sigma``: the keep bound,
+    rad (None: the product's for the path, as :func:`~gearscan.replay.replay` resolves it). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import replay
@@ -131,7 +133,7 @@ def run_inspection(
     say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
     fuser = CloudFuser(voxel_mm, min_bursts)
     metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine,
-                     network_support_px=network_support_px)
+                     network_support_px=network_support_px, max_sigma=max_sigma)
     if metrics.fused is None or not len(metrics.fused):
         raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
     fused = metrics.fused

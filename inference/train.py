@@ -494,9 +494,10 @@ class Trainer:
                 continue
             self.state["checkpoints"].append(m)
             src = self.out / f"stage{stage}_best.safetensors"
-            if self.dist.main and src.is_file():
+            if self.dist.main and src.is_file():  # the metrics of the weights copied; the mark's epoch beside them
+                kept = json.loads(src.with_suffix(".json").read_text()).get("metrics", self.history[-1])
                 self._save(self._best_copy(src), f"cpu_{m:g}min",
-                           {"cpu_min": cpu_min, "mark_cpu_min": m, "metrics": self.history[-1]})
+                           {"cpu_min": cpu_min, "mark_cpu_min": m, "metrics": kept, "mark_metrics": self.history[-1]})
 
     def _kept_metrics(self, final: dict) -> dict:
         """The validation row of the weights the run ends with (its last stage's best, which ``fit`` loads back), not

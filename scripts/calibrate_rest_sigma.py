@@ -35,7 +35,7 @@ def rest_z(rec: Path, decoder, keep: Path) -> dict:
 
     from gearscan.core.recording import RecordingReader
     from gearscan.recon.fuse import CloudFuser
-    from gearscan.recon.measure import network_support_option
+    from gearscan.recon.measure import keep_bound_option, network_support_option
     from gearscan.recon.track import TrackRefiner
     from gearscan.replay import recording_rig, replay
     from gearscan.twin.defects import GearDefects, true_mesh
@@ -44,7 +44,8 @@ def rest_z(rec: Path, decoder, keep: Path) -> dict:
     refiner = TrackRefiner(recording_rig(reader, None), reader.patterns.periods[0], rest_sigma_scale=1.0)  # unscaled
     m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=False,
                network_support_px=network_support_option(None, frame_fit=True,  # as `inspect` runs this model
-                                                         model=getattr(decoder, "network_support", None)), on_burst=lambda meas, row: refiner.add(meas))
+                                                         model=getattr(decoder, "network_support", None)),
+               max_sigma=keep_bound_option(None, frame_fit=True), on_burst=lambda meas, row: refiner.add(meas))
     fused = m.fused
     fit, off, _ = refiner.fit_fused(fused)  # the product's fit, before its bound drops anything
     r = fit.refined

@@ -209,6 +209,10 @@ def test_cpu_budget_stops_cleanly_and_keeps_the_best_on_val(tmp_path):
     assert meta["budget_hit"] and meta["train_cpu_min"] == pytest.approx(result.cpu_seconds / 60)
     mark = Path(cfg.out_dir) / "cpu_0.01min.safetensors"
     assert mark.is_file() and json.loads(mark.with_suffix(".json").read_text())["cpu_min"] >= 0.01
+    # the JSONs describe the weights beside them (the init's validation row), the epoch they were written at beside it
+    mark_meta = json.loads(mark.with_suffix(".json").read_text())
+    assert mark_meta["metrics"]["epoch"] == 0 and mark_meta["mark_metrics"]["epoch"] > 0
+    assert meta["metrics"]["epoch"] == 0 and meta["final_metrics"]["epoch"] == hist[-1]["epoch"] > 0
 
 
 def test_val_objective_full_stops_on_the_trained_objective(tmp_path, monkeypatch):
