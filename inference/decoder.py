@@ -46,10 +46,10 @@ class Decoder:
 
     Bursts whose encoder angles span less than ``still_span_deg`` (frame 1 to 3) go to
     three-step PS instead of the network: without motion it has no motion error. On the val
-    split's radial rigs it beat the shipped network (v6) up to 0.05 deg (still: 0.056 vs 0.064 rad),
-    the network wins from 0.1 deg on; on the any-view val rigs the network won even on a still
-    gear (0.073 vs 0.078; benchmarks/still_crossover_report.md), so there the route costs a little on
-    still gears: a compromise for the radial rigs. 0 sends every burst to the network.
+    split's radial rigs it beat the shipped network (v9) up to a 0.025 deg span (still: 0.056 vs 0.059
+    rad), v9 wins from 0.05 deg on; on the any-view val rigs v9 won even on a still gear (0.065 vs 0.078;
+    benchmarks/still_crossover_report.md, benchmarks/still_span_rule.md), so there the route costs a
+    little on still gears: a compromise for the radial rigs. 0 sends every burst to the network.
 
     ``orientation``: the rig's fringe direction for the network (:class:`Predictor`):
     ``"normal"``/``"mirrored"`` fix it for the whole run. ``"auto"`` takes it from the rig's calibration
