@@ -29,8 +29,9 @@ UNWRAP_MODES = ("cad", "envelope", "coarse")
 NETWORK_SUPPORT_PX: int | None = None
 # ... and where the fused points are then fitted to the raw frames (`inspect`, `replay --fuse`): the frame fit
 # takes the pixels a test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
-# scripts/choose_fused_support.py -> benchmarks/fused_support_val.json): 0 px for v6, no test (None) for v9
-FRAME_FIT_NETWORK_SUPPORT_PX: int | None = None
+# scripts/choose_fused_support.py -> benchmarks/fused_support_val.json): 0 px for v6, no test (None) for v9, and 0 px
+# again since session 46's rerun at this path's own keep bound (0.5 rad)
+FRAME_FIT_NETWORK_SUPPORT_PX: int | None = 0
 PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the decoding model's test for the path
 # taken, else the product's (network_support_option)
 # The keep bound: a point is reported where its total phase sigma is at most this (rad). 0.3 until session 44 (never
