@@ -270,7 +270,7 @@ def replay_cmd(
     ply: Annotated[Path | None, typer.Option(help="write every burst's cloud (gear frame: x y z mm, sigma) as DIR/burst_NNNNNN.ply")] = None,
     csv: Annotated[Path | None, typer.Option(help="write every burst's cloud as DIR/burst_NNNNNN.csv (x_mm,y_mm,z_mm,sigma_mm[,deviation_mm])")] = None,
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON for a recording made without one (replaces the recording's own)")] = None,
-    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: per burst none for the shipped v9, 2 px for v6 and the default-rig option; with --fuse and its frame fit none for v9, 0 px for v6 and the option; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
+    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: per burst none for the shipped v9, 2 px for v6 and the default-rig option; with --fuse and its frame fit 0 px for v9, v6 and the option; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
     max_sigma_rad: Annotated[float | None, typer.Option(min=0.01, help="report no point whose total phase sigma exceeds this, rad (the fringe orders are found on the pixels within it, recon.measure.UNWRAP_MAX_SIGMA; default: the product's val choice for the path, recon.measure.MAX_SIGMA_RAD per burst, FRAME_FIT_MAX_SIGMA_RAD with --fuse and its frame fit, then for every burst of the run, its per-burst metrics and exports too)")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
@@ -611,7 +611,7 @@ def inspect_cmd(
     unwrap: Annotated[str, typer.Option(help="fringe orders from the CAD ('cad') or its envelope ('envelope')")] = "cad",
     save: Annotated[Path | None, typer.Option(help="also write the rerun stream (bursts + fused model) to this .rrd")] = None,
     refine: Annotated[bool, typer.Option(help="fit each fused point to every raw frame that saw it (keeps the recording's frames in memory)")] = True,
-    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: with the frame fit off for the shipped v9, 0 px for v6 and the default-rig option; with --no-refine none for v9, 2 px for v6 and the option; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
+    network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: with the frame fit 0 px for the shipped v9, v6 and the default-rig option; with --no-refine none for v9, 2 px for v6 and the option; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
 ) -> None:
     """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
     from gearscan.core.recording import RecordingError
