@@ -601,9 +601,11 @@ def test_a_model_carries_its_own_fringe_support_tests(saved, tmp_path):
         save_model(model, path, extra={"network_support": bad})
         with pytest.raises(ModelFileError, match=match):
             Predictor.load(path)
-    # the shipped files: v9 its own val choices (no test per burst since session 44, none with the frame fit), v6 and
-    # the option 2 px / 0 px
+    # the shipped files: v9 its own val choices (the product's constants, which tests/test_inspect.py ties to the val
+    # runs' jsons), v6 and the option 2 px / 0 px
+    from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
+
     shipped = {name: model_network_support(read_config(WEIGHTS_DIR / f"{name}.safetensors"))
                for name in ("default", "v6", "default_rig")}
-    assert shipped == {"default": NetworkSupport(None, None), "v6": NetworkSupport(2, 0),
-                       "default_rig": NetworkSupport(2, 0)}
+    assert shipped == {"default": NetworkSupport(NETWORK_SUPPORT_PX, FRAME_FIT_NETWORK_SUPPORT_PX),
+                       "v6": NetworkSupport(2, 0), "default_rig": NetworkSupport(2, 0)}
