@@ -62,35 +62,49 @@ def render_stretch(out: Path, stretch: dict, alternate: bool, bursts: int) -> Pa
     return rec
 
 
+def truth_scene(reader):
+    """A ray-casting scene of the twin's true surface (the gear with the recording's defects)."""
+    import open3d as o3d
+
+    from gearscan.twin.defects import GearDefects, true_mesh
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
+    return scene
+
+
+def score_fused(reader, scene, fused, refine_stats: dict, seconds: float) -> dict:
+    """A fused, fitted cloud against the true surface (``scene``: :func:`truth_scene`): coverage, RMS of all points,
+    the fitted and the other ones, p95 and the sigma honesty of both kinds."""
+    import open3d as o3d
+
+    cov = coverage(reader, fused.points)
+    d = 1e3 * np.abs(scene.compute_signed_distance(o3d.core.Tensor(fused.points.astype(np.float32))).numpy())
+    r = fused.refined
+    rms = lambda x: float(np.sqrt(np.mean(x**2))) if x.size else None  # noqa: E731  (None: no such point)
+    return {"points": len(fused), "coverage": cov, "off_surface": refine_stats.get("off_surface", 0),
+            "uncertain": refine_stats.get("uncertain", 0), "unsettled": refine_stats.get("unsettled", 0),
+            "fitted": float(r.mean()),
+            "fitted_rms_um": rms(d[r]), "rest_rms_um": rms(d[~r]), "rms_um": rms(d),
+            "p95_um": float(np.percentile(d, 95)), "seconds": seconds,
+            # sigma honesty: median |error| / sigma is 0.67 for a right Gaussian sigma
+            "z_fitted": float(np.median(d[r] / (1e3 * fused.sigma[r]))),
+            "z_rest": float(np.median(d[~r] / (1e3 * fused.sigma[~r]))) if (~r).any() else None}
+
+
 def score_stretch(rec: Path, decoder, network_support_px: int | None, max_sigma: float | None = None) -> dict:
     """Replay ``rec`` with fusion and the frame fit, and score the fused cloud against the twin's true surface
     (``max_sigma``: the keep bound; None: the product's for this path, ``recon.measure.FRAME_FIT_MAX_SIGMA_RAD``)."""
-    import open3d as o3d
-
     from gearscan.core.recording import RecordingReader
     from gearscan.recon.fuse import CloudFuser
     from gearscan.replay import replay
-    from gearscan.twin.defects import GearDefects, true_mesh
 
     t = time.perf_counter()
     m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True,
                network_support_px=network_support_px, max_sigma=max_sigma)
     seconds = time.perf_counter() - t
     reader = RecordingReader(rec)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(true_mesh(reader.gear, GearDefects.from_meta(reader.meta))))
-    fused = m.fused
-    cov = coverage(reader, fused.points)
-    d = 1e3 * np.abs(scene.compute_signed_distance(o3d.core.Tensor(fused.points.astype(np.float32))).numpy())
-    r = fused.refined
-    rms = lambda x: float(np.sqrt(np.mean(x**2))) if x.size else None  # noqa: E731  (None: no such point)
-    return {"points": len(fused), "coverage": cov, "off_surface": m.refine.get("off_surface", 0),
-            "uncertain": m.refine.get("uncertain", 0), "fitted": float(r.mean()),
-            "fitted_rms_um": rms(d[r]), "rest_rms_um": rms(d[~r]), "rms_um": rms(d),
-            "p95_um": float(np.percentile(d, 95)), "seconds": seconds,
-            # sigma honesty: median |error| / sigma is 0.67 for a right Gaussian sigma
-            "z_fitted": float(np.median(d[r] / (1e3 * fused.sigma[r]))),
-            "z_rest": float(np.median(d[~r] / (1e3 * fused.sigma[~r]))) if (~r).any() else None}
+    return score_fused(reader, truth_scene(reader), m.fused, m.refine, seconds)
 
 
 def main() -> None:
@@ -107,7 +121,7 @@ def main() -> None:
 
     from gearscan.inference.decoder import Decoder
     from gearscan.recon.measure import keep_bound_option, network_support_option
-    from gearscan.recon.track import REST_SIGMA_SCALE
+    from gearscan.recon.track import REST_SIGMA_SCALE, SETTLE_RAD
 
     started, rows = host(), []
     decoder = Decoder(args.model)
@@ -119,6 +133,7 @@ def main() -> None:
                     else f"fringe-support test {args.network_support_px} px")
     bound = keep_bound_option(None, frame_fit=True)
     support_text += f"; keep bound {bound:g} rad, the frame-fit path's"
+    settle_text = "no settle test" if SETTLE_RAD is None else f"settle test {SETTLE_RAD:g} rad"
     for s in STRETCHES:
         for alternate in (True, False):
             rec = render_stretch(args.out, s, alternate, args.bursts)
@@ -135,14 +150,15 @@ def main() -> None:
         f"Default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, {args.bursts} bursts per stretch, eccentricity 50 µm, "
         f"one tooth +30 µm pitch error, one tip chipped 0.3 mm; {f'network `{args.model}`' if args.model else 'shipped network'} "
         f"(deterministic; {support_text}), fused per 0.1 mm "
-        "voxel (>= 3 bursts), fitted to the frames (sigma bound 30 µm for every point, fitted or not; off-surface drop 0.15 mm within 0.5 mm). "
+        "voxel (>= 3 bursts), fitted to the frames (sigma bound 30 µm for every point, fitted or not; off-surface drop 0.15 mm within 0.5 mm; "
+        f"{settle_text}: a fit still correcting more than that at its last iteration does not take its point). "
         "None of these stretches chose a setting. Distances to the twin's true (as-built) surface.",
         "",
-        "| seed | start | pattern order | fused points | coverage | dropped off-surface | dropped above the sigma bound | fitted | RMS fitted (µm) | "
-        "RMS rest (µm) | RMS whole cloud (µm) | p95 (µm) | median abs(err)/sigma fitted / rest |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| seed | start | pattern order | fused points | coverage | dropped off-surface | dropped above the sigma bound | unsettled fits | fitted | "
+        "RMS fitted (µm) | RMS rest (µm) | RMS whole cloud (µm) | p95 (µm) | median abs(err)/sigma fitted / rest |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *[f"| {w['seed']} | {w['start_deg']:g}° | {w['order']} | {w['points']:,} | {100 * w['coverage']:.1f} % | "
-          f"{w['off_surface']:,} | {w['uncertain']:,} | "
+          f"{w['off_surface']:,} | {w['uncertain']:,} | {w['unsettled']:,} | "
           f"{100 * w['fitted']:.1f} % | {w['fitted_rms_um']:.1f} | {_num(w['rest_rms_um'], '.1f')} | **{w['rms_um']:.1f}** | "
           f"{w['p95_um']:.1f} | {w['z_fitted']:.2f} / {_num(w['z_rest'], '.2f')} |" for w in rows],
         "",
@@ -159,7 +175,8 @@ def main() -> None:
     args.report.with_suffix(".json").write_text(json.dumps({"commit": commit(), "host": started, "rows": rows,
                                                           "network_support_px": args.network_support_px,  # the option; None: the model's own
                                                           "support_px_run": support,  # what ran (None: no test)
-                                                          "support_test": support_text, "max_sigma_rad": bound}, indent=2))
+                                                          "support_test": support_text, "max_sigma_rad": bound,
+                                                          "settle_rad": SETTLE_RAD}, indent=2))
     print("\n".join(lines))
 
 

@@ -207,8 +207,10 @@ class CloudExport:
 REFINE_MAX_BYTES = 8 << 30
 
 
-def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: CloudFuser | None):
-    """The frame fit of a fused replay, refused up front (not after the replay) when it cannot run."""
+def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: CloudFuser | None, factory=None):
+    """The frame fit of a fused replay (``factory(rig, period_px)``, default
+    :class:`~gearscan.recon.track.TrackRefiner` with the product's settings), refused up front (not after the
+    replay) when it cannot run."""
     from gearscan.recon.track import TrackRefiner
 
     if fuse is None:
@@ -219,7 +221,7 @@ def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: Clou
         raise RecordingError(f"{reader.path}: refining keeps every frame in memory, {need / 2**30:.1f} GiB for "
                              f"{len(reader)} frames (limit {REFINE_MAX_BYTES / 2**30:.0f} GiB); replay a shorter "
                              "stretch (one revolution) or leave refinement off (--no-refine)")
-    return TrackRefiner(rig, period_px)
+    return (factory or TrackRefiner)(rig, period_px)
 
 
 def replay(
@@ -241,6 +243,7 @@ def replay(
     refine: bool = False,
     network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
     max_sigma: float | None = None,
+    refiner_factory: Callable[[Rig, float], object] | None = None,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
@@ -263,6 +266,8 @@ def replay(
     fused model with its signed deviation from the CAD, also logged to the viewer. ``refine``
     (with ``fuse``): the fused points are then fitted to every raw frame that saw them
     (:class:`~gearscan.recon.track.TrackRefiner`; keeps the recording's frames in memory).
+    ``refiner_factory(rig, period_px)``: that fit with other settings than the product's (the rule scripts'
+    candidates), e.g. ``functools.partial(TrackRefiner, settle_rad=0.1)``.
 
     ``rig``: the calibration (file or :class:`Rig`) for a recording made without one; it
     replaces the recording's own when both exist. ``export``: every burst's cloud is also
@@ -311,7 +316,7 @@ def replay(
                          "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:
-        refiner = make_refiner(reader, rig, period, fuse)
+        refiner = make_refiner(reader, rig, period, fuse, refiner_factory)
     assembler = BurstAssembler(groups=1 if coarse_period is None else 2)
     camera = ReplayCamera(reader, realtime=speed is not None, speed=speed or 1.0)
 

@@ -35,6 +35,9 @@ _CHUNK = 200_000  # points per vectorised block (bounds the temporary arrays to 
 # a point the fit cannot take carries this many times its bursts' sigma (val calibration:
 # benchmarks/rest_sigma_rule.md; scripts/calibrate_rest_sigma.py -> benchmarks/rest_sigma_val.json)
 REST_SIGMA_SCALE = 3.5
+# largest phase correction (rad) the fit's last iteration may still make; None: no test (the incumbent).
+# Chosen on val stretches: benchmarks/frame_fit_settle_rule.md, scripts/choose_frame_fit_settle.py
+SETTLE_RAD: float | None = None
 
 
 @dataclass
@@ -68,7 +71,12 @@ class TrackRefiner:
     phase or at two opposite ones, where sine and cosine cannot be told apart);
     ``visible_mm``: how close a burst's own point must be for its frames to count as seeing ``X``;
     ``rest_sigma_scale``: how many times its bursts' sigma a point the fit cannot take carries (>= 1;
-    :data:`REST_SIGMA_SCALE`, calibrated on val: ``benchmarks/rest_sigma_rule.md``).
+    :data:`REST_SIGMA_SCALE`, calibrated on val: ``benchmarks/rest_sigma_rule.md``); ``settle_rad``: the
+    largest phase offset the last iteration may still correct (None: no test; :data:`SETTLE_RAD`). A fit
+    still moving its point at the last iteration has not settled: its sigma describes where the point
+    was, not where the step puts it, and on val stretches in fixed pattern order such fits were the
+    points 0.1-0.24 mm off the surface (a point swinging between two clipped steps, or a fit whose
+    samples change under it as it moves); it is treated as a fit that could not take the point.
 
     Defaults: ``max_sigma_mm = 0.03`` and ``min_spread = 0.05`` were chosen on an independent
     40-burst twin stretch (seed 7, start 11 deg, default rig, 0.6 deg/frame; 40k points against
@@ -81,7 +89,7 @@ class TrackRefiner:
     def __init__(self, rig: Rig, period_px: float, *, iterations: int = 4, min_frames: int = 9,
                  min_spread: float = 0.05, visible_mm: float = 0.3, max_step_mm: float = 0.3,
                  outlier_sigma: float = 3.0, drift: bool = True, max_sigma_mm: float = 0.03,
-                 rest_sigma_scale: float = REST_SIGMA_SCALE) -> None:
+                 rest_sigma_scale: float = REST_SIGMA_SCALE, settle_rad: float | None = SETTLE_RAD) -> None:
         if not period_px > 0:
             raise ValueError(f"period_px: expected > 0 projector pixels, got {period_px}")
         if iterations < 1 or min_frames < 4:
@@ -90,6 +98,8 @@ class TrackRefiner:
             raise ValueError(f"max_sigma_mm > 0 and 0 <= min_spread <= 1 expected, got {max_sigma_mm} and {min_spread}")
         if not (math.isfinite(rest_sigma_scale) and rest_sigma_scale >= 1):
             raise ValueError(f"rest_sigma_scale: expected a finite factor >= 1 (it may not shrink a sigma), got {rest_sigma_scale}")
+        if settle_rad is not None and not (math.isfinite(settle_rad) and settle_rad > 0):
+            raise ValueError(f"settle_rad: expected a phase > 0 rad (or None: no test), got {settle_rad}")
         self.rig = rig
         self.period_px = float(period_px)
         self.iterations = int(iterations)
@@ -101,6 +111,7 @@ class TrackRefiner:
         self.drift = bool(drift)
         self.max_sigma_mm = float(max_sigma_mm)
         self.rest_sigma_scale = float(rest_sigma_scale)
+        self.settle_rad = None if settle_rad is None else float(settle_rad)
         self.bursts: list[_BurstView] = []
 
     def __len__(self) -> int:
@@ -225,11 +236,13 @@ class TrackRefiner:
         refined = np.zeros(len(pts0), bool)
         frames = np.zeros(len(pts0), np.int64)
         moved = np.zeros(len(pts0))
+        unsettled = 0
         for start in range(0, len(pts0), _CHUNK):
             sl = slice(start, start + _CHUNK)
-            p, s, r, f, mv = self._refine_chunk(pts0[sl])
+            p, s, r, f, mv, u = self._refine_chunk(pts0[sl])
             out_pts[sl], out_sigma[sl], refined[sl], frames[sl], moved[sl] = p, s, r, f, mv
-        stats = {"points": len(pts0), "refined": int(refined.sum()),
+            unsettled += u
+        stats = {"points": len(pts0), "refined": int(refined.sum()), "unsettled": unsettled,
                  "median_frames": float(np.median(frames[refined])) if refined.any() else 0.0,
                  "median_abs_move_mm": float(np.median(np.abs(moved[refined]))) if refined.any() else 0.0}
         return TrackResult(out_pts, out_sigma, refined, frames.astype(np.int32), moved, stats)
@@ -281,6 +294,10 @@ class TrackRefiner:
                 sigma_mm = np.abs(sig_eps / slope)
             fit = ((nfr >= self.min_frames) & (spread >= self.min_spread) & (np.abs(slope) > 1e-3)
                    & (sigma_mm <= self.max_sigma_mm))
+            unsettled = np.zeros(n, bool)
+            if it == self.iterations - 1 and self.settle_rad is not None:  # still moving at the last iteration
+                unsettled = fit & (np.abs(eps) > self.settle_rad)
+                fit &= ~unsettled
             with np.errstate(divide="ignore", invalid="ignore"):
                 step = np.where(fit, eps / slope, 0.0)
             step = np.clip(step, -self.max_step_mm, self.max_step_mm)
@@ -288,7 +305,7 @@ class TrackRefiner:
             sigma = np.where(fit, sigma_mm, np.inf)
             ok_fit, used = fit, nfr
         x = np.where(ok_fit[:, None], x, pts)  # a point the last fit could not take stays where it was
-        return x, sigma, ok_fit, used, np.einsum("ij,ij->i", x - pts, rays)
+        return x, sigma, ok_fit, used, np.einsum("ij,ij->i", x - pts, rays), int(unsettled.sum())
 
 
 def off_surface(points: np.ndarray, fitted: np.ndarray, *, radius_mm: float = 0.5, min_neighbours: int = 6,

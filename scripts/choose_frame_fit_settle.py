@@ -1,0 +1,142 @@
+"""Choose the frame fit's settle test on VAL stretches.
+
+    python scripts/choose_frame_fit_settle.py [--out benchmarks/frame_fit_settle_val.json]
+
+Rule, written before this ran: ``benchmarks/frame_fit_settle_rule.md``. Eight val stretches (four seeds, both
+pattern orders; two seeds fresh), two models: each cell is replayed once with fusion and the frame fit at the path's
+shipped settings, then every candidate refits the same fused cloud on the same frames and is scored against the
+twin's true surface as ``benchmarks/frame_fit_heldout.py`` scores. Cells already in ``--out`` are kept (a stopped run
+resumes). The inspection revolution and the held-out stretches only report afterwards.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "scripts"))
+from choose_fused_support import MODELS, VAL_STRETCHES, load_or_start  # noqa: E402  (the same val stretches and models)
+from frame_fit_heldout import render_stretch, score_fused, truth_scene  # noqa: E402  (the held-out bench's own scoring)
+
+from gearscan.recon.track import TrackRefiner  # noqa: E402
+
+FRESH_STRETCHES = [  # rule table: used nowhere else
+    {"seed": 61, "start_deg": 41.0, "pitch_errors": ["7:30"], "chips": ["11:0.3"]},
+    {"seed": 79, "start_deg": 331.0, "pitch_errors": ["15:30"], "chips": ["3:0.3"]},
+]
+CANDIDATES: tuple[float | None, ...] = (None, 0.3, 0.1, 0.03)  # None: no test
+INCUMBENT, COVERAGE_SLACK, RMS_SLACK, MARGIN = None, 0.005, 0.05, 0.03
+
+
+def label(c: float | None) -> str:
+    return "off" if c is None else f"{c:g}"
+
+
+class _KeepingRefiner(TrackRefiner):
+    """The product's frame fit that also keeps the fused cloud it was given, so each candidate can refit it."""
+
+    fused = None
+
+    def refine_fused(self, fused):
+        self.fused = fused
+        return super().refine_fused(fused)
+
+
+def score_cell(rec: Path, decoder) -> list[dict]:
+    """One replay of ``rec`` at the path's shipped settings, then every candidate's refit of its fused cloud, scored."""
+    from gearscan.core.recording import RecordingReader
+    from gearscan.recon.fuse import CloudFuser
+    from gearscan.replay import replay
+
+    kept: list[_KeepingRefiner] = []
+
+    def factory(rig, period_px):
+        kept.append(_KeepingRefiner(rig, period_px, settle_rad=None))
+        return kept[-1]
+
+    t = time.perf_counter()
+    replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True, refiner_factory=factory)
+    decode_s = time.perf_counter() - t
+    refiner = kept[0]
+    reader = RecordingReader(rec)
+    scene = truth_scene(reader)
+    rows = []
+    for c in CANDIDATES:
+        refiner.settle_rad = c
+        t = time.perf_counter()
+        fused, stats = refiner.refine_fused(refiner.fused)
+        rows.append({"settle_rad": c, **score_fused(reader, scene, fused, stats, decode_s + time.perf_counter() - t)})
+    return rows
+
+
+def geomean(xs) -> float:
+    xs = list(xs)
+    return math.exp(sum(math.log(x) for x in xs) / len(xs))
+
+
+def choose(cells: list[dict], incumbent: float | None = INCUMBENT) -> dict:
+    """The rule: admissible candidates (on every cell coverage at least off's minus COVERAGE_SLACK and RMS at most
+    RMS_SLACK above off's), geometric-mean scores, the pick (a change from ``incumbent`` needs a MARGIN lower score)."""
+    keys = sorted({(c["model"], c["seed"], c["order"]) for c in cells})
+
+    def cell(c, key):
+        return next(x for x in cells if x["settle_rad"] == c and (x["model"], x["seed"], x["order"]) == key)
+
+    score = {c: geomean(cell(c, k)["rms_um"] for k in keys) for c in CANDIDATES}
+    admissible = {c: all(cell(c, k)["coverage"] >= cell(None, k)["coverage"] - COVERAGE_SLACK
+                         and cell(c, k)["rms_um"] <= (1 + RMS_SLACK) * cell(None, k)["rms_um"] for k in keys)
+                  for c in CANDIDATES}
+    best = min((c for c in CANDIDATES if admissible[c]), key=lambda c: score[c])
+    chosen = best if score[best] <= (1 - MARGIN) * score[incumbent] else incumbent
+    fresh = {s["seed"] for s in FRESH_STRETCHES}
+    report = {  # read out, not chosen on
+        "fresh_score_um": {label(c): geomean(cell(c, k)["rms_um"] for k in keys if k[1] in fresh) for c in CANDIDATES},
+        "per_model_order_score_um": {f"{m} / {o}": {label(c): geomean(cell(c, k)["rms_um"] for k in keys
+                                                                     if (k[0], k[2]) == (m, o)) for c in CANDIDATES}
+                                     for m in sorted({k[0] for k in keys}) for o in ("alternating", "fixed")},
+    }
+    return {"score_um": {label(c): s for c, s in score.items()}, "admissible": {label(c): a for c, a in admissible.items()},
+            "best": best, "incumbent": incumbent, "chosen": chosen, **report}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "frame_fit_settle_val.json")
+    ap.add_argument("--recordings", type=Path, default=ROOT / "out" / "fused_support_val")
+    ap.add_argument("--bursts", type=int, default=60)
+    args = ap.parse_args()
+
+    from gearscan.inference.decoder import Decoder
+    from gearscan.recon.measure import FRAME_FIT_MAX_SIGMA_RAD, FRAME_FIT_NETWORK_SUPPORT_PX
+    from gearscan.recon.track import REST_SIGMA_SCALE
+
+    done = load_or_start(args.out, rule="benchmarks/frame_fit_settle_rule.md", split="val",
+                         max_sigma_rad=FRAME_FIT_MAX_SIGMA_RAD, rest_sigma_scale=REST_SIGMA_SCALE,
+                         product_support_px=FRAME_FIT_NETWORK_SUPPORT_PX)
+    cells = done["cells"]
+    for model, weights in MODELS.items():
+        decoder = Decoder(weights)
+        for s in VAL_STRETCHES + FRESH_STRETCHES:
+            for alternate in (True, False):
+                order = "alternating" if alternate else "fixed"
+                if any((c["model"], c["seed"], c["order"]) == (model, s["seed"], order) for c in cells):
+                    continue
+                rec = render_stretch(args.recordings, s, alternate, args.bursts)
+                for row in score_cell(rec, decoder):
+                    cells.append({"model": model, "seed": s["seed"], "order": order, **row})
+                    print({k: cells[-1][k] for k in ("model", "seed", "order", "settle_rad", "rms_um", "coverage",
+                                                     "unsettled")}, flush=True)
+                args.out.write_text(json.dumps(done, indent=1))
+    done["choice"] = choose(cells)
+    args.out.write_text(json.dumps(done, indent=1))
+    print(json.dumps(done["choice"], indent=1))
+
+
+if __name__ == "__main__":
+    main()
