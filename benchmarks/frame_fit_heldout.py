@@ -165,7 +165,9 @@ def main() -> None:
         "The last column is 0.67 where the reported sigma is right for a Gaussian error: above it, the cloud "
         "claims more than it measured. The rest (points the fit could not take) carry their bursts' sigma without "
         f"credit for averaging, times {REST_SIGMA_SCALE:g} (`TrackRefiner.refine_fused`, `REST_SIGMA_SCALE`, calibrated on "
-        "val: `rest_sigma_rule.md`); those above the 30 µm bound are dropped and counted.",
+        "val: `rest_sigma_rule.md`); those above the 30 µm bound are dropped and counted. The unsettled fits "
+        "(`frame_fit_settle_rule.md`) are among those points: each either stays with that sigma or is counted "
+        "in one of the two drop columns, so the columns overlap.",
         "",
         "Coverage: the share of the surface the camera saw (the twin's truth points of every burst's first "
         "frame, every 4th pixel) with a fused point within 0.2 mm; a surface seen by fewer than 3 bursts has none.",

@@ -74,9 +74,10 @@ class TrackRefiner:
     :data:`REST_SIGMA_SCALE`, calibrated on val: ``benchmarks/rest_sigma_rule.md``); ``settle_rad``: the
     largest phase offset the last iteration may still correct (None: no test; :data:`SETTLE_RAD`). A fit
     still moving its point at the last iteration has not settled: its sigma describes where the point
-    was, not where the step puts it, and on val stretches in fixed pattern order such fits were the
-    points 0.1-0.24 mm off the surface (a point swinging between two clipped steps, or a fit whose
-    samples change under it as it moves); it is treated as a fit that could not take the point.
+    was, not where the step puts it (in a dev look on val seed 31 in fixed pattern order such fits were
+    the points 0.1-0.24 mm off the surface: ``benchmarks/frame_fit_settle_rule.md``); it is treated as
+    a fit that could not take the point. The test needs ``iterations >= 2`` (with one, it would judge
+    the first correction, not whether the fit settled).
 
     Defaults: ``max_sigma_mm = 0.03`` and ``min_spread = 0.05`` were chosen on an independent
     40-burst twin stretch (seed 7, start 11 deg, default rig, 0.6 deg/frame; 40k points against
@@ -100,6 +101,9 @@ class TrackRefiner:
             raise ValueError(f"rest_sigma_scale: expected a finite factor >= 1 (it may not shrink a sigma), got {rest_sigma_scale}")
         if settle_rad is not None and not (math.isfinite(settle_rad) and settle_rad > 0):
             raise ValueError(f"settle_rad: expected a phase > 0 rad (or None: no test), got {settle_rad}")
+        if settle_rad is not None and iterations < 2:
+            raise ValueError(f"settle_rad: the settle test needs iterations >= 2 (it judges the last of several "
+                             f"corrections), got iterations={iterations}")
         self.rig = rig
         self.period_px = float(period_px)
         self.iterations = int(iterations)
@@ -296,7 +300,7 @@ class TrackRefiner:
                    & (sigma_mm <= self.max_sigma_mm))
             unsettled = np.zeros(n, bool)
             if it == self.iterations - 1 and self.settle_rad is not None:  # still moving at the last iteration
-                unsettled = fit & (np.abs(eps) > self.settle_rad)
+                unsettled = fit & ~(np.abs(eps) <= self.settle_rad)  # NaN counts as unsettled
                 fit &= ~unsettled
             with np.errstate(divide="ignore", invalid="ignore"):
                 step = np.where(fit, eps / slope, 0.0)

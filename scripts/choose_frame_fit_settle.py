@@ -60,9 +60,8 @@ def score_cell(rec: Path, decoder) -> list[dict]:
         kept.append(_KeepingRefiner(rig, period_px, settle_rad=None))
         return kept[-1]
 
-    t = time.perf_counter()
-    replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True, refiner_factory=factory)
-    decode_s = time.perf_counter() - t
+    m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True, refiner_factory=factory)
+    ran = {"support_px_run": m.recon["network_support_px"], "max_sigma_rad_run": m.recon["max_sigma_rad"]}
     refiner = kept[0]
     reader = RecordingReader(rec)
     scene = truth_scene(reader)
@@ -71,7 +70,8 @@ def score_cell(rec: Path, decoder) -> list[dict]:
         refiner.settle_rad = c
         t = time.perf_counter()
         fused, stats = refiner.refine_fused(refiner.fused)
-        rows.append({"settle_rad": c, **score_fused(reader, scene, fused, stats, decode_s + time.perf_counter() - t)})
+        # seconds: this candidate's refit alone
+        rows.append({"settle_rad": c, **ran, **score_fused(reader, scene, fused, stats, time.perf_counter() - t)})
     return rows
 
 
@@ -80,10 +80,17 @@ def geomean(xs) -> float:
     return math.exp(sum(math.log(x) for x in xs) / len(xs))
 
 
-def choose(cells: list[dict], incumbent: float | None = INCUMBENT) -> dict:
+def choose(cells: list[dict], incumbent: float | None = INCUMBENT, models=None) -> dict:
     """The rule: admissible candidates (on every cell coverage at least off's minus COVERAGE_SLACK and RMS at most
-    RMS_SLACK above off's), geometric-mean scores, the pick (a change from ``incumbent`` needs a MARGIN lower score)."""
+    RMS_SLACK above off's), geometric-mean scores, the pick (a change from ``incumbent`` needs a MARGIN lower score).
+    Only ``models``' cells (default: this run's MODELS) are pooled; every candidate must have every cell."""
+    models = set(MODELS if models is None else models)
+    cells = [c for c in cells if c["model"] in models]
     keys = sorted({(c["model"], c["seed"], c["order"]) for c in cells})
+    have = {(c["settle_rad"], c["model"], c["seed"], c["order"]) for c in cells}
+    missing = [(label(c), *k) for c in CANDIDATES for k in keys if (c, *k) not in have]
+    if missing:
+        raise ValueError(f"the rule scores every candidate on every cell; missing: {missing[:4]}")
 
     def cell(c, key):
         return next(x for x in cells if x["settle_rad"] == c and (x["model"], x["seed"], x["order"]) == key)
@@ -116,9 +123,13 @@ def main() -> None:
     from gearscan.recon.measure import FRAME_FIT_MAX_SIGMA_RAD, FRAME_FIT_NETWORK_SUPPORT_PX
     from gearscan.recon.track import REST_SIGMA_SCALE
 
-    done = load_or_start(args.out, rule="benchmarks/frame_fit_settle_rule.md", split="val",
-                         max_sigma_rad=FRAME_FIT_MAX_SIGMA_RAD, rest_sigma_scale=REST_SIGMA_SCALE,
-                         product_support_px=FRAME_FIT_NETWORK_SUPPORT_PX)
+    settings = {"max_sigma_rad": FRAME_FIT_MAX_SIGMA_RAD, "rest_sigma_scale": REST_SIGMA_SCALE,
+                "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX}
+    done = load_or_start(args.out, rule="benchmarks/frame_fit_settle_rule.md", split="val", **settings)
+    changed = {k: (done.get(k), v) for k, v in settings.items() if done.get(k) != v}
+    if done["cells"] and changed:
+        raise SystemExit(f"{args.out}: its cells ran with other frame-fit settings (recorded, now): {changed}; "
+                         "write to another --out")
     cells = done["cells"]
     for model, weights in MODELS.items():
         decoder = Decoder(weights)

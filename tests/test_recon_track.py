@@ -109,6 +109,9 @@ def test_bad_input_is_named(off_cad_turn):
     for scale in (0.5, float("nan")):  # a scale may not shrink a sigma
         with pytest.raises(ValueError, match="rest_sigma_scale"):
             TrackRefiner(reader.rig, 40.0, rest_sigma_scale=scale)
+    for settle in (0.0, -0.1, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="settle_rad"):
+            TrackRefiner(reader.rig, 40.0, settle_rad=settle)
 
 
 def test_replay_refuses_refinement_it_cannot_hold_before_replaying(off_cad_turn, monkeypatch):
@@ -218,3 +221,60 @@ def test_the_product_scales_the_unfitted_points_sigma(tmp_path):
     refiner = make_refiner(reader, reader.rig, reader.patterns.periods[0], CloudFuser(0.1, 3))
     assert refiner.rest_sigma_scale == REST_SIGMA_SCALE == 3.5
 
+
+
+def test_settle_test_refuses_the_fits_still_moving_at_the_last_iteration(off_cad_turn):
+    """The settle test acts at the last iteration only: the fits it refuses are exactly those counted unsettled, the
+    fits it keeps are unchanged, and the refused points fall back to their fused position and the unfitted sigma.
+    With a tight test, the points still moving are the ones farther from the true surface."""
+    reader, refiner, fused, _, _, truth = off_cad_turn
+    runs = {}
+    for settle in (None, 0.3, 1e-3):
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], settle_rad=settle)
+        ref.bursts = refiner.bursts
+        runs[settle] = ref.refine(fused.points)
+    free = runs[None]
+    assert free.stats["unsettled"] == 0
+    for settle in (0.3, 1e-3):
+        res = runs[settle]
+        assert res.stats["refined"] + res.stats["unsettled"] == free.stats["refined"]
+        assert not (res.refined & ~free.refined).any()
+        np.testing.assert_array_equal(res.points[res.refined], free.points[res.refined])
+        np.testing.assert_array_equal(res.points[~res.refined], fused.points[~res.refined])
+        assert np.isinf(res.sigma[~res.refined]).all()
+    tight = runs[1e-3]
+    refused = free.refined & ~tight.refined
+    assert 0 < refused.sum() < free.refined.sum()
+    err = np.abs(_signed(truth, free.points))
+    # on this turn (session 47): 6.3 against 2.9 um
+    assert np.median(err[refused]) > 1.5 * np.median(err[tight.refined])
+    with pytest.raises(ValueError, match="iterations >= 2"):
+        TrackRefiner(reader.rig, 40.0, settle_rad=0.1, iterations=1)
+
+
+def test_settle_counts_add_up_over_chunks(off_cad_turn, monkeypatch):
+    import gearscan.recon.track as track
+
+    reader, refiner, fused, _, _, _ = off_cad_turn
+    ref = TrackRefiner(reader.rig, reader.patterns.periods[0], settle_rad=0.1)
+    ref.bursts = refiner.bursts
+    whole = ref.refine(fused.points)
+    monkeypatch.setattr(track, "_CHUNK", len(fused) // 3 + 1)
+    chunked = ref.refine(fused.points)
+    assert whole.stats["unsettled"] > 0
+    assert chunked.stats["unsettled"] == whole.stats["unsettled"]
+    np.testing.assert_array_equal(chunked.refined, whole.refined)
+
+
+def test_replay_fits_with_the_refiner_its_factory_builds(off_cad_turn):
+    """``replay(refiner_factory=)``: the rule scripts' candidates run through the same replay as the product."""
+    from functools import partial
+
+    from gearscan.replay import replay
+
+    reader, _, _, _, _, _ = off_cad_turn
+    runs = {settle: replay(reader.path, decoder=Decoder(classical=True), fuse=CloudFuser(0.1, 3), truth=False,
+                           refine=True, refiner_factory=partial(TrackRefiner, settle_rad=settle)).refine
+            for settle in (None, 1e-3)}
+    assert runs[None]["unsettled"] == 0 and runs[1e-3]["unsettled"] > 0
+    assert runs[1e-3]["refined"] + runs[1e-3]["unsettled"] == runs[None]["refined"]
