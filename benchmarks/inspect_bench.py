@@ -81,7 +81,7 @@ def main() -> None:
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
     from gearscan.recon.measure import keep_bound_option, network_support_option
-    from gearscan.recon.track import REST_SIGMA_SCALE
+    from gearscan.recon.track import REST_SIGMA_SCALE, SETTLE_RAD
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()
@@ -171,6 +171,7 @@ def main() -> None:
     before_refined = rms_of(plain_dist[rows_in_plain][refined])
     off_surface = (report.refine or {}).get("off_surface", 0)  # unfitted points off the fitted surface, dropped
     uncertain = (report.refine or {}).get("uncertain", 0)  # unfitted points above the sigma bound, dropped
+    unsettled = (report.refine or {}).get("unsettled", 0)  # fits still moving at the last iteration, not taken
     e_true = 1e3 * float(np.hypot(*truth["eccentricity_mm"]))
     def quantities(i) -> list[float]:
         return [i.eccentricity_um, i.runout_from_eccentricity_um, i.Fp_um["left"], i.Fp_um["right"],
@@ -271,7 +272,11 @@ def main() -> None:
            f"({1e3 * rms_kept:.1f} µm)" if (~refined).any() else "no unfitted point is left in the cloud")
         + ". A point the fit cannot take has a fit sigma above 30 µm (too few frames, or fringe phases too close to two "
         "opposite ones to tell sine from cosine; with every burst in the order 0, 1, 2 a point whose fringes move a "
-        "sixth of a period per frame sees only 0 and pi, burst after burst). "
+        "sixth of a period per frame sees only 0 and pi, burst after burst), or a fit that had not settled: "
+        + ("no settle test ran. " if SETTLE_RAD is None else
+           f"{unsettled:,} fits still corrected more than {SETTLE_RAD:g} rad at their last iteration "
+           "(`recon.track.SETTLE_RAD`, chosen on val stretches: `frame_fit_settle_rule.md`). ")
+        +
         f"{off_surface:,} points the fit could not take lay more than 0.15 mm off the plane of the fitted points "
         "within 0.5 mm and were dropped (counted; `recon.track.off_surface`): silhouette and shadow-edge pixels that "
         "several bursts put in one voxel. These settings were chosen on this revolution. "
@@ -318,6 +323,8 @@ def main() -> None:
         "refined_before_rms_mm": before_refined, "kept_rms_mm": rms_kept, "plain_seconds": plain_seconds,
         "off_surface": off_surface,
         "uncertain": uncertain,
+        "unsettled": unsettled,
+        "settle_rad": SETTLE_RAD,
         "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "fused_only_fp_max_error_um": plain_fp_err,
         "fused_only_chip_noise_um": plain.inspection.chip_noise_um, "chip_noise_um": insp.chip_noise_um, "chipped": list(insp.chipped_teeth),
         "truth_chipped": truth["chipped_teeth"], "Fr_um": insp.Fr_um, "pattern_order": order_name,

@@ -35,9 +35,9 @@ _CHUNK = 200_000  # points per vectorised block (bounds the temporary arrays to 
 # a point the fit cannot take carries this many times its bursts' sigma (val calibration:
 # benchmarks/rest_sigma_rule.md; scripts/calibrate_rest_sigma.py -> benchmarks/rest_sigma_val.json)
 REST_SIGMA_SCALE = 3.5
-# largest phase correction (rad) the fit's last iteration may still make; None: no test (the incumbent).
+# largest phase correction (rad) the fit's last iteration may still make (None: no test, the incumbent until session 47).
 # Chosen on val stretches: benchmarks/frame_fit_settle_rule.md, scripts/choose_frame_fit_settle.py
-SETTLE_RAD: float | None = None
+SETTLE_RAD: float | None = 0.03
 
 
 @dataclass
