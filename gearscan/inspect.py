@@ -56,7 +56,11 @@ def dropped_note(refine: dict | None) -> str:
     parts = [f"{refine[k]:,} {what}" for k, what in (
         ("off_surface", "off the surface their fitted neighbours measured"),
         ("uncertain", "with a sigma above the fit's bound")) if refine.get(k)]
-    return f" Left out (unfitted points): {'; '.join(parts)}." if parts else ""
+    note = f" Left out (unfitted points): {'; '.join(parts)}." if parts else ""
+    if refine.get("unsettled"):  # unfitted too: each kept at its fused position or among those left out
+        note += (f" {refine['unsettled']:,} fits had not settled at their last iteration (recon.track.SETTLE_RAD) "
+                 "and were not taken.")
+    return note
 
 
 def chip_verdict(insp) -> str:
@@ -170,7 +174,8 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                   "median_bursts_per_point": float(np.median(report.fused.bursts)),
                   "refined_points": None if report.fused.refined is None else int(report.fused.refined.sum()),
                   "dropped_off_surface": (report.refine or {}).get("off_surface"),
-                  "dropped_uncertain": (report.refine or {}).get("uncertain")},
+                  "dropped_uncertain": (report.refine or {}).get("uncertain"),
+                  "unsettled_fits": (report.refine or {}).get("unsettled")},
         "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
         "grade": report.grade,
         "tolerances_um": report.tolerances,

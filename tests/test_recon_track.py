@@ -140,6 +140,7 @@ def test_replay_fuse_writes_which_points_were_fitted(off_cad_turn, tmp_path):
     fused_line = next(x for x in lines if x.startswith("fused model:"))
     assert fused_line.endswith(str(out))  # the path ends its line; what the fit left out follows on the next
     assert any(x.startswith("Left out (unfitted points):") for x in lines)
+    assert "fits had not settled at their last iteration" in res.output  # the settle test's count, said
     header = out.read_text().splitlines()[0].split(",")
     assert "refined" in header
     table = np.loadtxt(out, delimiter=",", skiprows=1)
