@@ -59,7 +59,7 @@ def dropped_note(refine: dict | None) -> str:
     note = f" Left out (unfitted points): {'; '.join(parts)}." if parts else ""
     if refine.get("unsettled"):  # unfitted too: each kept at its fused position or among those left out
         note += (f" {refine['unsettled']:,} fits had not settled at their last iteration (recon.track.SETTLE_RAD) "
-                 "and were not taken.")
+                 "and were not taken (those points are counted above or kept at their fused position).")
     return note
 
 

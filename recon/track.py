@@ -157,7 +157,9 @@ class TrackRefiner:
         surface their fitted neighbours measured (:func:`off_surface`, ``stats["off_surface"]``),
         and those whose sigma exceeds ``max_sigma_mm``, the bound a fit must meet too
         (``stats["uncertain"]``): one bound for every point of the refined cloud, so what it
-        holds was measured to within it and what it lacks is counted, not guessed.
+        holds was measured to within it and what it lacks is counted, not guessed. The fits the settle
+        test refused (``stats["unsettled"]``) are among the points the fit could not take, so that count
+        overlaps the two drop counts.
         """
         out, off, stats = self.fit_fused(fused)
         uncertain = ~out.refined & ~off & (out.sigma > self.max_sigma_mm)
