@@ -84,6 +84,7 @@ def score_fused(reader, scene, fused, refine_stats: dict, seconds: float) -> dic
     rms = lambda x: float(np.sqrt(np.mean(x**2))) if x.size else None  # noqa: E731  (None: no such point)
     return {"points": len(fused), "coverage": cov, "off_surface": refine_stats.get("off_surface", 0),
             "uncertain": refine_stats.get("uncertain", 0), "unsettled": refine_stats.get("unsettled", 0),
+            "implausible": refine_stats.get("implausible", 0),
             "fitted": float(r.mean()),
             "fitted_rms_um": rms(d[r]), "rest_rms_um": rms(d[~r]), "rms_um": rms(d),
             "p95_um": float(np.percentile(d, 95)), "seconds": seconds,

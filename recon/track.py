@@ -38,6 +38,9 @@ REST_SIGMA_SCALE = 3.5
 # largest phase correction (rad) the fit's last iteration may still make (None: no test, the incumbent until session 47).
 # Chosen on val stretches: benchmarks/frame_fit_settle_rule.md, scripts/choose_frame_fit_settle.py
 SETTLE_RAD: float | None = 0.03
+# largest fitted fringe modulation over the fitted mean intensity, B / A, a fit may have (None: no test, the incumbent).
+# A camera intensity A + B cos(psi) >= 0 needs B <= A. Rule: benchmarks/frame_fit_modulation_rule.md
+MODULATION_RATIO: float | None = None
 
 
 @dataclass
@@ -77,7 +80,11 @@ class TrackRefiner:
     was, not where the step puts it (in a dev look on val seed 31 in fixed pattern order such fits were
     the points 0.1-0.24 mm off the surface: ``benchmarks/frame_fit_settle_rule.md``); it is treated as
     a fit that could not take the point. The test needs ``iterations >= 2`` (with one, it would judge
-    the first correction, not whether the fit settled).
+    the first correction, not whether the fit settled). ``modulation_ratio``: the largest fitted
+    modulation over fitted mean intensity, B / A, a fit may have at its last iteration (None: no test;
+    :data:`MODULATION_RATIO`): intensities ``A + B cos(psi)`` never go below zero, so a fit with B well
+    above A has explained its samples with an impossible fringe (few frames, phases bunched: the
+    fit's sine and cosine terms and their drift trade off); it is counted ``implausible`` and not taken.
 
     Defaults: ``max_sigma_mm = 0.03`` and ``min_spread = 0.05`` were chosen on an independent
     40-burst twin stretch (seed 7, start 11 deg, default rig, 0.6 deg/frame; 40k points against
@@ -90,7 +97,8 @@ class TrackRefiner:
     def __init__(self, rig: Rig, period_px: float, *, iterations: int = 4, min_frames: int = 9,
                  min_spread: float = 0.05, visible_mm: float = 0.3, max_step_mm: float = 0.3,
                  outlier_sigma: float = 3.0, drift: bool = True, max_sigma_mm: float = 0.03,
-                 rest_sigma_scale: float = REST_SIGMA_SCALE, settle_rad: float | None = SETTLE_RAD) -> None:
+                 rest_sigma_scale: float = REST_SIGMA_SCALE, settle_rad: float | None = SETTLE_RAD,
+                 modulation_ratio: float | None = MODULATION_RATIO) -> None:
         if not period_px > 0:
             raise ValueError(f"period_px: expected > 0 projector pixels, got {period_px}")
         if iterations < 1 or min_frames < 4:
@@ -104,6 +112,8 @@ class TrackRefiner:
         if settle_rad is not None and iterations < 2:
             raise ValueError(f"settle_rad: the settle test needs iterations >= 2 (it judges the last of several "
                              f"corrections), got iterations={iterations}")
+        if modulation_ratio is not None and not (math.isfinite(modulation_ratio) and modulation_ratio > 0):
+            raise ValueError(f"modulation_ratio: expected a ratio B / A > 0 (or None: no test), got {modulation_ratio}")
         self.rig = rig
         self.period_px = float(period_px)
         self.iterations = int(iterations)
@@ -116,6 +126,7 @@ class TrackRefiner:
         self.max_sigma_mm = float(max_sigma_mm)
         self.rest_sigma_scale = float(rest_sigma_scale)
         self.settle_rad = None if settle_rad is None else float(settle_rad)
+        self.modulation_ratio = None if modulation_ratio is None else float(modulation_ratio)
         self.bursts: list[_BurstView] = []
 
     def __len__(self) -> int:
@@ -158,8 +169,9 @@ class TrackRefiner:
         and those whose sigma exceeds ``max_sigma_mm``, the bound a fit must meet too
         (``stats["uncertain"]``): one bound for every point of the refined cloud, so what it
         holds was measured to within it and what it lacks is counted, not guessed. The fits the settle
-        test refused (``stats["unsettled"]``) are among the points the fit could not take, so that count
-        overlaps the two drop counts.
+        test refused (``stats["unsettled"]``) and those with an impossible modulation
+        (``stats["implausible"]``) are among the points the fit could not take, so those counts overlap the
+        two drop counts.
         """
         out, off, stats = self.fit_fused(fused)
         uncertain = ~out.refined & ~off & (out.sigma > self.max_sigma_mm)
@@ -242,13 +254,14 @@ class TrackRefiner:
         refined = np.zeros(len(pts0), bool)
         frames = np.zeros(len(pts0), np.int64)
         moved = np.zeros(len(pts0))
-        unsettled = 0
+        unsettled = implausible = 0
         for start in range(0, len(pts0), _CHUNK):
             sl = slice(start, start + _CHUNK)
-            p, s, r, f, mv, u = self._refine_chunk(pts0[sl])
+            p, s, r, f, mv, u, im = self._refine_chunk(pts0[sl])
             out_pts[sl], out_sigma[sl], refined[sl], frames[sl], moved[sl] = p, s, r, f, mv
             unsettled += u
-        stats = {"points": len(pts0), "refined": int(refined.sum()), "unsettled": unsettled,
+            implausible += im
+        stats = {"points": len(pts0), "refined": int(refined.sum()), "unsettled": unsettled, "implausible": implausible,
                  "median_frames": float(np.median(frames[refined])) if refined.any() else 0.0,
                  "median_abs_move_mm": float(np.median(np.abs(moved[refined]))) if refined.any() else 0.0}
         return TrackResult(out_pts, out_sigma, refined, frames.astype(np.int32), moved, stats)
@@ -301,9 +314,13 @@ class TrackRefiner:
             fit = ((nfr >= self.min_frames) & (spread >= self.min_spread) & (np.abs(slope) > 1e-3)
                    & (sigma_mm <= self.max_sigma_mm))
             unsettled = np.zeros(n, bool)
+            implausible = np.zeros(n, bool)
             if it == self.iterations - 1 and self.settle_rad is not None:  # still moving at the last iteration
                 unsettled = fit & ~(np.abs(eps) <= self.settle_rad)  # NaN counts as unsettled
                 fit &= ~unsettled
+            if it == self.iterations - 1 and self.modulation_ratio is not None:  # B > A: a negative intensity
+                implausible = fit & ~(np.hypot(cc, ss) <= self.modulation_ratio * coef[:, 0])
+                fit &= ~implausible
             with np.errstate(divide="ignore", invalid="ignore"):
                 step = np.where(fit, eps / slope, 0.0)
             step = np.clip(step, -self.max_step_mm, self.max_step_mm)
@@ -311,7 +328,8 @@ class TrackRefiner:
             sigma = np.where(fit, sigma_mm, np.inf)
             ok_fit, used = fit, nfr
         x = np.where(ok_fit[:, None], x, pts)  # a point the last fit could not take stays where it was
-        return x, sigma, ok_fit, used, np.einsum("ij,ij->i", x - pts, rays), int(unsettled.sum())
+        return (x, sigma, ok_fit, used, np.einsum("ij,ij->i", x - pts, rays), int(unsettled.sum()),
+                int(implausible.sum()))
 
 
 def off_surface(points: np.ndarray, fitted: np.ndarray, *, radius_mm: float = 0.5, min_neighbours: int = 6,

@@ -48,8 +48,9 @@ class _KeepingRefiner(TrackRefiner):
         return super().refine_fused(fused)
 
 
-def score_cell(rec: Path, decoder) -> list[dict]:
-    """One replay of ``rec`` at the path's shipped settings, then every candidate's refit of its fused cloud, scored."""
+def score_cell(rec: Path, decoder, field: str = "settle_rad", candidates=CANDIDATES, base: dict | None = None) -> list[dict]:
+    """One replay of ``rec`` at the path's shipped settings, then a refit of its fused cloud per candidate value of the
+    refiner's ``field`` (the others at ``base``, default: the settle test off), each scored."""
     from gearscan.core.recording import RecordingReader
     from gearscan.recon.fuse import CloudFuser
     from gearscan.replay import replay
@@ -57,7 +58,7 @@ def score_cell(rec: Path, decoder) -> list[dict]:
     kept: list[_KeepingRefiner] = []
 
     def factory(rig, period_px):
-        kept.append(_KeepingRefiner(rig, period_px, settle_rad=None))
+        kept.append(_KeepingRefiner(rig, period_px, **({"settle_rad": None} if base is None else base)))
         return kept[-1]
 
     m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True, refiner_factory=factory)
@@ -66,12 +67,12 @@ def score_cell(rec: Path, decoder) -> list[dict]:
     reader = RecordingReader(rec)
     scene = truth_scene(reader)
     rows = []
-    for c in CANDIDATES:
-        refiner.settle_rad = c
+    for c in candidates:
+        setattr(refiner, field, c)
         t = time.perf_counter()
         fused, stats = refiner.refine_fused(refiner.fused)
         # seconds: this candidate's refit alone
-        rows.append({"settle_rad": c, **ran, **score_fused(reader, scene, fused, stats, time.perf_counter() - t)})
+        rows.append({field: c, **ran, **score_fused(reader, scene, fused, stats, time.perf_counter() - t)})
     return rows
 
 
@@ -80,32 +81,34 @@ def geomean(xs) -> float:
     return math.exp(sum(math.log(x) for x in xs) / len(xs))
 
 
-def choose(cells: list[dict], incumbent: float | None = INCUMBENT, models=None) -> dict:
+def choose(cells: list[dict], incumbent: float | None = INCUMBENT, models=None, field: str = "settle_rad",
+           candidates=CANDIDATES) -> dict:
     """The rule: admissible candidates (on every cell coverage at least off's minus COVERAGE_SLACK and RMS at most
     RMS_SLACK above off's), geometric-mean scores, the pick (a change from ``incumbent`` needs a MARGIN lower score).
-    Only ``models``' cells (default: this run's MODELS) are pooled; every candidate must have every cell."""
+    Only ``models``' cells (default: this run's MODELS) are pooled; every candidate must have every cell. ``field``:
+    the cells' key of the candidate value (None: no test, the floors' reference)."""
     models = set(MODELS if models is None else models)
     cells = [c for c in cells if c["model"] in models]
     keys = sorted({(c["model"], c["seed"], c["order"]) for c in cells})
-    have = {(c["settle_rad"], c["model"], c["seed"], c["order"]) for c in cells}
-    missing = [(label(c), *k) for c in CANDIDATES for k in keys if (c, *k) not in have]
+    have = {(c[field], c["model"], c["seed"], c["order"]) for c in cells}
+    missing = [(label(c), *k) for c in candidates for k in keys if (c, *k) not in have]
     if missing:
         raise ValueError(f"the rule scores every candidate on every cell; missing: {missing[:4]}")
 
     def cell(c, key):
-        return next(x for x in cells if x["settle_rad"] == c and (x["model"], x["seed"], x["order"]) == key)
+        return next(x for x in cells if x[field] == c and (x["model"], x["seed"], x["order"]) == key)
 
-    score = {c: geomean(cell(c, k)["rms_um"] for k in keys) for c in CANDIDATES}
+    score = {c: geomean(cell(c, k)["rms_um"] for k in keys) for c in candidates}
     admissible = {c: all(cell(c, k)["coverage"] >= cell(None, k)["coverage"] - COVERAGE_SLACK
                          and cell(c, k)["rms_um"] <= (1 + RMS_SLACK) * cell(None, k)["rms_um"] for k in keys)
-                  for c in CANDIDATES}
-    best = min((c for c in CANDIDATES if admissible[c]), key=lambda c: score[c])
+                  for c in candidates}
+    best = min((c for c in candidates if admissible[c]), key=lambda c: score[c])
     chosen = best if score[best] <= (1 - MARGIN) * score[incumbent] else incumbent
     fresh = {s["seed"] for s in FRESH_STRETCHES}
     report = {  # read out, not chosen on
-        "fresh_score_um": {label(c): geomean(cell(c, k)["rms_um"] for k in keys if k[1] in fresh) for c in CANDIDATES},
+        "fresh_score_um": {label(c): geomean(cell(c, k)["rms_um"] for k in keys if k[1] in fresh) for c in candidates},
         "per_model_order_score_um": {f"{m} / {o}": {label(c): geomean(cell(c, k)["rms_um"] for k in keys
-                                                                     if (k[0], k[2]) == (m, o)) for c in CANDIDATES}
+                                                                     if (k[0], k[2]) == (m, o)) for c in candidates}
                                      for m in sorted({k[0] for k in keys}) for o in ("alternating", "fixed")},
     }
     return {"score_um": {label(c): s for c, s in score.items()}, "admissible": {label(c): a for c, a in admissible.items()},
