@@ -122,7 +122,7 @@ def main() -> None:
 
     from gearscan.inference.decoder import Decoder
     from gearscan.recon.measure import keep_bound_option, network_support_option
-    from gearscan.recon.track import REST_SIGMA_SCALE, SETTLE_RAD
+    from gearscan.recon.track import MODULATION_RATIO, REST_SIGMA_SCALE, SETTLE_RAD
 
     started, rows = host(), []
     decoder = Decoder(args.model)
@@ -135,6 +135,8 @@ def main() -> None:
     bound = keep_bound_option(None, frame_fit=True)
     support_text += f"; keep bound {bound:g} rad, the frame-fit path's"
     settle_text = "no settle test" if SETTLE_RAD is None else f"settle test {SETTLE_RAD:g} rad"
+    settle_text += ("" if MODULATION_RATIO is None else
+                    f"; modulation test B <= {MODULATION_RATIO:g} A, counted with the unsettled fits")
     for s in STRETCHES:
         for alternate in (True, False):
             rec = render_stretch(args.out, s, alternate, args.bursts)
@@ -155,11 +157,11 @@ def main() -> None:
         f"{settle_text}: a fit still correcting more than that at its last iteration does not take its point). "
         "None of these stretches chose a setting. Distances to the twin's true (as-built) surface.",
         "",
-        "| seed | start | pattern order | fused points | coverage | dropped off-surface | dropped above the sigma bound | unsettled fits | fitted | "
+        "| seed | start | pattern order | fused points | coverage | dropped off-surface | dropped above the sigma bound | refused fits (settle + modulation tests) | fitted | "
         "RMS fitted (µm) | RMS rest (µm) | RMS whole cloud (µm) | p95 (µm) | median abs(err)/sigma fitted / rest |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         *[f"| {w['seed']} | {w['start_deg']:g}° | {w['order']} | {w['points']:,} | {100 * w['coverage']:.1f} % | "
-          f"{w['off_surface']:,} | {w['uncertain']:,} | {w['unsettled']:,} | "
+          f"{w['off_surface']:,} | {w['uncertain']:,} | {w['unsettled'] + w.get('implausible', 0):,} | "
           f"{100 * w['fitted']:.1f} % | {w['fitted_rms_um']:.1f} | {_num(w['rest_rms_um'], '.1f')} | **{w['rms_um']:.1f}** | "
           f"{w['p95_um']:.1f} | {w['z_fitted']:.2f} / {_num(w['z_rest'], '.2f')} |" for w in rows],
         "",
@@ -167,7 +169,7 @@ def main() -> None:
         "claims more than it measured. The rest (points the fit could not take) carry their bursts' sigma without "
         f"credit for averaging, times {REST_SIGMA_SCALE:g} (`TrackRefiner.refine_fused`, `REST_SIGMA_SCALE`, calibrated on "
         "val: `rest_sigma_rule.md`); those above the 30 µm bound are dropped and counted. The unsettled fits "
-        "(`frame_fit_settle_rule.md`) are among those points: each either stays with that sigma or is counted "
+        "(`frame_fit_settle_rule.md`) and those the modulation test refused are among those points: each either stays with that sigma or is counted "
         "in one of the two drop columns, so the columns overlap.",
         "",
         "Coverage: the share of the surface the camera saw (the twin's truth points of every burst's first "
@@ -179,7 +181,8 @@ def main() -> None:
                                                           "network_support_px": args.network_support_px,  # the option; None: the model's own
                                                           "support_px_run": support,  # what ran (None: no test)
                                                           "support_test": support_text, "max_sigma_rad": bound,
-                                                          "settle_rad": SETTLE_RAD}, indent=2))
+                                                          "settle_rad": SETTLE_RAD,
+                                                          "modulation_ratio": MODULATION_RATIO}, indent=2))
     print("\n".join(lines))
 
 

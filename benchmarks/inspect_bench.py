@@ -81,7 +81,7 @@ def main() -> None:
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
     from gearscan.recon.measure import keep_bound_option, network_support_option
-    from gearscan.recon.track import REST_SIGMA_SCALE, SETTLE_RAD
+    from gearscan.recon.track import MODULATION_RATIO, REST_SIGMA_SCALE, SETTLE_RAD
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()
@@ -172,6 +172,7 @@ def main() -> None:
     off_surface = (report.refine or {}).get("off_surface", 0)  # unfitted points off the fitted surface, dropped
     uncertain = (report.refine or {}).get("uncertain", 0)  # unfitted points above the sigma bound, dropped
     unsettled = (report.refine or {}).get("unsettled", 0)  # fits still moving at the last iteration, not taken
+    implausible = (report.refine or {}).get("implausible", 0)  # fits with a modulation above their mean intensity
     e_true = 1e3 * float(np.hypot(*truth["eccentricity_mm"]))
     def quantities(i) -> list[float]:
         return [i.eccentricity_um, i.runout_from_eccentricity_um, i.Fp_um["left"], i.Fp_um["right"],
@@ -276,6 +277,9 @@ def main() -> None:
         + ("no settle test ran. " if SETTLE_RAD is None else
            f"{unsettled:,} fits still corrected more than {SETTLE_RAD:g} rad at their last iteration "
            "(`recon.track.SETTLE_RAD`, chosen on val stretches: `frame_fit_settle_rule.md`). ")
+        + ("" if MODULATION_RATIO is None else
+           f"{implausible:,} fits had a modulation above {MODULATION_RATIO:g} times their mean intensity, an impossible "
+           "fringe (`recon.track.MODULATION_RATIO`, `frame_fit_modulation_rule.md`), and were not taken. ")
         +
         f"{off_surface:,} points the fit could not take lay more than 0.15 mm off the plane of the fitted points "
         "within 0.5 mm and were dropped (counted; `recon.track.off_surface`): silhouette and shadow-edge pixels that "
@@ -325,6 +329,8 @@ def main() -> None:
         "uncertain": uncertain,
         "unsettled": unsettled,
         "settle_rad": SETTLE_RAD,
+        "implausible": implausible,
+        "modulation_ratio": MODULATION_RATIO,
         "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "fused_only_fp_max_error_um": plain_fp_err,
         "fused_only_chip_noise_um": plain.inspection.chip_noise_um, "chip_noise_um": insp.chip_noise_um, "chipped": list(insp.chipped_teeth),
         "truth_chipped": truth["chipped_teeth"], "Fr_um": insp.Fr_um, "pattern_order": order_name,

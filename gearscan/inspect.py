@@ -60,6 +60,9 @@ def dropped_note(refine: dict | None) -> str:
     if refine.get("unsettled"):  # unfitted too: each kept at its fused position or among those left out
         note += (f" {refine['unsettled']:,} fits had not settled at their last iteration (recon.track.SETTLE_RAD) "
                  "and were not taken (those points are counted above or kept at their fused position).")
+    if refine.get("implausible"):  # the same: fits explained by a fringe brighter than the light it rides on
+        note += (f" {refine['implausible']:,} fits had a modulation above their mean intensity (an impossible fringe, "
+                 "recon.track.MODULATION_RATIO) and were not taken (counted above or kept at their fused position).")
     return note
 
 
@@ -175,7 +178,8 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                   "refined_points": None if report.fused.refined is None else int(report.fused.refined.sum()),
                   "dropped_off_surface": (report.refine or {}).get("off_surface"),
                   "dropped_uncertain": (report.refine or {}).get("uncertain"),
-                  "unsettled_fits": (report.refine or {}).get("unsettled")},
+                  "unsettled_fits": (report.refine or {}).get("unsettled"),
+                  "implausible_fits": (report.refine or {}).get("implausible")},
         "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
         "grade": report.grade,
         "tolerances_um": report.tolerances,

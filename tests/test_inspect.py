@@ -330,8 +330,9 @@ def test_the_library_resolves_the_products_support_test_by_path(tmp_path, monkey
 def test_dropped_note_says_what_the_frame_fit_left_out_and_refused():
     from gearscan.inspect import dropped_note
 
-    note = dropped_note({"off_surface": 3, "uncertain": 1200, "unsettled": 40})
+    note = dropped_note({"off_surface": 3, "uncertain": 1200, "unsettled": 40, "implausible": 7})
     assert "3 off the surface" in note and "1,200 with a sigma above the fit's bound" in note
     assert "40 fits had not settled" in note and "counted above" in note
-    assert dropped_note({"off_surface": 0, "uncertain": 0, "unsettled": 0}) == ""
+    assert "7 fits had a modulation above their mean intensity" in note
+    assert dropped_note({"off_surface": 0, "uncertain": 0, "unsettled": 0, "implausible": 0}) == ""
     assert dropped_note(None) == ""

@@ -279,3 +279,23 @@ def test_replay_fits_with_the_refiner_its_factory_builds(off_cad_turn):
             for settle in (None, 1e-3)}
     assert runs[None]["unsettled"] == 0 and runs[1e-3]["unsettled"] > 0
     assert runs[1e-3]["refined"] + runs[1e-3]["unsettled"] == runs[None]["refined"]
+
+
+def test_modulation_test_refuses_fits_with_an_impossible_fringe(off_cad_turn):
+    """``modulation_ratio``: a fit whose modulation exceeds that share of its mean intensity is refused and counted
+    (``implausible``), the other fits are kept bit for bit; a ratio below what real fringes show (B/A about 0.85 on
+    the twin) refuses most fits, which is how the test is seen to act."""
+    reader, refiner, fused, _, _, _ = off_cad_turn
+    runs = {}
+    for ratio in (None, 0.5):
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], modulation_ratio=ratio)
+        ref.bursts = refiner.bursts
+        runs[ratio] = ref.refine(fused.points)
+    free, tight = runs[None], runs[0.5]
+    assert free.stats["implausible"] == 0 and tight.stats["implausible"] > free.stats["refined"] // 2
+    assert tight.stats["refined"] + tight.stats["implausible"] == free.stats["refined"]
+    np.testing.assert_array_equal(tight.points[tight.refined], free.points[tight.refined])
+    np.testing.assert_array_equal(tight.points[~tight.refined], fused.points[~tight.refined])
+    for ratio in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="modulation_ratio"):
+            TrackRefiner(reader.rig, 40.0, modulation_ratio=ratio)
