@@ -38,9 +38,9 @@ REST_SIGMA_SCALE = 3.5
 # largest phase correction (rad) the fit's last iteration may still make (None: no test, the incumbent until session 47).
 # Chosen on val stretches: benchmarks/frame_fit_settle_rule.md, scripts/choose_frame_fit_settle.py
 SETTLE_RAD: float | None = 0.03
-# largest fitted fringe modulation over the fitted mean intensity, B / A, a fit may have (None: no test, the incumbent).
+# largest fitted fringe modulation over the fitted mean intensity, B / A, a fit may have (None: no test, until session 47).
 # A camera intensity A + B cos(psi) >= 0 needs B <= A. Rule: benchmarks/frame_fit_modulation_rule.md
-MODULATION_RATIO: float | None = None
+MODULATION_RATIO: float | None = 1.0
 
 
 @dataclass
