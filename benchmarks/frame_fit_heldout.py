@@ -135,8 +135,6 @@ def main() -> None:
     bound = keep_bound_option(None, frame_fit=True)
     support_text += f"; keep bound {bound:g} rad, the frame-fit path's"
     settle_text = "no settle test" if SETTLE_RAD is None else f"settle test {SETTLE_RAD:g} rad"
-    settle_text += ("" if MODULATION_RATIO is None else
-                    f"; modulation test B <= {MODULATION_RATIO:g} A, counted with the unsettled fits")
     for s in STRETCHES:
         for alternate in (True, False):
             rec = render_stretch(args.out, s, alternate, args.bursts)
@@ -154,7 +152,11 @@ def main() -> None:
         f"one tooth +30 µm pitch error, one tip chipped 0.3 mm; {f'network `{args.model}`' if args.model else 'shipped network'} "
         f"(deterministic; {support_text}), fused per 0.1 mm "
         "voxel (>= 3 bursts), fitted to the frames (sigma bound 30 µm for every point, fitted or not; off-surface drop 0.15 mm within 0.5 mm; "
-        f"{settle_text}: a fit still correcting more than that at its last iteration does not take its point). "
+        f"{settle_text}: a fit still correcting more than that at its last iteration does not take its point"
+        + ("" if MODULATION_RATIO is None else
+           f"; modulation test: nor does a fit whose modulation B exceeds {MODULATION_RATIO:g} x its mean intensity A, "
+           "counted with the unsettled fits")
+        + "). "
         "None of these stretches chose a setting. Distances to the twin's true (as-built) surface.",
         "",
         "| seed | start | pattern order | fused points | coverage | dropped off-surface | dropped above the sigma bound | refused fits (settle + modulation tests) | fitted | "

@@ -278,7 +278,7 @@ def main() -> None:
            f"{unsettled:,} fits still corrected more than {SETTLE_RAD:g} rad at their last iteration "
            "(`recon.track.SETTLE_RAD`, chosen on val stretches: `frame_fit_settle_rule.md`). ")
         + ("" if MODULATION_RATIO is None else
-           f"{implausible:,} fits had a modulation above {MODULATION_RATIO:g} times their mean intensity, an impossible "
+           f"{implausible:,} fits had a modulation B above {MODULATION_RATIO:g} x their mean intensity A, an impossible "
            "fringe (`recon.track.MODULATION_RATIO`, `frame_fit_modulation_rule.md`), and were not taken. ")
         +
         f"{off_surface:,} points the fit could not take lay more than 0.15 mm off the plane of the fitted points "

@@ -57,7 +57,7 @@ class TrackResult:
 
     points: np.ndarray  # (N, 3)
     sigma: np.ndarray  # (N,) mm along the ray; inf where not refined
-    refined: np.ndarray  # (N,) bool: fitted on enough frames, sigma within max_sigma_mm
+    refined: np.ndarray  # (N,) bool: fitted on enough frames, sigma within max_sigma_mm, settled, B <= ratio x A
     frames: np.ndarray  # (N,) int: samples in the final fit
     moved_mm: np.ndarray  # (N,) distance moved along the ray (+ away from the camera)
     stats: dict = field(default_factory=dict)

@@ -50,7 +50,7 @@ class _KeepingRefiner(TrackRefiner):
 
 def score_cell(rec: Path, decoder, field: str = "settle_rad", candidates=CANDIDATES, base: dict | None = None) -> list[dict]:
     """One replay of ``rec`` at the path's shipped settings, then a refit of its fused cloud per candidate value of the
-    refiner's ``field`` (the others at ``base``, default: the settle test off), each scored."""
+    refiner's ``field`` (the others at ``base``, default: the settle and modulation tests off), each scored."""
     from gearscan.core.recording import RecordingReader
     from gearscan.recon.fuse import CloudFuser
     from gearscan.replay import replay
@@ -58,7 +58,8 @@ def score_cell(rec: Path, decoder, field: str = "settle_rad", candidates=CANDIDA
     kept: list[_KeepingRefiner] = []
 
     def factory(rig, period_px):
-        kept.append(_KeepingRefiner(rig, period_px, **({"settle_rad": None} if base is None else base)))
+        # the settle rule's cells ran before the modulation test existed: its default base has neither test
+        kept.append(_KeepingRefiner(rig, period_px, **({"settle_rad": None, "modulation_ratio": None} if base is None else base)))
         return kept[-1]
 
     m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True, refiner_factory=factory)

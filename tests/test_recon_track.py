@@ -230,8 +230,8 @@ def test_settle_test_refuses_the_fits_still_moving_at_the_last_iteration(off_cad
     With a tight test, the points still moving are the ones farther from the true surface."""
     reader, refiner, fused, _, _, truth = off_cad_turn
     runs = {}
-    for settle in (None, 0.3, 1e-3):
-        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], settle_rad=settle)
+    for settle in (None, 0.3, 1e-3):  # the modulation test off: one test at a time
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], settle_rad=settle, modulation_ratio=None)
         ref.bursts = refiner.bursts
         runs[settle] = ref.refine(fused.points)
     free = runs[None]
@@ -275,7 +275,8 @@ def test_replay_fits_with_the_refiner_its_factory_builds(off_cad_turn):
 
     reader, _, _, _, _, _ = off_cad_turn
     runs = {settle: replay(reader.path, decoder=Decoder(classical=True), fuse=CloudFuser(0.1, 3), truth=False,
-                           refine=True, refiner_factory=partial(TrackRefiner, settle_rad=settle)).refine
+                           refine=True, refiner_factory=partial(TrackRefiner, settle_rad=settle,
+                                                                modulation_ratio=None)).refine
             for settle in (None, 1e-3)}
     assert runs[None]["unsettled"] == 0 and runs[1e-3]["unsettled"] > 0
     assert runs[1e-3]["refined"] + runs[1e-3]["unsettled"] == runs[None]["refined"]
