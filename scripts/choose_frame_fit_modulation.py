@@ -18,9 +18,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "scripts"))
-from choose_frame_fit_settle import FRESH_STRETCHES, choose, score_cell  # noqa: E402  (the settle rule's cells and rule)
-from choose_fused_support import MODELS, VAL_STRETCHES, load_or_start  # noqa: E402
-from frame_fit_heldout import render_stretch  # noqa: E402
+from choose_frame_fit_settle import run_rule  # noqa: E402  (the settle rule's cells, scoring and decision)
 
 FIELD = "modulation_ratio"
 CANDIDATES: tuple[float | None, ...] = (None, 1.0)  # None: no test; 1.0: the physical bound B <= A
@@ -33,33 +31,13 @@ def main() -> None:
     ap.add_argument("--bursts", type=int, default=60)
     args = ap.parse_args()
 
-    from gearscan.inference.decoder import Decoder
     from gearscan.recon.measure import FRAME_FIT_MAX_SIGMA_RAD, FRAME_FIT_NETWORK_SUPPORT_PX
     from gearscan.recon.track import REST_SIGMA_SCALE, SETTLE_RAD
 
     settings = {"max_sigma_rad": FRAME_FIT_MAX_SIGMA_RAD, "rest_sigma_scale": REST_SIGMA_SCALE,
                 "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX, "settle_rad": SETTLE_RAD}
-    done = load_or_start(args.out, rule="benchmarks/frame_fit_modulation_rule.md", split="val", **settings)
-    changed = {k: (done.get(k), v) for k, v in settings.items() if done.get(k) != v}
-    if done["cells"] and changed:
-        raise SystemExit(f"{args.out}: its cells ran with other frame-fit settings (recorded, now): {changed}; "
-                         "write to another --out")
-    cells = done["cells"]
-    for model, weights in MODELS.items():
-        decoder = Decoder(weights)
-        for s in VAL_STRETCHES + FRESH_STRETCHES:
-            for alternate in (True, False):
-                order = "alternating" if alternate else "fixed"
-                if any((c["model"], c["seed"], c["order"]) == (model, s["seed"], order) for c in cells):
-                    continue
-                rec = render_stretch(args.recordings, s, alternate, args.bursts)
-                for row in score_cell(rec, decoder, FIELD, CANDIDATES, base={FIELD: None}):
-                    cells.append({"model": model, "seed": s["seed"], "order": order, **row})
-                    print({k: cells[-1][k] for k in ("model", "seed", "order", FIELD, "rms_um", "coverage",
-                                                     "implausible")}, flush=True)
-                args.out.write_text(json.dumps(done, indent=1))
-    done["choice"] = choose(cells, None, field=FIELD, candidates=CANDIDATES)
-    args.out.write_text(json.dumps(done, indent=1))
+    done = run_rule(args.out, args.recordings, args.bursts, "benchmarks/frame_fit_modulation_rule.md", FIELD,
+                    CANDIDATES, {FIELD: None}, settings, "implausible")
     print(json.dumps(done["choice"], indent=1))
 
 

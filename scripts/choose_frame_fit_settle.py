@@ -116,23 +116,16 @@ def choose(cells: list[dict], incumbent: float | None = INCUMBENT, models=None, 
             "best": best, "incumbent": incumbent, "chosen": chosen, **report}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "frame_fit_settle_val.json")
-    ap.add_argument("--recordings", type=Path, default=ROOT / "out" / "fused_support_val")
-    ap.add_argument("--bursts", type=int, default=60)
-    args = ap.parse_args()
-
+def run_rule(out: Path, recordings: Path, bursts: int, rule: str, field: str, candidates, base: dict | None,
+             settings: dict, count_key: str) -> dict:
+    """A frame-fit rule's val run over the 16 cells: resumed from ``out`` (refused if its ``settings`` changed), each
+    cell replayed once and every candidate value of ``field`` refitted (:func:`score_cell`), then :func:`choose`."""
     from gearscan.inference.decoder import Decoder
-    from gearscan.recon.measure import FRAME_FIT_MAX_SIGMA_RAD, FRAME_FIT_NETWORK_SUPPORT_PX
-    from gearscan.recon.track import REST_SIGMA_SCALE
 
-    settings = {"max_sigma_rad": FRAME_FIT_MAX_SIGMA_RAD, "rest_sigma_scale": REST_SIGMA_SCALE,
-                "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX}
-    done = load_or_start(args.out, rule="benchmarks/frame_fit_settle_rule.md", split="val", **settings)
+    done = load_or_start(out, rule=rule, split="val", **settings)
     changed = {k: (done.get(k), v) for k, v in settings.items() if done.get(k) != v}
     if done["cells"] and changed:
-        raise SystemExit(f"{args.out}: its cells ran with other frame-fit settings (recorded, now): {changed}; "
+        raise SystemExit(f"{out}: its cells ran with other frame-fit settings (recorded, now): {changed}; "
                          "write to another --out")
     cells = done["cells"]
     for model, weights in MODELS.items():
@@ -142,14 +135,31 @@ def main() -> None:
                 order = "alternating" if alternate else "fixed"
                 if any((c["model"], c["seed"], c["order"]) == (model, s["seed"], order) for c in cells):
                     continue
-                rec = render_stretch(args.recordings, s, alternate, args.bursts)
-                for row in score_cell(rec, decoder):
+                rec = render_stretch(recordings, s, alternate, bursts)
+                for row in score_cell(rec, decoder, field, candidates, base):
                     cells.append({"model": model, "seed": s["seed"], "order": order, **row})
-                    print({k: cells[-1][k] for k in ("model", "seed", "order", "settle_rad", "rms_um", "coverage",
-                                                     "unsettled")}, flush=True)
-                args.out.write_text(json.dumps(done, indent=1))
-    done["choice"] = choose(cells)
-    args.out.write_text(json.dumps(done, indent=1))
+                    print({k: cells[-1][k] for k in ("model", "seed", "order", field, "rms_um", "coverage", count_key)},
+                          flush=True)
+                out.write_text(json.dumps(done, indent=1))
+    done["choice"] = choose(cells, None, field=field, candidates=candidates)
+    out.write_text(json.dumps(done, indent=1))
+    return done
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "frame_fit_settle_val.json")
+    ap.add_argument("--recordings", type=Path, default=ROOT / "out" / "fused_support_val")
+    ap.add_argument("--bursts", type=int, default=60)
+    args = ap.parse_args()
+
+    from gearscan.recon.measure import FRAME_FIT_MAX_SIGMA_RAD, FRAME_FIT_NETWORK_SUPPORT_PX
+    from gearscan.recon.track import REST_SIGMA_SCALE
+
+    settings = {"max_sigma_rad": FRAME_FIT_MAX_SIGMA_RAD, "rest_sigma_scale": REST_SIGMA_SCALE,
+                "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX}
+    done = run_rule(args.out, args.recordings, args.bursts, "benchmarks/frame_fit_settle_rule.md", "settle_rad",
+                    CANDIDATES, None, settings, "unsettled")
     print(json.dumps(done["choice"], indent=1))
 
 
