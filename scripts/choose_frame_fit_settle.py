@@ -116,17 +116,23 @@ def choose(cells: list[dict], incumbent: float | None = INCUMBENT, models=None, 
             "best": best, "incumbent": incumbent, "chosen": chosen, **report}
 
 
+def start_run(out: Path, rule: str, settings: dict, **fresh) -> dict:
+    """A val run's json: resumed from ``out`` unless its cells ran with other ``settings`` (refused), else new."""
+    done = load_or_start(out, rule=rule, split="val", **settings, **fresh)
+    changed = {k: (done.get(k), v) for k, v in settings.items() if done.get(k) != v}
+    if done["cells"] and changed:
+        raise SystemExit(f"{out}: its cells ran with other frame-fit settings (recorded, now): {changed}; "
+                         "write to another --out")
+    return done
+
+
 def run_rule(out: Path, recordings: Path, bursts: int, rule: str, field: str, candidates, base: dict | None,
              settings: dict, count_key: str) -> dict:
     """A frame-fit rule's val run over the 16 cells: resumed from ``out`` (refused if its ``settings`` changed), each
     cell replayed once and every candidate value of ``field`` refitted (:func:`score_cell`), then :func:`choose`."""
     from gearscan.inference.decoder import Decoder
 
-    done = load_or_start(out, rule=rule, split="val", **settings)
-    changed = {k: (done.get(k), v) for k, v in settings.items() if done.get(k) != v}
-    if done["cells"] and changed:
-        raise SystemExit(f"{out}: its cells ran with other frame-fit settings (recorded, now): {changed}; "
-                         "write to another --out")
+    done = start_run(out, rule, settings)
     cells = done["cells"]
     for model, weights in MODELS.items():
         decoder = Decoder(weights)
