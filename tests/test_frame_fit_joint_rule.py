@@ -61,6 +61,12 @@ def test_the_floors_are_the_incumbents_on_every_cell(rule):
     assert got["admissible"]["0.5 rad / off"] is False
 
 
+def test_with_no_pair_admissible_the_incumbent_stays(rule):
+    # every cell of every pair at or above the target, the incumbent's too: nothing is admissible, nothing changes
+    got = rule.choose(cells(rule, {p: 12.0 for p in rule.PAIRS} | {(0.5, None): 10.5}))
+    assert not any(got["admissible"].values()) and got["chosen"] == list(rule.INCUMBENT)
+
+
 def test_fresh_seeds_are_read_out_apart(rule):
     got = rule.choose(cells(rule, {(0.5, 0): {(89, "alternating"): 3.0, (89, "fixed"): 3.0}}))
     assert got["fresh_score_um"]["0.5 rad / 0 px"] == pytest.approx(3.0)
