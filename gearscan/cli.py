@@ -272,6 +272,7 @@ def replay_cmd(
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON for a recording made without one (replaces the recording's own)")] = None,
     network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: per burst none for the shipped v9, 2 px for v6 and the default-rig option; with --fuse and its frame fit 0 px for v9, v6 and the option; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
     max_sigma_rad: Annotated[float | None, typer.Option(min=0.01, help="report no point whose total phase sigma exceeds this, rad (the fringe orders are found on the pixels within it, recon.measure.UNWRAP_MAX_SIGMA; default: the product's val choice for the path, recon.measure.MAX_SIGMA_RAD per burst, FRAME_FIT_MAX_SIGMA_RAD with --fuse and its frame fit, then for every burst of the run, its per-burst metrics and exports too)")] = None,
+    max_point_sigma_um: Annotated[float | None, typer.Option(min=0.1, help="with --fuse and its frame fit: report no point of the fitted cloud whose sigma exceeds this, µm: a fit must meet it to replace its fused point, an unfitted point above it is dropped and counted (default 30, recon.track.MAX_POINT_SIGMA_MM; needs the frame fit)")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
 
@@ -314,12 +315,14 @@ def replay_cmd(
 
         if max_sigma_rad is not None and not math.isfinite(max_sigma_rad):
             raise typer.BadParameter(f"expected a finite bound in rad, got {max_sigma_rad}", param_hint="--max-sigma-rad")
+        point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine and fuser is not None,
+                                         needs="give --fuse FILE and leave the frame fit on (no --no-refine)")
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
                         truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None,
                         network_support_px=network_support_option(network_support_px,
                                                                   frame_fit=refine and fuser is not None,
                                                                   model=decoder.network_support),
-                        max_sigma=max_sigma_rad)
+                        max_sigma=max_sigma_rad, point_sigma_mm=point_sigma_mm)
         if fuse is not None:
             from gearscan.inspect import dropped_note
             from gearscan.recon.fuse import save_fused
@@ -599,6 +602,19 @@ def evaluate_cmd(
     typer.echo(f"report: {out / 'report.md'}")
 
 
+def _point_sigma_mm(um: float | None, *, fitted: bool, needs: str) -> float | None:
+    """``--max-point-sigma-um`` as the frame fit's bound in mm, refused where no fit runs (``needs``: what the command
+    asks for one) or the value is not finite."""
+    if um is None:
+        return None
+    if not math.isfinite(um):
+        raise typer.BadParameter(f"expected a finite sigma in µm, got {um}", param_hint="--max-point-sigma-um")
+    if not fitted:
+        raise typer.BadParameter(f"bounds the points of the cloud fitted to the raw frames: {needs}",
+                                 param_hint="--max-point-sigma-um")
+    return um / 1e3
+
+
 @app.command("inspect")
 def inspect_cmd(
     recording: Annotated[Path, typer.Argument(help="recording folder of one revolution (or more) of the gear")],
@@ -612,6 +628,7 @@ def inspect_cmd(
     save: Annotated[Path | None, typer.Option(help="also write the rerun stream (bursts + fused model) to this .rrd")] = None,
     refine: Annotated[bool, typer.Option(help="fit each fused point to every raw frame that saw it (keeps the recording's frames in memory)")] = True,
     network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: with the frame fit 0 px for the shipped v9, v6 and the default-rig option; with --no-refine none for v9, 2 px for v6 and the option; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
+    max_point_sigma_um: Annotated[float | None, typer.Option(min=0.1, help="report no point of the fitted cloud whose sigma exceeds this, µm: a fit must meet it to replace its fused point, an unfitted point above it is dropped and counted (default 30, recon.track.MAX_POINT_SIGMA_MM; needs the frame fit; not with --no-refine)")] = None,
 ) -> None:
     """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
     from gearscan.core.recording import RecordingError
@@ -621,12 +638,14 @@ def inspect_cmd(
 
     if unwrap not in ("cad", "envelope"):
         raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")
+    point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine, needs="leave the frame fit on (no --no-refine)")
     decoder = _decoder(classical, 0, model)
     try:
         report = run_inspection(recording, out, decoder=decoder, grade=grade, voxel_mm=voxel_mm, min_bursts=min_bursts,
                                 unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"),
                                 network_support_px=network_support_option(network_support_px, frame_fit=refine,
-                                                                          model=decoder.network_support))
+                                                                          model=decoder.network_support),
+                                point_sigma_mm=point_sigma_mm)
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
     summary = report.inspection.summary()

@@ -55,7 +55,8 @@ def dropped_note(refine: dict | None) -> str:
         return ""
     parts = [f"{refine[k]:,} {what}" for k, what in (
         ("off_surface", "off the surface their fitted neighbours measured"),
-        ("uncertain", "with a sigma above the fit's bound")) if refine.get(k)]
+        ("uncertain", "with a sigma above the fit's bound" + (f" ({1e3 * refine['sigma_bound_mm']:g} µm)"
+                                                               if refine.get("sigma_bound_mm") else ""))) if refine.get(k)]
     note = f" Left out (unfitted points): {'; '.join(parts)}." if parts else ""
     if refine.get("unsettled"):  # unfitted too: each kept at its fused position or among those left out
         note += (f" {refine['unsettled']:,} fits had not settled at their last iteration (recon.track.SETTLE_RAD) "
@@ -115,6 +116,7 @@ def run_inspection(
     progress: Callable[[str], None] | None = None,
     network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
     max_sigma: float | None = None,
+    point_sigma_mm: float | None = None,
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
@@ -124,7 +126,8 @@ def run_inspection(
     to the raw frames (:class:`~gearscan.recon.track.TrackRefiner`); ``network_support_px``: the reconstructor's
     fringe-support test for a network's pixels (None: none; ``"product"``: the decoding model's own for the path,
     else the product's, as :func:`~gearscan.replay.replay` resolves it with ``refine``); ``max_sigma``: the keep bound,
-    rad (None: the product's for the path, as :func:`~gearscan.replay.replay` resolves it). ``inspect_options`` go to
+    rad (None: the product's for the path, as :func:`~gearscan.replay.replay` resolves it); ``point_sigma_mm``: the
+    fitted cloud's bound on every point's sigma, mm (None: the fit's own; needs ``refine``). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import replay
@@ -136,11 +139,13 @@ def run_inspection(
         raise RecordingError(f"{reader.path}/recording.json: no 'gear' section: inspection needs the gear's nominal spec")
     if grade is not None:
         iso1328_tolerances(gear.module, 2 * gear.pitch_radius, grade)  # refuse a bad grade before the replay
+    if point_sigma_mm is not None and not refine:
+        raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine)")
     span = revolution_deg(reader)
     say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
     fuser = CloudFuser(voxel_mm, min_bursts)
     metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine,
-                     network_support_px=network_support_px, max_sigma=max_sigma)
+                     network_support_px=network_support_px, max_sigma=max_sigma, point_sigma_mm=point_sigma_mm)
     if metrics.fused is None or not len(metrics.fused):
         raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
     fused = metrics.fused

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Literal
 
@@ -244,6 +246,7 @@ def replay(
     network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
     max_sigma: float | None = None,
     refiner_factory: Callable[[Rig, float], object] | None = None,
+    point_sigma_mm: float | None = None,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
@@ -267,7 +270,8 @@ def replay(
     (with ``fuse``): the fused points are then fitted to every raw frame that saw them
     (:class:`~gearscan.recon.track.TrackRefiner`; keeps the recording's frames in memory).
     ``refiner_factory(rig, period_px)``: that fit with other settings than the product's (the rule scripts'
-    candidates), e.g. ``functools.partial(TrackRefiner, settle_rad=0.1)``.
+    candidates), e.g. ``functools.partial(TrackRefiner, settle_rad=0.1)``. ``point_sigma_mm``: the fitted cloud's bound
+    on every point's sigma, mm (None: the fit's own, :data:`~gearscan.recon.track.MAX_POINT_SIGMA_MM`); needs the fit.
 
     ``rig``: the calibration (file or :class:`Rig`) for a recording made without one; it
     replaces the recording's own when both exist. ``export``: every burst's cloud is also
@@ -277,6 +281,16 @@ def replay(
     from gearscan.acquisition.camera import GrabTimeout
     from gearscan.mocks.replay_camera import ReplayCamera
 
+    if point_sigma_mm is not None:  # refused before anything is replayed
+        if not (refine and fuse is not None):
+            raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine with fuse)")
+        if refiner_factory is not None:
+            raise ValueError("point_sigma_mm: give the bound to the refiner_factory's refiner instead")
+        if not (math.isfinite(point_sigma_mm) and point_sigma_mm > 0):
+            raise ValueError(f"point_sigma_mm: expected a finite sigma > 0 mm, got {point_sigma_mm}")
+        from gearscan.recon.track import TrackRefiner
+
+        refiner_factory = partial(TrackRefiner, max_sigma_mm=point_sigma_mm)
     reader = RecordingReader(recording)
     reader.encoder_samples()  # replay uses the frames' angles; this counts encoder.jsonl damage
     if len(reader) < 3:

@@ -41,6 +41,10 @@ SETTLE_RAD: float | None = 0.03
 # largest fitted fringe modulation over the fitted mean intensity, B / A, a fit may have (None: no test, until session 47).
 # A camera intensity A + B cos(psi) >= 0 needs B <= A. Rule: benchmarks/frame_fit_modulation_rule.md
 MODULATION_RATIO: float | None = 1.0
+# the refined cloud's one bound on every point's sigma, fitted or not (mm): a fit must meet it to replace its fused
+# point, an unfitted point above it is dropped and counted. Chosen on the seed-7 stretch (TrackRefiner's docstring);
+# `inspect` and `replay --fuse` take another with --max-point-sigma-um
+MAX_POINT_SIGMA_MM = 0.03
 
 
 @dataclass
@@ -96,14 +100,14 @@ class TrackRefiner:
 
     def __init__(self, rig: Rig, period_px: float, *, iterations: int = 4, min_frames: int = 9,
                  min_spread: float = 0.05, visible_mm: float = 0.3, max_step_mm: float = 0.3,
-                 outlier_sigma: float = 3.0, drift: bool = True, max_sigma_mm: float = 0.03,
+                 outlier_sigma: float = 3.0, drift: bool = True, max_sigma_mm: float = MAX_POINT_SIGMA_MM,
                  rest_sigma_scale: float = REST_SIGMA_SCALE, settle_rad: float | None = SETTLE_RAD,
                  modulation_ratio: float | None = MODULATION_RATIO) -> None:
         if not period_px > 0:
             raise ValueError(f"period_px: expected > 0 projector pixels, got {period_px}")
         if iterations < 1 or min_frames < 4:
             raise ValueError(f"iterations >= 1 and min_frames >= 4 expected, got {iterations} and {min_frames}")
-        if not (max_sigma_mm > 0 and 0 <= min_spread <= 1):
+        if not (math.isfinite(max_sigma_mm) and max_sigma_mm > 0 and 0 <= min_spread <= 1):
             raise ValueError(f"max_sigma_mm > 0 and 0 <= min_spread <= 1 expected, got {max_sigma_mm} and {min_spread}")
         if not (math.isfinite(rest_sigma_scale) and rest_sigma_scale >= 1):
             raise ValueError(f"rest_sigma_scale: expected a finite factor >= 1 (it may not shrink a sigma), got {rest_sigma_scale}")
@@ -175,7 +179,8 @@ class TrackRefiner:
         """
         out, off, stats = self.fit_fused(fused)
         uncertain = ~out.refined & ~off & (out.sigma > self.max_sigma_mm)
-        stats = {**stats, "off_surface": int(off.sum()), "uncertain": int(uncertain.sum())}
+        stats = {**stats, "off_surface": int(off.sum()), "uncertain": int(uncertain.sum()),
+                 "sigma_bound_mm": self.max_sigma_mm}
         drop = off | uncertain
         return (out.select(~drop) if drop.any() else out), stats
 

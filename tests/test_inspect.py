@@ -334,5 +334,6 @@ def test_dropped_note_says_what_the_frame_fit_left_out_and_refused():
     assert "3 off the surface" in note and "1,200 with a sigma above the fit's bound" in note
     assert "40 fits had not settled" in note and "counted above" in note
     assert "7 fits had a modulation above their mean intensity" in note
+    assert "1,200 with a sigma above the fit's bound (30 µm)" in dropped_note({"uncertain": 1200, "sigma_bound_mm": 0.03})
     assert dropped_note({"off_surface": 0, "uncertain": 0, "unsettled": 0, "implausible": 0}) == ""
     assert dropped_note(None) == ""

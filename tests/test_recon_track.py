@@ -104,8 +104,9 @@ def test_bad_input_is_named(off_cad_turn):
         ref.refine(np.zeros((4, 2)))
     with pytest.raises(ValueError, match="period_px"):
         TrackRefiner(reader.rig, 0.0)
-    with pytest.raises(ValueError, match="max_sigma_mm"):
-        TrackRefiner(reader.rig, 40.0, max_sigma_mm=0.0)
+    for bound in (0.0, -0.01, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="max_sigma_mm"):
+            TrackRefiner(reader.rig, 40.0, max_sigma_mm=bound)
     for scale in (0.5, float("nan")):  # a scale may not shrink a sigma
         with pytest.raises(ValueError, match="rest_sigma_scale"):
             TrackRefiner(reader.rig, 40.0, rest_sigma_scale=scale)
@@ -180,6 +181,47 @@ def test_refined_cloud_holds_no_point_above_the_sigma_bound_and_counts_the_rest(
     assert len(out) == len(fused) - stats["off_surface"] - stats["uncertain"]
     rows = out.voxel_index if out.voxel_index is not None else np.arange(len(out))
     np.testing.assert_array_equal(out.points[~out.refined], fused.points[rows][~out.refined])
+
+
+def test_replay_and_cli_take_a_bound_on_every_points_sigma(off_cad_turn, tmp_path):
+    """``replay(point_sigma_mm=)`` / ``--max-point-sigma-um``: the user's bound on the fitted cloud's points, from the
+    CLI to the written file (every point within it, the dropped counted and the note naming the bound); refused,
+    named, where no fit runs or the value is not a sigma."""
+    from typer.testing import CliRunner
+
+    from gearscan.cli import app
+    from gearscan.recon.track import MAX_POINT_SIGMA_MM
+    from gearscan.replay import replay
+
+    reader, _, _, _, loose_stats, _ = off_cad_turn
+    assert loose_stats["sigma_bound_mm"] == MAX_POINT_SIGMA_MM
+    out = tmp_path / "fused.csv"
+    res = CliRunner().invoke(app, ["replay", str(reader.path), "--classical", "--no-truth", "--fuse", str(out),
+                                   "--max-point-sigma-um", "5"])
+    assert res.exit_code == 0, res.output
+    assert "with a sigma above the fit's bound (5 µm)" in res.output
+    header = out.read_text().splitlines()[0].split(",")
+    table = np.loadtxt(out, delimiter=",", skiprows=1)
+    sigma = table[:, header.index("sigma_mm")]
+    assert sigma.max() <= 0.005 and len(sigma) > 100
+    def said(res) -> str:  # the error box's text on one line
+        return " ".join(res.output.replace("│", " ").split())
+
+    for args, hint in ((["--max-point-sigma-um", "5"], "give --fuse FILE"),  # no --fuse: no fit
+                       (["--fuse", str(out), "--no-refine", "--max-point-sigma-um", "5"], "give --fuse FILE"),
+                       (["--fuse", str(out), "--max-point-sigma-um", "inf"], "expected a finite sigma")):
+        res = CliRunner().invoke(app, ["replay", str(reader.path), "--classical", "--no-truth", *args])
+        assert res.exit_code == 2 and "--max-point-sigma-um" in said(res) and hint in said(res), res.output
+    res = CliRunner().invoke(app, ["inspect", str(reader.path), "--classical", "--no-refine", "--max-point-sigma-um",
+                                   "5", "-o", str(tmp_path / "report")])
+    assert res.exit_code == 2 and "leave the frame fit on (no --no-refine)" in said(res), res.output
+    for kwargs, match in (({"point_sigma_mm": 0.005}, "needs the frame fit"),
+                          ({"point_sigma_mm": 0.0, "fuse": CloudFuser(0.1, 3), "refine": True}, "finite sigma > 0"),
+                          ({"point_sigma_mm": float("nan"), "fuse": CloudFuser(0.1, 3), "refine": True}, "finite"),
+                          ({"point_sigma_mm": 0.005, "fuse": CloudFuser(0.1, 3), "refine": True,
+                            "refiner_factory": TrackRefiner}, "refiner_factory")):
+        with pytest.raises(ValueError, match=match):
+            replay(reader.path, decoder=Decoder(classical=True), truth=False, **kwargs)
 
 
 def test_unfitted_points_carry_the_scaled_sigma_and_fitted_points_keep_the_fits(off_cad_turn):
