@@ -286,6 +286,8 @@ def replay_cmd(
     span = {} if still_span_deg is None else {"still_span_deg": still_span_deg}
     if orientation not in ("auto", "normal", "mirrored"):
         raise typer.BadParameter(f"expected auto, normal or mirrored, got {orientation!r}", param_hint="--orientation")
+    point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine and fuse is not None,
+                                     needs="give --fuse FILE and leave the frame fit on (no --no-refine)")
     decoder = _decoder(classical, mc, model, workers=workers, orientation=orientation, **span)
     web = None
     if serve:
@@ -315,8 +317,6 @@ def replay_cmd(
 
         if max_sigma_rad is not None and not math.isfinite(max_sigma_rad):
             raise typer.BadParameter(f"expected a finite bound in rad, got {max_sigma_rad}", param_hint="--max-sigma-rad")
-        point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine and fuser is not None,
-                                         needs="give --fuse FILE and leave the frame fit on (no --no-refine)")
         result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
                         truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None,
                         network_support_px=network_support_option(network_support_px,
@@ -333,6 +333,8 @@ def replay_cmd(
             fitted = ""
             if result.fused.refined is not None:
                 fitted = f", {int(result.fused.refined.sum()):,} of them fitted to the raw frames"
+                if bound := (result.refine or {}).get("sigma_bound_mm"):
+                    fitted += f", every point's sigma within {1e3 * bound:g} µm"
             typer.echo(f"fused model: {len(result.fused):,} points from {result.fused.bursts_added} bursts{fitted} -> {fuse}")
             if note := dropped_note(result.refine).strip():  # on its own line: not read as part of the path
                 typer.echo(note)

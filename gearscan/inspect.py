@@ -183,6 +183,8 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                   "refined_points": None if report.fused.refined is None else int(report.fused.refined.sum()),
                   "dropped_off_surface": (report.refine or {}).get("off_surface"),
                   "dropped_uncertain": (report.refine or {}).get("uncertain"),
+                  "sigma_bound_um": (1e3 * report.refine["sigma_bound_mm"]
+                                     if (report.refine or {}).get("sigma_bound_mm") else None),
                   "unsettled_fits": (report.refine or {}).get("unsettled"),
                   "implausible_fits": (report.refine or {}).get("implausible")},
         "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
@@ -214,7 +216,9 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         f"Fused model: {len(report.fused):,} points from {report.fused.bursts_added} bursts over "
         f"{report.revolution_deg:.0f}° of the turntable (voxel {report.fused.voxel_mm:g} mm, median "
         f"{np.median(report.fused.bursts):.0f} bursts and σ {1e3 * np.median(report.fused.sigma):.1f} µm per point)"
-        + (f"; {100 * report.fused.refined.mean():.0f} % of the points fitted to the raw frames that saw them."
+        + (f"; {100 * report.fused.refined.mean():.0f} % of the points fitted to the raw frames that saw them"
+           + (f", every point's σ within {1e3 * report.refine['sigma_bound_mm']:g} µm (the fit's bound)."
+              if (report.refine or {}).get("sigma_bound_mm") else ".")
            if report.fused.refined is not None else ".") + dropped_note(report.refine),
         "",
         f"Gear axis fitted from the flanks: {insp.eccentricity_um:.1f} µm from the turntable axis towards "

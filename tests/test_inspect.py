@@ -182,6 +182,26 @@ def test_the_fringe_support_test_reaches_the_replay(tmp_path, replay_spy, monkey
         assert got == expected, option
 
 
+def test_the_point_sigma_bound_reaches_the_replay(tmp_path, replay_spy):
+    """``gearscan inspect --max-point-sigma-um 12`` hands the replay 0.012 mm; without it the fit's own (None);
+    ``run_inspection`` refuses the bound without the frame fit before replaying."""
+    from gearscan.cli import app
+    from gearscan.core.rig import default_rig
+    from gearscan.inspect import run_inspection
+    from gearscan.twin.recordings import render_recording
+
+    rec = tmp_path / "rec"
+    render_recording(rec, rig=default_rig(64, 64), motion="static", bursts=1)
+    for option, expected in ((["--max-point-sigma-um", "12"], 0.012), ([], None)):
+        with pytest.raises(replay_spy.Called):
+            CliRunner().invoke(app, ["inspect", str(rec), "-o", str(tmp_path / "out"), *option], catch_exceptions=False)
+        got = replay_spy.calls[-1]["point_sigma_mm"]
+        assert got is None if expected is None else got == pytest.approx(expected), option
+    with pytest.raises(ValueError, match="needs the frame fit"):
+        run_inspection(rec, tmp_path / "out2", refine=False, point_sigma_mm=0.01)
+    assert len(replay_spy.calls) == 2  # refused before the replay
+
+
 def test_the_shipped_support_tests_are_the_val_choices():
     """Both fringe-support settings are what their rules chose on val for the shipped model (the JSONs the choice
     scripts write), not numbers typed in: in the shipped model's JSON (``network_support``, what the app uses) and as

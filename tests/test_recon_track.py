@@ -197,7 +197,7 @@ def test_replay_and_cli_take_a_bound_on_every_points_sigma(off_cad_turn, tmp_pat
     assert loose_stats["sigma_bound_mm"] == MAX_POINT_SIGMA_MM
     out = tmp_path / "fused.csv"
     res = CliRunner().invoke(app, ["replay", str(reader.path), "--classical", "--no-truth", "--fuse", str(out),
-                                   "--max-point-sigma-um", "5"])
+                                   "--max-point-sigma-um", "5", "--save", str(tmp_path / "r.rrd")])
     assert res.exit_code == 0, res.output
     assert "with a sigma above the fit's bound (5 µm)" in res.output
     header = out.read_text().splitlines()[0].split(",")
@@ -210,7 +210,8 @@ def test_replay_and_cli_take_a_bound_on_every_points_sigma(off_cad_turn, tmp_pat
     for args, hint in ((["--max-point-sigma-um", "5"], "give --fuse FILE"),  # no --fuse: no fit
                        (["--fuse", str(out), "--no-refine", "--max-point-sigma-um", "5"], "give --fuse FILE"),
                        (["--fuse", str(out), "--max-point-sigma-um", "inf"], "expected a finite sigma")):
-        res = CliRunner().invoke(app, ["replay", str(reader.path), "--classical", "--no-truth", *args])
+        res = CliRunner().invoke(app, ["replay", str(reader.path), "--classical", "--no-truth", *args,
+                                       "--save", str(tmp_path / "r.rrd")])
         assert res.exit_code == 2 and "--max-point-sigma-um" in said(res) and hint in said(res), res.output
     res = CliRunner().invoke(app, ["inspect", str(reader.path), "--classical", "--no-refine", "--max-point-sigma-um",
                                    "5", "-o", str(tmp_path / "report")])
