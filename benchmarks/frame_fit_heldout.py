@@ -93,16 +93,18 @@ def score_fused(reader, scene, fused, refine_stats: dict, seconds: float) -> dic
             "z_rest": float(np.median(d[~r] / (1e3 * fused.sigma[~r]))) if (~r).any() else None}
 
 
-def score_stretch(rec: Path, decoder, network_support_px: int | None, max_sigma: float | None = None) -> dict:
+def score_stretch(rec: Path, decoder, network_support_px: int | None, max_sigma: float | None = None,
+                  point_sigma_mm: float | None = None) -> dict:
     """Replay ``rec`` with fusion and the frame fit, and score the fused cloud against the twin's true surface
-    (``max_sigma``: the keep bound; None: the product's for this path, ``recon.measure.FRAME_FIT_MAX_SIGMA_RAD``)."""
+    (``max_sigma``: the keep bound; None: the product's for this path, ``recon.measure.FRAME_FIT_MAX_SIGMA_RAD``;
+    ``point_sigma_mm``: the fitted cloud's bound on every point's sigma; None: the fit's own)."""
     from gearscan.core.recording import RecordingReader
     from gearscan.recon.fuse import CloudFuser
     from gearscan.replay import replay
 
     t = time.perf_counter()
     m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True,
-               network_support_px=network_support_px, max_sigma=max_sigma)
+               network_support_px=network_support_px, max_sigma=max_sigma, point_sigma_mm=point_sigma_mm)
     seconds = time.perf_counter() - t
     reader = RecordingReader(rec)
     return score_fused(reader, truth_scene(reader), m.fused, m.refine, seconds)
@@ -117,12 +119,20 @@ def main() -> None:
                     help="the reconstructor's fringe-support test for network pixels (-1: none; default: the model's own, else the product's)")
     ap.add_argument("--report", type=Path, default=HERE / "frame_fit_heldout_report",
                     help="path prefix of the report (.md, .json)")
+    ap.add_argument("--max-point-sigma-um", type=float, default=None,
+                    help="the fitted cloud's bound on every point's sigma, um (default: the fit's own, "
+                         "recon.track.MAX_POINT_SIGMA_MM)")
     args = ap.parse_args()
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     from gearscan.inference.decoder import Decoder
     from gearscan.recon.measure import keep_bound_option, network_support_option
-    from gearscan.recon.track import MODULATION_RATIO, REST_SIGMA_SCALE, SETTLE_RAD
+    from gearscan.recon.track import (
+        MAX_POINT_SIGMA_MM,
+        MODULATION_RATIO,
+        REST_SIGMA_SCALE,
+        SETTLE_RAD,
+    )
 
     started, rows = host(), []
     decoder = Decoder(args.model)
@@ -135,23 +145,26 @@ def main() -> None:
     bound = keep_bound_option(None, frame_fit=True)
     support_text += f"; keep bound {bound:g} rad, the frame-fit path's"
     settle_text = "no settle test" if SETTLE_RAD is None else f"settle test {SETTLE_RAD:g} rad"
+    point_mm = None if args.max_point_sigma_um is None else args.max_point_sigma_um / 1e3
+    point_um = 1e3 * (MAX_POINT_SIGMA_MM if point_mm is None else point_mm)
     for s in STRETCHES:
         for alternate in (True, False):
             rec = render_stretch(args.out, s, alternate, args.bursts)
             rows.append({"seed": s["seed"], "start_deg": s["start_deg"], "order": "alternating" if alternate else "fixed",
-                         **score_stretch(rec, decoder, support)})
+                         **score_stretch(rec, decoder, support, point_sigma_mm=point_mm)})
             print(rows[-1])
     lines = [
         "# Frame fit on held-out twin stretches (recon/track.py)",
         "",
         f"`python benchmarks/frame_fit_heldout.py --bursts {args.bursts}"
-        f"{'' if args.network_support_px is None else f' --network-support-px {args.network_support_px}'}`"
+        f"{'' if args.network_support_px is None else f' --network-support-px {args.network_support_px}'}"
+        f"{'' if args.max_point_sigma_um is None else f' --max-point-sigma-um {args.max_point_sigma_um:g}'}`"
         f" — commit {commit()}, host: {started}.",
         "",
         f"Default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, {args.bursts} bursts per stretch, eccentricity 50 µm, "
         f"one tooth +30 µm pitch error, one tip chipped 0.3 mm; {f'network `{args.model}`' if args.model else 'shipped network'} "
         f"(deterministic; {support_text}), fused per 0.1 mm "
-        "voxel (>= 3 bursts), fitted to the frames (sigma bound 30 µm for every point, fitted or not; off-surface drop 0.15 mm within 0.5 mm; "
+        f"voxel (>= 3 bursts), fitted to the frames (sigma bound {point_um:g} µm for every point, fitted or not; off-surface drop 0.15 mm within 0.5 mm; "
         f"{settle_text}: a fit still correcting more than that at its last iteration does not take its point"
         + ("" if MODULATION_RATIO is None else
            f"; modulation test: nor does a fit whose modulation B exceeds {MODULATION_RATIO:g} x its mean intensity A, "
@@ -170,7 +183,7 @@ def main() -> None:
         "The last column is 0.67 where the reported sigma is right for a Gaussian error: above it, the cloud "
         "claims more than it measured. The rest (points the fit could not take) carry their bursts' sigma without "
         f"credit for averaging, times {REST_SIGMA_SCALE:g} (`TrackRefiner.refine_fused`, `REST_SIGMA_SCALE`, calibrated on "
-        "val: `rest_sigma_rule.md`); those above the 30 µm bound are dropped and counted. The unsettled fits "
+        f"val: `rest_sigma_rule.md`); those above the {point_um:g} µm bound are dropped and counted. The unsettled fits "
         "(`frame_fit_settle_rule.md`) and those the modulation test refused are among those points: each either stays with that sigma or is counted "
         "in one of the two drop columns, so the columns overlap.",
         "",
@@ -183,7 +196,7 @@ def main() -> None:
                                                           "network_support_px": args.network_support_px,  # the option; None: the model's own
                                                           "support_px_run": support,  # what ran (None: no test)
                                                           "support_test": support_text, "max_sigma_rad": bound,
-                                                          "settle_rad": SETTLE_RAD,
+                                                          "settle_rad": SETTLE_RAD, "point_sigma_um": point_um,
                                                           "modulation_ratio": MODULATION_RATIO}, indent=2))
     print("\n".join(lines))
 
