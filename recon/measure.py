@@ -30,8 +30,10 @@ NETWORK_SUPPORT_PX: int | None = None
 # ... and where the fused points are then fitted to the raw frames (`inspect`, `replay --fuse`): the frame fit
 # takes the pixels a test removes better than the test does (val choice, benchmarks/fused_support_rule.md;
 # scripts/choose_fused_support.py -> benchmarks/fused_support_val.json): 0 px for v6, no test (None) for v9, and 0 px
-# again since session 46's rerun at this path's own keep bound (0.5 rad)
-FRAME_FIT_NETWORK_SUPPORT_PX: int | None = 0
+# again since session 46's rerun at this path's own keep bound (0.5 rad); none since session 48's joint choice of this
+# path's bound and test with the fit's settle and modulation tests in place (benchmarks/frame_fit_joint_rule.md,
+# scripts/choose_frame_fit_joint.py -> benchmarks/frame_fit_joint_val.json)
+FRAME_FIT_NETWORK_SUPPORT_PX: int | None = None
 PRODUCT_SUPPORT = "product"  # a library default (replay, run_inspection): the decoding model's test for the path
 # taken, else the product's (network_support_option)
 # The keep bound: a point is reported where its total phase sigma is at most this (rad). 0.3 until session 44 (never
@@ -50,8 +52,10 @@ UNWRAP_MAX_SIGMA: float | None = None
 # seed 23, fixed order, session 46); val choice, benchmarks/frame_fit_keep_bound_rule.md
 # (scripts/choose_frame_fit_keep_bound.py -> benchmarks/frame_fit_keep_bound_val.json): 0.5 with the path's support
 # test off (7 % below 0.7 in the geometric-mean cloud RMS of four val stretches), then 0.7 again once that test went
-# to 0 px (0.5 missed a coverage floor by 0.02 points): session 46, the last iteration that session
-FRAME_FIT_MAX_SIGMA_RAD = 0.7
+# to 0 px (0.5 missed a coverage floor by 0.02 points): session 46, the last iteration that session; 0.5 with the
+# test off since session 48, the two chosen jointly on 12 val cells with the fit's settle and modulation tests in
+# place (benchmarks/frame_fit_joint_rule.md -> frame_fit_joint_val.json: 3.4 % below 0.7 rad / 0 px)
+FRAME_FIT_MAX_SIGMA_RAD = 0.5
 
 
 def keep_bound_option(max_sigma: float | None, *, frame_fit: bool = False) -> float:
