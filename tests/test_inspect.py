@@ -221,7 +221,6 @@ def test_the_shipped_support_tests_are_the_val_choices():
     per_burst = json.loads((bench / "network_support_val.json").read_text())
     fused = json.loads((bench / "fused_support_val.json").read_text())
     assert per_burst["chosen_network_support_px"] == NETWORK_SUPPORT_PX
-    assert fused["choice"]["chosen_px"] == FRAME_FIT_NETWORK_SUPPORT_PX
     # and the rules replayed on the stored tables give the same answers (a hand edit of either is caught)
     import sys
 
@@ -232,7 +231,9 @@ def test_the_shipped_support_tests_are_the_val_choices():
     finally:
         del sys.path[:2]
     assert choose_network_support.choose(per_burst["table"]) == NETWORK_SUPPORT_PX
-    assert choose_fused_support.choose(fused["cells"], fused["incumbent_px"])["chosen_px"] == FRAME_FIT_NETWORK_SUPPORT_PX
+    # the frame-fit path's support test alone (session 46's last run): its table still gives its stored answer; since
+    # session 48 the path's test and bound are the joint rule's (below)
+    assert choose_fused_support.choose(fused["cells"], fused["incumbent_px"])["chosen_px"] == fused["choice"]["chosen_px"]
     # chosen for this decode: the weights and the sigma maps and gates of their JSON (a refit changes the fingerprint)
     shipped = model_fingerprint(DEFAULT_MODEL)
     assert per_burst["weights_sha256"] == hashlib.sha256(DEFAULT_MODEL.read_bytes()).hexdigest()[:12]
@@ -275,9 +276,18 @@ def test_the_shipped_support_tests_are_the_val_choices():
     finally:
         del sys.path[0]
     ffkb = json.loads((bench / "frame_fit_keep_bound_val.json").read_text())
-    assert choose_frame_fit_keep_bound.choose(ffkb["cells"]) == ffkb["choice"]
-    assert ffkb["choice"]["chosen"] == FRAME_FIT_MAX_SIGMA_RAD and ffkb["model_fingerprint"] == shipped
-    assert ffkb["network_support_px"] == model_network_support(read_config(DEFAULT_MODEL)).frame_fit_px  # as shipped
+    assert choose_frame_fit_keep_bound.choose(ffkb["cells"]) == ffkb["choice"]  # session 46's bound alone, as stored
+    # since session 48 the path's bound and support test together (benchmarks/frame_fit_joint_rule.md): the stored
+    # table gives the stored choice, the shipped pair is what passed its shipping condition, for this decode
+    sys.path[:0] = [str(bench.parent / "scripts"), str(bench)]
+    try:
+        import choose_frame_fit_joint
+    finally:
+        del sys.path[:2]
+    joint = json.loads((bench / "frame_fit_joint_val.json").read_text())
+    assert choose_frame_fit_joint.choose(joint["cells"]) == joint["choice"] and joint["shipped_sha256"] == shipped
+    assert tuple(joint["shipped"]) == (FRAME_FIT_MAX_SIGMA_RAD, FRAME_FIT_NETWORK_SUPPORT_PX)
+    assert model_network_support(read_config(DEFAULT_MODEL)).frame_fit_px == FRAME_FIT_NETWORK_SUPPORT_PX
     # one per-burst bound: the reconstructor, the keep test the reports score and the live config's default
     assert (Reconstructor.__init__.__kwdefaults__["max_sigma"] == keep_candidates.__kwdefaults__["max_sigma"]
             == ReconSection().max_sigma_rad == MAX_SIGMA_RAD)
