@@ -54,6 +54,7 @@ class FusedCloud:
     deviation: np.ndarray | None = None
     refined: np.ndarray | None = None
     voxel_index: np.ndarray | None = None  # (N,) each point's row in the fuser's result, once points were dropped
+    ray: np.ndarray | None = None  # (N, 3) unit direction (gear frame) each point's sigma runs along; None: not fitted
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -65,6 +66,7 @@ class FusedCloud:
 
         return replace(self, points=self.points[keep], sigma=self.sigma[keep], bursts=self.bursts[keep],
                        samples=self.samples[keep], deviation=pick(self.deviation), refined=pick(self.refined),
+                       ray=pick(self.ray),
                        voxel_index=np.arange(len(self))[keep] if self.voxel_index is None else self.voxel_index[keep])
 
     def with_deviation(self, deviation: np.ndarray) -> FusedCloud:
@@ -178,7 +180,8 @@ def fuse(clouds, voxel_mm: float = 0.1, min_bursts: int = 1) -> FusedCloud:
 
 def save_fused(fused: FusedCloud, path: str | Path) -> Path:
     """Write the fused cloud as PLY/PCD (open3d) or CSV with ``sigma``, ``bursts`` and, if set,
-    ``deviation`` and ``refined`` (1: fitted on the raw frames)."""
+    ``deviation``, ``refined`` (1: fitted on the raw frames) and ``ray_x``, ``ray_y``, ``ray_z`` (the unit
+    direction from the camera that ``sigma`` runs along)."""
     from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 
     path = Path(path)
@@ -189,4 +192,6 @@ def save_fused(fused: FusedCloud, path: str | Path) -> Path:
     extra = {"bursts": fused.bursts}
     if fused.refined is not None:
         extra["refined"] = fused.refined.astype(np.int32)
+    if fused.ray is not None:
+        extra.update({f"ray_{axis}": fused.ray[:, i] for i, axis in enumerate("xyz")})
     return save_cloud(fused.to_cloud(), path, extra=extra)

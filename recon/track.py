@@ -35,6 +35,9 @@ _CHUNK = 200_000  # points per vectorised block (bounds the temporary arrays to 
 # a point the fit cannot take carries this many times its bursts' sigma (val calibration:
 # benchmarks/rest_sigma_rule.md; scripts/calibrate_rest_sigma.py -> benchmarks/rest_sigma_val.json)
 REST_SIGMA_SCALE = 3.5
+# a fitted point carries this many times its fit's standard error along the ray (>= 1): the fit's noise propagation
+# alone misses error the twin's frames still hold. Val calibration: benchmarks/fit_sigma_rule.md
+FIT_SIGMA_SCALE = 1.0
 # largest phase correction (rad) the fit's last iteration may still make (None: no test, the incumbent until session 47).
 # Chosen on val stretches: benchmarks/frame_fit_settle_rule.md, scripts/choose_frame_fit_settle.py
 SETTLE_RAD: float | None = 0.03
@@ -64,6 +67,8 @@ class TrackResult:
     refined: np.ndarray  # (N,) bool: fitted on enough frames, sigma within max_sigma_mm, settled, B <= ratio x A
     frames: np.ndarray  # (N,) int: samples in the final fit
     moved_mm: np.ndarray  # (N,) distance moved along the ray (+ away from the camera)
+    rays: np.ndarray  # (N, 3) unit gear-frame directions from the camera: the line each fit moves its point along,
+    #                   the direction its sigma is measured in
     stats: dict = field(default_factory=dict)
 
 
@@ -78,7 +83,9 @@ class TrackRefiner:
     phase or at two opposite ones, where sine and cosine cannot be told apart);
     ``visible_mm``: how close a burst's own point must be for its frames to count as seeing ``X``;
     ``rest_sigma_scale``: how many times its bursts' sigma a point the fit cannot take carries (>= 1;
-    :data:`REST_SIGMA_SCALE`, calibrated on val: ``benchmarks/rest_sigma_rule.md``); ``settle_rad``: the
+    :data:`REST_SIGMA_SCALE`, calibrated on val: ``benchmarks/rest_sigma_rule.md``); ``fit_sigma_scale``: how many
+    times its fit's standard error a fitted point carries (>= 1; :data:`FIT_SIGMA_SCALE`), the sigma the bound
+    judges; ``settle_rad``: the
     largest phase offset the last iteration may still correct (None: no test; :data:`SETTLE_RAD`). A fit
     still moving its point at the last iteration has not settled: its sigma describes where the point
     was, not where the step puts it (in a dev look on val seed 31 in fixed pattern order such fits were
@@ -101,8 +108,8 @@ class TrackRefiner:
     def __init__(self, rig: Rig, period_px: float, *, iterations: int = 4, min_frames: int = 9,
                  min_spread: float = 0.05, visible_mm: float = 0.3, max_step_mm: float = 0.3,
                  outlier_sigma: float = 3.0, drift: bool = True, max_sigma_mm: float = MAX_POINT_SIGMA_MM,
-                 rest_sigma_scale: float = REST_SIGMA_SCALE, settle_rad: float | None = SETTLE_RAD,
-                 modulation_ratio: float | None = MODULATION_RATIO) -> None:
+                 rest_sigma_scale: float = REST_SIGMA_SCALE, fit_sigma_scale: float = FIT_SIGMA_SCALE,
+                 settle_rad: float | None = SETTLE_RAD, modulation_ratio: float | None = MODULATION_RATIO) -> None:
         if not period_px > 0:
             raise ValueError(f"period_px: expected > 0 projector pixels, got {period_px}")
         if iterations < 1 or min_frames < 4:
@@ -111,6 +118,8 @@ class TrackRefiner:
             raise ValueError(f"max_sigma_mm > 0 and 0 <= min_spread <= 1 expected, got {max_sigma_mm} and {min_spread}")
         if not (math.isfinite(rest_sigma_scale) and rest_sigma_scale >= 1):
             raise ValueError(f"rest_sigma_scale: expected a finite factor >= 1 (it may not shrink a sigma), got {rest_sigma_scale}")
+        if not (math.isfinite(fit_sigma_scale) and fit_sigma_scale >= 1):
+            raise ValueError(f"fit_sigma_scale: expected a finite factor >= 1 (it may not shrink a sigma), got {fit_sigma_scale}")
         if settle_rad is not None and not (math.isfinite(settle_rad) and settle_rad > 0):
             raise ValueError(f"settle_rad: expected a phase > 0 rad (or None: no test), got {settle_rad}")
         if settle_rad is not None and iterations < 2:
@@ -129,6 +138,7 @@ class TrackRefiner:
         self.drift = bool(drift)
         self.max_sigma_mm = float(max_sigma_mm)
         self.rest_sigma_scale = float(rest_sigma_scale)
+        self.fit_sigma_scale = float(fit_sigma_scale)
         self.settle_rad = None if settle_rad is None else float(settle_rad)
         self.modulation_ratio = None if modulation_ratio is None else float(modulation_ratio)
         self.bursts: list[_BurstView] = []
@@ -191,7 +201,8 @@ class TrackRefiner:
         r = res.refined
         points = np.where(r[:, None], res.points, fused.points)
         sigma = np.where(r, res.sigma, self.rest_sigma_scale * fused.sigma * np.sqrt(np.maximum(fused.bursts, 1)))
-        return replace(fused, points=points, sigma=sigma, refined=r, deviation=None), off_surface(points, r), res.stats
+        return (replace(fused, points=points, sigma=sigma, refined=r, deviation=None, ray=res.rays),
+                off_surface(points, r), res.stats)
 
     # -- geometry ---------------------------------------------------------------------------
     def _camera_xyz(self, pts: np.ndarray, angle: float) -> np.ndarray:
@@ -256,20 +267,21 @@ class TrackRefiner:
         if not self.bursts:
             raise ValueError("no bursts added: nothing to refine on")
         out_pts, out_sigma = pts0.copy(), np.full(len(pts0), np.inf)
+        out_rays = np.zeros_like(pts0)
         refined = np.zeros(len(pts0), bool)
         frames = np.zeros(len(pts0), np.int64)
         moved = np.zeros(len(pts0))
         unsettled = implausible = 0
         for start in range(0, len(pts0), _CHUNK):
             sl = slice(start, start + _CHUNK)
-            p, s, r, f, mv, u, im = self._refine_chunk(pts0[sl])
-            out_pts[sl], out_sigma[sl], refined[sl], frames[sl], moved[sl] = p, s, r, f, mv
+            p, s, r, f, mv, ray, u, im = self._refine_chunk(pts0[sl])
+            out_pts[sl], out_sigma[sl], refined[sl], frames[sl], moved[sl], out_rays[sl] = p, s, r, f, mv, ray
             unsettled += u
             implausible += im
         stats = {"points": len(pts0), "refined": int(refined.sum()), "unsettled": unsettled, "implausible": implausible,
                  "median_frames": float(np.median(frames[refined])) if refined.any() else 0.0,
                  "median_abs_move_mm": float(np.median(np.abs(moved[refined]))) if refined.any() else 0.0}
-        return TrackResult(out_pts, out_sigma, refined, frames.astype(np.int32), moved, stats)
+        return TrackResult(out_pts, out_sigma, refined, frames.astype(np.int32), moved, out_rays, stats)
 
     def _refine_chunk(self, pts: np.ndarray):
         n = len(pts)
@@ -315,7 +327,7 @@ class TrackRefiner:
             eps = np.arctan2(ss, cc)  # phase the frames show minus the point's model phase
             slope = np.bincount(idx[good], dpsi[good], minlength=n) / np.maximum(nfr, 1)
             with np.errstate(divide="ignore", invalid="ignore"):
-                sigma_mm = np.abs(sig_eps / slope)
+                sigma_mm = self.fit_sigma_scale * np.abs(sig_eps / slope)
             fit = ((nfr >= self.min_frames) & (spread >= self.min_spread) & (np.abs(slope) > 1e-3)
                    & (sigma_mm <= self.max_sigma_mm))
             unsettled = np.zeros(n, bool)
@@ -333,7 +345,7 @@ class TrackRefiner:
             sigma = np.where(fit, sigma_mm, np.inf)
             ok_fit, used = fit, nfr
         x = np.where(ok_fit[:, None], x, pts)  # a point the last fit could not take stays where it was
-        return (x, sigma, ok_fit, used, np.einsum("ij,ij->i", x - pts, rays), int(unsettled.sum()),
+        return (x, sigma, ok_fit, used, np.einsum("ij,ij->i", x - pts, rays), rays, int(unsettled.sum()),
                 int(implausible.sum()))
 
 

@@ -10,7 +10,7 @@ from gearscan.core.recording import RecordingError, RecordingReader
 from gearscan.core.rig import default_rig
 from gearscan.inference.decoder import Decoder
 from gearscan.recon.fuse import CloudFuser
-from gearscan.recon.track import REST_SIGMA_SCALE, TrackRefiner
+from gearscan.recon.track import FIT_SIGMA_SCALE, REST_SIGMA_SCALE, TrackRefiner
 from gearscan.twin.defects import GearDefects, true_mesh
 from gearscan.twin.recordings import render_recording
 
@@ -146,6 +146,39 @@ def test_replay_fuse_writes_which_points_were_fitted(off_cad_turn, tmp_path):
     assert "refined" in header
     table = np.loadtxt(out, delimiter=",", skiprows=1)
     assert 0.6 < table[:, header.index("refined")].mean() < 1.0
+    # the direction each sigma runs along, with it: unit vectors from the camera
+    ray = table[:, [header.index(f"ray_{a}") for a in "xyz"]]
+    np.testing.assert_allclose(np.linalg.norm(ray, axis=1), 1.0, atol=1e-5)
+
+
+def test_each_point_carries_the_ray_its_sigma_runs_along(off_cad_turn):
+    """The fit moves a point along one camera ray and its sigma is the standard error along it: measured along
+    that ray, the error is as large as the sigma says; normal to the surface it is smaller (by the cosine)."""
+    reader, refiner, fused, fitted, _, truth = off_cad_turn
+    r = fitted.refined
+    ray = fitted.ray
+    assert ray.shape == (len(fitted), 3)
+    np.testing.assert_allclose(np.linalg.norm(ray, axis=1), 1.0, atol=1e-9)
+    rows = fitted.voxel_index if fitted.voxel_index is not None else np.arange(len(fitted))
+    moved = fitted.points[r] - fused.points[rows][r]
+    assert np.abs(np.cross(moved, ray[r])).max() < 1e-6  # the fit moved each point along its ray
+    # each ray leaves the camera: followed back from its point it passes the camera centre of some turntable angle
+    # (in the gear frame the centre turns on a circle about the axis at its height)
+    centre = refiner.rig.camera.center_world
+    t = (fitted.points[:, 2] - centre[2]) / ray[:, 2]
+    assert (t > 0).all()
+    radius = np.linalg.norm((fitted.points - t[:, None] * ray)[:, :2], axis=1)
+    np.testing.assert_allclose(radius, np.linalg.norm(centre[:2]), rtol=1e-6)
+    back = 1.0
+    hit = truth.cast_rays(o3d.core.Tensor(np.concatenate([fitted.points[r] - back * ray[r], ray[r]], 1)
+                                          .astype(np.float32)))["t_hit"].numpy()
+    along = back - hit
+    ok = np.abs(along) < 0.5
+    assert ok.mean() > 0.95
+    z_ray = np.abs(along[ok]) / fitted.sigma[r][ok]
+    z_normal = np.abs(_signed(truth, fitted.points[r][ok])) / fitted.sigma[r][ok]
+    assert 0.4 < np.median(z_ray) < 1.2, np.median(z_ray)  # a right Gaussian sigma: 0.67
+    assert np.median(z_normal) < np.median(z_ray)
 
 
 def test_points_off_the_fitted_surface_are_dropped_and_counted():
@@ -256,6 +289,28 @@ def test_unfitted_points_carry_the_scaled_sigma_and_fitted_points_keep_the_fits(
     assert len(kept35) == len(kept1) - int(leaving.sum()) and kept35.sigma.max() <= bound
 
 
+def test_fit_sigma_scale_multiplies_the_fits_sigma_and_the_bound_judges_the_scaled_one(off_cad_turn):
+    """``fit_sigma_scale`` multiplies each fit's standard error; a fit whose scaled sigma passes the bound no more
+    does not take its point, and a scale that would shrink a sigma is refused."""
+    reader, refiner, fused, _, _, _ = off_cad_turn
+    outs = {}
+    for scale in (1.0, 2.0):
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], fit_sigma_scale=scale)
+        ref.bursts = refiner.bursts
+        outs[scale] = ref.refine(fused.points)
+    one, two = outs[1.0], outs[2.0]
+    both = one.refined & two.refined
+    assert both.sum() > 100
+    np.testing.assert_allclose(np.median(two.sigma[both] / one.sigma[both]), 2.0, rtol=1e-9)
+    bound = refiner.max_sigma_mm
+    assert two.sigma[two.refined].max() <= bound
+    lost = one.refined & ~two.refined
+    assert lost.any() and np.median(one.sigma[lost]) > bound / 2 > np.median(one.sigma[one.refined])
+    for bad in (0.9, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="fit_sigma_scale"):
+            TrackRefiner(reader.rig, 40.0, fit_sigma_scale=bad)
+
+
 def test_the_product_scales_the_unfitted_points_sigma(tmp_path):
     """The refiner the replay builds carries the val-calibrated scale (benchmarks/rest_sigma_rule.md)."""
     from gearscan.replay import make_refiner
@@ -264,6 +319,7 @@ def test_the_product_scales_the_unfitted_points_sigma(tmp_path):
     reader = RecordingReader(tmp_path / "rec")
     refiner = make_refiner(reader, reader.rig, reader.patterns.periods[0], CloudFuser(0.1, 3))
     assert refiner.rest_sigma_scale == REST_SIGMA_SCALE == 3.5
+    assert refiner.fit_sigma_scale == FIT_SIGMA_SCALE
 
 
 

@@ -1,0 +1,48 @@
+"""The fit-sigma rule's arithmetic (scripts/calibrate_fit_sigma.py, benchmarks/fit_sigma_rule.md)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "scripts"))
+from calibrate_fit_sigma import choose, first_scale, honest, needed_scale  # noqa: E402
+
+
+def _cell(seed, order, scale, z, q, beyond, coverage=0.98):
+    return {"seed": seed, "order": order, "scale": scale, "z_fitted_ray": z, "z_q9545_fitted_ray": q,
+            "beyond_2sigma_fitted_ray": beyond, "coverage": coverage}
+
+
+def test_the_needed_scale_is_the_worse_of_the_body_and_the_tail():
+    assert needed_scale(_cell(1, "fixed", 1.0, 0.6745 * 1.04, 2.0 * 1.17, 0.06)) == pytest.approx(1.17)
+    assert needed_scale(_cell(1, "fixed", 1.0, 0.6745 * 1.3, 2.0, 0.045)) == pytest.approx(1.3)
+
+
+def test_the_first_scale_rounds_the_largest_cell_up_and_never_shrinks():
+    rows = [_cell(1, "a", 1.0, 0.70, 2.10, 0.05), _cell(2, "a", 1.0, 0.60, 2.33, 0.06)]
+    assert first_scale(rows) == pytest.approx(1.2)  # 2.33 / 2 = 1.165 -> 1.2
+    assert first_scale([_cell(1, "a", 1.0, 0.50, 1.5, 0.01)]) == 1.0
+    assert first_scale([_cell(1, "a", 1.0, 0.6745 * 1.1, 2.0, 0.04)]) == pytest.approx(1.1)  # on a step: not one more
+
+
+def test_honesty_needs_both_the_median_and_the_tail():
+    assert honest(_cell(1, "a", 1.2, 0.60, 1.9, 0.04))
+    assert not honest(_cell(1, "a", 1.2, 0.68, 1.9, 0.04))
+    assert not honest(_cell(1, "a", 1.2, 0.60, 2.1, 0.05))
+
+
+def test_choose_steps_up_until_every_cell_is_honest_and_counts_the_coverage_cost():
+    cells = [_cell(1, "a", 1.0, 0.70, 2.3, 0.06, 0.980), _cell(2, "f", 1.0, 0.71, 2.2, 0.06, 0.970),
+             # at s_1 = 1.15 one cell still fails the tail; at 1.2 both pass
+             _cell(1, "a", 1.15, 0.61, 2.0, 0.046, 0.978), _cell(2, "f", 1.15, 0.62, 1.9, 0.04, 0.969),
+             _cell(1, "a", 1.2, 0.58, 1.9, 0.04, 0.977), _cell(2, "f", 1.2, 0.59, 1.8, 0.03, 0.960)]
+    out = choose(cells)
+    assert out["s1"] == pytest.approx(1.15) and out["chosen"] == pytest.approx(1.2)
+    assert out["coverage_cost"]["1 a"] == pytest.approx(0.003) and out["coverage_cost"]["2 f"] == pytest.approx(0.010)
+    assert out["coverage_floor_met"] is False  # 1 point lost on one cell: beyond the 0.5-point floor
+    assert choose(cells[:4])["chosen"] is None  # the run stopped before an honest scale: nothing chosen
