@@ -81,7 +81,7 @@ def main() -> None:
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
     from gearscan.recon.measure import keep_bound_option, network_support_option
-    from gearscan.recon.track import MODULATION_RATIO, REST_SIGMA_SCALE, SETTLE_RAD
+    from gearscan.recon.track import FIT_SIGMA_SCALE, MODULATION_RATIO, REST_SIGMA_SCALE, SETTLE_RAD
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()
@@ -271,7 +271,8 @@ def main() -> None:
         f"({1e3 * before_refined:.1f} µm before, **{1e3 * rms_refined:.1f} µm after**); "
         + (f"the other {(~refined).sum():,} ({100 * (1 - refined.mean()):.1f} %) keep their fused position "
            f"({1e3 * rms_kept:.1f} µm)" if (~refined).any() else "no unfitted point is left in the cloud")
-        + ". A point the fit cannot take has a fit sigma above 30 µm (too few frames, or fringe phases too close to two "
+        + f". A point the fit cannot take has a fit sigma above 30 µm (the fit's standard error along the ray times "
+        f"{FIT_SIGMA_SCALE:g}, `recon.track.FIT_SIGMA_SCALE`, calibrated on val: `fit_sigma_rule.md`; too few frames, or fringe phases too close to two "
         "opposite ones to tell sine from cosine; with every burst in the order 0, 1, 2 a point whose fringes move a "
         "sixth of a period per frame sees only 0 and pi, burst after burst), or a fit that had not settled: "
         + ("no settle test ran. " if SETTLE_RAD is None else
