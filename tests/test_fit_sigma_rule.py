@@ -46,3 +46,20 @@ def test_choose_steps_up_until_every_cell_is_honest_and_counts_the_coverage_cost
     assert out["coverage_cost"]["1 a"] == pytest.approx(0.003) and out["coverage_cost"]["2 f"] == pytest.approx(0.010)
     assert out["coverage_floor_met"] is False  # 1 point lost on one cell: beyond the 0.5-point floor
     assert choose(cells[:4])["chosen"] is None  # the run stopped before an honest scale: nothing chosen
+
+
+def test_the_stored_val_run_recomputes_its_choice_and_the_product_ships_it():
+    import json
+
+    from gearscan.recon.track import FIT_SIGMA_SCALE
+
+    stored = json.loads((ROOT / "benchmarks" / "fit_sigma_val.json").read_text())
+    assert stored["split"] == "val" and len(stored["stretches"]) == 6
+    again = choose(stored["cells"])
+    assert again["chosen"] == stored["choice"]["chosen"] == pytest.approx(1.25)
+    assert again["coverage_floor_met"] and stored["shipping_condition"]["met"]
+    assert FIT_SIGMA_SCALE == stored["shipped"] == again["chosen"]
+    # every one of the 12 cells failed honesty at 1 and passes at the chosen scale
+    at = lambda s: [c for c in stored["cells"] if c["scale"] == s]  # noqa: E731
+    assert len(at(1.0)) == len(at(again["chosen"])) == 12
+    assert not any(honest(c) for c in at(1.0)) and all(honest(c) for c in at(again["chosen"]))
