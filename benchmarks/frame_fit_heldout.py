@@ -160,6 +160,7 @@ def main() -> None:
     from gearscan.inference.decoder import Decoder
     from gearscan.recon.measure import keep_bound_option, network_support_option
     from gearscan.recon.track import (
+        FIT_SIGMA_SCALE,
         MAX_POINT_SIGMA_MM,
         MODULATION_RATIO,
         REST_SIGMA_SCALE,
@@ -196,7 +197,8 @@ def main() -> None:
         f"Default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, {args.bursts} bursts per stretch, eccentricity 50 µm, "
         f"one tooth +30 µm pitch error, one tip chipped 0.3 mm; {f'network `{args.model}`' if args.model else 'shipped network'} "
         f"(deterministic; {support_text}), fused per 0.1 mm "
-        f"voxel (>= 3 bursts), fitted to the frames (sigma bound {point_um:g} µm for every point, fitted or not; off-surface drop 0.15 mm within 0.5 mm; "
+        f"voxel (>= 3 bursts), fitted to the frames (a fit's sigma {FIT_SIGMA_SCALE:g} x its standard error along the ray, "
+        f"`recon.track.FIT_SIGMA_SCALE`; sigma bound {point_um:g} µm for every point, fitted or not; off-surface drop 0.15 mm within 0.5 mm; "
         f"{settle_text}: a fit still correcting more than that at its last iteration does not take its point"
         + ("" if MODULATION_RATIO is None else
            f"; modulation test: nor does a fit whose modulation B exceeds {MODULATION_RATIO:g} x its mean intensity A, "
@@ -236,7 +238,7 @@ def main() -> None:
                                                           "network_support_px": args.network_support_px,  # the option; None: the model's own
                                                           "support_px_run": support,  # what ran (None: no test)
                                                           "support_test": support_text, "max_sigma_rad": bound,
-                                                          "settle_rad": SETTLE_RAD, "point_sigma_um": point_um,
+                                                          "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE, "point_sigma_um": point_um,
                                                           "modulation_ratio": MODULATION_RATIO}, indent=2))
     print("\n".join(lines))
 

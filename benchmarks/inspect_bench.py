@@ -329,7 +329,7 @@ def main() -> None:
         "off_surface": off_surface,
         "uncertain": uncertain,
         "unsettled": unsettled,
-        "settle_rad": SETTLE_RAD,
+        "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE,
         "implausible": implausible,
         "modulation_ratio": MODULATION_RATIO,
         "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "fused_only_fp_max_error_um": plain_fp_err,

@@ -42,7 +42,11 @@ class FusedCloud:
     distance to the CAD (mm, + outside the material) when it was computed, ``refined`` which
     points were moved onto the surface the raw frames show (:mod:`gearscan.recon.track`; None
     when no refinement ran), ``voxel_index`` which row of the fuser's result each point is once
-    :meth:`select` dropped some (None: all, in order).
+    :meth:`select` dropped some (None: all, in order). ``ray``: the unit gear-frame direction from the camera
+    along which each point's ``sigma`` is measured (set by the frame fit: the line a fitted point moved along;
+    for a point it could not take, the mean view of the bursts that saw it, whose own rays its sigma combines;
+    NaN where none did; None before the fit): an error normal to a surface at angle a to the ray is
+    ``|cos a|`` times the one along it.
     """
 
     points: np.ndarray
@@ -54,7 +58,7 @@ class FusedCloud:
     deviation: np.ndarray | None = None
     refined: np.ndarray | None = None
     voxel_index: np.ndarray | None = None  # (N,) each point's row in the fuser's result, once points were dropped
-    ray: np.ndarray | None = None  # (N, 3) unit direction (gear frame) each point's sigma runs along; None: not fitted
+    ray: np.ndarray | None = None  # (N, 3) unit direction (gear frame) each point's sigma runs along; None: no fit ran
 
     def __len__(self) -> int:
         return int(self.points.shape[0])

@@ -68,8 +68,8 @@ class TrackResult:
     refined: np.ndarray  # (N,) bool: fitted on enough frames, sigma within max_sigma_mm, settled, B <= ratio x A
     frames: np.ndarray  # (N,) int: samples in the final fit
     moved_mm: np.ndarray  # (N,) distance moved along the ray (+ away from the camera)
-    rays: np.ndarray  # (N, 3) unit gear-frame directions from the camera: the line each fit moves its point along,
-    #                   the direction its sigma is measured in
+    rays: np.ndarray  # (N, 3) unit gear-frame directions from the camera (the mean view of the bursts that saw each
+    #                   point): the line the fit moves a point along and its sigma's direction; NaN where no burst saw it
     stats: dict = field(default_factory=dict)
 
 
@@ -77,9 +77,9 @@ class TrackRefiner:
     """Collects a revolution's bursts (frames, encoder angles, measured depth) and refines a fused cloud.
 
     ``min_frames``: fewest frames (after outlier removal) a point's fit needs; ``max_sigma_mm``:
-    largest standard error along the ray a fit may have to replace the fused position (from the
-    fit's own covariance: residual noise, how evenly the frames' fringe phases cover the circle,
-    the shading drift it also solves for); ``min_spread``: a floor on that evenness (twice the
+    largest sigma along the ray a fit may have to replace the fused position (``fit_sigma_scale`` times the
+    standard error from the fit's own covariance: residual noise, how evenly the frames' fringe phases cover
+    the circle, the shading drift it also solves for); ``min_spread``: a floor on that evenness (twice the
     smallest eigenvalue of the fit's normalised normal matrix: 1 for an even spread, 0 at one
     phase or at two opposite ones, where sine and cosine cannot be told apart);
     ``visible_mm``: how close a burst's own point must be for its frames to count as seeing ``X``;
@@ -98,7 +98,7 @@ class TrackRefiner:
     above A has explained its samples with an impossible fringe (few frames, phases bunched: the
     fit's sine and cosine terms and their drift trade off); it is counted ``implausible`` and not taken.
 
-    Defaults: ``max_sigma_mm = 0.03`` and ``min_spread = 0.05`` were chosen on an independent
+    Defaults: ``max_sigma_mm = 0.03`` and ``min_spread = 0.05`` were chosen (with the sigma unscaled) on an independent
     40-burst twin stretch (seed 7, start 11 deg, default rig, 0.6 deg/frame; 40k points against
     the true surface): they fit 90 % of the fused points at 8.2 um RMS where the former rule
     (spread >= 0.5, no sigma bound) fit 78 % at 5.6 um, and move the whole cloud from 26.8 to
@@ -346,7 +346,9 @@ class TrackRefiner:
             sigma = np.where(fit, sigma_mm, np.inf)
             ok_fit, used = fit, nfr
         x = np.where(ok_fit[:, None], x, pts)  # a point the last fit could not take stays where it was
-        return (x, sigma, ok_fit, used, np.einsum("ij,ij->i", x - pts, rays), rays, int(unsettled.sum()),
+        moved = np.einsum("ij,ij->i", x - pts, rays)
+        rays = np.where((count > 0)[:, None], rays, np.nan)  # no burst saw it: no view, no ray
+        return (x, sigma, ok_fit, used, moved, rays, int(unsettled.sum()),
                 int(implausible.sum()))
 
 

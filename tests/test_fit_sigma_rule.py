@@ -13,9 +13,9 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from calibrate_fit_sigma import choose, first_scale, honest, needed_scale  # noqa: E402
 
 
-def _cell(seed, order, scale, z, q, beyond, coverage=0.98):
+def _cell(seed, order, scale, z, q, beyond, coverage=0.98, measured=1.0):
     return {"seed": seed, "order": order, "scale": scale, "z_fitted_ray": z, "z_q9545_fitted_ray": q,
-            "beyond_2sigma_fitted_ray": beyond, "coverage": coverage}
+            "beyond_2sigma_fitted_ray": beyond, "coverage": coverage, "ray_measured_fitted": measured}
 
 
 def test_the_needed_scale_is_the_worse_of_the_body_and_the_tail():
@@ -34,6 +34,8 @@ def test_honesty_needs_both_the_median_and_the_tail():
     assert honest(_cell(1, "a", 1.2, 0.60, 1.9, 0.04))
     assert not honest(_cell(1, "a", 1.2, 0.68, 1.9, 0.04))
     assert not honest(_cell(1, "a", 1.2, 0.60, 2.1, 0.05))
+    # a tail the rays could not measure is not an honest one
+    assert not honest(_cell(1, "a", 1.2, 0.60, 1.9, 0.04, measured=0.99))
 
 
 def test_choose_steps_up_until_every_cell_is_honest_and_counts_the_coverage_cost():
@@ -57,8 +59,15 @@ def test_the_stored_val_run_recomputes_its_choice_and_the_product_ships_it():
     assert stored["split"] == "val" and len(stored["stretches"]) == 6
     again = choose(stored["cells"])
     assert again["chosen"] == stored["choice"]["chosen"] == pytest.approx(1.25)
-    assert again["coverage_floor_met"] and stored["shipping_condition"]["met"]
+    assert again["coverage_floor_met"]
     assert FIT_SIGMA_SCALE == stored["shipped"] == again["chosen"]
+    # the shipping condition, recomputed from the committed inspection run (not from the json's own verdict): a later
+    # run at this scale must meet it too
+    run = json.loads((ROOT / stored["shipping_condition"]["report"].replace(".md", ".json")).read_text())
+    assert run["fit_sigma_scale"] == FIT_SIGMA_SCALE
+    assert run["fused_rms_mm"] <= 0.010 and run["coverage"] >= 0.880 - 0.01
+    assert run["chipped"] == run["truth_chipped"]
+    assert all(abs(measured - truth) <= 5 + 0.05 * abs(truth) for _, truth, measured, _ in run["rows"])
     # every one of the 12 cells failed honesty at 1 and passes at the chosen scale
     at = lambda s: [c for c in stored["cells"] if c["scale"] == s]  # noqa: E731
     assert len(at(1.0)) == len(at(again["chosen"])) == 12
