@@ -3,7 +3,7 @@
 The recording is replayed through the measurement pipeline (:func:`gearscan.replay.replay`)
 with a :class:`~gearscan.recon.fuse.CloudFuser`; the fused model is inspected with
 :func:`gearscan.recon.inspect.inspect_gear` and written as ``report.json``, ``report.md``,
-``pitch.png``, ``runout.png``, ``profiles.png`` and ``fused.ply`` (sigma, deviation, bursts, refined and,
+``pitch.png``, ``runout.png``, ``profiles.png`` and ``fused.ply`` (sigma, deviation and its sigma, bursts, refined and,
 with the frame fit, the camera ray each sigma runs along).
 With ``grade`` the ISO 1328-1:2013 tolerances of that class are stated next to each value.
 A twin recording with injected defects also gets its truth beside the measurement (labelled).

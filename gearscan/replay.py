@@ -377,7 +377,11 @@ def replay(
             else:
                 if refiner is not None and len(refiner):
                     fused, metrics.refine = refiner.refine_fused(fused)
-                metrics.fused = fused.with_deviation(CadScorer(gear).distances(fused.points)) if gear is not None else fused
+                if gear is not None:
+                    cad = CadScorer(gear)
+                    fused = fused.with_deviation(cad.distances(fused.points),
+                                                 cad.deviation_sigma(fused.points, fused.sigma, fused.ray))
+                metrics.fused = fused
                 if logger and metrics.fused.deviation is not None:
                     logger.log_fused(metrics.fused.points, metrics.fused.deviation, bursts=fused.bursts_added,
                                      sigma=fused.sigma)

@@ -59,6 +59,7 @@ class FusedCloud:
     refined: np.ndarray | None = None
     voxel_index: np.ndarray | None = None  # (N,) each point's row in the fuser's result, once points were dropped
     ray: np.ndarray | None = None  # (N, 3) unit direction (gear frame) each point's sigma runs along; None: no fit ran
+    deviation_sigma: np.ndarray | None = None  # (N,) mm: the standard error of ``deviation`` (along the CAD's normal)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -70,15 +71,18 @@ class FusedCloud:
 
         return replace(self, points=self.points[keep], sigma=self.sigma[keep], bursts=self.bursts[keep],
                        samples=self.samples[keep], deviation=pick(self.deviation), refined=pick(self.refined),
-                       ray=pick(self.ray),
+                       ray=pick(self.ray), deviation_sigma=pick(self.deviation_sigma),
                        voxel_index=np.arange(len(self))[keep] if self.voxel_index is None else self.voxel_index[keep])
 
-    def with_deviation(self, deviation: np.ndarray) -> FusedCloud:
-        """A copy with ``deviation`` (mm, one per point) set."""
+    def with_deviation(self, deviation: np.ndarray, sigma: np.ndarray | None = None) -> FusedCloud:
+        """A copy with ``deviation`` (mm, one per point) set, and its standard error ``sigma`` (mm) if given
+        (:meth:`~gearscan.recon.deviation.SurfaceDistance.deviation_sigma`)."""
         deviation = np.asarray(deviation, dtype=np.float64)
         if deviation.shape != (len(self),):
             raise ValueError(f"deviation: expected ({len(self)},), got {deviation.shape}")
-        return replace(self, deviation=deviation)
+        if sigma is not None and np.shape(sigma) != (len(self),):
+            raise ValueError(f"deviation sigma: expected ({len(self)},), got {np.shape(sigma)}")
+        return replace(self, deviation=deviation, deviation_sigma=None if sigma is None else np.asarray(sigma, np.float64))
 
     def to_cloud(self) -> Cloud:
         """As a :class:`Cloud` (frame "world"; pixels unknown), ``extras["bursts"]`` the counts."""
@@ -184,8 +188,8 @@ def fuse(clouds, voxel_mm: float = 0.1, min_bursts: int = 1) -> FusedCloud:
 
 def save_fused(fused: FusedCloud, path: str | Path) -> Path:
     """Write the fused cloud as PLY/PCD (open3d) or CSV with ``sigma``, ``bursts`` and, if set,
-    ``deviation``, ``refined`` (1: fitted on the raw frames) and ``ray_x``, ``ray_y``, ``ray_z`` (the unit
-    direction from the camera that ``sigma`` runs along)."""
+    ``deviation`` with its standard error ``deviation_sigma`` (along the CAD's normal), ``refined`` (1: fitted on the
+    raw frames) and ``ray_x``, ``ray_y``, ``ray_z`` (the unit direction from the camera that ``sigma`` runs along)."""
     from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
 
     path = Path(path)
@@ -194,6 +198,8 @@ def save_fused(fused: FusedCloud, path: str | Path) -> Path:
     if not len(fused):
         raise ValueError("the fused cloud is empty: nothing to write")
     extra = {"bursts": fused.bursts}
+    if fused.deviation_sigma is not None:
+        extra["deviation_sigma"] = fused.deviation_sigma
     if fused.refined is not None:
         extra["refined"] = fused.refined.astype(np.int32)
     if fused.ray is not None:

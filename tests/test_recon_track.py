@@ -84,6 +84,30 @@ def test_fit_keeps_the_deviation_from_the_cad(off_cad_turn):
     assert np.percentile(np.abs(measured), 95) == pytest.approx(np.percentile(np.abs(actual), 95), rel=0.05)
 
 
+def test_the_deviations_sigma_is_the_rays_sigma_along_the_cads_normal(off_cad_turn):
+    """A fitted point's sigma runs along its ray; its deviation is read along the CAD's normal, so its standard error
+    is the cosine's share of the sigma, and it holds against the deviation the true surface has there."""
+    from gearscan.recon.deviation import CadScorer
+
+    reader, _, _, fitted, _, truth = off_cad_turn
+    r = fitted.refined
+    cad = CadScorer(reader.gear)
+    dsig = cad.deviation_sigma(fitted.points, fitted.sigma, fitted.ray)
+    assert (dsig <= fitted.sigma + 1e-15).all() and np.median(dsig[r] / fitted.sigma[r]) < 0.95
+    np.testing.assert_array_equal(cad.deviation_sigma(fitted.points, fitted.sigma, None), fitted.sigma)  # no ray: sigma
+    pts = fitted.points[r]
+    true_points = truth.compute_closest_points(o3d.core.Tensor(pts.astype(np.float32)))["points"].numpy()
+    err = cad.distances(pts) - cad.distances(true_points)
+    z = np.abs(err) / dsig[r]
+    assert 0.3 < np.median(z) < 1.2, np.median(z)  # 0.67 for a right Gaussian sigma
+    assert np.median(np.abs(err) / fitted.sigma[r]) < np.median(z)  # the ray's sigma read as the deviation's: too wide
+    # replay writes it beside the deviation
+    fused = fitted.with_deviation(cad.distances(fitted.points), dsig)
+    assert fused.select(r).deviation_sigma.shape == (int(r.sum()),)
+    with pytest.raises(ValueError, match="deviation sigma"):
+        fitted.with_deviation(cad.distances(fitted.points), dsig[:-1])
+
+
 def test_points_seen_in_too_few_frames_stay_where_they_were(off_cad_turn):
     reader, refiner, fused, _, _, _ = off_cad_turn
     few = TrackRefiner(reader.rig, reader.patterns.periods[0])
@@ -146,6 +170,7 @@ def test_replay_fuse_writes_which_points_were_fitted(off_cad_turn, tmp_path):
     assert "refined" in header
     table = np.loadtxt(out, delimiter=",", skiprows=1)
     assert 0.6 < table[:, header.index("refined")].mean() < 1.0
+    assert (table[:, header.index("deviation_sigma")] <= table[:, header.index("sigma_mm")] + 1e-9).all()
     # the direction each sigma runs along, with it: unit vectors from the camera
     ray = table[:, [header.index(f"ray_{a}") for a in "xyz"]]
     seen = np.isfinite(ray).all(axis=1)  # NaN: no burst saw the point
