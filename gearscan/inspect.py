@@ -180,6 +180,9 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         "revolution_deg": report.revolution_deg,
         "fused": {"points": len(report.fused), "bursts": report.fused.bursts_added, "voxel_mm": report.fused.voxel_mm,
                   "median_sigma_um": 1e3 * float(np.median(report.fused.sigma)),
+                  # the deviation's own: the sigma's share along the CAD's normal (None: no deviation computed)
+                  "median_deviation_sigma_um": (None if report.fused.deviation_sigma is None
+                                                else 1e3 * float(np.median(report.fused.deviation_sigma))),
                   "median_bursts_per_point": float(np.median(report.fused.bursts)),
                   "refined_points": None if report.fused.refined is None else int(report.fused.refined.sum()),
                   "dropped_off_surface": (report.refine or {}).get("off_surface"),
@@ -216,7 +219,11 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         f"Gear: z = {insp.teeth}, m = {insp.module:g} mm, pitch diameter {insp.pitch_diameter_mm:.2f} mm. "
         f"Fused model: {len(report.fused):,} points from {report.fused.bursts_added} bursts over "
         f"{report.revolution_deg:.0f}° of the turntable (voxel {report.fused.voxel_mm:g} mm, median "
-        f"{np.median(report.fused.bursts):.0f} bursts and σ {1e3 * np.median(report.fused.sigma):.1f} µm per point)"
+        f"{np.median(report.fused.bursts):.0f} bursts and σ {1e3 * np.median(report.fused.sigma):.1f} µm per point"
+        + ("" if report.fused.deviation_sigma is None or report.fused.ray is None else
+           f" along its camera ray, {1e3 * np.median(report.fused.deviation_sigma):.1f} µm along the CAD's normal, "
+           "the deviation's")
+        + ")"
         + (f"; {100 * report.fused.refined.mean():.0f} % of the points fitted to the raw frames that saw them"
            + (f", every point's σ within {1e3 * report.refine['sigma_bound_mm']:g} µm (the fit's bound)."
               if (report.refine or {}).get("sigma_bound_mm") else ".")

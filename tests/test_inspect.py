@@ -134,6 +134,10 @@ def test_report_files_and_grade(inspected):
     assert "tolerance class 8" in md and "CHIPPED" in md and "Twin truth" in md
     assert "chipped teeth: 7" in output
     assert report["fused"]["median_bursts_per_point"] >= 3
+    # each point's sigma runs along its camera ray; the deviation's is its share along the CAD's normal, and both are said
+    fused = report["fused"]
+    assert 0 < fused["median_deviation_sigma_um"] < fused["median_sigma_um"]
+    assert "along its camera ray" in md and "along the CAD's normal" in md
 
 
 def test_iso1328_tolerances_follow_the_2013_formulas():
