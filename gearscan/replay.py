@@ -377,10 +377,10 @@ def replay(
             else:
                 if refiner is not None and len(refiner):
                     fused, metrics.refine = refiner.refine_fused(fused)
-                if gear is not None:
+                if gear is not None:  # the deviation's own sigma needs the fit's rays (fusion's sigma flatters)
                     cad = CadScorer(gear)
-                    fused = fused.with_deviation(cad.distances(fused.points),
-                                                 cad.deviation_sigma(fused.points, fused.sigma, fused.ray))
+                    fused = fused.with_deviation(cad.distances(fused.points), None if fused.ray is None else
+                                                 cad.deviation_sigma(fused.points, fused.sigma, fused.ray, fused.refined))
                 metrics.fused = fused
                 if logger and metrics.fused.deviation is not None:
                     logger.log_fused(metrics.fused.points, metrics.fused.deviation, bursts=fused.bursts_added,

@@ -25,23 +25,32 @@ class SurfaceDistance:
         pts = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
         return self.scene.compute_signed_distance(pts).numpy().astype(np.float64)
 
-    def normals(self, points: np.ndarray) -> np.ndarray:
-        """Unit normal ``(N, 3)`` of the surface's triangle closest to each gear-frame point."""
+    def normals(self, points: np.ndarray, on_surface_mm: float = 1e-3) -> np.ndarray:
+        """The direction ``(N, 3)`` in which each gear-frame point's distance grows: from its closest surface point
+        to it (right at edges and vertices too), or, within ``on_surface_mm`` of the surface, the closest triangle's
+        normal; NaN where neither is defined (a degenerate triangle). The sign does not matter to its users."""
         import open3d as o3d
 
-        pts = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
-        n = self.scene.compute_closest_points(pts)["primitive_normals"].numpy().astype(np.float64)
-        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        closest = self.scene.compute_closest_points(o3d.core.Tensor(pts.astype(np.float32)))
+        away = pts - closest["points"].numpy().astype(np.float64)
+        tri = closest["primitive_normals"].numpy().astype(np.float64)
+        length = np.linalg.norm(away, axis=1, keepdims=True)
+        n = np.where(length > on_surface_mm, away, tri)
+        norm = np.linalg.norm(n, axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(norm > 1e-9, n / norm, np.nan)
 
-    def deviation_sigma(self, points: np.ndarray, sigma: np.ndarray, ray: np.ndarray | None) -> np.ndarray:
-        """The standard error of each point's signed distance (mm): ``sigma`` runs along ``ray`` (the frame fit's,
-        :attr:`~gearscan.recon.fuse.FusedCloud.ray`), the distance along the surface normal, so it is ``sigma``
-        times the cosine between them. Where no ray is known, ``sigma`` itself (an upper bound)."""
+    def deviation_sigma(self, points: np.ndarray, sigma: np.ndarray, ray: np.ndarray,
+                        along_ray: np.ndarray) -> np.ndarray:
+        """The standard error of each point's signed distance (mm). Where ``along_ray`` (the frame fit's points,
+        ``FusedCloud.refined``), ``sigma`` is a standard error along ``ray`` (``FusedCloud.ray``) and the distance
+        changes along :meth:`normals`, so to first order it is ``sigma`` times the cosine between them; elsewhere
+        (an unfitted point's sigma, calibrated against the distance normal to the surface: ``rest_sigma_rule.md``),
+        and where either direction is unknown, ``sigma`` itself."""
         sigma = np.asarray(sigma, dtype=np.float64)
-        if ray is None:
-            return sigma.copy()
         cos = np.abs(np.einsum("ij,ij->i", self.normals(points), ray))
-        return np.where(np.isfinite(cos), sigma * np.minimum(cos, 1.0), sigma)
+        return np.where(along_ray & np.isfinite(cos), sigma * np.minimum(cos, 1.0), sigma)
 
 
 class CadScorer(SurfaceDistance):

@@ -43,10 +43,11 @@ class FusedCloud:
     points were moved onto the surface the raw frames show (:mod:`gearscan.recon.track`; None
     when no refinement ran), ``voxel_index`` which row of the fuser's result each point is once
     :meth:`select` dropped some (None: all, in order). ``ray``: the unit gear-frame direction from the camera
-    along which each point's ``sigma`` is measured (set by the frame fit: the line a fitted point moved along;
-    for a point it could not take, the mean view of the bursts that saw it, whose own rays its sigma combines;
-    NaN where none did; None before the fit): an error normal to a surface at angle a to the ray is
-    ``|cos a|`` times the one along it.
+    along which a fitted point's ``sigma`` is measured (set by the frame fit: the line the point moved along; for
+    a point it could not take, the mean view of the bursts that saw it, NaN where none did; None before the fit):
+    an error normal to a surface at angle a to the ray is ``|cos a|`` times the one along it.
+    ``deviation_sigma``: the standard error of ``deviation`` (set with the fit's rays: the cosine's share of a
+    fitted point's sigma, an unfitted point's own sigma).
     """
 
     points: np.ndarray
@@ -59,7 +60,7 @@ class FusedCloud:
     refined: np.ndarray | None = None
     voxel_index: np.ndarray | None = None  # (N,) each point's row in the fuser's result, once points were dropped
     ray: np.ndarray | None = None  # (N, 3) unit direction (gear frame) each point's sigma runs along; None: no fit ran
-    deviation_sigma: np.ndarray | None = None  # (N,) mm: the standard error of ``deviation`` (along the CAD's normal)
+    deviation_sigma: np.ndarray | None = None  # (N,) mm: the standard error of ``deviation``; None: not computed
 
     def __len__(self) -> int:
         return int(self.points.shape[0])

@@ -202,7 +202,7 @@ class TrackRefiner:
         r = res.refined
         points = np.where(r[:, None], res.points, fused.points)
         sigma = np.where(r, res.sigma, self.rest_sigma_scale * fused.sigma * np.sqrt(np.maximum(fused.bursts, 1)))
-        return (replace(fused, points=points, sigma=sigma, refined=r, deviation=None, ray=res.rays),
+        return (replace(fused, points=points, sigma=sigma, refined=r, deviation=None, deviation_sigma=None, ray=res.rays),
                 off_surface(points, r), res.stats)
 
     # -- geometry ---------------------------------------------------------------------------
