@@ -384,7 +384,7 @@ def replay(
                 metrics.fused = fused
                 if logger and metrics.fused.deviation is not None:
                     logger.log_fused(metrics.fused.points, metrics.fused.deviation, bursts=fused.bursts_added,
-                                     sigma=fused.sigma)
+                                     sigma=fused.sigma, deviation_sigma=fused.deviation_sigma)
         if logger:
             logger.close()
 

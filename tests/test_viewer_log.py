@@ -186,3 +186,13 @@ def test_pixels_without_a_point_are_shown_by_cause(replayed):
         assert np.all(seg[r, c] == 0)  # a pixel with a point has a value
         mixed_total += m.unwrap["mixed"]
     assert mixed_total > 0  # the scene has silhouettes: the check sees something
+
+
+def test_the_fused_legend_says_the_deviation_and_its_own_sigma():
+    from gearscan.viewer.log import deviation_legend
+
+    dev = np.array([-0.01, 0.0, 0.02, 0.03])
+    text = deviation_legend(dev, 0.1, 12, sigma=np.full(4, 0.004), deviation_sigma=np.full(4, 0.003))
+    assert "4 points fused from 12 bursts" in text and "Fused sigma: median 4.0 µm" in text
+    assert "Deviation sigma (along the CAD's normal): median 3.0 µm" in text
+    assert "Deviation sigma" not in deviation_legend(dev, 0.1, 12, sigma=np.full(4, 0.004))  # without the fit: none

@@ -281,8 +281,10 @@ def fused_blueprint():
     )
 
 
-def deviation_legend(deviation: np.ndarray, range_mm: float, bursts: int, sigma: np.ndarray | None = None) -> str:
-    """Markdown legend of the fused cloud's colours and the deviation it shows."""
+def deviation_legend(deviation: np.ndarray, range_mm: float, bursts: int, sigma: np.ndarray | None = None,
+                     deviation_sigma: np.ndarray | None = None) -> str:
+    """Markdown legend of the fused cloud's colours and the deviation it shows (with the deviation's own sigma, along
+    the CAD's normal, where the frame fit gave one)."""
     d = deviation[np.isfinite(deviation)]
     lines = [
         "## Fused model: signed deviation from CAD",
@@ -301,6 +303,8 @@ def deviation_legend(deviation: np.ndarray, range_mm: float, bursts: int, sigma:
                   f"RMS {float(np.sqrt(np.mean(d**2))):.3f} mm."]
     if sigma is not None and len(sigma):
         lines += [f"Fused sigma: median {float(np.median(sigma)) * 1e3:.1f} µm."]
+    if deviation_sigma is not None and len(deviation_sigma):
+        lines += [f"Deviation sigma (along the CAD's normal): median {float(np.median(deviation_sigma)) * 1e3:.1f} µm."]
     return "\n".join(lines)
 
 
@@ -498,7 +502,8 @@ class RerunLogger:
             s.log(stat_path(k)[1], rr.Scalars(float(v)))
 
     def log_fused(self, points: np.ndarray, deviation: np.ndarray, *, bursts: int,
-                  sigma: np.ndarray | None = None, range_mm: float = DEVIATION_RANGE_MM) -> None:
+                  sigma: np.ndarray | None = None, deviation_sigma: np.ndarray | None = None,
+                  range_mm: float = DEVIATION_RANGE_MM) -> None:
         """Log the fused model coloured by signed deviation from CAD (mm, fixed scale +-``range_mm``)
         with a text legend and a colour bar, and show it (:func:`fused_blueprint`)."""
         rr, s = self.rr, self.stream
@@ -507,7 +512,7 @@ class RerunLogger:
         try:
             colors = colorize(deviation, -range_mm, range_mm, "coolwarm")
             s.log("world/fused", rr.Points3D(points, colors=colors, radii=rr.Radius.ui_points(1.5)), static=True)
-            s.log("fused/legend", rr.TextDocument(deviation_legend(deviation, range_mm, bursts, sigma),
+            s.log("fused/legend", rr.TextDocument(deviation_legend(deviation, range_mm, bursts, sigma, deviation_sigma),
                                                    media_type=rr.MediaType.MARKDOWN), static=True)
             ramp = np.linspace(range_mm, -range_mm, 256, dtype=np.float32)[:, None].repeat(24, axis=1)
             s.log("fused/colorbar", rr.Image(colorize(ramp, -range_mm, range_mm, "coolwarm")), static=True)
