@@ -169,6 +169,10 @@ class Score:
     bursts: int
     cloud_rms_mm: float | None = None  # accuracy: distance of each point to the true surface point
     coverage: float | None = None  # share of the truth mask that got a point
+    # the clouds' sigma against their depth error along each pixel's ray: median |error| / sigma (0.67 for a right
+    # Gaussian sigma) and the share beyond 2 sigma (4.6 %); None without clouds
+    cloud_z_median: float | None = None
+    cloud_beyond_2sigma: float | None = None
 
 
 def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = False) -> list[Score]:
@@ -180,7 +184,7 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
     for mname, method in methods.items():
         for motion in motions:
             sel = [c for c in cases if c.motion == motion]
-            errs, sigmas, secs, cloud_sq, cloud_n, covered, truth_px = [], [], 0.0, 0.0, 0, 0, 0
+            errs, sigmas, secs, cloud_sq, cloud_n, covered, truth_px, zs = [], [], 0.0, 0.0, 0, 0, 0, []
             for c in sel:
                 t0 = time.perf_counter()
                 res = method(c.frames, c.full_scale, c.angles_rad)
@@ -189,7 +193,8 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
                 errs.append(phase_error(res.phase, c.truth.phase)[m])
                 sigmas.append(res.sigma_total[m])
                 if clouds:
-                    d, hit = cloud_accuracy(c, res, model=getattr(method, "network_support", None))
+                    d, hit, z = cloud_accuracy(c, res, model=getattr(method, "network_support", None))
+                    zs.append(z[np.isfinite(z)])
                     cloud_sq += float(np.sum(d**2))
                     cloud_n += d.size
                     covered += hit
@@ -199,15 +204,18 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
             ece = None
             if np.any(sig > 0) and np.all(np.isfinite(sig)):  # only methods that state an uncertainty
                 ece = reliability(err, np.maximum(sig, 1e-6)).ece
+            z = np.concatenate(zs) if zs else np.zeros(0)
             out.append(Score(mname, motion, float(np.sqrt(np.mean(err**2))), ece, secs / len(sel), len(sel),
                              math.sqrt(cloud_sq / cloud_n) if cloud_n else None,
-                             covered / truth_px if (clouds and truth_px) else None))
+                             covered / truth_px if (clouds and truth_px) else None,
+                             float(np.median(z)) if z.size else None, float(np.mean(z > 2)) if z.size else None))
     return out
 
 
-def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None) -> tuple[np.ndarray, int]:
-    """Distance (mm) of each point triangulated from ``result`` to the true gear surface, and how
-    many truth-mask pixels got a point (coverage numerator). A network's pixels pass the per-burst
+def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None) -> tuple[np.ndarray, int, np.ndarray]:
+    """Distance (mm) of each point triangulated from ``result`` to the true gear surface, how
+    many truth-mask pixels got a point (coverage numerator), and each point's depth error over its sigma
+    (:func:`depth_z`; NaN where its pixel's ray meets no surface). A network's pixels pass the per-burst
     fringe-support test of the decoding ``model`` (its ``network_support``; None: the product's), as
     the app's reconstructor runs it.
 
@@ -230,9 +238,31 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None) -> tuple[np
     angles = tuple(math.radians(a) for a in case.angles_deg)
     m = rc(Burst(fr, angles), replace(result, angle=angles[0]))
     if m.cloud is None or not len(m.cloud):
-        return np.zeros(0), 0
+        return np.zeros(0), 0, np.zeros(0)
     rows, cols = m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]
-    return surface_distances(surface, m.cloud.points), int(case.truth.mask[rows, cols].sum())
+    return (surface_distances(surface, m.cloud.points), int(case.truth.mask[rows, cols].sum()),
+            depth_z(surface, case.scene.rig, angles[0], m.cloud.points, m.cloud.sigma))
+
+
+def depth_z(surface, rig: Rig, angle: float, points: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """|depth error| / sigma of gear-frame ``points`` seen at turntable ``angle`` (rad), whose ``sigma`` is a camera-
+    depth standard error (:class:`~gearscan.core.types.Cloud`): along each point's own camera ray the true surface is
+    where the ray from the camera centre first meets ``surface``; the depth error is the distance between the two
+    along the ray times the cosine to the optical axis. NaN where the ray meets nothing."""
+    import open3d as o3d
+
+    from gearscan.core.rig import rot_z
+
+    gear_to_cam = rig.camera.T_from_world @ rot_z(angle)
+    centre = np.linalg.inv(gear_to_cam)[:3, 3]
+    offset = np.asarray(points, np.float64) - centre
+    dist = np.linalg.norm(offset, axis=1)
+    rays = offset / dist[:, None]
+    hit = surface.cast_rays(o3d.core.Tensor(np.concatenate([np.broadcast_to(centre, rays.shape), rays], axis=1)
+                                            .astype(np.float32)))["t_hit"].numpy().astype(np.float64)
+    cos_axis = (points @ gear_to_cam[2, :3] + gear_to_cam[2, 3]) / dist  # camera depth over distance
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(hit), np.abs(dist - hit) * cos_axis / np.asarray(sigma, np.float64), np.nan)
 
 
 def surface_distances(surface, points: np.ndarray) -> np.ndarray:
@@ -245,15 +275,18 @@ def surface_distances(surface, points: np.ndarray) -> np.ndarray:
 def scores_table(scores: list[Score], baseline: str = "three-step PS") -> str:
     """Markdown table: RMSE per method and motion, with the ratio to the baseline."""
     base = {s.motion: s.rmse_rad for s in scores if s.method == baseline}
-    lines = ["| method | motion | phase RMSE (rad) | vs three-step | ECE | cloud RMS vs truth (mm) | coverage | s/burst |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | motion | phase RMSE (rad) | vs three-step | ECE | cloud RMS vs truth (mm) | coverage | "
+             "cloud sigma: median abs(err)/sigma, beyond 2 sigma | s/burst |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for s in scores:
         ratio = base.get(s.motion, float("nan")) / s.rmse_rad if s.rmse_rad > 0 else float("nan")
         lines.append(
             f"| {s.method} | {s.motion} | {s.rmse_rad:.4f} | {ratio:.1f}x | "
             f"{'' if s.ece is None else f'{s.ece:.3f}'} | "
             f"{'' if s.cloud_rms_mm is None else f'{s.cloud_rms_mm:.4f}'} | "
-            f"{'' if s.coverage is None else f'{100 * s.coverage:.1f} %'} | {s.seconds_per_burst:.3f} |"
+            f"{'' if s.coverage is None else f'{100 * s.coverage:.1f} %'} | "
+            f"{'' if s.cloud_z_median is None else f'{s.cloud_z_median:.2f}, {100 * s.cloud_beyond_2sigma:.1f} %'} | "
+            f"{s.seconds_per_burst:.3f} |"
         )
     return "\n".join(lines)
 

@@ -237,7 +237,7 @@ def test_evaluate_scores_each_models_cloud_with_its_own_support_test(cases, monk
             return classical_method(frames, full_scale, angles)
 
     seen = []
-    monkeypatch.setattr(ev, "cloud_accuracy", lambda case, result, model=None: (seen.append(model), (np.zeros(1), 1))[1])
+    monkeypatch.setattr(ev, "cloud_accuracy", lambda case, result, model=None: (seen.append(model), (np.zeros(1), 1, np.zeros(1)))[1])
     ev.score({BASELINE: classical_method, NETWORK: ev.network_method(Stub())}, cases[:1], clouds=True)
     assert seen == [None, NetworkSupport(3, None)]
 
