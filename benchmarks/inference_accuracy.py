@@ -126,6 +126,11 @@ def main() -> None:
         "triangulates (geometric-constraint unwrapping, the reconstructor's keep test), coverage the share of the "
         "truth mask that got a point. The timing column is this run's wall time per burst including the decode's "
         "own overheads (speed: `inference_speed*.md`).",
+        "- Cloud sigma (since session 49): each point's sigma is a camera-depth standard error; its depth error is "
+        "where its pixel's ray from the camera first meets the true surface, along the ray, times the cosine to the "
+        "optical axis (`gearscan.evaluate.depth_z`). Median |error| / sigma (0.67 for a right Gaussian sigma) and the "
+        "share beyond 2 sigma (4.6 %), pooled over the motion's points: above those the live cloud claims more than "
+        "it measured.",
         f"- The keep test reports a point where its total phase sigma is at most {MAX_SIGMA_RAD} rad; the fringe orders are "
         f"found on {unwrapper_sees()} "
         "(`benchmarks/keep_bound_rule.md`: every modulated pixel in session 44, the keep bound's pixels since session 45's "
