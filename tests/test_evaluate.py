@@ -80,3 +80,35 @@ def test_markdown_embeds_only_figures_it_wrote_and_states_options_as_a_table(rep
     u = r["uncertainty"]
     assert u["per_motion"]["both paper motions pooled"]["ece"] == u["ece"]
     assert f"| both paper motions pooled | 2 | {u['rmse_rad']:.4f} | {u['mean_sigma_rad']:.4f} | {u['ece']:.3f} |" in md
+
+
+def test_depth_z_measures_a_points_depth_error_along_its_own_ray():
+    """A point moved by d along its camera ray off the true surface has a depth error of d times the cosine between
+    the ray and the optical axis; over its sigma, that is what ``depth_z`` returns (NaN where the ray meets nothing)."""
+    import numpy as np
+    import open3d as o3d
+
+    from gearscan.core.gear import GearSpec
+    from gearscan.core.rig import default_rig, rot_z
+    from gearscan.evaluate import depth_z
+
+    rig, angle = default_rig(64, 64), 0.3
+    surface = o3d.t.geometry.RaycastingScene()
+    surface.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(GearSpec().mesh()))
+    gear_to_cam = rig.camera.T_from_world @ rot_z(angle)
+    centre = np.linalg.inv(gear_to_cam)[:3, 3]
+    axis = np.linalg.inv(gear_to_cam)[:3, 2]  # the optical axis in the gear frame
+    rng = np.random.default_rng(0)
+    rays = axis + 0.08 * rng.standard_normal((200, 3))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    hit = surface.cast_rays(o3d.core.Tensor(np.concatenate([np.broadcast_to(centre, rays.shape), rays], 1)
+                                            .astype(np.float32)))["t_hit"].numpy().astype(np.float64)
+    seen = np.isfinite(hit)
+    assert 50 < seen.sum() < 200  # some rays meet the gear, some pass it
+    shift = rng.uniform(-0.05, 0.05, len(rays))  # mm along the ray, either way (small: the same surface is met)
+    points = centre + np.where(seen, hit + shift, 100.0)[:, None] * rays
+    sigma = np.full(len(rays), 0.01)
+    z = depth_z(surface, rig, angle, points, sigma)
+    expected = np.abs(shift) * (rays @ axis) / 0.01
+    np.testing.assert_allclose(z[seen], expected[seen], rtol=1e-3, atol=2e-3)
+    assert np.isnan(z[~seen]).all()
