@@ -75,25 +75,23 @@ def truth_scene(reader):
 
 def ray_error_mm(scene, points: np.ndarray, rays: np.ndarray, back_mm: float = 1.0, within_mm: float = 0.5) -> np.ndarray:
     """Each point's signed error along its ray (+ beyond the true surface, seen from the camera), mm: where the ray
-    from ``back_mm`` before the point meets the true surface (``scene``). NaN where it meets none within ``within_mm``
-    of the point (a grazing ray, or a point off the surface it claims)."""
-    import open3d as o3d
+    from ``back_mm`` before the point meets the true surface (``scene``; :func:`gearscan.evaluate.ray_errors`). NaN
+    where it meets none within ``within_mm`` of the point (a grazing ray, or a point off the surface it claims)."""
+    from gearscan.evaluate import ray_errors
 
-    origins = points - back_mm * rays
-    hit = scene.cast_rays(o3d.core.Tensor(np.concatenate([origins, rays], axis=1).astype(np.float32)))["t_hit"].numpy()
-    err = back_mm - hit.astype(np.float64)
+    err = ray_errors(scene, points, rays, back_mm)
     return np.where(np.abs(err) <= within_mm, err, np.nan)
 
 
 def sigma_honesty(err_mm: np.ndarray, sigma_mm: np.ndarray) -> dict:
-    """How well ``sigma`` describes ``err`` (NaN: not measured, left out): median |err| / sigma (0.674 for a right
-    Gaussian sigma), the share beyond 2 sigma (0.0455) and the 95.45th percentile of |err| / sigma (2); None where no
-    point was measured."""
+    """How well ``sigma`` describes ``err`` (NaN: not measured, left out): :func:`gearscan.evaluate.z_summary`'s
+    median, share beyond 2 sigma and 95.45th percentile of |err| / sigma, and the share measured; None where no point
+    was measured."""
+    from gearscan.evaluate import z_summary
+
     ok = np.isfinite(err_mm)
-    z = np.abs(err_mm[ok]) / sigma_mm[ok]
-    return {"median_z": float(np.median(z)) if z.size else None,
-            "beyond_2sigma": float(np.mean(z > 2)) if z.size else None,
-            "z_q9545": float(np.quantile(z, 0.9545)) if z.size else None,
+    z = z_summary(np.abs(err_mm[ok]) / sigma_mm[ok])
+    return {"median_z": z["median_z"], "beyond_2sigma": z["beyond_2sigma"], "z_q9545": z["z_q9545"],
             "measured": float(ok.mean()) if ok.size else None}
 
 

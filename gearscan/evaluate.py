@@ -204,11 +204,11 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
             ece = None
             if np.any(sig > 0) and np.all(np.isfinite(sig)):  # only methods that state an uncertainty
                 ece = reliability(err, np.maximum(sig, 1e-6)).ece
-            z = np.concatenate(zs) if zs else np.zeros(0)
+            honesty = z_summary(np.concatenate(zs) if zs else np.zeros(0))
             out.append(Score(mname, motion, float(np.sqrt(np.mean(err**2))), ece, secs / len(sel), len(sel),
                              math.sqrt(cloud_sq / cloud_n) if cloud_n else None,
                              covered / truth_px if (clouds and truth_px) else None,
-                             float(np.median(z)) if z.size else None, float(np.mean(z > 2)) if z.size else None))
+                             honesty["median_z"], honesty["beyond_2sigma"]))
     return out
 
 
@@ -244,25 +244,53 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None) -> tuple[np
             depth_z(surface, case.scene.rig, angles[0], m.cloud.points, m.cloud.sigma))
 
 
+# a right Gaussian sigma: median |error| / sigma and its 95.45th percentile (the share beyond 2 sigma is 4.55 %)
+GAUSS_MEDIAN_Z, GAUSS_Q9545_Z, GAUSS_BEYOND_2 = 0.6745, 2.0, 0.0455
+
+
+def ray_errors(surface, points: np.ndarray, rays: np.ndarray, back_mm) -> np.ndarray:
+    """Each point's signed error (mm) along its unit ray (+ beyond the surface, seen from the ray's start): where the
+    ray started ``back_mm`` (scalar or per point) before the point first meets ``surface`` (an open3d
+    ``RaycastingScene``); NaN where it meets nothing."""
+    import open3d as o3d
+
+    back = np.broadcast_to(np.asarray(back_mm, np.float64), (len(points),))
+    origins = np.asarray(points, np.float64) - back[:, None] * rays
+    hit = surface.cast_rays(o3d.core.Tensor(np.concatenate([origins, rays], axis=1).astype(np.float32)))["t_hit"]
+    return back - hit.numpy().astype(np.float64)  # inf (a miss) becomes -inf: not finite either
+
+
+def needed_scale(median_z: float, z_q9545: float) -> float:
+    """The factor a sigma needs so that neither its body (median |error| / sigma) nor its tail (95.45th percentile)
+    flatters: the larger of the two against a Gaussian's."""
+    return max(median_z / GAUSS_MEDIAN_Z, z_q9545 / GAUSS_Q9545_Z)
+
+
+def z_summary(z: np.ndarray) -> dict:
+    """How well a sigma describes its errors, from ``z = |error| / sigma`` (finite values): the median, the share
+    beyond 2 and the 95.45th percentile (a right Gaussian sigma: 0.6745, 4.55 %, 2) and :func:`needed_scale`; None
+    each where ``z`` is empty."""
+    if not z.size:
+        return {"median_z": None, "beyond_2sigma": None, "z_q9545": None, "needed_scale": None}
+    med, q = float(np.median(z)), float(np.quantile(z, 0.9545))
+    return {"median_z": med, "beyond_2sigma": float(np.mean(z > 2)), "z_q9545": q, "needed_scale": needed_scale(med, q)}
+
+
 def depth_z(surface, rig: Rig, angle: float, points: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """|depth error| / sigma of gear-frame ``points`` seen at turntable ``angle`` (rad), whose ``sigma`` is a camera-
     depth standard error (:class:`~gearscan.core.types.Cloud`): along each point's own camera ray the true surface is
-    where the ray from the camera centre first meets ``surface``; the depth error is the distance between the two
-    along the ray times the cosine to the optical axis. NaN where the ray meets nothing."""
-    import open3d as o3d
-
+    where the ray from the camera centre first meets ``surface`` (:func:`ray_errors`); the depth error is the distance
+    between the two along the ray times the cosine to the optical axis. NaN where the ray meets nothing."""
     from gearscan.core.rig import rot_z
 
     gear_to_cam = rig.camera.T_from_world @ rot_z(angle)
     centre = np.linalg.inv(gear_to_cam)[:3, 3]
     offset = np.asarray(points, np.float64) - centre
     dist = np.linalg.norm(offset, axis=1)
-    rays = offset / dist[:, None]
-    hit = surface.cast_rays(o3d.core.Tensor(np.concatenate([np.broadcast_to(centre, rays.shape), rays], axis=1)
-                                            .astype(np.float32)))["t_hit"].numpy().astype(np.float64)
+    err = ray_errors(surface, points, offset / dist[:, None], dist)  # every ray starts at the camera centre
     cos_axis = (points @ gear_to_cam[2, :3] + gear_to_cam[2, 3]) / dist  # camera depth over distance
     with np.errstate(invalid="ignore"):
-        return np.where(np.isfinite(hit), np.abs(dist - hit) * cos_axis / np.asarray(sigma, np.float64), np.nan)
+        return np.where(np.isfinite(err), np.abs(err) * cos_axis / np.asarray(sigma, np.float64), np.nan)
 
 
 def surface_distances(surface, points: np.ndarray) -> np.ndarray:

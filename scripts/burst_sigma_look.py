@@ -36,12 +36,14 @@ def edge_distance(pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def summary(z: np.ndarray) -> dict:
-    """Median, share beyond 2 and the scale the body and the tail need (None: no point)."""
+    """Median, share beyond 2 and the scale the body and the tail need (:func:`gearscan.evaluate.z_summary`)."""
+    from gearscan.evaluate import z_summary
+
     if not z.size:
         return {"points": 0}
-    med, q = float(np.median(z)), float(np.quantile(z, 0.9545))
-    return {"points": int(z.size), "median": med, "beyond_2sigma": float(np.mean(z > 2)), "z_q9545": q,
-            "needed_scale": max(med / 0.6745, q / 2.0)}
+    s = z_summary(z)
+    return {"points": int(z.size), "median": s["median_z"], "beyond_2sigma": s["beyond_2sigma"], "z_q9545": s["z_q9545"],
+            "needed_scale": s["needed_scale"]}
 
 
 def main() -> None:

@@ -26,12 +26,16 @@ from choose_frame_fit_settle import _KeepingRefiner  # noqa: E402
 from choose_fused_support import shipped_label  # noqa: E402
 from frame_fit_heldout import render_stretch, score_fused, truth_scene  # noqa: E402
 
-MEDIAN_Z, SHARE_BEYOND_2, MEASURED, STEP, CAP = 0.6745, 0.0455, 0.999, 0.05, 2.0
+from gearscan.evaluate import GAUSS_BEYOND_2 as SHARE_BEYOND_2  # noqa: E402
+from gearscan.evaluate import GAUSS_MEDIAN_Z as MEDIAN_Z  # noqa: E402
+from gearscan.evaluate import needed_scale as _needed  # noqa: E402
+
+MEASURED, STEP, CAP = 0.999, 0.05, 2.0
 
 
 def needed_scale(row: dict) -> float:
     """The scale a cell's fitted points need at the sigma they were scored with (the rule's step 1)."""
-    return max(row["z_fitted_ray"] / MEDIAN_Z, row["z_q9545_fitted_ray"] / 2.0)
+    return _needed(row["z_fitted_ray"], row["z_q9545_fitted_ray"])
 
 
 def first_scale(rows: list[dict]) -> float:
