@@ -26,6 +26,19 @@ work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 rm -rf .lease && mkdir -p .lease/whl "$work/lib"
 $dl -d .lease/whl $WHEELS
+# triangle's wheel ships 3.9 MB of example meshes (triangle/data/*: read only by triangle.get_data, which the twin
+# never calls): repacked without them (and their RECORD lines) so the carry fits beside the working tree
+.venv/bin/python - .lease/whl/triangle-*.whl <<'PY'
+import sys, zipfile
+path = sys.argv[1]
+with zipfile.ZipFile(path) as src:
+    items = [(i, src.read(i)) for i in src.infolist() if not i.filename.startswith("triangle/data/")]
+with zipfile.ZipFile(path, "w") as dst:
+    for info, data in items:
+        if info.filename.endswith(".dist-info/RECORD"):
+            data = b"".join(line for line in data.splitlines(keepends=True) if not line.startswith(b"triangle/data/"))
+        dst.writestr(info, data, compress_type=zipfile.ZIP_DEFLATED, compresslevel=9)
+PY
 $dl -d "$work" "$O3D"
 
 # open3d, pruned to what the twin imports (open3d.ml is imported by open3d itself: kept; its TF/torch ops, GUI
@@ -33,6 +46,10 @@ $dl -d "$work" "$O3D"
 (cd "$work" && unzip -q ./*.whl 'open3d/*')
 rm -rf "$work"/open3d/{resources,examples,labextension,nbextension,agent_skills,tools}
 rm -f "$work"/open3d/open3d_tf_ops.so "$work"/open3d/open3d_torch_ops.so
+# the Open3D-ML models and their TF/torch wrappers (open3d.ml loads them only on request) and the type stubs: never
+# loaded by ray casting, and the carry must fit 64 MiB beside the working tree (session 50: 0.7 MiB over without)
+rm -rf "$work"/open3d/_ml3d "$work"/open3d/ml/tf "$work"/open3d/ml/torch
+find "$work"/open3d -name "*.pyi" -delete
 # open3d.visualization imports its plotly/dash viewer at import time; the machine has neither and the twin never
 # draws: the carried copy names what is missing if it is ever called
 cat > "$work"/open3d/visualization/draw_plotly.py <<'STUB'
