@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -12,6 +15,7 @@ from gearscan.inference.predictor import DEFAULT_MODEL
 from gearscan.twin.families import FAMILIES, SEED_BLOCK, draw_gear, family_seed
 from gearscan.twin.randomize import aim_point, view_rig
 from gearscan.twin.splits import (
+    CANDIDATE_V10,
     SHIPPED,
     SHIPPED_DEFAULT_RIG,
     SHIPPED_V5,
@@ -28,6 +32,8 @@ from gearscan.twin.splits import (
     split_of_teeth,
 )
 
+REPO = Path(__file__).resolve().parents[1]
+
 
 def test_splits_are_disjoint_by_gear_rig_and_seed() -> None:
     check_disjoint()
@@ -43,8 +49,8 @@ def test_splits_are_disjoint_by_gear_rig_and_seed() -> None:
         split_of_seed(seed)  # exactly one owner, or it raises
 
 
-@pytest.mark.parametrize("shipped", [SHIPPED_V5, SHIPPED_V6, SHIPPED_V9, SHIPPED_DEFAULT_RIG],
-                         ids=["v5", "v6", "v9", "default-rig"])
+@pytest.mark.parametrize("shipped", [SHIPPED_V5, SHIPPED_V6, SHIPPED_V9, SHIPPED_DEFAULT_RIG, CANDIDATE_V10],
+                         ids=["v5", "v6", "v9", "default-rig", "v10-candidate"])
 def test_shipped_models_saw_only_train_and_val(shipped) -> None:
     assert shipped.train_teeth <= SPLITS["train"].teeth
     assert shipped.val_teeth <= SPLITS["val"].teeth
@@ -148,3 +154,20 @@ def test_dataset_generation_refuses_the_test_split(tmp_path) -> None:
     with pytest.raises(DatasetError, match=r"tooth counts \[37\] belong to the test split"):
         generate_dataset(tmp_path / "r", spec, scene=(rig, optics, gear, DEFAULT_RIG_PERIOD_PX))
     assert draw_gear(np.random.default_rng(0), module=2.0, teeth=20).teeth == 20  # a train gear drawn the family's way
+
+
+def test_v10_candidate_record_matches_the_lease_run_that_made_it() -> None:
+    """v10's record is its lease's own (benchmarks/v10_lease/reproduce.json): v9's sets at twice the scale, v6's start."""
+    meta = read_config(DEFAULT_MODEL.with_name("v10.safetensors"))["training"]
+    run = json.loads((REPO / "benchmarks/v10_lease/reproduce.json").read_text())
+    assert meta["version"] == "v10" and meta["continues"].startswith("v6")
+    assert meta["train_sets"] == run["train_sets"] and meta["val_sets"] == run["val_sets"]
+    assert run["args"]["scale"] == "1.4" and run["args"]["init"] == "inference/weights/v6.safetensors"
+    assert {t for _, teeth, *_ in meta["train_sets"] for t in teeth} == CANDIDATE_V10.train_teeth
+    assert {s[5] for s in meta["train_sets"]} == set(CANDIDATE_V10.train_dataset_seeds)
+    assert {t for _, teeth, *_ in meta["val_sets"] for t in teeth} == CANDIDATE_V10.val_teeth
+    # the same sets as v9's, each with twice the start points (the third field): the data-size point
+    v9 = {s[0]: s for s in read_config(DEFAULT_MODEL)["training"]["train_sets"]}
+    for name, teeth, starts, *rest in meta["train_sets"]:
+        assert v9[name][1] == teeth and v9[name][3:] == rest
+        assert starts == (v9[name][2] if name.startswith("radial_dense") else 2 * v9[name][2])

@@ -274,6 +274,13 @@ SHIPPED_V9 = ShippedData(
                  "its sigma map, still-burst gate and MC phase",
 )
 SHIPPED = SHIPPED_V9  # what the shipped default model (inference/weights/default.*) saw
+# v10, a candidate (session 50; benchmarks/v10_choice_rule.md): v6 trained as v9 was on twice v9's data (the same
+# sets at scale 1.4: the same tooth counts and seeds, twice the start points); the same val sets
+CANDIDATE_V10 = replace(
+    SHIPPED_V9,
+    model="v10 (inference/weights/v10.*, a candidate: v6 trained on twice v9's data with v9's steps)",
+    val_used_for="v6's uses, then early stopping of the run, v10 over v9 (benchmarks/v10_choice_rule.md)",
+)
 _DEFAULT_RIG_TRAIN = (11, 15, 20, 24, 28, 33, 36, 40, 44, 48, 56, 60, 64, 68, 72, 76)  # its first two runs, seeds 3201-
 # its third and fourth runs (session 28: the rate annealed, twice), seeds 3301-
 _DEFAULT_RIG_TRAIN_3 = (11, 13, 15, 17, 19, 21, 24, 26, 28, 30, 31, 34, 36, 38, 40, 44, 48, 52, 56, 60, 64, 68, 72, 76)
