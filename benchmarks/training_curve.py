@@ -11,6 +11,7 @@ Every trained network at hand, scored on the same test bursts as ``benchmarks/ge
   weights are missing is listed as such);
 - v6, the default of sessions 23-38 (``inference/weights/v6.*``): the w = 8 run continued on the same data;
 - v9, the shipped default since session 39: v6 continued on a lent H100 at batch 128 with the outside-mask term.
+- v10, a candidate (session 50): v9's run from v6 again on twice v9's data, the data-size point.
 
 A run whose weights are not on this machine keeps its row from the previous report (``--out``'s JSON), marked with
 that report's commit and host: the test bursts are fixed by their seeds, so its numbers stand.
@@ -100,7 +101,22 @@ RUNS = (
     Run("v9 (shipped)", REPO / "inference/weights/default.safetensors", 8, 9_200, 128,
         "v6 continued on a lent H100, batch 128, outside-mask term 0.05", None, continues="v6",
         prior_crops=12_600 * 32),
+    # v10 (a candidate, session 50): v9's run from the same start (v6) on twice v9's data, 9 000 steps: the data-size
+    # point. Its log's val RMSE is on the same lease val render as v9's (not v6's), so the val panel leaves it out too
+    Run("v10 (twice v9's data)", REPO / "inference/weights/v10.safetensors", 8, 9_000, 128,
+        "v9's run from v6 on twice v9's data (scale 1.4), a lent H100", None, continues="v6",
+        prior_crops=12_600 * 32),
 )
+# the data-size pair: the same start, steps, batch and loss; v10's train sets have twice v9's start points
+# (inference/weights/v10.json and default.json, "train_sets"; the dense radial set is the same in both)
+DATA_PAIR = ("v9 (shipped)", "v10 (twice v9's data)")
+
+
+def start_points(weights: Path) -> int:
+    """Rendered start points of a lease-trained model's train sets (tooth counts x start points per tooth count)."""
+    from gearscan.inference.model_io import read_config
+
+    return sum(len(teeth) * starts for _, teeth, starts, *_ in read_config(weights)["training"]["train_sets"])
 
 
 def by_label(label: str) -> Run:
@@ -372,9 +388,20 @@ def markdown(rep: dict, args) -> str:
                    f"{a['paper_rmse'][UNSEEN]:.3f} -> {b['paper_rmse'][UNSEEN]:.3f} (unseen), "
                    f"{a['paper_rmse']['default']:.3f} -> {b['paper_rmse']['default']:.3f} rad (default). Not a point "
                    "on the w8 pair's line: batch, loss and data changed with the steps.")
-    out += ["- **Data size** has no point here: every GPU run saw about the same ~300 start points, and v5's data "
-            "and recipe differ in more than size. A run on twice the data is the measurement this curve lacks.",
-            "", "Figure: `training_curve_report.png` (left: test, this table; right: val RMSE per epoch during "
+    if all(k in by for k in DATA_PAIR):
+        a, b = (by[k] for k in DATA_PAIR)
+        na, nb = (start_points(REPO / by[k]["weights"]) for k in DATA_PAIR)
+        slope = {k: math.log(b["paper_rmse"][k] / a["paper_rmse"][k]) / math.log(nb / na) for k in (UNSEEN, "default")}
+        out.append(f"- **Data size** at equal steps (v9 and v10: both from v6, {a['steps']} / {b['steps']} steps of "
+                   f"{a['batch']}, the same loss; {na} -> {nb} rendered start points), paper motions: "
+                   f"{a['paper_rmse'][UNSEEN]:.3f} -> {b['paper_rmse'][UNSEEN]:.3f} (unseen, RMSE ~ data^"
+                   f"{slope[UNSEEN]:.2f}), {a['paper_rmse']['default']:.3f} -> {b['paper_rmse']['default']:.3f} rad "
+                   f"(default, ~ data^{slope['default']:.2f}); all moving bursts {a['moving_rmse'][UNSEEN]:.3f} -> "
+                   f"{b['moving_rmse'][UNSEEN]:.3f} / {a['moving_rmse']['default']:.3f} -> "
+                   f"{b['moving_rmse']['default']:.3f}. One pair, one seed each: a slope from two points.")
+    else:
+        out.append("- **Data size**: the pair at equal steps (v9 and v10) is not at hand.")
+    out += ["", "Figure: `training_curve_report.png` (left: test, this table; right: val RMSE per epoch during "
             "training, each run's own val loader, so the runs' levels are not comparable across panels)."]
     return "\n".join(out)
 
