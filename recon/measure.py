@@ -15,6 +15,7 @@ import numpy as np
 
 from gearscan.core.rig import Rig
 from gearscan.core.types import Burst, Measurement, PhaseResult
+from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales, scale_depth_sigma
 
 UNWRAP_MODES = ("cad", "envelope", "coarse")
 # The product's fringe-support tests, for a model whose JSON names none (each shipped model carries its own,
@@ -155,7 +156,9 @@ class Reconstructor:
     is a candidate only where the burst's own frames show fringes on every pixel within
     ``network_support_px`` (:func:`~gearscan.core.phase.fringe_support`): the network was trained on the twin's
     truth mask alone and invents phase, modulation and a small sigma at shadow borders, creases and silhouettes;
-    such pixels are counted as ``unsupported`` (``None``: no such test). An
+    such pixels are counted as ``unsupported`` (``None``: no such test). Each point's depth sigma is the phase
+    sigma propagated through the triangulation, times the scale of its band of distance to the edge of the burst's
+    cloud (``depth_sigma_scales``; None: the product's, :mod:`gearscan.recon.depth_sigma`). An
     undistorted projector takes the fused unwrap + triangulate path
     (:mod:`gearscan.recon.reconstruct`); a distorted one the fixed-point
     :class:`~gearscan.recon.triangulate.Triangulator`.
@@ -165,7 +168,7 @@ class Reconstructor:
                  max_sigma: float = MAX_SIGMA_RAD, margin: float = 0.3, unwrap: str = "cad",
                  envelope_mm: float = ENVELOPE_MM, silhouette_mm: float = 0.4, mixed_border_px: int | None = 1,
                  network_support_px: int | None = NETWORK_SUPPORT_PX, unwrap_max_sigma: float | None = UNWRAP_MAX_SIGMA,
-                 threads: int | None = None) -> None:
+                 depth_sigma_scales: tuple[float, ...] | None = None, threads: int | None = None) -> None:
         from gearscan.recon.reconstruct import SingleFrequencyReconstructor
         from gearscan.recon.triangulate import Triangulator
         from gearscan.recon.unwrap import CadDepthBounds, phase_bounds
@@ -212,6 +215,7 @@ class Reconstructor:
         self.margin = margin
         self.mixed_border_px = mixed_border_px
         self.network_support_px = network_support_px
+        self.depth_sigma_scales = check_scales(DEPTH_SIGMA_SCALES if depth_sigma_scales is None else depth_sigma_scales)
 
     @classmethod
     def for_gear(cls, rig: Rig, period_px: float, gear, **kw) -> Reconstructor:
@@ -300,6 +304,10 @@ class Reconstructor:
             keep = keep & ~mixed
             phase_abs = np.where(keep, phase_abs, np.float32(np.nan))
             tri = Triangulation(points=tri.points, depth=tri.depth, sigma_depth=tri.sigma_depth, valid=keep)
+        # the depth sigma by distance to the edge of this burst's cloud (recon/depth_sigma.py, a val choice)
+        tri = Triangulation(points=tri.points, depth=tri.depth,
+                            sigma_depth=scale_depth_sigma(tri.sigma_depth, tri.valid, self.depth_sigma_scales),
+                            valid=tri.valid)
         stats = {
             "candidates": int(candidate.sum()),
             "points": int(keep.sum()),

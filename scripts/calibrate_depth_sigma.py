@@ -1,0 +1,146 @@
+"""Calibrate the per-burst depth sigma by distance to the cloud's edge, on VAL (benchmarks/depth_sigma_rule.md).
+
+    python scripts/calibrate_depth_sigma.py [--out benchmarks/depth_sigma_val.json] [--fit-seed 2000] [--check-seed 2200]
+
+The val scenes of the reconstruction's per-burst choices (``evaluate.VAL_CLOUD_SETS``), one burst per motion of
+``VAL_MOTIONS["wide"]``, the shipped network (deterministic, the twin rigs' orientation) through the product's
+reconstructor with the raw propagated sigma (all scales 1). Per point |depth error along its ray| / sigma
+(``evaluate.depth_z``) and its band (``recon.depth_sigma``). The scales come from the fit seed set, the check from
+the other; z scales as 1 / s, so both read one raw pass each. Writes the choice and both tables to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+KINDS = ("still", "moving")
+CHECK_BEYOND_2 = 0.055  # the check's bound on the share beyond 2 sigma per (band, kind) cell
+CHECK_MIN_POINTS = 1000  # smaller cells are reported, not judged
+
+
+def collect(seed: int, motions: str, per_motion: int) -> dict[tuple[str, int], np.ndarray]:
+    """z = |depth error along the ray| / raw sigma per (kind, band), over the val scenes rendered from ``seed``."""
+    from gearscan.core.types import Burst, Frame
+    from gearscan.evaluate import (
+        VAL_CLOUD_SETS,
+        VAL_MOTIONS,
+        depth_z,
+        render_cases,
+        scenes_from_dataset,
+    )
+    from gearscan.inference.predictor import Predictor
+    from gearscan.recon.depth_sigma import NO_SCALES, band_index, edge_distance
+    from gearscan.recon.measure import Reconstructor
+
+    predictor = Predictor.load(None, orientation="normal")  # every twin rig is normal by its geometry
+    scenes = [s for root in VAL_CLOUD_SETS for s in scenes_from_dataset(ROOT / root)]
+    zs: dict[tuple[str, int], list[np.ndarray]] = {}
+    for i, scene in enumerate(scenes):
+        rc = Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, depth_sigma_scales=NO_SCALES)
+        try:
+            for case in render_cases(scene, VAL_MOTIONS[motions], per_motion, seed=seed + i):
+                fr = tuple(Frame(f, j, 0, j, bit_depth=int(case.full_scale).bit_length())
+                           for j, f in enumerate(case.frames))
+                burst = Burst(fr, tuple(math.radians(a) for a in case.angles_deg))
+                result = replace(predictor.predict(case.frames, 0, full_scale=case.full_scale), angle=burst.angles[0])
+                m = rc(burst, result)
+                if m.cloud is None or not len(m.cloud):
+                    continue
+                z = depth_z(scene.cad[1], scene.rig, burst.angles[0], m.cloud.points, m.cloud.sigma)
+                keep = np.zeros(case.truth.mask.shape, bool)
+                keep[m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]] = True
+                band = band_index(edge_distance(keep)[m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]])
+                kind = "still" if case.motion == "static" else "moving"
+                ok = np.isfinite(z)
+                for b in np.unique(band):
+                    zs.setdefault((kind, int(b)), []).append(z[ok & (band == b)])
+        finally:
+            rc.close()
+        print(f"seed {seed}: {i + 1}/{len(scenes)} {scene.name}", flush=True)
+    return {k: np.concatenate(v) for k, v in zs.items()}
+
+
+def table(zs: dict[tuple[str, int], np.ndarray], scales: tuple[float, ...] | None = None) -> dict:
+    """Per kind and band: points, median z, share beyond 2 sigma, the scale needed (z divided by ``scales``)."""
+    from gearscan.evaluate import z_summary
+    from gearscan.recon.depth_sigma import band_labels
+
+    out: dict = {}
+    for kind in KINDS:
+        out[kind] = {}
+        for b, label in enumerate(band_labels()):
+            z = zs.get((kind, b), np.zeros(0))
+            if scales is not None:
+                z = z / scales[b]
+            if not z.size:
+                out[kind][label] = {"points": 0}
+                continue
+            s = z_summary(z)
+            out[kind][label] = {"points": int(z.size), "median": s["median_z"], "beyond_2sigma": s["beyond_2sigma"],
+                                "z_q9545": s["z_q9545"], "needed_scale": s["needed_scale"]}
+    return out
+
+
+def choose(fit: dict) -> tuple[float, ...]:
+    """Per band: the larger need of still and moving on the fit set, rounded up to 0.05, at least 1."""
+    from gearscan.recon.depth_sigma import band_labels
+
+    scales = []
+    for label in band_labels():
+        need = max(fit[k][label].get("needed_scale", 1.0) for k in KINDS)
+        scales.append(max(1.0, math.ceil(round(need / 0.05, 6)) * 0.05))
+    return tuple(round(s, 2) for s in scales)
+
+
+def check(scaled: dict) -> list[str]:
+    """The check set's cells that miss the bound (empty: the check passes)."""
+    return [f"{kind} {label}: {cell['beyond_2sigma']:.1%} beyond 2 sigma"
+            for kind, cells in scaled.items() for label, cell in cells.items()
+            if cell.get("points", 0) >= CHECK_MIN_POINTS and cell["beyond_2sigma"] > CHECK_BEYOND_2]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "depth_sigma_val.json")
+    ap.add_argument("--motions", default="wide")
+    ap.add_argument("--per-motion", type=int, default=1)
+    ap.add_argument("--fit-seed", type=int, default=2000)
+    ap.add_argument("--check-seed", type=int, default=2200)
+    args = ap.parse_args()
+    if args.fit_seed == args.check_seed:
+        ap.error(f"--check-seed: expected another seed set than --fit-seed ({args.fit_seed})")
+
+    from inspect_bench import commit, host
+
+    from gearscan.recon.depth_sigma import EDGE_BANDS_PX
+
+    fit_z = collect(args.fit_seed, args.motions, args.per_motion)
+    fit = table(fit_z)
+    scales = choose(fit)
+    check_z = collect(args.check_seed, args.motions, args.per_motion)
+    misses = check(table(check_z, scales))
+    out = {
+        "split": "val", "rule": "benchmarks/depth_sigma_rule.md", "commit": commit(), "host": host(),
+        "motions": args.motions, "per_motion": args.per_motion, "fit_seed": args.fit_seed,
+        "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX), "scales": list(scales),
+        "check_bound_beyond_2sigma": CHECK_BEYOND_2, "check_min_points": CHECK_MIN_POINTS,
+        "check_passed": not misses, "check_misses": misses,
+        "fit_raw": fit, "fit_scaled": table(fit_z, scales),
+        "check_raw": table(check_z), "check_scaled": table(check_z, scales),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1) + "\n")
+    print(f"scales {scales}; check {'passed' if not misses else 'MISSED: ' + '; '.join(misses)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,85 @@
+"""The per-burst depth sigma, scaled by distance to the cloud's edge (recon/depth_sigma.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gearscan.core.patterns import PatternSet
+from gearscan.core.phase import classical_result
+from gearscan.core.types import Burst, Frame
+from gearscan.recon.depth_sigma import (
+    DEPTH_SIGMA_SCALES,
+    EDGE_BANDS_PX,
+    NO_SCALES,
+    band_index,
+    band_labels,
+    check_scales,
+    edge_distance,
+    scale_depth_sigma,
+)
+from gearscan.recon.measure import Reconstructor
+
+PERIOD = 40.0
+
+
+def test_edge_distance_is_euclidean_and_the_image_border_is_an_edge() -> None:
+    keep = np.zeros((11, 11), bool)
+    keep[2:9, 2:9] = True  # a 7 x 7 square
+    d = edge_distance(keep)
+    assert d[5, 5] == pytest.approx(4.0)  # the centre: four pixels to the first one outside
+    assert d[2, 5] == pytest.approx(1.0) and d[0, 0] == 0.0
+    assert d[3, 3] == pytest.approx(2.0, abs=1e-3)  # the diagonal is farther, but the edge is straight
+    full = np.ones((5, 9), bool)
+    assert edge_distance(full)[0, 4] == pytest.approx(1.0) and edge_distance(full)[2, 4] == pytest.approx(3.0)
+    with pytest.raises(ValueError, match="2-D"):
+        edge_distance(np.ones(5, bool))
+
+
+def test_bands_split_at_their_bounds() -> None:
+    d = np.array([0.0, 1.0, 1.4999, 1.5, 2.0, 2.5, 4.4, 4.5, 8.4, 8.5, 100.0])
+    np.testing.assert_array_equal(band_index(d), [0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4])
+    assert band_labels() == ["0-1.5 px", "1.5-2.5 px", "2.5-4.5 px", "4.5-8.5 px", "8.5-inf px"]
+    assert len(DEPTH_SIGMA_SCALES) == len(EDGE_BANDS_PX) + 1 and check_scales(DEPTH_SIGMA_SCALES)
+    assert all(s >= 1 for s in DEPTH_SIGMA_SCALES)  # a calibration may not shrink a sigma
+
+
+@pytest.mark.parametrize("bad", [(1.0, 1.0), (1.0, 1.0, 1.0, 1.0, -2.0), (1.0, 1.0, math.nan, 1.0, 1.0)])
+def test_scales_that_are_not_one_positive_factor_per_band_are_refused(bad) -> None:
+    with pytest.raises(ValueError, match="5 finite positive factors"):
+        check_scales(bad)
+
+
+def test_each_pixel_takes_its_bands_scale() -> None:
+    keep = np.zeros((20, 20), bool)
+    keep[1:19, 1:19] = True
+    sigma = np.full(keep.shape, 0.01, np.float32)
+    scales = (5.0, 4.0, 3.0, 2.0, 1.5)
+    out = scale_depth_sigma(sigma, keep, scales)
+    band = band_index(edge_distance(keep))
+    np.testing.assert_allclose(out[keep], 0.01 * np.asarray(scales)[band[keep]], rtol=1e-6)
+    assert {int(b) for b in band[keep]} == {0, 1, 2, 3, 4}  # every band is on this square
+    assert scale_depth_sigma(sigma, keep, NO_SCALES) is sigma  # all ones: the raw sigma, untouched
+
+
+def test_the_reconstructor_scales_each_points_sigma_by_its_band(clean_renderer, gear) -> None:
+    """The same points with or without the scales; each sigma times its band's factor, the band read from the
+    burst's own kept cloud."""
+    angle = math.radians(3.0)
+    frames, _ = clean_renderer.render(angle, PatternSet.three_step(PERIOD))
+    burst = Burst(tuple(Frame(f, i, 1000 * i, i) for i, f in enumerate(frames)), (angle, angle, angle))
+    result = classical_result(burst)
+    scales = (3.0, 2.0, 1.5, 1.25, 1.1)
+    raw = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear, depth_sigma_scales=NO_SCALES)(burst, result)
+    scaled = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear, depth_sigma_scales=scales)(burst, result)
+    np.testing.assert_array_equal(raw.cloud.pixels, scaled.cloud.pixels)
+    np.testing.assert_array_equal(raw.cloud.points, scaled.cloud.points)
+    keep = np.zeros(raw.valid.shape, bool)
+    keep[raw.cloud.pixels[:, 0], raw.cloud.pixels[:, 1]] = True
+    band = band_index(edge_distance(keep))[raw.cloud.pixels[:, 0], raw.cloud.pixels[:, 1]]
+    np.testing.assert_allclose(scaled.cloud.sigma, raw.cloud.sigma * np.asarray(scales)[band], rtol=1e-5)
+    assert (band == 0).any() and (band == 4).any()
+    shipped = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear)(burst, result)
+    np.testing.assert_allclose(shipped.cloud.sigma, raw.cloud.sigma * np.asarray(DEPTH_SIGMA_SCALES)[band], rtol=1e-5)
