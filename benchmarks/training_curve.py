@@ -5,7 +5,8 @@
 Every trained network at hand, scored on the same test bursts as ``benchmarks/generalization.py``
 (same families, scenes, motions and seeds: the shipped model's row reproduces that report's):
 
-- v5, the CPU recipe (``inference/weights/v5.*``);
+- v5, the CPU recipe (``inference/weights/v5.*``; its weights left the tree in session 50, so its row is carried
+  from the report that scored it unless they are restored from git history, V5_MODEL_CARD.md);
 - the two first runs of the session-22 GPU lease, w = 8 and w = 32 side by side on the same data
   and recipe (``out/gpu/w8``, ``out/gpu/w32``: not shipped, so not in the repository; a run whose
   weights are missing is listed as such);

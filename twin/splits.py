@@ -225,7 +225,7 @@ class ShippedData:
 
 _V5_TRAIN2 = (11, 13, 14, 15, 17, 18, 19, 21, 22, 23, 24, 26, 27, 28, 29, 31, 33, 34, 38, 40)
 SHIPPED_V5 = ShippedData(
-    model="v5 (inference/weights/v5.*; the default until session 23)",
+    model="v5 (inference/weights/v5.*, weights in git history since session 50; the default until session 23)",
     train_teeth=frozenset({12, 16, 20, 30, 36, *_V5_TRAIN2}),
     train_dataset_seeds=(1, 7, 11),
     train_rig="radial-random rigs of twin/randomize.py at 256x256",
