@@ -156,6 +156,7 @@ def main() -> None:
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     from gearscan.inference.decoder import Decoder
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
     from gearscan.recon.measure import keep_bound_option, network_support_option
     from gearscan.recon.track import (
         FIT_SIGMA_SCALE,
@@ -237,6 +238,8 @@ def main() -> None:
                                                           "support_px_run": support,  # what ran (None: no test)
                                                           "support_test": support_text, "max_sigma_rad": bound,
                                                           "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE, "point_sigma_um": point_um,
+                                                          "rest_sigma_scale": REST_SIGMA_SCALE,
+                                                          "depth_sigma_scales": list(DEPTH_SIGMA_SCALES),
                                                           "modulation_ratio": MODULATION_RATIO}, indent=2))
     print("\n".join(lines))
 

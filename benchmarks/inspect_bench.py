@@ -80,6 +80,7 @@ def main() -> None:
     from gearscan.core.recording import RecordingReader
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
     from gearscan.recon.measure import keep_bound_option, network_support_option
     from gearscan.recon.track import FIT_SIGMA_SCALE, MODULATION_RATIO, REST_SIGMA_SCALE, SETTLE_RAD
     from gearscan.twin.defects import GearDefects, true_mesh
@@ -287,7 +288,9 @@ def main() -> None:
         "several bursts put in one voxel. These settings were chosen on this revolution. "
         f"{uncertain:,} more unfitted points carried a sigma above the fit's own 30 µm bound and were dropped (counted; "
         "`TrackRefiner.refine_fused`: one bound for every point of the refined cloud; a rule, not tuned here; an "
-        f"unfitted point carries {REST_SIGMA_SCALE:g} times its bursts' sigma without credit for averaging, "
+        f"unfitted point carries {REST_SIGMA_SCALE:g} times its bursts' sigma (each burst's scaled by distance to its "
+        f"cloud's edge, {'/'.join(f'{x:g}' for x in DEPTH_SIGMA_SCALES)} from the edge inward: `depth_sigma_rule.md`) "
+        "without credit for averaging, "
         "calibrated on val stretches: `rest_sigma_rule.md`).",
         "",
         *([
@@ -330,6 +333,7 @@ def main() -> None:
         "uncertain": uncertain,
         "unsettled": unsettled,
         "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE,
+        "rest_sigma_scale": REST_SIGMA_SCALE, "depth_sigma_scales": list(DEPTH_SIGMA_SCALES),
         "implausible": implausible,
         "modulation_ratio": MODULATION_RATIO,
         "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "fused_only_fp_max_error_um": plain_fp_err,
