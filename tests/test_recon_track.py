@@ -320,7 +320,8 @@ def test_unfitted_points_carry_the_scaled_sigma_and_fitted_points_keep_the_fits(
         np.testing.assert_allclose(out.sigma[rest], scale * fused.sigma[rows][rest] * np.sqrt(fused.bursts[rows][rest]))
     np.testing.assert_array_equal(one.points[one.refined], three.points[three.refined])
     np.testing.assert_array_equal(one.sigma[one.refined], three.sigma[three.refined])
-    # under the product's 30 um bound: the unfitted points kept at scale 1 whose sigma x 3.5 exceeds it leave the cloud
+    # under the product's 30 um bound: the unfitted points kept at scale 1 whose sigma x the product's scale exceeds it
+    # leave the cloud
     bound = TrackRefiner(reader.rig, 40.0).max_sigma_mm
     outs = {}
     for scale in (1.0, REST_SIGMA_SCALE):
@@ -363,7 +364,7 @@ def test_the_product_scales_the_unfitted_points_sigma(tmp_path):
     render_recording(tmp_path / "rec", rig=default_rig(64, 64), motion="static", bursts=1)
     reader = RecordingReader(tmp_path / "rec")
     refiner = make_refiner(reader, reader.rig, reader.patterns.periods[0], CloudFuser(0.1, 3))
-    assert refiner.rest_sigma_scale == REST_SIGMA_SCALE == 3.5
+    assert refiner.rest_sigma_scale == REST_SIGMA_SCALE == 2.0
     assert refiner.fit_sigma_scale == FIT_SIGMA_SCALE
 
 

@@ -1,0 +1,64 @@
+"""The depth-sigma rule's arithmetic (scripts/calibrate_depth_sigma.py, benchmarks/depth_sigma_rule.md)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "scripts"))
+from calibrate_depth_sigma import CHECK_BEYOND_2, check, choose  # noqa: E402
+
+from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, band_labels  # noqa: E402
+
+
+def _table(needs: dict[str, list[float]], beyond: float = 0.04, points: int = 5000) -> dict:
+    return {kind: {label: {"points": points, "median": 0.5, "beyond_2sigma": beyond, "z_q9545": 2 * n,
+                           "needed_scale": n} for label, n in zip(band_labels(), ns, strict=True)}
+            for kind, ns in needs.items()}
+
+
+def test_each_band_takes_the_larger_need_rounded_up_and_never_shrinks() -> None:
+    fit = _table({"still": [2.94, 1.46, 0.9, 1.21, 1.19], "moving": [4.94, 1.2, 0.8, 1.82, 1.3999]})
+    assert choose(fit) == (4.95, 1.5, 1.0, 1.85, 1.4)
+    assert choose(_table({"still": [1.1] * 5, "moving": [1.25] * 5})) == (1.25,) * 5  # on a step: not one more
+
+
+def test_the_check_judges_every_cell_large_enough_to_count() -> None:
+    ok = _table({"still": [1.0] * 5, "moving": [1.0] * 5}, beyond=CHECK_BEYOND_2)
+    assert check(ok) == []
+    bad = json.loads(json.dumps(ok))
+    bad["moving"]["8.5-inf px"]["beyond_2sigma"] = 0.06
+    assert check(bad) == ["moving 8.5-inf px: 6.0% beyond 2 sigma"]
+    bad["moving"]["8.5-inf px"]["points"] = 999  # too few to judge
+    assert check(bad) == []
+
+
+def test_the_stored_val_run_recomputes_its_choice_and_the_product_ships_it() -> None:
+    stored = json.loads((ROOT / "benchmarks" / "depth_sigma_val.json").read_text())
+    assert stored["split"] == "val" and stored["fit_seed"] != stored["check_seed"]
+    assert choose(stored["fit_raw"]) == tuple(stored["scales"]) == DEPTH_SIGMA_SCALES
+    # the check, recomputed from its table (not the json's verdict); the scaled table is the raw one divided
+    assert check(stored["check_scaled"]) == [] and stored["check_passed"]
+    for kind, cells in stored["check_raw"].items():
+        for (label, raw), scale in zip(cells.items(), DEPTH_SIGMA_SCALES, strict=True):
+            scaled = stored["check_scaled"][kind][label]
+            assert scaled["median"] == pytest.approx(raw["median"] / scale)
+            assert scaled["beyond_2sigma"] <= raw["beyond_2sigma"]
+    # raw, the tail flattered in every moving band (what the rule was for)
+    assert all(c["beyond_2sigma"] > 0.0455 for c in stored["check_raw"]["moving"].values())
+
+
+def test_the_inspection_revolution_met_the_shipping_condition_with_these_scales() -> None:
+    """Recomputed from the committed inspection run (benchmarks/inspect_report.json), which records the scales."""
+    from gearscan.recon.track import REST_SIGMA_SCALE
+
+    run = json.loads((ROOT / "benchmarks" / "inspect_report.json").read_text())
+    assert tuple(run["depth_sigma_scales"]) == DEPTH_SIGMA_SCALES and run["rest_sigma_scale"] == REST_SIGMA_SCALE
+    assert run["fused_rms_mm"] <= 0.004 and run["coverage"] >= 0.875
+    assert run["chipped"] == run["truth_chipped"]
+    assert all(abs(measured - truth) <= 5 + 0.05 * abs(truth) for _, truth, measured, _ in run["rows"])
