@@ -93,9 +93,12 @@ def main() -> None:
     flags = next((set(ln.split(":", 1)[1].split()) for ln in Path("/proc/cpuinfo").read_text().splitlines()
                   if ln.startswith("flags")), set())
     gate = rig.meta.get("still_burst_gate") or {}
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
+
     report = {
         "commit": commit, "model": str(args.model or "inference/weights/default.safetensors"),
         "network_support_px": support_px,  # the per-burst fringe-support test this run's clouds kept (peers: theirs)
+        "depth_sigma_scales": list(DEPTH_SIGMA_SCALES),  # the clouds' sigma by edge band (recon.depth_sigma)
         "precision": shipped.precision, "orientation": orientation, "split": "test (default family)",
         "scenes": [s.name for s in scenes], "bursts_per_motion_per_scene": args.per_motion, "torch_seed": args.seed,
         "still_burst_gate": {"rad": rig.still_burst_rad, "max_motion_share": gate.get("max_motion_share")},

@@ -65,13 +65,15 @@ def main() -> None:
         scenes_from_dataset,
     )
     from gearscan.inference.predictor import Predictor
+    from gearscan.recon.depth_sigma import NO_SCALES
     from gearscan.recon.measure import Reconstructor
 
     predictor = Predictor.load(None, orientation="normal")  # every twin rig is normal by its geometry
     scenes = [s for root in VAL_CLOUD_SETS for s in scenes_from_dataset(ROOT / root)]
     zs: dict[tuple[str, int], list[np.ndarray]] = {}
     for i, scene in enumerate(scenes):
-        rc = Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear)
+        # the propagated sigma, as the look measured it before session 50's edge-band scales (recon.depth_sigma)
+        rc = Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, depth_sigma_scales=NO_SCALES)
         try:
             for case in render_cases(scene, VAL_MOTIONS[args.motions], args.per_motion, seed=args.seed + i):
                 fr = tuple(Frame(f, j, 0, j, bit_depth=int(case.full_scale).bit_length()) for j, f in enumerate(case.frames))

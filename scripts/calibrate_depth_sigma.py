@@ -25,6 +25,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 KINDS = ("still", "moving")
 CHECK_BEYOND_2 = 0.055  # the check's bound on the share beyond 2 sigma per (band, kind) cell
 CHECK_MIN_POINTS = 1000  # smaller cells are reported, not judged
+SCALE_GRID = tuple(round(1.0 + 0.05 * i, 2) for i in range(181))  # 1.0 .. 10.0: candidate scales, the rule's steps
 
 
 def collect(seed: int, motions: str, per_motion: int) -> dict[tuple[str, int], np.ndarray]:
@@ -87,7 +88,22 @@ def table(zs: dict[tuple[str, int], np.ndarray], scales: tuple[float, ...] | Non
             s = z_summary(z)
             out[kind][label] = {"points": int(z.size), "median": s["median_z"], "beyond_2sigma": s["beyond_2sigma"],
                                 "z_q9545": s["z_q9545"], "needed_scale": s["needed_scale"]}
+            if scales is None:  # the raw table: the share beyond 2 x s for every candidate s, so that any check recomputes
+                zs_sorted = np.sort(z)
+                out[kind][label]["beyond_2x_scale"] = {
+                    f"{c:.2f}": float(1 - np.searchsorted(zs_sorted, 2 * c, side="right") / z.size) for c in SCALE_GRID}
     return out
+
+
+def recheck(raw: dict, scales: tuple[float, ...]) -> dict:
+    """The check's scaled shares beyond 2 sigma, recomputed from a raw table's grid (the rule's scales lie on it)."""
+    from gearscan.recon.depth_sigma import band_labels
+
+    return {kind: {label: {"points": cells[label].get("points", 0),
+                           "beyond_2sigma": cells[label]["beyond_2x_scale"][f"{sc:.2f}"] if cells[label].get("points")
+                           else None}
+                   for label, sc in zip(band_labels(), scales, strict=True)}
+            for kind, cells in raw.items()}
 
 
 def choose(fit: dict) -> tuple[float, ...]:
@@ -121,21 +137,25 @@ def main() -> None:
 
     from inspect_bench import commit, host
 
+    from gearscan.inference.model_io import model_fingerprint
+    from gearscan.inference.predictor import DEFAULT_MODEL
     from gearscan.recon.depth_sigma import EDGE_BANDS_PX
 
     fit_z = collect(args.fit_seed, args.motions, args.per_motion)
     fit = table(fit_z)
     scales = choose(fit)
     check_z = collect(args.check_seed, args.motions, args.per_motion)
-    misses = check(table(check_z, scales))
+    check_raw = table(check_z)
+    misses = check(recheck(check_raw, scales))
     out = {
         "split": "val", "rule": "benchmarks/depth_sigma_rule.md", "commit": commit(), "host": host(),
+        "model_fingerprint": model_fingerprint(DEFAULT_MODEL),  # the decode it was chosen for (weights, sigma maps)
         "motions": args.motions, "per_motion": args.per_motion, "fit_seed": args.fit_seed,
         "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX), "scales": list(scales),
         "check_bound_beyond_2sigma": CHECK_BEYOND_2, "check_min_points": CHECK_MIN_POINTS,
         "check_passed": not misses, "check_misses": misses,
         "fit_raw": fit, "fit_scaled": table(fit_z, scales),
-        "check_raw": table(check_z), "check_scaled": table(check_z, scales),
+        "check_raw": check_raw, "check_scaled": table(check_z, scales),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")

@@ -46,9 +46,10 @@ def test_bands_split_at_their_bounds() -> None:
     assert all(s >= 1 for s in DEPTH_SIGMA_SCALES)  # a calibration may not shrink a sigma
 
 
-@pytest.mark.parametrize("bad", [(1.0, 1.0), (1.0, 1.0, 1.0, 1.0, -2.0), (1.0, 1.0, math.nan, 1.0, 1.0)])
+@pytest.mark.parametrize("bad", [(1.0, 1.0), (1.0, 1.0, 1.0, 1.0, -2.0), (1.0, 1.0, math.nan, 1.0, 1.0),
+                                 (1.0, 1.0, 1.0, 0.5, 1.0)])
 def test_scales_that_are_not_one_positive_factor_per_band_are_refused(bad) -> None:
-    with pytest.raises(ValueError, match="5 finite positive factors"):
+    with pytest.raises(ValueError, match="5 finite factors >= 1"):
         check_scales(bad)
 
 
