@@ -166,8 +166,14 @@ def test_v10_candidate_record_matches_the_lease_run_that_made_it() -> None:
     assert {t for _, teeth, *_ in meta["train_sets"] for t in teeth} == CANDIDATE_V10.train_teeth
     assert {s[5] for s in meta["train_sets"]} == set(CANDIDATE_V10.train_dataset_seeds)
     assert {t for _, teeth, *_ in meta["val_sets"] for t in teeth} == CANDIDATE_V10.val_teeth
-    # the same sets as v9's, each with twice the start points (the third field): the data-size point
-    v9 = {s[0]: s for s in read_config(DEFAULT_MODEL)["training"]["train_sets"]}
-    for name, teeth, starts, *rest in meta["train_sets"]:
+    # the same sets as v9's, the radial and any-view ones with twice the scenes per tooth count (the third field); the
+    # same trainer but for the epochs (45 against 46) and the init's path (both v6's weights): the data-size point
+    v9_record = read_config(DEFAULT_MODEL)["training"]
+    assert v9_record["version"] == "v9"  # the pair's other half (the shipped default since session 39)
+    v9 = {s[0]: s for s in v9_record["train_sets"]}
+    for name, teeth, scenes, *rest in meta["train_sets"]:
         assert v9[name][1] == teeth and v9[name][3:] == rest
-        assert starts == (v9[name][2] if name.startswith("radial_dense") else 2 * v9[name][2])
+        assert scenes == (v9[name][2] if name.startswith("radial_dense") else 2 * v9[name][2])
+    differ = {k for k in meta["trainer"] if meta["trainer"][k] != v9_record["trainer"].get(k)}
+    assert differ == {"epochs_deterministic", "init"}
+    assert meta["loss"] == v9_record["loss"] == meta["trainer"]["loss"]  # what a fine-tune from it reads
