@@ -11,9 +11,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "scripts"))
-from calibrate_depth_sigma import CHECK_BEYOND_2, check, choose  # noqa: E402
+from calibrate_depth_sigma import CHECK_BEYOND_2, CHECK_MIN_POINTS, check, choose, recheck  # noqa: E402
 
-from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, band_labels  # noqa: E402
+from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, EDGE_BANDS_PX, band_labels  # noqa: E402
 
 
 def _table(needs: dict[str, list[float]], beyond: float = 0.04, points: int = 5000) -> dict:
@@ -28,6 +28,16 @@ def test_each_band_takes_the_larger_need_rounded_up_and_never_shrinks() -> None:
     assert choose(_table({"still": [1.1] * 5, "moving": [1.25] * 5})) == (1.25,) * 5  # on a step: not one more
 
 
+def test_the_check_reads_the_raw_grid_at_each_bands_scale() -> None:
+    raw = _table({"still": [1.0] * 5, "moving": [1.0] * 5})
+    for kind in raw:
+        for cell in raw[kind].values():
+            cell["beyond_2x_scale"] = {"1.00": 0.2, "1.50": 0.05, "2.00": 0.01}
+    out = recheck(raw, (2.0, 1.5, 1.5, 1.0, 1.0))
+    assert [c["beyond_2sigma"] for c in out["moving"].values()] == [0.01, 0.05, 0.05, 0.2, 0.2]
+    assert len(check(out)) == 4  # the two 1.0 bands, still and moving
+
+
 def test_the_check_judges_every_cell_large_enough_to_count() -> None:
     ok = _table({"still": [1.0] * 5, "moving": [1.0] * 5}, beyond=CHECK_BEYOND_2)
     assert check(ok) == []
@@ -39,16 +49,26 @@ def test_the_check_judges_every_cell_large_enough_to_count() -> None:
 
 
 def test_the_stored_val_run_recomputes_its_choice_and_the_product_ships_it() -> None:
+    from gearscan.inference.model_io import model_fingerprint
+    from gearscan.inference.predictor import DEFAULT_MODEL
+
     stored = json.loads((ROOT / "benchmarks" / "depth_sigma_val.json").read_text())
     assert stored["split"] == "val" and stored["fit_seed"] != stored["check_seed"]
+    assert stored["model_fingerprint"] == model_fingerprint(DEFAULT_MODEL)  # chosen for the decode that ships
+    assert stored["edge_bands_px"] == list(EDGE_BANDS_PX)
+    assert (stored["check_bound_beyond_2sigma"], stored["check_min_points"]) == (CHECK_BEYOND_2, CHECK_MIN_POINTS)
     assert choose(stored["fit_raw"]) == tuple(stored["scales"]) == DEPTH_SIGMA_SCALES
-    # the check, recomputed from its table (not the json's verdict); the scaled table is the raw one divided
-    assert check(stored["check_scaled"]) == [] and stored["check_passed"]
+    # the check, recomputed from the raw table's grid (not from the json's verdict or its scaled table) ...
+    rechecked = recheck(stored["check_raw"], DEPTH_SIGMA_SCALES)
+    assert check(rechecked) == [] and stored["check_passed"]
+    # ... which agrees with the scaled table the run wrote; that table is the raw one divided
     for kind, cells in stored["check_raw"].items():
         for (label, raw), scale in zip(cells.items(), DEPTH_SIGMA_SCALES, strict=True):
             scaled = stored["check_scaled"][kind][label]
             assert scaled["median"] == pytest.approx(raw["median"] / scale)
-            assert scaled["beyond_2sigma"] <= raw["beyond_2sigma"]
+            assert scaled["z_q9545"] == pytest.approx(raw["z_q9545"] / scale)
+            assert scaled["needed_scale"] == pytest.approx(raw["needed_scale"] / scale)
+            assert scaled["beyond_2sigma"] == pytest.approx(rechecked[kind][label]["beyond_2sigma"], abs=1e-9)
     # raw, the tail flattered in every moving band (what the rule was for)
     assert all(c["beyond_2sigma"] > 0.0455 for c in stored["check_raw"]["moving"].values())
 
@@ -62,3 +82,4 @@ def test_the_inspection_revolution_met_the_shipping_condition_with_these_scales(
     assert run["fused_rms_mm"] <= 0.004 and run["coverage"] >= 0.875
     assert run["chipped"] == run["truth_chipped"]
     assert all(abs(measured - truth) <= 5 + 0.05 * abs(truth) for _, truth, measured, _ in run["rows"])
+    assert run["fp_max_error_um"] <= 5 + 0.05 * 30  # the per-tooth fp row of the report (its truth: 30 um)

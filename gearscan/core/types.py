@@ -154,7 +154,8 @@ class Cloud:
     """Measured 3D points with per-point uncertainty.
 
     ``points`` is ``(N, 3)`` float64 in the frame named by ``frame`` ("camera" or
-    "world" = turntable); ``sigma`` is the 1-sigma depth uncertainty in mm;
+    "world" = turntable); ``sigma`` is the depth uncertainty in mm (a burst's: the phase sigma propagated and
+    scaled by edge band, ``recon.depth_sigma``, so that about 95 % of points lie within 2 sigma on val);
     ``pixels`` holds the ``(row, col)`` each point came from.
     """
 
