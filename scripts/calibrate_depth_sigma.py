@@ -28,7 +28,7 @@ CHECK_MIN_POINTS = 1000  # smaller cells are reported, not judged
 SCALE_GRID = tuple(round(1.0 + 0.05 * i, 2) for i in range(181))  # 1.0 .. 10.0: candidate scales, the rule's steps
 
 
-def collect(seed: int, motions: str, per_motion: int) -> dict[tuple[str, int], np.ndarray]:
+def collect(seed: int, motions: str, per_motion: int, model: Path | None = None) -> dict[tuple[str, int], np.ndarray]:
     """z = |depth error along the ray| / raw sigma per (kind, band), over the val scenes rendered from ``seed``."""
     from gearscan.core.types import Burst, Frame
     from gearscan.evaluate import (
@@ -42,7 +42,7 @@ def collect(seed: int, motions: str, per_motion: int) -> dict[tuple[str, int], n
     from gearscan.recon.depth_sigma import NO_SCALES, band_index, edge_distance
     from gearscan.recon.measure import Reconstructor
 
-    predictor = Predictor.load(None, orientation="normal")  # every twin rig is normal by its geometry
+    predictor = Predictor.load(model, orientation="normal")  # every twin rig is normal by its geometry
     scenes = [s for root in VAL_CLOUD_SETS for s in scenes_from_dataset(ROOT / root)]
     zs: dict[tuple[str, int], list[np.ndarray]] = {}
     for i, scene in enumerate(scenes):
@@ -131,15 +131,39 @@ def main() -> None:
     ap.add_argument("--per-motion", type=int, default=1)
     ap.add_argument("--fit-seed", type=int, default=2000)
     ap.add_argument("--check-seed", type=int, default=2200)
+    ap.add_argument("--check-model", type=Path, default=None,
+                    help="check the shipped scales on this model's bursts (check seed set only; chooses nothing) "
+                         "and write that check to --out")
     args = ap.parse_args()
     if args.fit_seed == args.check_seed:
         ap.error(f"--check-seed: expected another seed set than --fit-seed ({args.fit_seed})")
+    if args.check_model is not None:
+        if not args.check_model.is_file():
+            ap.error(f"--check-model: expected a model's .safetensors file, got {args.check_model}")
+        if args.out == ROOT / "benchmarks" / "depth_sigma_val.json":
+            ap.error("--check-model: give its own --out (benchmarks/depth_sigma_val.json is the rule's choice)")
 
     from inspect_bench import commit, host
 
     from gearscan.inference.model_io import model_fingerprint
     from gearscan.inference.predictor import DEFAULT_MODEL
-    from gearscan.recon.depth_sigma import EDGE_BANDS_PX
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, EDGE_BANDS_PX
+
+    if args.check_model is not None:  # the shipped scales on another model's bursts: a report, no choice
+        check_z = collect(args.check_seed, args.motions, args.per_motion, args.check_model)
+        check_raw = table(check_z)
+        misses = check(recheck(check_raw, DEPTH_SIGMA_SCALES))
+        out = {"split": "val", "rule": "benchmarks/depth_sigma_rule.md (its check, on another model; chooses nothing)",
+               "commit": commit(), "host": host(), "model": str(args.check_model),
+               "model_fingerprint": model_fingerprint(args.check_model), "motions": args.motions,
+               "per_motion": args.per_motion, "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX),
+               "scales": list(DEPTH_SIGMA_SCALES), "check_bound_beyond_2sigma": CHECK_BEYOND_2,
+               "check_min_points": CHECK_MIN_POINTS, "check_passed": not misses, "check_misses": misses,
+               "check_raw": check_raw, "check_scaled": table(check_z, DEPTH_SIGMA_SCALES)}
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(out, indent=1) + "\n")
+        print(f"{args.check_model}: check {'passed' if not misses else 'MISSED: ' + '; '.join(misses)}")
+        return
 
     fit_z = collect(args.fit_seed, args.motions, args.per_motion)
     fit = table(fit_z)

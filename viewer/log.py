@@ -18,7 +18,7 @@ Entity layout (stable, the blueprints and the tests rely on it)::
                                       no point, by cause (unresolved fringe order, mixed pixel)
     (each image entity also holds a static ``unit`` string, for tools reading the .rrd)
     legend/{phase,sigma_rad,sigma_mm,error}   the colour bars (static RGB images with ticks and unit)
-    world/cloud                       points (turntable frame), coloured by uncertainty
+    world/cloud                       points (turntable frame), coloured by depth uncertainty (log scale)
     world/fused                       the revolution's fused model (gear frame), coloured by
                                       signed deviation from CAD; legend in fused/legend (text)
                                       and fused/colorbar (image), logged once at the end
@@ -492,9 +492,12 @@ class RerunLogger:
         if cloud is not None and len(cloud):
             if self.cloud_color == "deviation" and cloud.deviation is not None:
                 colors = colorize(cloud.deviation, -0.1, 0.1, "coolwarm")  # mm, signed distance to CAD
-            else:  # depth sigma, stretched between its 1st and 99th percentile
-                lo, hi = np.percentile(cloud.sigma, [1, 99])
-                colors = colorize(cloud.sigma, float(lo), max(float(hi), float(lo) + 1e-9), "viridis")
+            else:  # depth sigma on a log scale between its 1st and 99th percentile: it spans factors (the edge
+                # band's scale alone is 3.5x the interior's, recon.depth_sigma), and a linear stretch would paint the
+                # interior one colour
+                log_sigma = np.log(np.maximum(cloud.sigma, 1e-9))
+                lo, hi = np.percentile(log_sigma, [1, 99])
+                colors = colorize(log_sigma, float(lo), max(float(hi), float(lo) + 1e-9), "viridis")
             # radius in screen points, not mm: sub-mm points vanish when the view is zoomed out
             s.log("world/cloud", rr.Points3D(cloud.points, colors=colors, radii=rr.Radius.ui_points(1.5)))
         s.log("stats/turntable_deg", rr.Scalars(np.degrees(burst.angles[0])))
