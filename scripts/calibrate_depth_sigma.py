@@ -28,7 +28,8 @@ CHECK_MIN_POINTS = 1000  # smaller cells are reported, not judged
 SCALE_GRID = tuple(round(1.0 + 0.05 * i, 2) for i in range(181))  # 1.0 .. 10.0: candidate scales, the rule's steps
 
 
-def collect(seed: int, motions: str, per_motion: int, model: Path | None = None) -> dict[tuple[str, int], np.ndarray]:
+def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
+            sets: tuple[str, ...] | None = None) -> dict[tuple[str, int], np.ndarray]:
     """z = |depth error along the ray| / raw sigma per (kind, band), over the val scenes rendered from ``seed``."""
     from gearscan.core.types import Burst, Frame
     from gearscan.evaluate import (
@@ -43,7 +44,7 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None)
     from gearscan.recon.measure import Reconstructor
 
     predictor = Predictor.load(model, orientation="normal")  # every twin rig is normal by its geometry
-    scenes = [s for root in VAL_CLOUD_SETS for s in scenes_from_dataset(ROOT / root)]
+    scenes = [s for root in (sets or VAL_CLOUD_SETS) for s in scenes_from_dataset(ROOT / root)]
     zs: dict[tuple[str, int], list[np.ndarray]] = {}
     for i, scene in enumerate(scenes):
         rc = Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, depth_sigma_scales=NO_SCALES)
@@ -134,7 +135,12 @@ def main() -> None:
     ap.add_argument("--check-model", type=Path, default=None,
                     help="check the shipped scales on this model's bursts (check seed set only; chooses nothing) "
                          "and write that check to --out")
+    ap.add_argument("--sets", default=None,
+                    help="with --check-model: comma-separated val folders (default: evaluate.VAL_CLOUD_SETS), e.g. "
+                         "the default rig's val gears for a model fine-tuned on that rig")
     args = ap.parse_args()
+    if args.sets is not None and args.check_model is None:
+        ap.error("--sets: only with --check-model (the rule's choice reads evaluate.VAL_CLOUD_SETS)")
     if args.fit_seed == args.check_seed:
         ap.error(f"--check-seed: expected another seed set than --fit-seed ({args.fit_seed})")
     if args.check_model is not None:
@@ -145,17 +151,20 @@ def main() -> None:
 
     from inspect_bench import commit, host
 
+    from gearscan.evaluate import VAL_CLOUD_SETS
     from gearscan.inference.model_io import model_fingerprint
     from gearscan.inference.predictor import DEFAULT_MODEL
     from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, EDGE_BANDS_PX
 
     if args.check_model is not None:  # the shipped scales on another model's bursts: a report, no choice
-        check_z = collect(args.check_seed, args.motions, args.per_motion, args.check_model)
+        sets = tuple(args.sets.split(",")) if args.sets else None
+        check_z = collect(args.check_seed, args.motions, args.per_motion, args.check_model, sets)
         check_raw = table(check_z)
         misses = check(recheck(check_raw, DEPTH_SIGMA_SCALES))
         out = {"split": "val", "rule": "benchmarks/depth_sigma_rule.md (its check, on another model; chooses nothing)",
                "commit": commit(), "host": host(), "model": str(args.check_model),
-               "model_fingerprint": model_fingerprint(args.check_model), "motions": args.motions,
+               "model_fingerprint": model_fingerprint(args.check_model), "sets": list(sets or VAL_CLOUD_SETS),
+               "motions": args.motions,
                "per_motion": args.per_motion, "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX),
                "scales": list(DEPTH_SIGMA_SCALES), "check_bound_beyond_2sigma": CHECK_BEYOND_2,
                "check_min_points": CHECK_MIN_POINTS, "check_passed": not misses, "check_misses": misses,
