@@ -189,7 +189,8 @@ def run_live(
                                      model=getattr(decoder, "network_support", None))
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
-                                   unwrap=cfg.recon.unwrap, network_support_px=support)
+                                   unwrap=cfg.recon.unwrap, network_support_px=support,
+                                   depth_sigma_scales=getattr(decoder, "depth_sigma_scales", None))  # the model's own
     coarse = CoarseStage(rig, cfg.projector.coarse_period_px, cfg.gear, recon if cfg.recon.unwrap == "coarse" else None)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None
     logger = None

@@ -312,7 +312,8 @@ def replay(
                                                      model=getattr(decoder, "network_support", None))
     max_sigma = keep_bound_option(max_sigma, frame_fit=refine and fuse is not None)
     recon = (Reconstructor.for_gear(rig, period, gear, unwrap=unwrap, network_support_px=network_support_px,
-                                    max_sigma=max_sigma)
+                                    max_sigma=max_sigma,  # the decoding model's own depth-sigma scales, else the product's
+                                    depth_sigma_scales=getattr(decoder, "depth_sigma_scales", None))
              if (reconstruct and gear is not None) else None)
     coarse = CoarseStage(rig, coarse_period, gear, recon if unwrap == "coarse" else None)
     scorer = TruthScorer(reader) if (truth and reader.has_truth()) else None
@@ -327,6 +328,7 @@ def replay(
     if recon is not None:  # what the reconstructor ran: network_support_px None is no test
         metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px, "max_sigma_rad": max_sigma,
                          "unwrapper_sees": unwrapper_sees(recon.unwrap_max_sigma),
+                         "depth_sigma_scales": list(recon.depth_sigma_scales),
                          "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:

@@ -120,6 +120,13 @@ class Decoder:
         reconstructor; None for three-step PS or a model whose JSON names none (the product's apply)."""
         return None if self.predictor is None else self.predictor.network_support
 
+    @property
+    def depth_sigma_scales(self) -> tuple[float, ...] | None:
+        """The network's own depth-sigma scales by edge band for the reconstructor
+        (:func:`~gearscan.inference.predictor.model_depth_sigma_scales`); None for three-step PS or a model whose JSON
+        names none (the product's apply)."""
+        return None if self.predictor is None else self.predictor.depth_sigma_scales
+
     def summary(self) -> dict:
         """What decoded the run: mode, bursts sent to three-step PS as still, the fringe orientation
         asked for and the rig's as adopted (None: voted per burst throughout) with where it came from."""

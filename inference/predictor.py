@@ -246,6 +246,8 @@ class Predictor:
 
     ``network_support`` (read from the JSON, :func:`model_network_support`): the reconstructor's fringe-support
     tests chosen on val for this model, which the app passes on where the user sets none; None: the product's.
+    ``depth_sigma_scales`` (read from the JSON, :func:`model_depth_sigma_scales`): the reconstructor's depth-sigma
+    scales by edge band chosen on val for this model (``benchmarks/depth_sigma_rule.md``); None: the product's.
     """
 
     def __init__(
@@ -297,6 +299,7 @@ class Predictor:
         self.still_burst_motion = (burst_motion_limit(self.meta) if still_burst_motion is None
                                    else check_motion_limit(still_burst_motion, "still_burst_motion"))
         self.network_support = model_network_support(self.meta)
+        self.depth_sigma_scales = model_depth_sigma_scales(self.meta)
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
         if self.channels_last:
@@ -614,6 +617,25 @@ def model_network_support(meta: dict) -> NetworkSupport | None:
                              f"null}}, got {raw!r}")
     return NetworkSupport(_support_px(raw["per_burst_px"], f"{NETWORK_SUPPORT_KEY}.per_burst_px"),
                           _support_px(raw["frame_fit_px"], f"{NETWORK_SUPPORT_KEY}.frame_fit_px"))
+
+
+DEPTH_SIGMA_KEY = "depth_sigma"
+
+
+def model_depth_sigma_scales(meta: dict) -> tuple[float, ...] | None:
+    """A model's own depth-sigma scales by edge band (``depth_sigma`` in its JSON: ``{"scales": [...], "edge_bands_px":
+    [...], "chosen_by": ...}``, nearest the edge first); None where the JSON names none (the reconstructor then uses
+    the product's, ``recon.depth_sigma``, which checks the count against its bands)."""
+    raw = meta.get(DEPTH_SIGMA_KEY)
+    if raw is None:
+        return None
+    scales = raw.get("scales") if isinstance(raw, dict) else None
+    if (not isinstance(scales, list) or not scales
+            or not all(isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and x >= 1
+                       for x in scales)):
+        raise ModelFileError(f"{DEPTH_SIGMA_KEY}: expected {{'scales': [factors >= 1, nearest the edge first], ...}}, "
+                             f"got {raw!r}")
+    return tuple(float(x) for x in scales)
 
 
 def still_burst_noise(frames: np.ndarray) -> float | None:

@@ -135,12 +135,25 @@ def main() -> None:
     ap.add_argument("--check-model", type=Path, default=None,
                     help="check the shipped scales on this model's bursts (check seed set only; chooses nothing) "
                          "and write that check to --out")
+    ap.add_argument("--model", type=Path, default=None,
+                    help="choose this model's own scales (the rule's amendment: a model fine-tuned on one rig, on "
+                         "that rig's val scenes given by --sets); default: the shipped model, the product's scales")
     ap.add_argument("--sets", default=None,
-                    help="with --check-model: comma-separated val folders (default: evaluate.VAL_CLOUD_SETS), e.g. "
-                         "the default rig's val gears for a model fine-tuned on that rig")
+                    help="with --model or --check-model: comma-separated val folders (default: "
+                         "evaluate.VAL_CLOUD_SETS), e.g. the default rig's val gears for a model fine-tuned on that rig")
+    ap.add_argument("--write", action="store_true",
+                    help="with --model: store the scales in the model's JSON (depth_sigma) if the check passes")
     args = ap.parse_args()
-    if args.sets is not None and args.check_model is None:
-        ap.error("--sets: only with --check-model (the rule's choice reads evaluate.VAL_CLOUD_SETS)")
+    if args.sets is not None and args.check_model is None and args.model is None:
+        ap.error("--sets: only with --model or --check-model (the product's choice reads evaluate.VAL_CLOUD_SETS)")
+    if args.write and args.model is None:
+        ap.error("--write: only with --model (the product's scales are recon.depth_sigma.DEPTH_SIGMA_SCALES)")
+    if args.model is not None and args.check_model is not None:
+        ap.error("--model and --check-model: give one")
+    if args.model is not None and not args.model.is_file():
+        ap.error(f"--model: expected a model's .safetensors file, got {args.model}")
+    if args.model is not None and args.out == ROOT / "benchmarks" / "depth_sigma_val.json":
+        ap.error("--model: give its own --out (benchmarks/depth_sigma_val.json is the product's choice)")
     if args.fit_seed == args.check_seed:
         ap.error(f"--check-seed: expected another seed set than --fit-seed ({args.fit_seed})")
     if args.check_model is not None:
@@ -174,15 +187,19 @@ def main() -> None:
         print(f"{args.check_model}: check {'passed' if not misses else 'MISSED: ' + '; '.join(misses)}")
         return
 
-    fit_z = collect(args.fit_seed, args.motions, args.per_motion)
+    sets = tuple(args.sets.split(",")) if args.sets else None
+    fit_z = collect(args.fit_seed, args.motions, args.per_motion, args.model, sets)
     fit = table(fit_z)
     scales = choose(fit)
-    check_z = collect(args.check_seed, args.motions, args.per_motion)
+    check_z = collect(args.check_seed, args.motions, args.per_motion, args.model, sets)
     check_raw = table(check_z)
     misses = check(recheck(check_raw, scales))
+    model = args.model or DEFAULT_MODEL
     out = {
-        "split": "val", "rule": "benchmarks/depth_sigma_rule.md", "commit": commit(), "host": host(),
-        "model_fingerprint": model_fingerprint(DEFAULT_MODEL),  # the decode it was chosen for (weights, sigma maps)
+        "split": "val", "rule": "benchmarks/depth_sigma_rule.md" + (" (its amendment: a model's own)" if args.model else ""),
+        "commit": commit(), "host": host(), "model": str(model.relative_to(ROOT) if model.is_relative_to(ROOT) else model),
+        "model_fingerprint": model_fingerprint(model),  # the decode it was chosen for (weights, sigma maps)
+        "sets": list(sets or VAL_CLOUD_SETS),
         "motions": args.motions, "per_motion": args.per_motion, "fit_seed": args.fit_seed,
         "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX), "scales": list(scales),
         "check_bound_beyond_2sigma": CHECK_BEYOND_2, "check_min_points": CHECK_MIN_POINTS,
@@ -190,9 +207,19 @@ def main() -> None:
         "fit_raw": fit, "fit_scaled": table(fit_z, scales),
         "check_raw": check_raw, "check_scaled": table(check_z, scales),
     }
+    if args.write and not misses:
+        from gearscan.inference.model_io import read_config, write_config
+        from gearscan.inference.predictor import DEPTH_SIGMA_KEY
+
+        meta = read_config(args.model)
+        meta[DEPTH_SIGMA_KEY] = {"scales": list(scales), "edge_bands_px": list(EDGE_BANDS_PX),
+                                 "chosen_by": f"benchmarks/depth_sigma_rule.md (amendment), {args.out.name}, "
+                                              f"commit {out['commit']}"}
+        out["written"] = write_config(args.model, meta).name
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1) + "\n")
-    print(f"scales {scales}; check {'passed' if not misses else 'MISSED: ' + '; '.join(misses)}")
+    print(f"scales {scales}; check {'passed' if not misses else 'MISSED: ' + '; '.join(misses)}"
+          + (f"; written to {out['written']}" if out.get("written") else ""))
 
 
 if __name__ == "__main__":
