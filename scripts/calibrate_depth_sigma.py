@@ -25,7 +25,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 KINDS = ("still", "moving")
 CHECK_BEYOND_2 = 0.055  # the check's bound on the share beyond 2 sigma per (band, kind) cell
 CHECK_MIN_POINTS = 1000  # smaller cells are reported, not judged
-SCALE_GRID = tuple(round(1.0 + 0.05 * i, 2) for i in range(181))  # 1.0 .. 10.0: candidate scales, the rule's steps
 
 
 def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
@@ -71,8 +70,10 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
     return {k: np.concatenate(v) for k, v in zs.items()}
 
 
-def table(zs: dict[tuple[str, int], np.ndarray], scales: tuple[float, ...] | None = None) -> dict:
-    """Per kind and band: points, median z, share beyond 2 sigma, the scale needed (z divided by ``scales``)."""
+def table(zs: dict[tuple[str, int], np.ndarray], scales: tuple[float, ...] | None = None,
+          at: tuple[float, ...] = ()) -> dict:
+    """Per kind and band: points, median z, share beyond 2 sigma, the scale needed (z divided by ``scales``); a raw
+    table (no ``scales``) also holds the share beyond 2 x s for each s in ``at`` (the scales a check reads)."""
     from gearscan.evaluate import z_summary
     from gearscan.recon.depth_sigma import band_labels
 
@@ -89,10 +90,8 @@ def table(zs: dict[tuple[str, int], np.ndarray], scales: tuple[float, ...] | Non
             s = z_summary(z)
             out[kind][label] = {"points": int(z.size), "median": s["median_z"], "beyond_2sigma": s["beyond_2sigma"],
                                 "z_q9545": s["z_q9545"], "needed_scale": s["needed_scale"]}
-            if scales is None:  # the raw table: the share beyond 2 x s for every candidate s, so that any check recomputes
-                zs_sorted = np.sort(z)
-                out[kind][label]["beyond_2x_scale"] = {
-                    f"{c:.2f}": float(1 - np.searchsorted(zs_sorted, 2 * c, side="right") / z.size) for c in SCALE_GRID}
+            if scales is None and at:  # the raw share beyond 2 x s, so that the check recomputes from the raw table
+                out[kind][label]["beyond_2x_scale"] = {f"{c:.2f}": float(np.mean(z > 2 * c)) for c in sorted(set(at))}
     return out
 
 
@@ -172,7 +171,7 @@ def main() -> None:
     if args.check_model is not None:  # the shipped scales on another model's bursts: a report, no choice
         sets = tuple(args.sets.split(",")) if args.sets else None
         check_z = collect(args.check_seed, args.motions, args.per_motion, args.check_model, sets)
-        check_raw = table(check_z)
+        check_raw = table(check_z, at=DEPTH_SIGMA_SCALES)
         misses = check(recheck(check_raw, DEPTH_SIGMA_SCALES))
         out = {"split": "val", "rule": "benchmarks/depth_sigma_rule.md (its check, on another model; chooses nothing)",
                "commit": commit(), "host": host(), "model": str(args.check_model),
@@ -192,7 +191,7 @@ def main() -> None:
     fit = table(fit_z)
     scales = choose(fit)
     check_z = collect(args.check_seed, args.motions, args.per_motion, args.model, sets)
-    check_raw = table(check_z)
+    check_raw = table(check_z, at=scales)
     misses = check(recheck(check_raw, scales))
     model = args.model or DEFAULT_MODEL
     out = {

@@ -84,3 +84,38 @@ def test_the_reconstructor_scales_each_points_sigma_by_its_band(clean_renderer, 
     assert (band == 0).any() and (band == 4).any()
     shipped = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear)(burst, result)
     np.testing.assert_allclose(shipped.cloud.sigma, raw.cloud.sigma * np.asarray(DEPTH_SIGMA_SCALES)[band], rtol=1e-5)
+
+
+def test_a_models_json_may_carry_its_own_scales() -> None:
+    from gearscan.inference.model_io import ModelFileError
+    from gearscan.inference.predictor import model_depth_sigma_scales
+
+    assert model_depth_sigma_scales({}) is None
+    assert model_depth_sigma_scales({"depth_sigma": {"scales": [3, 2.5, 2, 1.5, 1.0]}}) == (3.0, 2.5, 2.0, 1.5, 1.0)
+    for bad in ({"scales": [2, 0.5]}, {"scales": "2"}, {"scales": [True, 2]}, [2, 2], {"scales": []}):
+        with pytest.raises(ModelFileError, match="depth_sigma"):
+            model_depth_sigma_scales({"depth_sigma": bad})
+
+
+def test_replay_reconstructs_with_the_decoding_models_scales(tmp_path) -> None:
+    """A model whose JSON names scales has its bursts' sigma scaled by them; three-step PS (no model) by the
+    product's."""
+    import shutil
+
+    from gearscan.core.rig import default_rig
+    from gearscan.inference.decoder import Decoder
+    from gearscan.inference.model_io import read_config, write_config
+    from gearscan.inference.predictor import DEFAULT_MODEL
+    from gearscan.replay import replay
+    from gearscan.twin.recordings import render_recording
+
+    own = tmp_path / "own.safetensors"
+    shutil.copy(DEFAULT_MODEL, own)
+    meta = read_config(DEFAULT_MODEL)
+    meta["depth_sigma"] = {"scales": [2.0, 2.0, 2.0, 2.0, 2.0], "edge_bands_px": list(EDGE_BANDS_PX), "chosen_by": "a test"}
+    write_config(own, meta)
+    rec = render_recording(tmp_path / "rec", rig=default_rig(64, 64), motion="uniform:0.6", bursts=1)
+    mine = replay(rec, decoder=Decoder(own), truth=False)
+    assert mine.recon["depth_sigma_scales"] == [2.0] * 5
+    classical = replay(rec, decoder=Decoder(classical=True), truth=False)
+    assert classical.recon["depth_sigma_scales"] == list(DEPTH_SIGMA_SCALES)
