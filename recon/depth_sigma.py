@@ -6,7 +6,9 @@ pixel (ECE 0.02-0.06), yet the depth error's tail is heavier than that sigma say
 2 sigma, 9.2 % in the interior). So the depth sigma is scaled per band of that distance, by the val choice of
 ``benchmarks/depth_sigma_rule.md`` (``scripts/calibrate_depth_sigma.py`` -> ``benchmarks/depth_sigma_val.json``):
 one scale per band, the largest that still or moving bursts need (body or tail); on the rule's check set at most
-5.5 % of either lie beyond 2 sigma in any band (worst 5.3 %; a Gaussian 4.6 %). The edge is the burst's own kept cloud's (its pixels without a point), as a user sees it.
+5.5 % of either lie beyond 2 sigma in any band (worst 5.3 %; a Gaussian 4.6 %). The edge is the burst's own kept
+cloud's (its pixels without a point), as a user sees it. These are the product's scales, chosen for the shipped model; a model whose sigma differs carries its own in its JSON (``depth_sigma``, the
+rule's amendment; ``inference.predictor.model_depth_sigma_scales``), which ``replay``, ``inspect`` and ``live`` pass on.
 """
 
 from __future__ import annotations

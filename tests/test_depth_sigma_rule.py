@@ -83,3 +83,24 @@ def test_the_inspection_revolution_met_the_shipping_condition_with_these_scales(
     assert run["chipped"] == run["truth_chipped"]
     assert all(abs(measured - truth) <= 5 + 0.05 * abs(truth) for _, truth, measured, _ in run["rows"])
     assert run["fp_max_error_um"] <= 5 + 0.05 * 30  # the per-tooth fp row of the report (its truth: 30 um)
+
+
+def test_the_default_rig_options_own_scales_are_its_val_choice() -> None:
+    """The rule's amendment: a model fine-tuned on one rig carries scales chosen on that rig's val scenes, recomputed
+    here from the committed run and compared with what its JSON carries (the reconstructor reads them from there)."""
+    from gearscan.inference.model_io import model_fingerprint, read_config
+    from gearscan.inference.predictor import model_depth_sigma_scales
+
+    weights = ROOT / "inference" / "weights" / "default_rig.safetensors"
+    stored = json.loads((ROOT / "benchmarks" / "depth_sigma_val_default_rig.json").read_text())
+    assert stored["model_fingerprint"] == model_fingerprint(weights)
+    assert all(s.startswith("data/default_rig/val/") for s in stored["sets"])  # its own rig's val gears only
+    scales = choose(stored["fit_raw"])
+    assert check(recheck(stored["check_raw"], scales)) == [] and stored["check_passed"]
+    meta = read_config(weights)
+    assert model_depth_sigma_scales(meta) == scales == tuple(stored["scales"])
+    assert meta["depth_sigma"]["edge_bands_px"] == list(EDGE_BANDS_PX)
+    # and with the product's scales its moving bursts flattered on those gears (why it has its own)
+    shipped = json.loads((ROOT / "benchmarks" / "depth_sigma_check_default_rig.json").read_text())
+    assert shipped["scales"] == list(DEPTH_SIGMA_SCALES) and not shipped["check_passed"]
+    assert check(recheck(shipped["check_raw"], DEPTH_SIGMA_SCALES))
