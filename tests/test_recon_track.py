@@ -364,7 +364,7 @@ def test_the_product_scales_the_unfitted_points_sigma(tmp_path):
     render_recording(tmp_path / "rec", rig=default_rig(64, 64), motion="static", bursts=1)
     reader = RecordingReader(tmp_path / "rec")
     refiner = make_refiner(reader, reader.rig, reader.patterns.periods[0], CloudFuser(0.1, 3))
-    assert refiner.rest_sigma_scale == REST_SIGMA_SCALE == 2.0
+    assert refiner.rest_sigma_scale == REST_SIGMA_SCALE == 1.5
     assert refiner.fit_sigma_scale == FIT_SIGMA_SCALE
 
 
