@@ -98,7 +98,8 @@ def main() -> None:
     report = {
         "commit": commit, "model": str(args.model or "inference/weights/default.safetensors"),
         "network_support_px": support_px,  # the per-burst fringe-support test this run's clouds kept (peers: theirs)
-        "depth_sigma_scales": list(DEPTH_SIGMA_SCALES),  # the clouds' sigma by edge band (recon.depth_sigma)
+        # the clouds' sigma by edge band (recon.depth_sigma): the model's own (its JSON) or the product's
+        "depth_sigma_scales": list(shipped.depth_sigma_scales or DEPTH_SIGMA_SCALES),
         "precision": shipped.precision, "orientation": orientation, "split": "test (default family)",
         "scenes": [s.name for s in scenes], "bursts_per_motion_per_scene": args.per_motion, "torch_seed": args.seed,
         "still_burst_gate": {"rad": rig.still_burst_rad, "max_motion_share": gate.get("max_motion_share")},

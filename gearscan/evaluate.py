@@ -156,6 +156,7 @@ def network_method(predictor, mc: int = 0) -> Method:
         return predictor.predict(frames, mc, full_scale=full_scale, angles=angles)
 
     run.network_support = getattr(predictor, "network_support", None)
+    run.depth_sigma_scales = getattr(predictor, "depth_sigma_scales", None)  # the clouds' sigma scales (its JSON's)
     return run
 
 
@@ -193,7 +194,8 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
                 errs.append(phase_error(res.phase, c.truth.phase)[m])
                 sigmas.append(res.sigma_total[m])
                 if clouds:
-                    d, hit, z = cloud_accuracy(c, res, model=getattr(method, "network_support", None))
+                    d, hit, z = cloud_accuracy(c, res, model=getattr(method, "network_support", None),
+                                               depth_sigma_scales=getattr(method, "depth_sigma_scales", None))
                     zs.append(z[np.isfinite(z)])
                     cloud_sq += float(np.sum(d**2))
                     cloud_n += d.size
@@ -212,7 +214,8 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
     return out
 
 
-def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None) -> tuple[np.ndarray, int, np.ndarray]:
+def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None,
+                   depth_sigma_scales: tuple[float, ...] | None = None) -> tuple[np.ndarray, int, np.ndarray]:
     """Distance (mm) of each point triangulated from ``result`` to the true gear surface, how
     many truth-mask pixels got a point (coverage numerator), and each point's depth error over its sigma
     (:func:`depth_z`; NaN where its pixel's ray meets no surface). A network's pixels pass the per-burst
@@ -234,6 +237,11 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None) -> tuple[np
     if support != rc.network_support_px:  # the scene's reconstructor, this model's keep test
         rc = copy.copy(rc)
         rc.network_support_px = support
+    if depth_sigma_scales is not None and tuple(depth_sigma_scales) != rc.depth_sigma_scales:  # ... and its own scales
+        from gearscan.recon.depth_sigma import check_scales
+
+        rc = copy.copy(rc)
+        rc.depth_sigma_scales = check_scales(depth_sigma_scales)
     fr = tuple(Frame(f, i, 0, i, bit_depth=int(case.full_scale).bit_length()) for i, f in enumerate(case.frames))
     angles = tuple(math.radians(a) for a in case.angles_deg)
     m = rc(Burst(fr, angles), replace(result, angle=angles[0]))

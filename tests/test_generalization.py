@@ -225,21 +225,28 @@ def test_coverage_runs_the_decoding_models_own_support_test(cases) -> None:
 
 
 def test_evaluate_scores_each_models_cloud_with_its_own_support_test(cases, monkeypatch) -> None:
-    """``gearscan evaluate``'s cloud column keeps a network's pixels by the decoding model's own fringe-support test:
-    ``network_method`` carries the predictor's ``network_support`` and ``score`` hands it to ``cloud_accuracy``."""
+    """``gearscan evaluate``'s cloud column keeps a network's pixels by the decoding model's own fringe-support test
+    and scales its clouds' sigma by the model's own depth-sigma scales: ``network_method`` carries the predictor's
+    ``network_support`` and ``depth_sigma_scales`` and ``score`` hands them to ``cloud_accuracy``."""
     import gearscan.evaluate as ev
     from gearscan.inference.predictor import NetworkSupport
 
-    class Stub:  # a predictor: three-step PS's phase, and a model record of 3 px
+    class Stub:  # a predictor: three-step PS's phase, and a model record of 3 px and its own scales
         network_support = NetworkSupport(3, None)
+        depth_sigma_scales = (2.0, 2.0, 2.0, 2.0, 2.0)
 
         def predict(self, frames, mc=0, *, full_scale, angles=None):
             return classical_method(frames, full_scale, angles)
 
     seen = []
-    monkeypatch.setattr(ev, "cloud_accuracy", lambda case, result, model=None: (seen.append(model), (np.zeros(1), 1, np.zeros(1)))[1])
+
+    def spy(case, result, model=None, depth_sigma_scales=None):
+        seen.append((model, depth_sigma_scales))
+        return np.zeros(1), 1, np.zeros(1)
+
+    monkeypatch.setattr(ev, "cloud_accuracy", spy)
     ev.score({BASELINE: classical_method, NETWORK: ev.network_method(Stub())}, cases[:1], clouds=True)
-    assert seen == [None, NetworkSupport(3, None)]
+    assert seen == [(None, None), (NetworkSupport(3, None), (2.0,) * 5)]
 
 
 def test_val_cloud_samples_name_their_motions() -> None:
