@@ -104,3 +104,18 @@ def test_the_default_rig_options_own_scales_are_its_val_choice() -> None:
     shipped = json.loads((ROOT / "benchmarks" / "depth_sigma_check_default_rig.json").read_text())
     assert shipped["scales"] == list(DEPTH_SIGMA_SCALES) and not shipped["check_passed"]
     assert check(recheck(shipped["check_raw"], DEPTH_SIGMA_SCALES))
+
+
+def test_the_options_revolution_met_the_amendments_shipping_condition_with_its_own_scales() -> None:
+    """Recomputed from the committed run (benchmarks/inspect_default_rig_report.json), which records the scales its
+    reconstructor read: the option's own, from its JSON."""
+    from gearscan.inference.model_io import read_config
+    from gearscan.inference.predictor import model_depth_sigma_scales
+    from gearscan.recon.track import REST_SIGMA_SCALE
+
+    own = model_depth_sigma_scales(read_config(ROOT / "inference" / "weights" / "default_rig.safetensors"))
+    run = json.loads((ROOT / "benchmarks" / "inspect_default_rig_report.json").read_text())
+    assert tuple(run["depth_sigma_scales"]) == own != DEPTH_SIGMA_SCALES and run["rest_sigma_scale"] == REST_SIGMA_SCALE
+    assert run["fused_rms_mm"] <= 0.0045 and run["coverage"] >= 0.867
+    assert run["chipped"] == run["truth_chipped"] and run["fp_max_error_um"] <= 5 + 0.05 * 30
+    assert all(abs(measured - truth) <= 5 + 0.05 * abs(truth) for _, truth, measured, _ in run["rows"])
