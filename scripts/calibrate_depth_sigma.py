@@ -96,7 +96,7 @@ def table(zs: dict[tuple[str, int], np.ndarray], scales: tuple[float, ...] | Non
 
 
 def recheck(raw: dict, scales: tuple[float, ...]) -> dict:
-    """The check's scaled shares beyond 2 sigma, recomputed from a raw table's grid (the rule's scales lie on it)."""
+    """The check's scaled shares beyond 2 sigma, read from a raw table's shares beyond 2 x s at these scales."""
     from gearscan.recon.depth_sigma import band_labels
 
     return {kind: {label: {"points": cells[label].get("points", 0),
