@@ -64,6 +64,27 @@ def rest_z(rec: Path, decoder, keep: Path) -> dict:
             "median_sigma_um": float(1e3 * np.median(sigma)) if sigma.size else None}
 
 
+def at_scale(arrays: list, c: float, bound_mm: float) -> list[dict]:
+    """Per cell (``rest_z``'s saved arrays): the unfitted points ``c * sigma`` keeps under ``bound_mm``, their median z,
+    share beyond 2 sigma and RMS (None where none is kept)."""
+    per_cell = []
+    for a in arrays:
+        sig = c * a["sigma_mm"]
+        kept = sig <= bound_mm
+        z = a["error_mm"][kept] / sig[kept]
+        per_cell.append({"kept": int(kept.sum()), "median_z": float(np.median(z)) if z.size else None,
+                         "beyond_2sigma": float(np.mean(z > 2)) if z.size else None,
+                         "kept_rms_um": float(1e3 * np.sqrt(np.mean(a["error_mm"][kept] ** 2))) if z.size else None})
+    return per_cell
+
+
+def honest(per_cell: list[dict]) -> bool:
+    """The rule at one scale: every cell's kept points honest in body and tail (the amendment of session 50,
+    rest_sigma_rule.md, "Rerun 2 and an amendment"); a cell with none kept passes."""
+    return all(p["median_z"] is None or (p["median_z"] <= HONEST_MEDIAN_Z and p["beyond_2sigma"] <= HONEST_BEYOND_2)
+               for p in per_cell)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "rest_sigma_val.json")
@@ -91,18 +112,9 @@ def main() -> None:
     arrays = [np.load(ROOT / c["arrays"]) for c in cells]  # relative paths in runs before this form: under ROOT
     scale, rows = None, []
     for c in np.arange(1.0, 20.5, 0.5):
-        per_cell = []
-        for a in arrays:
-            s = c * a["sigma_mm"]
-            kept = s <= bound
-            z = a["error_mm"][kept] / s[kept]
-            per_cell.append({"kept": int(kept.sum()), "median_z": float(np.median(z)) if kept.any() else None,
-                             "beyond_2sigma": float(np.mean(z > 2)) if kept.any() else None,
-                             "kept_rms_um": float(1e3 * np.sqrt(np.mean(a["error_mm"][kept] ** 2))) if kept.any() else None})
+        per_cell = at_scale(arrays, float(c), bound)
         rows.append({"scale": float(c), "cells": per_cell})
-        # the amendment of session 50: the body and the tail (rest_sigma_rule.md, "Rerun 2 and an amendment")
-        if all(p["median_z"] is None or (p["median_z"] <= HONEST_MEDIAN_Z and p["beyond_2sigma"] <= HONEST_BEYOND_2)
-               for p in per_cell):
+        if honest(per_cell):
             scale = float(c)
             break
     done["scan"], done["scale"] = rows, scale

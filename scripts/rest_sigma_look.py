@@ -22,7 +22,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "scripts"))
-from calibrate_rest_sigma import HONEST_BEYOND_2, HONEST_MEDIAN_Z, rest_z  # noqa: E402
+from calibrate_rest_sigma import at_scale, honest, rest_z  # noqa: E402
 from choose_frame_fit_joint import STRETCHES  # noqa: E402  (the fit-sigma rule's 12 cells)
 from frame_fit_heldout import render_stretch  # noqa: E402
 
@@ -55,18 +55,9 @@ def main() -> None:
     bound = TrackRefiner.__init__.__kwdefaults__["max_sigma_mm"]
     out["scan"], out["scale"] = [], None
     for c in np.arange(1.0, 6.5, 0.5):
-        per_cell = []
-        for a in arrays:
-            sig = c * a["sigma_mm"]
-            kept = sig <= bound
-            z = a["error_mm"][kept] / sig[kept]
-            per_cell.append({"kept": int(kept.sum()), "median_z": float(np.median(z)) if z.size else None,
-                             "beyond_2sigma": float(np.mean(z > 2)) if z.size else None,
-                             "kept_rms_um": float(1e3 * np.sqrt(np.mean(a["error_mm"][kept] ** 2))) if z.size else None})
+        per_cell = at_scale(arrays, float(c), bound)
         out["scan"].append({"scale": float(c), "cells": per_cell})
-        if out["scale"] is None and all(p["median_z"] is None or (p["median_z"] <= HONEST_MEDIAN_Z
-                                                                 and p["beyond_2sigma"] <= HONEST_BEYOND_2)
-                                        for p in per_cell):
+        if out["scale"] is None and honest(per_cell):
             out["scale"] = float(c)
     args.out.write_text(json.dumps(out, indent=1) + "\n")
     print(f"the amended rule on these 12 cells: {out['scale']} (shipped {REST_SIGMA_SCALE})")
