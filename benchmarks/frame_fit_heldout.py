@@ -156,7 +156,7 @@ def main() -> None:
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     from gearscan.inference.decoder import Decoder
-    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales
     from gearscan.recon.measure import keep_bound_option, network_support_option
     from gearscan.recon.track import (
         FIT_SIGMA_SCALE,
@@ -168,7 +168,7 @@ def main() -> None:
 
     started, rows = host(), []
     decoder = Decoder(args.model)
-    depth_scales = decoder.depth_sigma_scales or DEPTH_SIGMA_SCALES  # what the reconstructor reads
+    depth_scales = check_scales(decoder.depth_sigma_scales or DEPTH_SIGMA_SCALES)  # what the reconstructor reads
     support = network_support_option(args.network_support_px, frame_fit=True, model=decoder.network_support)
     whose = "the model's own" if decoder.network_support is not None else "the product's"
     support_text = (f"{whose} fringe-support test for network pixels on the frame-fit path, "
@@ -240,7 +240,7 @@ def main() -> None:
                                                           "support_test": support_text, "max_sigma_rad": bound,
                                                           "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE, "point_sigma_um": point_um,
                                                           "rest_sigma_scale": REST_SIGMA_SCALE,
-                                                          "depth_sigma_scales": list(depth_scales),
+                                                          "depth_sigma_scales": depth_scales.as_dict(),
                                                           "modulation_ratio": MODULATION_RATIO}, indent=2))
     print("\n".join(lines))
 

@@ -93,13 +93,13 @@ def main() -> None:
     flags = next((set(ln.split(":", 1)[1].split()) for ln in Path("/proc/cpuinfo").read_text().splitlines()
                   if ln.startswith("flags")), set())
     gate = rig.meta.get("still_burst_gate") or {}
-    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales
 
     report = {
         "commit": commit, "model": str(args.model or "inference/weights/default.safetensors"),
         "network_support_px": support_px,  # the per-burst fringe-support test this run's clouds kept (peers: theirs)
         # the clouds' sigma by edge band (recon.depth_sigma): the model's own (its JSON) or the product's
-        "depth_sigma_scales": list(shipped.depth_sigma_scales or DEPTH_SIGMA_SCALES),
+        "depth_sigma_scales": check_scales(shipped.depth_sigma_scales or DEPTH_SIGMA_SCALES).as_dict(),
         "precision": shipped.precision, "orientation": orientation, "split": "test (default family)",
         "scenes": [s.name for s in scenes], "bursts_per_motion_per_scene": args.per_motion, "torch_seed": args.seed,
         "still_burst_gate": {"rad": rig.still_burst_rad, "max_motion_share": gate.get("max_motion_share")},

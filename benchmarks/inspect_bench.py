@@ -80,7 +80,7 @@ def main() -> None:
     from gearscan.core.recording import RecordingReader
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import chip_verdict, run_inspection
-    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales
     from gearscan.recon.measure import keep_bound_option, network_support_option
     from gearscan.recon.track import FIT_SIGMA_SCALE, MODULATION_RATIO, REST_SIGMA_SCALE, SETTLE_RAD
     from gearscan.twin.defects import GearDefects, true_mesh
@@ -105,7 +105,7 @@ def main() -> None:
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
     decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
-    depth_scales = decoder.depth_sigma_scales or DEPTH_SIGMA_SCALES  # what the reconstructor reads (the model's own)
+    depth_scales = check_scales(decoder.depth_sigma_scales or DEPTH_SIGMA_SCALES)  # what the reconstructor reads (the model's own)
     # the frame-fit path's test (the model's own for inspect, else the product's) and keep bound on both runs: the
     # fused-only run is the same fused cloud before the fit, voxel for voxel (the 'before' figures below rely on it)
     support = network_support_option(args.network_support_px, frame_fit=True, model=decoder.network_support)
@@ -290,7 +290,7 @@ def main() -> None:
         f"{uncertain:,} more unfitted points carried a sigma above the fit's own 30 µm bound and were dropped (counted; "
         "`TrackRefiner.refine_fused`: one bound for every point of the refined cloud; a rule, not tuned here; an "
         f"unfitted point carries {REST_SIGMA_SCALE:g} times its bursts' sigma (each burst's scaled by distance to its "
-        f"cloud's edge, {'/'.join(f'{x:g}' for x in depth_scales)} from the edge inward: `depth_sigma_rule.md`) "
+        f"cloud's edge, {depth_scales.describe()} from the edge inward: `depth_sigma_rule.md`) "
         "without credit for averaging, "
         "calibrated on val stretches: `rest_sigma_rule.md`).",
         "",
@@ -334,7 +334,7 @@ def main() -> None:
         "uncertain": uncertain,
         "unsettled": unsettled,
         "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE,
-        "rest_sigma_scale": REST_SIGMA_SCALE, "depth_sigma_scales": list(depth_scales),
+        "rest_sigma_scale": REST_SIGMA_SCALE, "depth_sigma_scales": depth_scales.as_dict(),
         "implausible": implausible,
         "modulation_ratio": MODULATION_RATIO,
         "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "fused_only_fp_max_error_um": plain_fp_err,

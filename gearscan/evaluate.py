@@ -215,7 +215,7 @@ def score(methods: dict[str, Method], cases: list[BurstCase], *, clouds: bool = 
 
 
 def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None,
-                   depth_sigma_scales: tuple[float, ...] | None = None) -> tuple[np.ndarray, int, np.ndarray]:
+                   depth_sigma_scales=None) -> tuple[np.ndarray, int, np.ndarray]:
     """Distance (mm) of each point triangulated from ``result`` to the true gear surface, how
     many truth-mask pixels got a point (coverage numerator), and each point's depth error over its sigma
     (:func:`depth_z`; NaN where its pixel's ray meets no surface). A network's pixels pass the per-burst
@@ -237,11 +237,13 @@ def cloud_accuracy(case: BurstCase, result: PhaseResult, model=None,
     if support != rc.network_support_px:  # the scene's reconstructor, this model's keep test
         rc = copy.copy(rc)
         rc.network_support_px = support
-    if depth_sigma_scales is not None and tuple(depth_sigma_scales) != rc.depth_sigma_scales:  # ... and its own scales
+    if depth_sigma_scales is not None:  # ... and its own depth-sigma scales (flat or per motion class)
         from gearscan.recon.depth_sigma import check_scales
 
-        rc = copy.copy(rc)
-        rc.depth_sigma_scales = check_scales(depth_sigma_scales)
+        own = check_scales(depth_sigma_scales)
+        if own != rc.depth_sigma_scales:
+            rc = copy.copy(rc)
+            rc.depth_sigma_scales = own
     fr = tuple(Frame(f, i, 0, i, bit_depth=int(case.full_scale).bit_length()) for i, f in enumerate(case.frames))
     angles = tuple(math.radians(a) for a in case.angles_deg)
     m = rc(Burst(fr, angles), replace(result, angle=angles[0]))

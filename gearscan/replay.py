@@ -328,7 +328,7 @@ def replay(
     if recon is not None:  # what the reconstructor ran: network_support_px None is no test
         metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px, "max_sigma_rad": max_sigma,
                          "unwrapper_sees": unwrapper_sees(recon.unwrap_max_sigma),
-                         "depth_sigma_scales": list(recon.depth_sigma_scales),
+                         "depth_sigma_scales": recon.depth_sigma_scales.as_dict(),
                          "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:

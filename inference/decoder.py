@@ -121,7 +121,7 @@ class Decoder:
         return None if self.predictor is None else self.predictor.network_support
 
     @property
-    def depth_sigma_scales(self) -> tuple[float, ...] | None:
+    def depth_sigma_scales(self) -> tuple[float, ...] | dict[str, tuple[float, ...]] | None:
         """The network's own depth-sigma scales by edge band for the reconstructor
         (:func:`~gearscan.inference.predictor.model_depth_sigma_scales`); None for three-step PS or a model whose JSON
         names none (the product's apply)."""

@@ -622,20 +622,27 @@ def model_network_support(meta: dict) -> NetworkSupport | None:
 DEPTH_SIGMA_KEY = "depth_sigma"
 
 
-def model_depth_sigma_scales(meta: dict) -> tuple[float, ...] | None:
-    """A model's own depth-sigma scales by edge band (``depth_sigma`` in its JSON: ``{"scales": [...], "edge_bands_px":
-    [...], "chosen_by": ...}``, nearest the edge first); None where the JSON names none (the reconstructor then uses
-    the product's, ``recon.depth_sigma``, which checks the count against its bands)."""
+def model_depth_sigma_scales(meta: dict) -> tuple[float, ...] | dict[str, tuple[float, ...]] | None:
+    """A model's own depth-sigma scales by edge band (``depth_sigma`` in its JSON: ``{"scales": ..., "edge_bands_px":
+    [...], "chosen_by": ...}``, nearest the edge first; ``scales`` one list for every motion class, or one list per
+    motion class: ``{"three_step": [...], "network": [...], "network_fast": [...]}``); None where the JSON names none
+    (the reconstructor then uses the product's; ``recon.depth_sigma.check_scales`` checks the counts and classes)."""
     raw = meta.get(DEPTH_SIGMA_KEY)
     if raw is None:
         return None
     scales = raw.get("scales") if isinstance(raw, dict) else None
-    if (not isinstance(scales, list) or not scales
-            or not all(isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and x >= 1
-                       for x in scales)):
-        raise ModelFileError(f"{DEPTH_SIGMA_KEY}: expected {{'scales': [factors >= 1, nearest the edge first], ...}}, "
-                             f"got {raw!r}")
-    return tuple(float(x) for x in scales)
+
+    def factors(xs) -> tuple[float, ...] | None:
+        ok = (isinstance(xs, list) and xs and all(isinstance(x, int | float) and not isinstance(x, bool)
+                                                   and math.isfinite(x) and x >= 1 for x in xs))
+        return tuple(float(x) for x in xs) if ok else None
+
+    if factors(scales) is not None:
+        return factors(scales)
+    if isinstance(scales, dict) and scales and all(factors(v) is not None for v in scales.values()):
+        return {str(k): factors(v) for k, v in scales.items()}
+    raise ModelFileError(f"{DEPTH_SIGMA_KEY}: expected {{'scales': [factors >= 1, nearest the edge first] or "
+                         f"{{motion class: [factors >= 1]}}, ...}}, got {raw!r}")
 
 
 def still_burst_noise(frames: np.ndarray) -> float | None:

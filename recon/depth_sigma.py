@@ -1,28 +1,86 @@
-"""The per-burst depth sigma, calibrated by each point's distance to the edge of its burst's cloud.
+"""The per-burst depth sigma, calibrated by each point's distance to the edge of its burst's cloud and by what decoded it.
 
 A burst's depth sigma is the phase sigma propagated through the triangulation. The phase sigma is calibrated per
 pixel (ECE 0.02-0.06), yet the depth error's tail is heavier than that sigma says, and most at the cloud's edge
 (val, ``benchmarks/burst_sigma_look.md``: 29.7 % of the moving bursts' points within 1.5 px of the edge lie beyond
 2 sigma, 9.2 % in the interior). So the depth sigma is scaled per band of that distance, by the val choice of
-``benchmarks/depth_sigma_rule.md`` (``scripts/calibrate_depth_sigma.py`` -> ``benchmarks/depth_sigma_val.json``):
-one scale per band, the largest that still or moving bursts need (body or tail); on the rule's check set at most
-5.5 % of either lie beyond 2 sigma in any band (worst 5.3 %; a Gaussian 4.6 %). The edge is the burst's own kept
-cloud's (its pixels without a point), as a user sees it. These are the product's scales, chosen for the shipped model; a model whose sigma differs carries its own in its JSON (``depth_sigma``, the
-rule's amendment; ``inference.predictor.model_depth_sigma_scales``), which ``replay``, ``inspect`` and ``live`` pass on.
+``benchmarks/depth_sigma_rule.md`` (``scripts/calibrate_depth_sigma.py`` -> ``benchmarks/depth_sigma_val.json``).
+The edge is the burst's own kept cloud's (its pixels without a point), as a user sees it.
+
+The scales differ by the burst's motion class (:func:`motion_class`, the rule's second amendment): three-step PS (a
+still burst, by the encoder or the frames' gate) carries its own measured noise and needs far less than the network;
+the network on a burst spanning more than it was trained on (:data:`TRAINED_SPAN_DEG`) needs more (session 50's test:
+6.8-9.3 % beyond 2 sigma at 2 deg/frame with one pooled set). These are the product's scales, chosen for the
+shipped model; a model whose sigma differs carries its own in its JSON (``depth_sigma``, the rule's amendment;
+``inference.predictor.model_depth_sigma_scales``), which ``replay``, ``inspect`` and ``live`` pass on.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 # upper bounds (px, exclusive) of the edge-distance bands; the last band is everything beyond
 EDGE_BANDS_PX: tuple[float, ...] = (1.5, 2.5, 4.5, 8.5)
-# one scale per band (len(EDGE_BANDS_PX) + 1), nearest the edge first; the val choice of depth_sigma_rule.md
-# (session 50, benchmarks/depth_sigma_val.json: fit seed set 2000, passed its check on seed set 2200)
-DEPTH_SIGMA_SCALES: tuple[float, ...] = (4.95, 3.55, 2.6, 1.85, 1.4)
+# one scale per band (len(EDGE_BANDS_PX) + 1), nearest the edge first, per motion class; the val choice of
+# depth_sigma_rule.md (its second amendment, session 51: benchmarks/depth_sigma_val.json)
+DEPTH_SIGMA_BY_CLASS: dict[str, tuple[float, ...]] = {
+    "three_step": (4.95, 3.55, 2.6, 1.85, 1.4),
+    "network": (4.95, 3.55, 2.6, 1.85, 1.4),
+    "network_fast": (4.95, 3.55, 2.6, 1.85, 1.4),
+}
 NO_SCALES: tuple[float, ...] = (1.0,) * (len(EDGE_BANDS_PX) + 1)  # the raw propagated sigma (calibration runs)
+# the network's training bursts span at most 1.7 deg from the first frame to the last (18 poses 0.1 deg apart,
+# twin.dataset); a burst that spans more is beyond what it learnt
+TRAINED_SPAN_DEG = 1.75
+MOTION_CLASSES: tuple[str, ...] = ("three_step", "network", "network_fast")
+
+
+def motion_class(angles: Sequence[float], from_network: bool) -> str:
+    """The class of a burst whose depth sigma is scaled: ``three_step`` (not the network's decode: a still burst by
+    the encoder or the frames' gate, a coarse burst, a classical run), ``network`` (its encoder angles, rad, span at
+    most :data:`TRAINED_SPAN_DEG` from the first frame to the last) or ``network_fast`` (more)."""
+    if not from_network:
+        return "three_step"
+    span = abs(math.degrees(float(angles[-1]) - float(angles[0])))
+    return "network" if span <= TRAINED_SPAN_DEG else "network_fast"
+
+
+@dataclass(frozen=True)
+class DepthSigmaScales:
+    """One scale per edge band (nearest the edge first) for each motion class (:data:`MOTION_CLASSES`)."""
+
+    by_class: Mapping[str, tuple[float, ...]]
+
+    @classmethod
+    def uniform(cls, scales: Sequence[float]) -> DepthSigmaScales:
+        """The same scales for every class (a model's own scales chosen before the classes, the raw sigma)."""
+        return cls({c: tuple(scales) for c in MOTION_CLASSES})
+
+    def for_burst(self, angles: Sequence[float], from_network: bool) -> tuple[float, ...]:
+        return self.by_class[motion_class(angles, from_network)]
+
+    def as_dict(self) -> dict[str, list[float]]:
+        """JSON-ready: class -> scales (what benches and replay summaries record)."""
+        return {c: list(self.by_class[c]) for c in MOTION_CLASSES}
+
+    @property
+    def is_uniform(self) -> bool:
+        return len({self.by_class[c] for c in MOTION_CLASSES}) == 1
+
+    def describe(self) -> str:
+        """As text, nearest the edge first: "4.95/3.55/2.6/1.85/1.4" or "three_step 2/1.5/...; network ..."."""
+        def one(c: str) -> str:
+            return "/".join(f"{x:g}" for x in self.by_class[c])
+        if self.is_uniform:
+            return one(MOTION_CLASSES[0])
+        return "; ".join(f"{c} {one(c)}" for c in MOTION_CLASSES)
+
+
+DEPTH_SIGMA_SCALES = DepthSigmaScales(DEPTH_SIGMA_BY_CLASS)
 
 
 def band_labels() -> list[str]:
@@ -49,20 +107,37 @@ def band_index(distance: np.ndarray) -> np.ndarray:
     return np.searchsorted(np.asarray(EDGE_BANDS_PX), distance, side="right")
 
 
-def check_scales(scales: tuple[float, ...]) -> tuple[float, ...]:
-    """``scales`` as floats, one per band, each finite and at least 1 (a calibration may widen a sigma, never shrink
-    it); else a ValueError naming what was expected."""
-    out = tuple(float(s) for s in scales)
+def _check_band_scales(scales, what: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(s) for s in scales)
+    except (TypeError, ValueError):
+        out = ()
     if len(out) != len(EDGE_BANDS_PX) + 1 or not all(math.isfinite(s) and s >= 1 for s in out):
-        raise ValueError(f"depth sigma scales: expected {len(EDGE_BANDS_PX) + 1} finite factors >= 1 (bands "
+        raise ValueError(f"depth sigma scales{what}: expected {len(EDGE_BANDS_PX) + 1} finite factors >= 1 (bands "
                          f"{', '.join(band_labels())}), got {scales}")
     return out
 
 
-def scale_depth_sigma(sigma_depth: np.ndarray, keep: np.ndarray,
-                      scales: tuple[float, ...] = DEPTH_SIGMA_SCALES) -> np.ndarray:
-    """``sigma_depth`` (H, W) times its band's scale by distance to the edge of ``keep`` (the burst's points)."""
-    factors = np.asarray(check_scales(scales), np.float32)
+def check_scales(scales: DepthSigmaScales | Mapping[str, Sequence[float]] | Sequence[float]) -> DepthSigmaScales:
+    """``scales`` as :class:`DepthSigmaScales`: one factor per band, each finite and at least 1 (a calibration may
+    widen a sigma, never shrink it), either for every motion class at once (a flat sequence) or per class (a mapping
+    naming each of :data:`MOTION_CLASSES`); else a ValueError naming what was expected."""
+    if isinstance(scales, DepthSigmaScales):
+        scales = scales.by_class
+    if isinstance(scales, Mapping):
+        if set(scales) != set(MOTION_CLASSES):
+            raise ValueError(f"depth sigma scales: expected one entry per motion class {MOTION_CLASSES}, "
+                             f"got {sorted(scales)}")
+        return DepthSigmaScales({c: _check_band_scales(scales[c], f" ({c})") for c in MOTION_CLASSES})
+    if isinstance(scales, str):
+        raise ValueError(f"depth sigma scales: expected factors, got {scales!r}")
+    return DepthSigmaScales.uniform(_check_band_scales(scales, ""))
+
+
+def scale_depth_sigma(sigma_depth: np.ndarray, keep: np.ndarray, scales: Sequence[float]) -> np.ndarray:
+    """``sigma_depth`` (H, W) times its band's scale (one burst's: :meth:`DepthSigmaScales.for_burst`) by distance to
+    the edge of ``keep`` (the burst's points)."""
+    factors = np.asarray(_check_band_scales(scales, ""), np.float32)
     if all(f == 1.0 for f in factors):
         return sigma_depth
     band = band_index(edge_distance(keep))

@@ -15,7 +15,12 @@ import numpy as np
 
 from gearscan.core.rig import Rig
 from gearscan.core.types import Burst, Measurement, PhaseResult
-from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales, scale_depth_sigma
+from gearscan.recon.depth_sigma import (
+    DEPTH_SIGMA_SCALES,
+    DepthSigmaScales,
+    check_scales,
+    scale_depth_sigma,
+)
 
 UNWRAP_MODES = ("cad", "envelope", "coarse")
 # The product's fringe-support tests, for a model whose JSON names none (each shipped model carries its own,
@@ -158,7 +163,8 @@ class Reconstructor:
     truth mask alone and invents phase, modulation and a small sigma at shadow borders, creases and silhouettes;
     such pixels are counted as ``unsupported`` (``None``: no such test). Each point's depth sigma is the phase
     sigma propagated through the triangulation, times the scale of its band of distance to the edge of the burst's
-    cloud (``depth_sigma_scales``; None: the product's, :mod:`gearscan.recon.depth_sigma`). An
+    cloud for the burst's motion class (three-step PS, the network within its trained span, beyond it:
+    ``depth_sigma_scales``, per class or one set for all; None: the product's, :mod:`gearscan.recon.depth_sigma`). An
     undistorted projector takes the fused unwrap + triangulate path
     (:mod:`gearscan.recon.reconstruct`); a distorted one the fixed-point
     :class:`~gearscan.recon.triangulate.Triangulator`.
@@ -168,7 +174,7 @@ class Reconstructor:
                  max_sigma: float = MAX_SIGMA_RAD, margin: float = 0.3, unwrap: str = "cad",
                  envelope_mm: float = ENVELOPE_MM, silhouette_mm: float = 0.4, mixed_border_px: int | None = 1,
                  network_support_px: int | None = NETWORK_SUPPORT_PX, unwrap_max_sigma: float | None = UNWRAP_MAX_SIGMA,
-                 depth_sigma_scales: tuple[float, ...] | None = None, threads: int | None = None) -> None:
+                 depth_sigma_scales: DepthSigmaScales | tuple[float, ...] | None = None, threads: int | None = None) -> None:
         from gearscan.recon.reconstruct import SingleFrequencyReconstructor
         from gearscan.recon.triangulate import Triangulator
         from gearscan.recon.unwrap import CadDepthBounds, phase_bounds
@@ -304,10 +310,10 @@ class Reconstructor:
             keep = keep & ~mixed
             phase_abs = np.where(keep, phase_abs, np.float32(np.nan))
             tri = Triangulation(points=tri.points, depth=tri.depth, sigma_depth=tri.sigma_depth, valid=keep)
-        # the depth sigma by distance to the edge of this burst's cloud (recon/depth_sigma.py, a val choice)
+        # the depth sigma by distance to the edge of this burst's cloud, for its motion class (recon/depth_sigma.py)
+        scales = self.depth_sigma_scales.for_burst(burst.angles, result.from_network)
         tri = Triangulation(points=tri.points, depth=tri.depth,
-                            sigma_depth=scale_depth_sigma(tri.sigma_depth, tri.valid, self.depth_sigma_scales),
-                            valid=tri.valid)
+                            sigma_depth=scale_depth_sigma(tri.sigma_depth, tri.valid, scales), valid=tri.valid)
         stats = {
             "candidates": int(candidate.sum()),
             "points": int(keep.sum()),

@@ -1,12 +1,14 @@
-"""Calibrate the per-burst depth sigma by distance to the cloud's edge, on VAL (benchmarks/depth_sigma_rule.md).
+"""Calibrate the per-burst depth sigma by distance to the cloud's edge and motion class, on VAL (benchmarks/depth_sigma_rule.md).
 
     python scripts/calibrate_depth_sigma.py [--out benchmarks/depth_sigma_val.json] [--fit-seed 2000] [--check-seed 2200]
 
 The val scenes of the reconstruction's per-burst choices (``evaluate.VAL_CLOUD_SETS``), one burst per motion of
-``VAL_MOTIONS["wide"]``, the shipped network (deterministic, the twin rigs' orientation) through the product's
-reconstructor with the raw propagated sigma (all scales 1). Per point |depth error along its ray| / sigma
-(``evaluate.depth_z``) and its band (``recon.depth_sigma``). The scales come from the fit seed set, the check from
-the other; z scales as 1 / s, so both read one raw pass each. Writes the choice and both tables to ``--out``.
+``VAL_MOTIONS["wide"]``, decoded as the app decodes them (a burst spanning less than the decoder's still span by
+three-step PS, the rest by the shipped network, deterministic, the twin rigs' orientation, its still-burst gate on)
+through the product's reconstructor with the raw propagated sigma (all scales 1). Per point |depth error along its
+ray| / sigma (``evaluate.depth_z``), its band and its burst's motion class (``recon.depth_sigma.motion_class``). The
+scales come from the fit seed set, the check from the other; z scales as 1 / s, so both read one raw pass each.
+Writes the choice and both tables (and the check per motion) to ``--out``.
 """
 
 from __future__ import annotations
@@ -22,14 +24,15 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-KINDS = ("still", "moving")
-CHECK_BEYOND_2 = 0.055  # the check's bound on the share beyond 2 sigma per (band, kind) cell
+CHECK_BEYOND_2 = 0.055  # the check's bound on the share beyond 2 sigma per (band, class) cell
 CHECK_MIN_POINTS = 1000  # smaller cells are reported, not judged
 
 
 def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
-            sets: tuple[str, ...] | None = None) -> dict[tuple[str, int], np.ndarray]:
-    """z = |depth error along the ray| / raw sigma per (kind, band), over the val scenes rendered from ``seed``."""
+            sets: tuple[str, ...] | None = None) -> dict[tuple[str, int, str], np.ndarray]:
+    """z = |depth error along the ray| / raw sigma per (motion class, band, motion), over the val scenes rendered
+    from ``seed``."""
+    from gearscan.core.phase import still_result
     from gearscan.core.types import Burst, Frame
     from gearscan.evaluate import (
         VAL_CLOUD_SETS,
@@ -38,13 +41,14 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
         render_cases,
         scenes_from_dataset,
     )
+    from gearscan.inference.decoder import STILL_SPAN_DEG, turned_less_than
     from gearscan.inference.predictor import Predictor
-    from gearscan.recon.depth_sigma import NO_SCALES, band_index, edge_distance
+    from gearscan.recon.depth_sigma import NO_SCALES, band_index, edge_distance, motion_class
     from gearscan.recon.measure import Reconstructor
 
     predictor = Predictor.load(model, orientation="normal")  # every twin rig is normal by its geometry
     scenes = [s for root in (sets or VAL_CLOUD_SETS) for s in scenes_from_dataset(ROOT / root)]
-    zs: dict[tuple[str, int], list[np.ndarray]] = {}
+    zs: dict[tuple[str, int, str], list[np.ndarray]] = {}
     for i, scene in enumerate(scenes):
         rc = Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, depth_sigma_scales=NO_SCALES)
         try:
@@ -52,7 +56,11 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
                 fr = tuple(Frame(f, j, 0, j, bit_depth=int(case.full_scale).bit_length())
                            for j, f in enumerate(case.frames))
                 burst = Burst(fr, tuple(math.radians(a) for a in case.angles_deg))
-                result = replace(predictor.predict(case.frames, 0, full_scale=case.full_scale), angle=burst.angles[0])
+                if turned_less_than(burst.angles, STILL_SPAN_DEG):  # as inference.decoder.Decoder routes it
+                    result = still_result(burst)
+                else:
+                    result = replace(predictor.predict(case.frames, 0, full_scale=case.full_scale),
+                                     angle=burst.angles[0])
                 m = rc(burst, result)
                 if m.cloud is None or not len(m.cloud):
                     continue
@@ -60,61 +68,108 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
                 keep = np.zeros(case.truth.mask.shape, bool)
                 keep[m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]] = True
                 band = band_index(edge_distance(keep)[m.cloud.pixels[:, 0], m.cloud.pixels[:, 1]])
-                kind = "still" if case.motion == "static" else "moving"
+                cls = motion_class(burst.angles, result.from_network)
                 ok = np.isfinite(z)
                 for b in np.unique(band):
-                    zs.setdefault((kind, int(b)), []).append(z[ok & (band == b)])
+                    zs.setdefault((cls, int(b), case.motion), []).append(z[ok & (band == b)])
         finally:
             rc.close()
         print(f"seed {seed}: {i + 1}/{len(scenes)} {scene.name}", flush=True)
     return {k: np.concatenate(v) for k, v in zs.items()}
 
 
-def table(zs: dict[tuple[str, int], np.ndarray], scales: tuple[float, ...] | None = None,
-          at: tuple[float, ...] = ()) -> dict:
-    """Per kind and band: points, median z, share beyond 2 sigma, the scale needed (z divided by ``scales``); a raw
-    table (no ``scales``) also holds the share beyond 2 x s for each s in ``at`` (the scales a check reads)."""
+def by_cell(zs: dict[tuple[str, int, str], np.ndarray]) -> dict[tuple[str, int], np.ndarray]:
+    """The z of each (class, band) cell, pooled over motions."""
+    cells: dict[tuple[str, int], list[np.ndarray]] = {}
+    for (cls, b, _), z in zs.items():
+        cells.setdefault((cls, b), []).append(z)
+    return {k: np.concatenate(v) for k, v in cells.items()}
+
+
+def by_motion(zs: dict[tuple[str, int, str], np.ndarray], scales: dict[str, tuple[float, ...]]) -> dict:
+    """Per motion, pooled over its bands and classes, with each band's scale: points, median z, share beyond 2 sigma
+    (a report of where the tail sits; the check judges cells)."""
+    from gearscan.evaluate import z_summary
+
+    per: dict[str, list[np.ndarray]] = {}
+    for (cls, b, motion), z in zs.items():
+        per.setdefault(motion, []).append(z / scales[cls][b])
+    out = {}
+    for motion, parts in per.items():
+        s = z_summary(np.concatenate(parts))
+        out[motion] = {"points": int(sum(p.size for p in parts)), "median": s["median_z"],
+                       "beyond_2sigma": s["beyond_2sigma"]}
+    return out
+
+
+def _per_kind(scales, kind: str) -> tuple[float, ...]:
+    """One kind's scales from a flat tuple (every kind alike) or a mapping kind -> scales."""
+    return tuple(scales[kind]) if isinstance(scales, dict) else tuple(scales)
+
+
+def table(zs: dict[tuple[str, int], np.ndarray], scales=None, at=()) -> dict:
+    """Per kind (motion class) and band: points, median z, share beyond 2 sigma, the scale needed (z divided by
+    ``scales``: flat or per kind); a raw table (no ``scales``) also holds the share beyond 2 x s for each s in ``at``
+    (flat, or per kind: the scales a check reads)."""
     from gearscan.evaluate import z_summary
     from gearscan.recon.depth_sigma import band_labels
 
     out: dict = {}
-    for kind in KINDS:
+    for kind in sorted({k for k, _ in zs}):
         out[kind] = {}
+        grid = sorted(set(_per_kind(at, kind))) if at else []
         for b, label in enumerate(band_labels()):
             z = zs.get((kind, b), np.zeros(0))
             if scales is not None:
-                z = z / scales[b]
+                z = z / _per_kind(scales, kind)[b]
             if not z.size:
                 out[kind][label] = {"points": 0}
                 continue
             s = z_summary(z)
             out[kind][label] = {"points": int(z.size), "median": s["median_z"], "beyond_2sigma": s["beyond_2sigma"],
                                 "z_q9545": s["z_q9545"], "needed_scale": s["needed_scale"]}
-            if scales is None and at:  # the raw share beyond 2 x s, so that the check recomputes from the raw table
-                out[kind][label]["beyond_2x_scale"] = {f"{c:.2f}": float(np.mean(z > 2 * c)) for c in sorted(set(at))}
+            if scales is None and grid:  # the raw share beyond 2 x s, so that the check recomputes from the raw table
+                out[kind][label]["beyond_2x_scale"] = {f"{c:.2f}": float(np.mean(z > 2 * c)) for c in grid}
     return out
 
 
-def recheck(raw: dict, scales: tuple[float, ...]) -> dict:
-    """The check's scaled shares beyond 2 sigma, read from a raw table's shares beyond 2 x s at these scales."""
+def recheck(raw: dict, scales) -> dict:
+    """The check's scaled shares beyond 2 sigma, read from a raw table's shares beyond 2 x s at these scales (flat,
+    or per kind)."""
     from gearscan.recon.depth_sigma import band_labels
 
     return {kind: {label: {"points": cells[label].get("points", 0),
                            "beyond_2sigma": cells[label]["beyond_2x_scale"][f"{sc:.2f}"] if cells[label].get("points")
                            else None}
-                   for label, sc in zip(band_labels(), scales, strict=True)}
+                   for label, sc in zip(band_labels(), _per_kind(scales, kind), strict=True)}
             for kind, cells in raw.items()}
 
 
-def choose(fit: dict) -> tuple[float, ...]:
-    """Per band: the larger need of still and moving on the fit set, rounded up to 0.05, at least 1."""
+def _round_up(need: float) -> float:
+    return round(max(1.0, math.ceil(round(need / 0.05, 6)) * 0.05), 2)
+
+
+def choose_pooled(fit: dict) -> tuple[float, ...]:
+    """The rule as first written (session 50, kinds still and moving): per band the larger need of the kinds on the
+    fit set, rounded up to 0.05, at least 1; one set for every burst."""
     from gearscan.recon.depth_sigma import band_labels
 
-    scales = []
-    for label in band_labels():
-        need = max(fit[k][label].get("needed_scale", 1.0) for k in KINDS)
-        scales.append(max(1.0, math.ceil(round(need / 0.05, 6)) * 0.05))
-    return tuple(round(s, 2) for s in scales)
+    return tuple(_round_up(max(fit[k][label].get("needed_scale", 1.0) for k in fit)) for label in band_labels())
+
+
+def choose(fit: dict) -> dict[str, tuple[float, ...]]:
+    """The second amendment: per motion class and band, that class's need on the fit set, rounded up to 0.05, at
+    least 1. Every class must have points in every band (else a ValueError: the rule cannot choose for it)."""
+    from gearscan.recon.depth_sigma import MOTION_CLASSES, band_labels
+
+    out = {}
+    for cls in MOTION_CLASSES:
+        cells = fit.get(cls, {})
+        missing = [label for label in band_labels() if not cells.get(label, {}).get("points")]
+        if missing:
+            raise ValueError(f"fit set: motion class {cls!r} has no points in {', '.join(missing)}")
+        out[cls] = tuple(_round_up(cells[label]["needed_scale"]) for label in band_labels())
+    return out
 
 
 def check(scaled: dict) -> list[str]:
@@ -166,21 +221,28 @@ def main() -> None:
     from gearscan.evaluate import VAL_CLOUD_SETS
     from gearscan.inference.model_io import model_fingerprint
     from gearscan.inference.predictor import DEFAULT_MODEL
-    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, EDGE_BANDS_PX
+    from gearscan.recon.depth_sigma import (
+        DEPTH_SIGMA_SCALES,
+        EDGE_BANDS_PX,
+        MOTION_CLASSES,
+        TRAINED_SPAN_DEG,
+    )
 
+    shipped = {c: tuple(v) for c, v in DEPTH_SIGMA_SCALES.by_class.items()}
     if args.check_model is not None:  # the shipped scales on another model's bursts: a report, no choice
         sets = tuple(args.sets.split(",")) if args.sets else None
         check_z = collect(args.check_seed, args.motions, args.per_motion, args.check_model, sets)
-        check_raw = table(check_z, at=DEPTH_SIGMA_SCALES)
-        misses = check(recheck(check_raw, DEPTH_SIGMA_SCALES))
+        check_raw = table(by_cell(check_z), at=shipped)
+        misses = check(recheck(check_raw, shipped))
         out = {"split": "val", "rule": "benchmarks/depth_sigma_rule.md (its check, on another model; chooses nothing)",
                "commit": commit(), "host": host(), "model": str(args.check_model),
                "model_fingerprint": model_fingerprint(args.check_model), "sets": list(sets or VAL_CLOUD_SETS),
                "motions": args.motions,
                "per_motion": args.per_motion, "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX),
-               "scales": list(DEPTH_SIGMA_SCALES), "check_bound_beyond_2sigma": CHECK_BEYOND_2,
+               "scales": DEPTH_SIGMA_SCALES.as_dict(), "check_bound_beyond_2sigma": CHECK_BEYOND_2,
                "check_min_points": CHECK_MIN_POINTS, "check_passed": not misses, "check_misses": misses,
-               "check_raw": check_raw, "check_scaled": table(check_z, DEPTH_SIGMA_SCALES)}
+               "check_raw": check_raw, "check_scaled": table(by_cell(check_z), shipped),
+               "check_by_motion": by_motion(check_z, shipped)}
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(out, indent=1) + "\n")
         print(f"{args.check_model}: check {'passed' if not misses else 'MISSED: ' + '; '.join(misses)}")
@@ -188,30 +250,34 @@ def main() -> None:
 
     sets = tuple(args.sets.split(",")) if args.sets else None
     fit_z = collect(args.fit_seed, args.motions, args.per_motion, args.model, sets)
-    fit = table(fit_z)
+    fit = table(by_cell(fit_z))
     scales = choose(fit)
     check_z = collect(args.check_seed, args.motions, args.per_motion, args.model, sets)
-    check_raw = table(check_z, at=scales)
+    check_raw = table(by_cell(check_z), at=scales)
     misses = check(recheck(check_raw, scales))
     model = args.model or DEFAULT_MODEL
     out = {
-        "split": "val", "rule": "benchmarks/depth_sigma_rule.md" + (" (its amendment: a model's own)" if args.model else ""),
+        "split": "val", "rule": "benchmarks/depth_sigma_rule.md (second amendment: per motion class)"
+                + (" (its amendment: a model's own)" if args.model else ""),
         "commit": commit(), "host": host(), "model": str(model.relative_to(ROOT) if model.is_relative_to(ROOT) else model),
         "model_fingerprint": model_fingerprint(model),  # the decode it was chosen for (weights, sigma maps)
         "sets": list(sets or VAL_CLOUD_SETS),
         "motions": args.motions, "per_motion": args.per_motion, "fit_seed": args.fit_seed,
-        "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX), "scales": list(scales),
+        "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX),
+        "motion_classes": {"classes": list(MOTION_CLASSES), "trained_span_deg": TRAINED_SPAN_DEG},
+        "scales": {c: list(v) for c, v in scales.items()},
         "check_bound_beyond_2sigma": CHECK_BEYOND_2, "check_min_points": CHECK_MIN_POINTS,
         "check_passed": not misses, "check_misses": misses,
-        "fit_raw": fit, "fit_scaled": table(fit_z, scales),
-        "check_raw": check_raw, "check_scaled": table(check_z, scales),
+        "fit_raw": fit, "fit_scaled": table(by_cell(fit_z), scales),
+        "check_raw": check_raw, "check_scaled": table(by_cell(check_z), scales),
+        "fit_by_motion_shipped_before": by_motion(fit_z, shipped), "check_by_motion": by_motion(check_z, scales),
     }
     if args.write and not misses:
         from gearscan.inference.model_io import read_config, write_config
         from gearscan.inference.predictor import DEPTH_SIGMA_KEY
 
         meta = read_config(args.model)
-        meta[DEPTH_SIGMA_KEY] = {"scales": list(scales), "edge_bands_px": list(EDGE_BANDS_PX),
+        meta[DEPTH_SIGMA_KEY] = {"scales": {c: list(v) for c, v in scales.items()}, "edge_bands_px": list(EDGE_BANDS_PX),
                                  "chosen_by": f"benchmarks/depth_sigma_rule.md (amendment), {args.out.name}, "
                                               f"commit {out['commit']}"}
         out["written"] = write_config(args.model, meta).name
