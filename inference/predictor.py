@@ -625,7 +625,7 @@ DEPTH_SIGMA_KEY = "depth_sigma"
 def model_depth_sigma_scales(meta: dict) -> tuple[float, ...] | dict[str, tuple[float, ...]] | None:
     """A model's own depth-sigma scales by edge band (``depth_sigma`` in its JSON: ``{"scales": ..., "edge_bands_px":
     [...], "chosen_by": ...}``, nearest the edge first; ``scales`` one list for every motion class, or one list per
-    motion class: ``{"three_step": [...], "network": [...], "network_fast": [...]}``); None where the JSON names none
+    motion class of ``recon.depth_sigma.MOTION_CLASSES`` (``{"three_step": [...], "network": [...], ...}``); None where the JSON names none
     (the reconstructor then uses the product's; ``recon.depth_sigma.check_scales`` checks the counts and classes)."""
     raw = meta.get(DEPTH_SIGMA_KEY)
     if raw is None:

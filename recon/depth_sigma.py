@@ -31,22 +31,27 @@ DEPTH_SIGMA_BY_CLASS: dict[str, tuple[float, ...]] = {
     "three_step": (4.95, 3.55, 2.6, 1.85, 1.4),
     "network": (4.95, 3.55, 2.6, 1.85, 1.4),
     "network_fast": (4.95, 3.55, 2.6, 1.85, 1.4),
+    "network_faster": (4.95, 3.55, 2.6, 1.85, 1.4),
 }
 NO_SCALES: tuple[float, ...] = (1.0,) * (len(EDGE_BANDS_PX) + 1)  # the raw propagated sigma (calibration runs)
 # the network's training bursts span at most 1.7 deg from the first frame to the last (18 poses 0.1 deg apart,
-# twin.dataset); a burst that spans more is beyond what it learnt
+# twin.dataset); a burst that spans more is beyond what it learnt, and its error grows with the span (val, the rule's
+# second amendment): up to twice that span is one class, more another
 TRAINED_SPAN_DEG = 1.75
-MOTION_CLASSES: tuple[str, ...] = ("three_step", "network", "network_fast")
+MOTION_CLASSES: tuple[str, ...] = ("three_step", "network", "network_fast", "network_faster")
 
 
 def motion_class(angles: Sequence[float], from_network: bool) -> str:
     """The class of a burst whose depth sigma is scaled: ``three_step`` (not the network's decode: a still burst by
     the encoder or the frames' gate, a coarse burst, a classical run), ``network`` (its encoder angles, rad, span at
-    most :data:`TRAINED_SPAN_DEG` from the first frame to the last) or ``network_fast`` (more)."""
+    most :data:`TRAINED_SPAN_DEG` from the first frame to the last), ``network_fast`` (up to twice that) or
+    ``network_faster`` (more)."""
     if not from_network:
         return "three_step"
     span = abs(math.degrees(float(angles[-1]) - float(angles[0])))
-    return "network" if span <= TRAINED_SPAN_DEG else "network_fast"
+    if span <= TRAINED_SPAN_DEG:
+        return "network"
+    return "network_fast" if span <= 2 * TRAINED_SPAN_DEG else "network_faster"
 
 
 @dataclass(frozen=True)
