@@ -26,13 +26,15 @@ import numpy as np
 # upper bounds (px, exclusive) of the edge-distance bands; the last band is everything beyond
 EDGE_BANDS_PX: tuple[float, ...] = (1.5, 2.5, 4.5, 8.5)
 # one scale per band (len(EDGE_BANDS_PX) + 1), nearest the edge first, per motion class; the val choice of
-# depth_sigma_rule.md (its second amendment, session 51: benchmarks/depth_sigma_val.json)
+# depth_sigma_rule.md (its third amendment, session 51: benchmarks/depth_sigma_val.json, fit seed set 2000, passed its
+# check on seed set 2400). Session 50's one set for every burst, 4.95/3.55/2.6/1.85/1.4: FIRST_CHOICE_SCALES.
 DEPTH_SIGMA_BY_CLASS: dict[str, tuple[float, ...]] = {
-    "three_step": (4.95, 3.55, 2.6, 1.85, 1.4),
-    "network": (4.95, 3.55, 2.6, 1.85, 1.4),
-    "network_fast": (4.95, 3.55, 2.6, 1.85, 1.4),
-    "network_faster": (4.95, 3.55, 2.6, 1.85, 1.4),
+    "three_step": (3.35, 1.65, 1.3, 1.25, 1.2),
+    "network": (3.5, 2.6, 2.0, 1.5, 1.3),
+    "network_fast": (5.25, 3.95, 3.1, 2.1, 1.55),
+    "network_faster": (8.1, 6.05, 4.35, 2.75, 1.65),
 }
+FIRST_CHOICE_SCALES: tuple[float, ...] = (4.95, 3.55, 2.6, 1.85, 1.4)  # benchmarks/depth_sigma_val_pooled.json
 NO_SCALES: tuple[float, ...] = (1.0,) * (len(EDGE_BANDS_PX) + 1)  # the raw propagated sigma (calibration runs)
 # the network's training bursts span at most 1.7 deg from the first frame to the last (18 poses 0.1 deg apart,
 # twin.dataset); a burst that spans more is beyond what it learnt, and its error grows with the span (val, the rule's

@@ -13,11 +13,15 @@ from gearscan.core.types import Burst, Frame
 from gearscan.recon.depth_sigma import (
     DEPTH_SIGMA_SCALES,
     EDGE_BANDS_PX,
+    MOTION_CLASSES,
     NO_SCALES,
+    TRAINED_SPAN_DEG,
+    DepthSigmaScales,
     band_index,
     band_labels,
     check_scales,
     edge_distance,
+    motion_class,
     scale_depth_sigma,
 )
 from gearscan.recon.measure import Reconstructor
@@ -42,8 +46,10 @@ def test_bands_split_at_their_bounds() -> None:
     d = np.array([0.0, 1.0, 1.4999, 1.5, 2.0, 2.5, 4.4, 4.5, 8.4, 8.5, 100.0])
     np.testing.assert_array_equal(band_index(d), [0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4])
     assert band_labels() == ["0-1.5 px", "1.5-2.5 px", "2.5-4.5 px", "4.5-8.5 px", "8.5-inf px"]
-    assert len(DEPTH_SIGMA_SCALES) == len(EDGE_BANDS_PX) + 1 and check_scales(DEPTH_SIGMA_SCALES)
-    assert all(s >= 1 for s in DEPTH_SIGMA_SCALES)  # a calibration may not shrink a sigma
+    assert check_scales(DEPTH_SIGMA_SCALES) == DEPTH_SIGMA_SCALES and set(DEPTH_SIGMA_SCALES.by_class) == set(MOTION_CLASSES)
+    for scales in DEPTH_SIGMA_SCALES.by_class.values():
+        assert len(scales) == len(EDGE_BANDS_PX) + 1
+        assert all(s >= 1 for s in scales)  # a calibration may not shrink a sigma
 
 
 @pytest.mark.parametrize("bad", [(1.0, 1.0), (1.0, 1.0, 1.0, 1.0, -2.0), (1.0, 1.0, math.nan, 1.0, 1.0),
@@ -51,6 +57,31 @@ def test_bands_split_at_their_bounds() -> None:
 def test_scales_that_are_not_one_positive_factor_per_band_are_refused(bad) -> None:
     with pytest.raises(ValueError, match="5 finite factors >= 1"):
         check_scales(bad)
+    with pytest.raises(ValueError, match=r"\(network\): expected 5 finite factors >= 1"):
+        check_scales({**DEPTH_SIGMA_SCALES.as_dict(), "network": bad})
+
+
+def test_scales_per_class_name_every_class_and_a_flat_set_serves_all() -> None:
+    flat = check_scales([2, 2, 1.5, 1, 1])
+    assert flat == DepthSigmaScales.uniform((2.0, 2.0, 1.5, 1.0, 1.0)) and flat.is_uniform
+    assert flat.describe() == "2/2/1.5/1/1"
+    with pytest.raises(ValueError, match="one entry per motion class"):
+        check_scales({"network": (1.0,) * 5})
+    with pytest.raises(ValueError, match="expected factors"):
+        check_scales("2,2,2,2,2")
+    assert "network_fast" in DepthSigmaScales({c: (float(i + 1),) * 5 for i, c in enumerate(MOTION_CLASSES)}).describe()
+
+
+def test_a_bursts_motion_class_is_its_decode_and_its_encoder_span() -> None:
+    deg = math.radians
+    assert motion_class((0.0, deg(0.6), deg(1.2)), from_network=False) == "three_step"  # a classical run too
+    assert motion_class((0.0, 0.0, 0.0), from_network=True) == "network"
+    assert motion_class((0.0, deg(0.1), deg(1.7)), from_network=True) == "network"  # the paper's, within training
+    assert motion_class((deg(10), deg(9.4), deg(10 - TRAINED_SPAN_DEG)), from_network=True) == "network"  # backwards
+    assert motion_class((0.0, deg(1), deg(2)), from_network=True) == "network_fast"
+    assert motion_class((0.0, deg(1), deg(2 * TRAINED_SPAN_DEG)), from_network=True) == "network_fast"
+    assert motion_class((0.0, deg(2), deg(4)), from_network=True) == "network_faster"
+    assert motion_class((0.0, deg(-2), deg(-5)), from_network=True) == "network_faster"
 
 
 def test_each_pixel_takes_its_bands_scale() -> None:
@@ -82,8 +113,36 @@ def test_the_reconstructor_scales_each_points_sigma_by_its_band(clean_renderer, 
     band = band_index(edge_distance(keep))[raw.cloud.pixels[:, 0], raw.cloud.pixels[:, 1]]
     np.testing.assert_allclose(scaled.cloud.sigma, raw.cloud.sigma * np.asarray(scales)[band], rtol=1e-5)
     assert (band == 0).any() and (band == 4).any()
-    shipped = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear)(burst, result)
-    np.testing.assert_allclose(shipped.cloud.sigma, raw.cloud.sigma * np.asarray(DEPTH_SIGMA_SCALES)[band], rtol=1e-5)
+    shipped = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear)(burst, result)  # three-step PS's class
+    np.testing.assert_allclose(shipped.cloud.sigma,
+                               raw.cloud.sigma * np.asarray(DEPTH_SIGMA_SCALES.by_class["three_step"])[band], rtol=1e-5)
+
+
+def test_the_reconstructor_takes_the_scales_of_the_bursts_motion_class(clean_renderer, gear) -> None:
+    """One phase map, read as the network's at three encoder spans and as three-step PS's: the same points, each
+    sigma times its band's factor for the class the decode and the span name."""
+    from dataclasses import replace
+
+    angle = math.radians(3.0)
+    frames, _ = clean_renderer.render(angle, PatternSet.three_step(PERIOD))
+    per_class = {c: tuple(float(i + 1) + 0.1 * b for b in range(5)) for i, c in enumerate(MOTION_CLASSES)}
+    rc = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear, depth_sigma_scales=per_class, network_support_px=None)
+    raw_rc = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear, depth_sigma_scales=NO_SCALES, network_support_px=None)
+    cases = {"three_step": (0.0, False), "network": (1.2, True), "network_fast": (3.0, True),
+             "network_faster": (5.0, True)}
+    for cls, (span_deg, net) in cases.items():
+        angles = (angle, angle + math.radians(span_deg / 2), angle + math.radians(span_deg))
+        burst = Burst(tuple(Frame(f, i, 1000 * i, i) for i, f in enumerate(frames)), angles)
+        result = classical_result(burst)
+        if net:
+            result = replace(result, mode="deterministic")
+        raw, scaled = raw_rc(burst, result), rc(burst, result)
+        np.testing.assert_array_equal(raw.cloud.points, scaled.cloud.points)
+        keep = np.zeros(raw.valid.shape, bool)
+        keep[raw.cloud.pixels[:, 0], raw.cloud.pixels[:, 1]] = True
+        band = band_index(edge_distance(keep))[raw.cloud.pixels[:, 0], raw.cloud.pixels[:, 1]]
+        np.testing.assert_allclose(scaled.cloud.sigma, raw.cloud.sigma * np.asarray(per_class[cls])[band], rtol=1e-5,
+                                   err_msg=cls)
 
 
 def test_a_models_json_may_carry_its_own_scales() -> None:
@@ -92,7 +151,11 @@ def test_a_models_json_may_carry_its_own_scales() -> None:
 
     assert model_depth_sigma_scales({}) is None
     assert model_depth_sigma_scales({"depth_sigma": {"scales": [3, 2.5, 2, 1.5, 1.0]}}) == (3.0, 2.5, 2.0, 1.5, 1.0)
-    for bad in ({"scales": [2, 0.5]}, {"scales": "2"}, {"scales": [True, 2]}, [2, 2], {"scales": []}):
+    per_class = {c: [2, 2, 1.5, 1, 1] for c in MOTION_CLASSES}
+    own = model_depth_sigma_scales({"depth_sigma": {"scales": per_class}})
+    assert check_scales(own) == DepthSigmaScales.uniform((2.0, 2.0, 1.5, 1.0, 1.0))
+    for bad in ({"scales": [2, 0.5]}, {"scales": "2"}, {"scales": [True, 2]}, [2, 2], {"scales": []},
+                {"scales": {"network": [2, 0.5]}}, {"scales": {}}):
         with pytest.raises(ModelFileError, match="depth_sigma"):
             model_depth_sigma_scales({"depth_sigma": bad})
 
@@ -116,6 +179,6 @@ def test_replay_reconstructs_with_the_decoding_models_scales(tmp_path) -> None:
     write_config(own, meta)
     rec = render_recording(tmp_path / "rec", rig=default_rig(64, 64), motion="uniform:0.6", bursts=1)
     mine = replay(rec, decoder=Decoder(own), truth=False)
-    assert mine.recon["depth_sigma_scales"] == [2.0] * 5
+    assert mine.recon["depth_sigma_scales"] == {c: [2.0] * 5 for c in MOTION_CLASSES}
     classical = replay(rec, decoder=Decoder(classical=True), truth=False)
-    assert classical.recon["depth_sigma_scales"] == list(DEPTH_SIGMA_SCALES)
+    assert classical.recon["depth_sigma_scales"] == DEPTH_SIGMA_SCALES.as_dict()
