@@ -11,9 +11,25 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "scripts"))
-from calibrate_depth_sigma import CHECK_BEYOND_2, CHECK_MIN_POINTS, check, choose, recheck  # noqa: E402
+from calibrate_depth_sigma import (  # noqa: E402
+    CHECK_BEYOND_2,
+    CHECK_MIN_POINTS,
+    check,
+    choose,
+    choose_pooled,
+    recheck,
+)
 
-from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, EDGE_BANDS_PX, band_labels  # noqa: E402
+from gearscan.recon.depth_sigma import (  # noqa: E402
+    DEPTH_SIGMA_BY_CLASS,
+    DEPTH_SIGMA_SCALES,
+    EDGE_BANDS_PX,
+    FIRST_CHOICE_SCALES,
+    MOTION_CLASSES,
+    TRAINED_SPAN_DEG,
+    band_labels,
+    check_scales,
+)
 
 
 def _table(needs: dict[str, list[float]], beyond: float = 0.04, points: int = 5000) -> dict:
@@ -22,10 +38,22 @@ def _table(needs: dict[str, list[float]], beyond: float = 0.04, points: int = 50
             for kind, ns in needs.items()}
 
 
-def test_each_band_takes_the_larger_need_rounded_up_and_never_shrinks() -> None:
+def test_the_first_choice_takes_each_bands_larger_need_rounded_up_and_never_shrinks() -> None:
     fit = _table({"still": [2.94, 1.46, 0.9, 1.21, 1.19], "moving": [4.94, 1.2, 0.8, 1.82, 1.3999]})
-    assert choose(fit) == (4.95, 1.5, 1.0, 1.85, 1.4)
-    assert choose(_table({"still": [1.1] * 5, "moving": [1.25] * 5})) == (1.25,) * 5  # on a step: not one more
+    assert choose_pooled(fit) == (4.95, 1.5, 1.0, 1.85, 1.4)
+    assert choose_pooled(_table({"still": [1.1] * 5, "moving": [1.25] * 5})) == (1.25,) * 5  # on a step: not one more
+
+
+def test_each_motion_class_takes_its_own_need_and_every_class_must_have_points() -> None:
+    needs = {c: [1.0 + i + 0.01 * b for b in range(5)] for i, c in enumerate(MOTION_CLASSES)}
+    needs["three_step"] = [0.5, 1.21, 1.2, 1.0, 0.9]
+    out = choose(_table(needs))
+    assert out["three_step"] == (1.0, 1.25, 1.2, 1.0, 1.0)  # rounded up to 0.05 (on a step: not one more), >= 1
+    assert out["network_faster"] == (4.0, 4.05, 4.05, 4.05, 4.05)
+    thin = _table(needs)
+    thin["network_fast"]["0-1.5 px"] = {"points": 0}
+    with pytest.raises(ValueError, match="network_fast.*0-1.5 px"):
+        choose(thin)
 
 
 def test_the_check_reads_the_raw_grid_at_each_bands_scale() -> None:
@@ -36,6 +64,9 @@ def test_the_check_reads_the_raw_grid_at_each_bands_scale() -> None:
     out = recheck(raw, (2.0, 1.5, 1.5, 1.0, 1.0))
     assert [c["beyond_2sigma"] for c in out["moving"].values()] == [0.01, 0.05, 0.05, 0.2, 0.2]
     assert len(check(out)) == 4  # the two 1.0 bands, still and moving
+    per_kind = recheck(raw, {"still": (2.0,) * 5, "moving": (1.0, 1.5, 2.0, 2.0, 2.0)})  # each kind its own
+    assert [c["beyond_2sigma"] for c in per_kind["moving"].values()] == [0.2, 0.05, 0.01, 0.01, 0.01]
+    assert check(per_kind) == ["moving 0-1.5 px: 20.0% beyond 2 sigma"]
 
 
 def test_the_check_judges_every_cell_large_enough_to_count() -> None:
@@ -49,28 +80,48 @@ def test_the_check_judges_every_cell_large_enough_to_count() -> None:
 
 
 def test_the_stored_val_run_recomputes_its_choice_and_the_product_ships_it() -> None:
+    """The third amendment's run (benchmarks/depth_sigma_val.json): the choice per motion class recomputed from its
+    fit table, the check from its raw check table (not from the json's verdict), on a seed set no earlier form saw."""
     from gearscan.inference.model_io import model_fingerprint
     from gearscan.inference.predictor import DEFAULT_MODEL
 
     stored = json.loads((ROOT / "benchmarks" / "depth_sigma_val.json").read_text())
+    missed = json.loads((ROOT / "benchmarks" / "depth_sigma_val_amend2_missed.json").read_text())
+    first = json.loads((ROOT / "benchmarks" / "depth_sigma_val_pooled.json").read_text())
     assert stored["split"] == "val" and stored["fit_seed"] != stored["check_seed"]
+    assert stored["check_seed"] not in (missed["check_seed"], first["check_seed"])  # a fresh check set
     assert stored["model_fingerprint"] == model_fingerprint(DEFAULT_MODEL)  # chosen for the decode that ships
     assert stored["edge_bands_px"] == list(EDGE_BANDS_PX)
+    assert stored["motion_classes"] == {"classes": list(MOTION_CLASSES), "trained_span_deg": TRAINED_SPAN_DEG}
     assert (stored["check_bound_beyond_2sigma"], stored["check_min_points"]) == (CHECK_BEYOND_2, CHECK_MIN_POINTS)
-    assert choose(stored["fit_raw"]) == tuple(stored["scales"]) == DEPTH_SIGMA_SCALES
-    # the check, recomputed from the raw table's grid (not from the json's verdict or its scaled table) ...
-    rechecked = recheck(stored["check_raw"], DEPTH_SIGMA_SCALES)
+    chosen = choose(stored["fit_raw"])
+    assert chosen == {c: tuple(v) for c, v in stored["scales"].items()} == DEPTH_SIGMA_BY_CLASS
+    assert check_scales(chosen) == DEPTH_SIGMA_SCALES
+    rechecked = recheck(stored["check_raw"], chosen)
     assert check(rechecked) == [] and stored["check_passed"]
-    # ... which agrees with the scaled table the run wrote; that table is the raw one divided
-    for kind, cells in stored["check_raw"].items():
-        for (label, raw), scale in zip(cells.items(), DEPTH_SIGMA_SCALES, strict=True):
+    for kind, cells in stored["check_raw"].items():  # the scaled table the run wrote is the raw one divided
+        for (label, raw), scale in zip(cells.items(), chosen[kind], strict=True):
             scaled = stored["check_scaled"][kind][label]
             assert scaled["median"] == pytest.approx(raw["median"] / scale)
-            assert scaled["z_q9545"] == pytest.approx(raw["z_q9545"] / scale)
             assert scaled["needed_scale"] == pytest.approx(raw["needed_scale"] / scale)
             assert scaled["beyond_2sigma"] == pytest.approx(rechecked[kind][label]["beyond_2sigma"], abs=1e-9)
-    # raw, the tail flattered in every moving band (what the rule was for)
-    assert all(c["beyond_2sigma"] > 0.0455 for c in stored["check_raw"]["moving"].values())
+    # raw, every network class flattered in every band (what the rule is for); the faster, the more
+    for cls in ("network", "network_fast", "network_faster"):
+        assert all(c["beyond_2sigma"] > 0.0455 for c in stored["check_raw"][cls].values())
+    assert all(chosen["network_faster"][b] > chosen["network_fast"][b] > chosen["network"][b] for b in range(5))
+    # the second amendment (one fast class) missed its check: recomputed, so "nothing shipped from it" can fail
+    missed_scales = {c: tuple(v) for c, v in missed["scales"].items()}
+    assert choose_classes_of(missed["fit_raw"]) == missed_scales
+    assert check(recheck(missed["check_raw"], missed_scales)) == ["network_fast 8.5-inf px: 6.1% beyond 2 sigma"]
+    # and the first choice (one set for every burst) is session 50's record
+    assert choose_pooled(first["fit_raw"]) == tuple(first["scales"]) == FIRST_CHOICE_SCALES
+
+
+def choose_classes_of(fit: dict) -> dict[str, tuple[float, ...]]:
+    """The per-class choice over whatever classes a stored fit table holds (the second amendment had three)."""
+    from calibrate_depth_sigma import _round_up
+
+    return {c: tuple(_round_up(cell["needed_scale"]) for cell in fit[c].values()) for c in fit}
 
 
 def test_the_inspection_revolution_met_the_shipping_condition_with_these_scales() -> None:
@@ -78,7 +129,7 @@ def test_the_inspection_revolution_met_the_shipping_condition_with_these_scales(
     from gearscan.recon.track import REST_SIGMA_SCALE
 
     run = json.loads((ROOT / "benchmarks" / "inspect_report.json").read_text())
-    assert tuple(run["depth_sigma_scales"]) == DEPTH_SIGMA_SCALES and run["rest_sigma_scale"] == REST_SIGMA_SCALE
+    assert run["depth_sigma_scales"] == DEPTH_SIGMA_SCALES.as_dict() and run["rest_sigma_scale"] == REST_SIGMA_SCALE
     assert run["fused_rms_mm"] <= 0.004 and run["coverage"] >= 0.875
     assert run["chipped"] == run["truth_chipped"]
     assert all(abs(measured - truth) <= 5 + 0.05 * abs(truth) for _, truth, measured, _ in run["rows"])
@@ -95,15 +146,15 @@ def test_the_default_rig_options_own_scales_are_its_val_choice() -> None:
     stored = json.loads((ROOT / "benchmarks" / "depth_sigma_val_default_rig.json").read_text())
     assert stored["model_fingerprint"] == model_fingerprint(weights)
     assert all(s.startswith("data/default_rig/val/") for s in stored["sets"])  # its own rig's val gears only
-    scales = choose(stored["fit_raw"])
+    scales = choose_pooled(stored["fit_raw"])  # the first amendment: one set for every burst of this model
     assert check(recheck(stored["check_raw"], scales)) == [] and stored["check_passed"]
     meta = read_config(weights)
     assert model_depth_sigma_scales(meta) == scales == tuple(stored["scales"])
     assert meta["depth_sigma"]["edge_bands_px"] == list(EDGE_BANDS_PX)
     # and with the product's scales its moving bursts flattered on those gears (why it has its own)
     shipped = json.loads((ROOT / "benchmarks" / "depth_sigma_check_default_rig.json").read_text())
-    assert shipped["scales"] == list(DEPTH_SIGMA_SCALES) and not shipped["check_passed"]
-    assert check(recheck(shipped["check_raw"], DEPTH_SIGMA_SCALES))
+    assert shipped["scales"] == list(FIRST_CHOICE_SCALES) and not shipped["check_passed"]  # the product's then
+    assert check(recheck(shipped["check_raw"], FIRST_CHOICE_SCALES))
 
 
 def test_the_options_revolution_met_the_amendments_shipping_condition_with_its_own_scales() -> None:
@@ -115,7 +166,8 @@ def test_the_options_revolution_met_the_amendments_shipping_condition_with_its_o
 
     own = model_depth_sigma_scales(read_config(ROOT / "inference" / "weights" / "default_rig.safetensors"))
     run = json.loads((ROOT / "benchmarks" / "inspect_default_rig_report.json").read_text())
-    assert tuple(run["depth_sigma_scales"]) == own != DEPTH_SIGMA_SCALES and run["rest_sigma_scale"] == REST_SIGMA_SCALE
+    assert check_scales(run["depth_sigma_scales"]) == check_scales(own) != DEPTH_SIGMA_SCALES  # a flat list before s51
+    assert run["rest_sigma_scale"] == REST_SIGMA_SCALE
     assert run["fused_rms_mm"] <= 0.0045 and run["coverage"] >= 0.867
     assert run["chipped"] == run["truth_chipped"] and run["fp_max_error_um"] <= 5 + 0.05 * 30
     assert all(abs(measured - truth) <= 5 + 0.05 * abs(truth) for _, truth, measured, _ in run["rows"])
