@@ -29,9 +29,9 @@ CHECK_MIN_POINTS = 1000  # smaller cells are reported, not judged
 
 
 def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
-            sets: tuple[str, ...] | None = None) -> dict[tuple[str, int, str], np.ndarray]:
-    """z = |depth error along the ray| / raw sigma per (motion class, band, motion), over the val scenes rendered
-    from ``seed``."""
+            sets: tuple[str, ...] | None = None) -> dict[tuple[str, int, str, str], np.ndarray]:
+    """z = |depth error along the ray| / raw sigma per (motion class, band, motion, val folder), over the val scenes
+    rendered from ``seed`` (scene i from ``seed + i``, in the order of ``sets``)."""
     from gearscan.core.phase import still_result
     from gearscan.core.types import Burst, Frame
     from gearscan.evaluate import (
@@ -47,9 +47,9 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
     from gearscan.recon.measure import Reconstructor
 
     predictor = Predictor.load(model, orientation="normal")  # every twin rig is normal by its geometry
-    scenes = [s for root in (sets or VAL_CLOUD_SETS) for s in scenes_from_dataset(ROOT / root)]
-    zs: dict[tuple[str, int, str], list[np.ndarray]] = {}
-    for i, scene in enumerate(scenes):
+    scenes = [(root, s) for root in (sets or VAL_CLOUD_SETS) for s in scenes_from_dataset(ROOT / root)]
+    zs: dict[tuple[str, int, str, str], list[np.ndarray]] = {}
+    for i, (root, scene) in enumerate(scenes):
         rc = Reconstructor.for_gear(scene.rig, scene.period_px, scene.gear, depth_sigma_scales=NO_SCALES)
         try:
             for case in render_cases(scene, VAL_MOTIONS[motions], per_motion, seed=seed + i):
@@ -71,28 +71,28 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
                 cls = motion_class(burst.angles, result.from_network)
                 ok = np.isfinite(z)
                 for b in np.unique(band):
-                    zs.setdefault((cls, int(b), case.motion), []).append(z[ok & (band == b)])
+                    zs.setdefault((cls, int(b), case.motion, root), []).append(z[ok & (band == b)])
         finally:
             rc.close()
         print(f"seed {seed}: {i + 1}/{len(scenes)} {scene.name}", flush=True)
     return {k: np.concatenate(v) for k, v in zs.items()}
 
 
-def by_cell(zs: dict[tuple[str, int, str], np.ndarray]) -> dict[tuple[str, int], np.ndarray]:
-    """The z of each (class, band) cell, pooled over motions."""
+def by_cell(zs: dict[tuple[str, int, str, str], np.ndarray]) -> dict[tuple[str, int], np.ndarray]:
+    """The z of each (class, band) cell, pooled over motions and val folders."""
     cells: dict[tuple[str, int], list[np.ndarray]] = {}
-    for (cls, b, _), z in zs.items():
+    for (cls, b, *_), z in zs.items():
         cells.setdefault((cls, b), []).append(z)
     return {k: np.concatenate(v) for k, v in cells.items()}
 
 
-def by_motion(zs: dict[tuple[str, int, str], np.ndarray], scales: dict[str, tuple[float, ...]]) -> dict:
+def by_motion(zs: dict[tuple[str, int, str, str], np.ndarray], scales: dict[str, tuple[float, ...]]) -> dict:
     """Per motion, pooled over its bands and classes, with each band's scale: points, median z, share beyond 2 sigma
     (a report of where the tail sits; the check judges cells)."""
     from gearscan.evaluate import z_summary
 
     per: dict[str, list[np.ndarray]] = {}
-    for (cls, b, motion), z in zs.items():
+    for (cls, b, motion, _), z in zs.items():
         per.setdefault(motion, []).append(z / scales[cls][b])
     out = {}
     for motion, parts in per.items():
