@@ -17,6 +17,9 @@ from calibrate_depth_sigma import (  # noqa: E402
     check,
     choose,
     choose_pooled,
+    choose_worst_family,
+    family,
+    family_scales,
     recheck,
 )
 
@@ -54,6 +57,23 @@ def test_each_motion_class_takes_its_own_need_and_every_class_must_have_points()
     thin["network_fast"]["0-1.5 px"] = {"points": 0}
     with pytest.raises(ValueError, match="network_fast.*0-1.5 px"):
         choose(thin)
+
+
+def test_the_worst_family_rules_each_class_and_band_where_it_has_enough_points() -> None:
+    assert [family(r) for r in ("data/repro/val_radial", "data/repro/val_views", "data/default_rig/val/z25")] == [
+        "val_radial", "val_views", "default_rig"]
+    needs = {f"{fam}/{c}": [1.1 + i] * 5 for i, fam in enumerate(("val_radial", "val_views", "default_rig"))
+             for c in MOTION_CLASSES}
+    fit = _table(needs)
+    fit["val_views/network"]["8.5-inf px"]["needed_scale"] = 9.0
+    fit["default_rig/network"]["0-1.5 px"].update(needed_scale=20.0, points=CHECK_MIN_POINTS - 1)  # too few: not counted
+    out = choose_worst_family(fit)
+    assert out["network"] == (2.1, 3.1, 3.1, 3.1, 9.0) and out["three_step"] == (3.1,) * 5  # band 0: default_rig uncounted
+    assert family_scales(fit, out)["val_radial/network"] == out["network"]
+    for kind in [k for k in fit if k.endswith("/network_fast")]:
+        fit[kind]["1.5-2.5 px"]["points"] = 10
+    with pytest.raises(ValueError, match="network_fast.*1.5-2.5 px"):
+        choose_worst_family(fit)
 
 
 def test_the_check_reads_the_raw_grid_at_each_bands_scale() -> None:
