@@ -36,10 +36,10 @@ _CHUNK = 200_000  # points per vectorised block (bounds the temporary arrays to 
 # benchmarks/rest_sigma_rule.md; scripts/calibrate_rest_sigma.py -> benchmarks/rest_sigma_val.json): 3.5 from session
 # 34 to 49; 1.5 since session 50, whose reruns scaled the bursts' sigma by edge band (recon.depth_sigma, the
 # default-rig option by its own scales) and amended the rule to judge the tail too
-# (benchmarks/rest_sigma_val_before_depth_sigma.json is the run that chose 3.5); 2.0 since session 51, whose rerun
-# read the bursts' depth sigma scaled per motion class (the network class's scales are below session 50's pooled ones;
-# benchmarks/rest_sigma_val_pooled_depth_scales.json is the run that chose 1.5)
-REST_SIGMA_SCALE = 2.0
+# (benchmarks/rest_sigma_val_before_depth_sigma.json is the run that chose 3.5); session 51's reruns with the depth
+# sigma per motion class: 2.0 with the depth rule's third amendment (rest_sigma_val_amend3_depth_scales.json), 1.5
+# again with its fifth, which ships (rest_sigma_val.json; session 50's run: rest_sigma_val_pooled_depth_scales.json)
+REST_SIGMA_SCALE = 1.5
 # a fitted point carries this many times its fit's standard error along the ray (>= 1): measured along the ray the
 # unscaled error put 5-8 % of the fitted points beyond 2 sigma on val stretches (a Gaussian: 4.6 %). Val calibration
 # (session 49): benchmarks/fit_sigma_rule.md, scripts/calibrate_fit_sigma.py -> benchmarks/fit_sigma_val.json
