@@ -7,7 +7,7 @@ pixel (ECE 0.02-0.06), yet the depth error's tail is heavier than that sigma say
 ``benchmarks/depth_sigma_rule.md`` (``scripts/calibrate_depth_sigma.py`` -> ``benchmarks/depth_sigma_val.json``).
 The edge is the burst's own kept cloud's (its pixels without a point), as a user sees it.
 
-The scales differ by the burst's motion class (:func:`motion_class`, the rule's third to fifth amendments): three-step
+The scales differ by the burst's motion class (:func:`motion_class`, the rule's second to fifth amendments): three-step
 PS (a still burst, by the encoder or the frames' gate) carries its own measured noise; the network on a burst spanning
 more than it was trained on (:data:`TRAINED_SPAN_DEG`) needs more, the more the farther (session 50's test: 6.8-9.3 %
 beyond 2 sigma at 2 deg/frame with one pooled set). Each class's scale per band is the largest that any val family
@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import numpy as np
 
@@ -31,12 +32,12 @@ EDGE_BANDS_PX: tuple[float, ...] = (1.5, 2.5, 4.5, 8.5)
 # twin's radial and any-view rigs and the default rig; benchmarks/depth_sigma_val.json, fit seed set 2000, 5 bursts per
 # motion, passed its check on seed set 2800 in every family). Session 50's one set for every burst:
 # FIRST_CHOICE_SCALES.
-DEPTH_SIGMA_BY_CLASS: dict[str, tuple[float, ...]] = {
+DEPTH_SIGMA_BY_CLASS: Mapping[str, tuple[float, ...]] = MappingProxyType({
     "three_step": (4.15, 3.25, 1.75, 1.65, 1.6),
     "network": (3.6, 2.5, 2.0, 1.7, 1.65),
     "network_fast": (7.25, 4.85, 3.35, 2.15, 2.15),
     "network_faster": (8.95, 6.4, 4.75, 3.35, 2.4),
-}
+})
 FIRST_CHOICE_SCALES: tuple[float, ...] = (4.95, 3.55, 2.6, 1.85, 1.4)  # benchmarks/depth_sigma_val_pooled.json
 NO_SCALES: tuple[float, ...] = (1.0,) * (len(EDGE_BANDS_PX) + 1)  # the raw propagated sigma (calibration runs)
 # the network's training bursts span at most 1.7 deg from the first frame to the last (18 poses 0.1 deg apart,
@@ -68,7 +69,7 @@ class DepthSigmaScales:
     @classmethod
     def uniform(cls, scales: Sequence[float]) -> DepthSigmaScales:
         """The same scales for every class (a model's own scales chosen before the classes, the raw sigma)."""
-        return cls({c: tuple(scales) for c in MOTION_CLASSES})
+        return cls(MappingProxyType({c: tuple(scales) for c in MOTION_CLASSES}))
 
     def for_burst(self, angles: Sequence[float], from_network: bool) -> tuple[float, ...]:
         return self.by_class[motion_class(angles, from_network)]
@@ -138,7 +139,7 @@ def check_scales(scales: DepthSigmaScales | Mapping[str, Sequence[float]] | Sequ
         if set(scales) != set(MOTION_CLASSES):
             raise ValueError(f"depth sigma scales: expected one entry per motion class {MOTION_CLASSES}, "
                              f"got {sorted(scales)}")
-        return DepthSigmaScales({c: _check_band_scales(scales[c], f" ({c})") for c in MOTION_CLASSES})
+        return DepthSigmaScales(MappingProxyType({c: _check_band_scales(scales[c], f" ({c})") for c in MOTION_CLASSES}))
     if isinstance(scales, str):
         raise ValueError(f"depth sigma scales: expected factors, got {scales!r}")
     return DepthSigmaScales.uniform(_check_band_scales(scales, ""))

@@ -3,12 +3,12 @@
     python scripts/calibrate_depth_sigma.py [--out benchmarks/depth_sigma_val.json] [--fit-seed 2000] [--check-seed 2800] [--per-motion 5]
 
 The val scenes of the reconstruction's per-burst choices (``evaluate.VAL_CLOUD_SETS``), one burst per motion of
-``VAL_MOTIONS["wide"]``, decoded as the app decodes them (a burst spanning less than the decoder's still span by
+``VAL_MOTIONS["wide"]`` (``--per-motion``: 5 since the fifth amendment), decoded as the app decodes them (a burst spanning less than the decoder's still span by
 three-step PS, the rest by the shipped network, deterministic, the twin rigs' orientation, its still-burst gate on)
 through the product's reconstructor with the raw propagated sigma (all scales 1). Per point |depth error along its
 ray| / sigma (``evaluate.depth_z``), its band, its burst's motion class (``recon.depth_sigma.motion_class``) and its
 val family (the twin's radial set, its any-view set, the default rig's gears). Per class and band the scale is the
-largest need of the families (the rule's fourth amendment). The scales come from the fit seed set, the check from the
+largest need of the families (the rule's fourth and fifth amendments). The scales come from the fit seed set, the check from the
 other (every family's cell judged); z scales as 1 / s, so both read one raw pass each.
 Writes the choice and both tables (and the check per motion) to ``--out``.
 """
@@ -287,8 +287,9 @@ def main() -> None:
     if args.check_model is not None:  # the shipped scales on another model's bursts: a report, no choice
         sets = tuple(args.sets.split(",")) if args.sets else None
         check_z = collect(args.check_seed, args.motions, args.per_motion, args.check_model, sets)
-        check_raw = table(by_cell(check_z), at=shipped)
-        misses = check(recheck(check_raw, shipped))
+        check_kinds = family_scales(table(by_family_cell(check_z)), shipped)  # judged per family, as the rule does
+        check_raw = table(by_family_cell(check_z), at=check_kinds)
+        misses = check(recheck(check_raw, check_kinds))
         out = {"split": "val", "rule": "benchmarks/depth_sigma_rule.md (its check, on another model; chooses nothing)",
                "commit": commit(), "host": host(), "model": str(args.check_model),
                "model_fingerprint": model_fingerprint(args.check_model), "sets": list(sets or VAL_CLOUD_SETS),
@@ -296,7 +297,7 @@ def main() -> None:
                "per_motion": args.per_motion, "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX),
                "scales": DEPTH_SIGMA_SCALES.as_dict(), "check_bound_beyond_2sigma": CHECK_BEYOND_2,
                "check_min_points": CHECK_MIN_POINTS, "check_passed": not misses, "check_misses": misses,
-               "check_raw": check_raw, "check_scaled": table(by_cell(check_z), shipped),
+               "check_raw": check_raw, "check_scaled": table(by_family_cell(check_z), check_kinds),
                "check_by_motion": by_motion(check_z, shipped)}
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(out, indent=1) + "\n")

@@ -118,6 +118,9 @@ def main() -> None:
             scale = float(c)
             break
     done["scan"], done["scale"] = rows, scale
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
+
+    done["depth_sigma_scales"] = DEPTH_SIGMA_SCALES.as_dict()  # the product's, which its v9 cells read (the option its own)
     # said apart: a scale that passes because no unfitted point is left drops them all, it does not calibrate them
     done["scale_keeps_no_unfitted_point"] = bool(rows) and all(p["median_z"] is None for p in rows[-1]["cells"])
     args.out.write_text(json.dumps(done, indent=1))

@@ -247,6 +247,9 @@ def test_the_shipped_support_tests_are_the_val_choices():
 
     rest = json.loads((bench / "rest_sigma_val.json").read_text())
     assert rest["shipped_sha256"] == shipped and rest["scale"] == REST_SIGMA_SCALE
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
+
+    assert rest["depth_sigma_scales"] == DEPTH_SIGMA_SCALES.as_dict()  # ... with the depth sigma it multiplies
     # and the keep bound with the pixels the unwrapper sees (benchmarks/keep_bound_rule.md)
     from gearscan.config import ReconSection
     from gearscan.recon.measure import (

@@ -493,7 +493,7 @@ class RerunLogger:
             if self.cloud_color == "deviation" and cloud.deviation is not None:
                 colors = colorize(cloud.deviation, -0.1, 0.1, "coolwarm")  # mm, signed distance to CAD
             else:  # depth sigma on a log scale between its 1st and 99th percentile: it spans factors (the edge
-                # band's scale alone is 3.5x the interior's, recon.depth_sigma), and a linear stretch would paint the
+                # band's scale alone is 2-4x the interior's, recon.depth_sigma), and a linear stretch would paint the
                 # interior one colour
                 log_sigma = np.log(np.maximum(cloud.sigma, 1e-9))
                 lo, hi = np.percentile(log_sigma, [1, 99])

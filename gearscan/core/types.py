@@ -155,7 +155,8 @@ class Cloud:
 
     ``points`` is ``(N, 3)`` float64 in the frame named by ``frame`` ("camera" or
     "world" = turntable); ``sigma`` is the depth uncertainty in mm (a burst's: the phase sigma propagated and
-    scaled by edge band, ``recon.depth_sigma``, so that about 95 % of points lie within 2 sigma on val);
+    scaled by edge band and motion class, ``recon.depth_sigma``, so that about 95 % of points lie within 2 sigma on
+    val);
     ``pixels`` holds the ``(row, col)`` each point came from.
     """
 
