@@ -183,6 +183,13 @@ def test_the_default_rig_options_own_scales_are_its_val_choice() -> None:
     meta = read_config(weights)
     assert model_depth_sigma_scales(meta) == scales == tuple(stored["scales"])
     assert meta["depth_sigma"]["edge_bands_px"] == list(EDGE_BANDS_PX)
+    # the sixth amendment (per class, the fifth form) missed its check on those gears: recomputed, nothing written
+    classes = json.loads((ROOT / "benchmarks" / "depth_sigma_val_default_rig_classes.json").read_text())
+    assert classes["model_fingerprint"] == model_fingerprint(weights) and "written" not in classes
+    per_class = choose_worst_family(classes["fit_raw"])
+    assert per_class == {c: tuple(v) for c, v in classes["scales"].items()} and not classes["check_passed"]
+    assert check(recheck(classes["check_raw"], family_scales(classes["check_raw"], per_class))) == [
+        "default_rig/network_fast 1.5-2.5 px: 5.6% beyond 2 sigma", "default_rig/network_fast 2.5-4.5 px: 6.1% beyond 2 sigma"]
     # and with the product's scales its moving bursts flattered on those gears (why it has its own)
     shipped = json.loads((ROOT / "benchmarks" / "depth_sigma_check_default_rig.json").read_text())
     assert shipped["scales"] == list(FIRST_CHOICE_SCALES) and not shipped["check_passed"]  # the product's then
