@@ -347,6 +347,13 @@ def replay_cmd(
             web.close()
     for k, v in result.summary().items():
         typer.echo(f"{k}: {v:.4f}" if isinstance(v, float) else f"{k}: {v}")
+    if uncalibrated := (result.recon or {}).get("bursts_sigma_uncalibrated", 0):
+        from gearscan.recon.depth_sigma import CALIBRATED_SPAN_DEG
+
+        typer.secho(f"sigma: {uncalibrated} burst(s) spanned more than the depth sigma was calibrated for "
+                    f"({CALIBRATED_SPAN_DEG:g} deg from frame 1 to 3, recon.depth_sigma); their points' sigma is not a "
+                    "measured k = 2 bound",
+                    fg=typer.colors.YELLOW)
     damage = result.damage.get("count", 0)
     if damage:
         kinds = ", ".join(f"{k} {n}" for k, n in result.damage["by_kind"].items())

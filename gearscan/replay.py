@@ -407,6 +407,8 @@ def replay(
     metrics.damage = reader.damage_summary()
     if isinstance(decoder, Decoder):
         metrics.decoder = decoder.summary()
+    if recon is not None:  # network bursts whose span no val run calibrated the depth sigma for
+        metrics.recon["bursts_sigma_uncalibrated"] = recon.uncalibrated_bursts
     if metrics_path:
         Path(metrics_path).write_text(json.dumps(metrics.to_json(), indent=2))
     return metrics

@@ -44,7 +44,21 @@ NO_SCALES: tuple[float, ...] = (1.0,) * (len(EDGE_BANDS_PX) + 1)  # the raw prop
 # twin.dataset); a burst that spans more is beyond what it learnt, and its error grows with the span (val, the rule's
 # second amendment): up to twice that span is one class, more another
 TRAINED_SPAN_DEG = 1.75
+# the widest span the rule's val motions hold (2+3 deg/frame): a network burst spanning more carries network_faster's
+# scales, which no val run measured there (the reconstructor counts such bursts and warns)
+CALIBRATED_SPAN_DEG = 5.0
 MOTION_CLASSES: tuple[str, ...] = ("three_step", "network", "network_fast", "network_faster")
+
+
+def span_deg(angles: Sequence[float]) -> float:
+    """How far (deg) the turntable turned from a burst's first frame to its last (encoder angles in rad)."""
+    return abs(math.degrees(float(angles[-1]) - float(angles[0])))
+
+
+def sigma_calibrated(angles: Sequence[float], from_network: bool) -> bool:
+    """Whether a burst's depth-sigma scales were measured for bursts like it: three-step PS, or the network within
+    :data:`CALIBRATED_SPAN_DEG`."""
+    return not from_network or span_deg(angles) <= CALIBRATED_SPAN_DEG + 1e-9
 
 
 def motion_class(angles: Sequence[float], from_network: bool) -> str:
@@ -54,7 +68,7 @@ def motion_class(angles: Sequence[float], from_network: bool) -> str:
     ``network_faster`` (more)."""
     if not from_network:
         return "three_step"
-    span = abs(math.degrees(float(angles[-1]) - float(angles[0])))
+    span = span_deg(angles)
     if span <= TRAINED_SPAN_DEG:
         return "network"
     return "network_fast" if span <= 2 * TRAINED_SPAN_DEG else "network_faster"

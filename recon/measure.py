@@ -8,6 +8,7 @@ frame at that angle.
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Protocol
 
@@ -16,11 +17,16 @@ import numpy as np
 from gearscan.core.rig import Rig
 from gearscan.core.types import Burst, Measurement, PhaseResult
 from gearscan.recon.depth_sigma import (
+    CALIBRATED_SPAN_DEG,
     DEPTH_SIGMA_SCALES,
     DepthSigmaScales,
     check_scales,
     scale_depth_sigma,
+    sigma_calibrated,
+    span_deg,
 )
+
+logger = logging.getLogger(__name__)
 
 UNWRAP_MODES = ("cad", "envelope", "coarse")
 # The product's fringe-support tests, for a model whose JSON names none (each shipped model carries its own,
@@ -222,6 +228,7 @@ class Reconstructor:
         self.mixed_border_px = mixed_border_px
         self.network_support_px = network_support_px
         self.depth_sigma_scales = check_scales(DEPTH_SIGMA_SCALES if depth_sigma_scales is None else depth_sigma_scales)
+        self.uncalibrated_bursts = 0  # network bursts spanning beyond CALIBRATED_SPAN_DEG: their sigma is unmeasured
 
     @classmethod
     def for_gear(cls, rig: Rig, period_px: float, gear, **kw) -> Reconstructor:
@@ -312,6 +319,13 @@ class Reconstructor:
             tri = Triangulation(points=tri.points, depth=tri.depth, sigma_depth=tri.sigma_depth, valid=keep)
         # the depth sigma by distance to the edge of this burst's cloud, for its motion class (recon/depth_sigma.py)
         scales = self.depth_sigma_scales.for_burst(burst.angles, result.from_network)
+        if not sigma_calibrated(burst.angles, result.from_network):
+            self.uncalibrated_bursts += 1
+            if self.uncalibrated_bursts == 1:
+                logger.warning("burst %d spans %.2f deg (frame 1 to 3): the depth sigma's scales were calibrated on val "
+                               "up to %.1f deg (recon.depth_sigma); its points' sigma beyond that is not measured "
+                               "(later such bursts are counted, not logged)", burst.index,
+                               span_deg(burst.angles), CALIBRATED_SPAN_DEG)
         tri = Triangulation(points=tri.points, depth=tri.depth,
                             sigma_depth=scale_depth_sigma(tri.sigma_depth, tri.valid, scales), valid=tri.valid)
         stats = {

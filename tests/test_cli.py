@@ -243,3 +243,21 @@ def test_replay_with_the_frame_fit_gets_the_frame_fit_paths_support_test(twin_re
             runner.invoke(app, ["replay", str(twin_recording), "--save", str(tmp_path / "x.rrd"), *extra],
                           catch_exceptions=False)
         assert replay_spy.calls[-1]["network_support_px"] == expected, extra
+
+
+def test_replay_says_when_bursts_span_beyond_the_calibrated_sigma(tmp_path):
+    """3 deg/frame (6 deg from frame 1 to 3) is beyond the depth sigma's val calibration (5 deg): the network's bursts
+    are counted in the metrics and replay says so; three-step PS's are not (its sigma class is calibrated)."""
+    rec = tmp_path / "fast"
+    res = runner.invoke(app, ["twin", "render", str(rec), "--bursts", "2", "--width", "64", "--height", "64",
+                              "--motion", "uniform:3"])
+    assert res.exit_code == 0, res.output
+    metrics = tmp_path / "m.json"
+    res = runner.invoke(app, ["replay", str(rec), "--no-truth", "--metrics", str(metrics)])
+    assert res.exit_code == 0, res.output
+    assert json.loads(metrics.read_text())["recon"]["bursts_sigma_uncalibrated"] == 2
+    assert "2 burst(s) spanned more than the depth sigma was calibrated for (5 deg" in res.output
+    res = runner.invoke(app, ["replay", str(rec), "--no-truth", "--classical", "--metrics", str(metrics)])
+    assert res.exit_code == 0, res.output
+    assert json.loads(metrics.read_text())["recon"]["bursts_sigma_uncalibrated"] == 0
+    assert "spanned more than" not in res.output

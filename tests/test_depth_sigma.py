@@ -182,3 +182,30 @@ def test_replay_reconstructs_with_the_decoding_models_scales(tmp_path) -> None:
     assert mine.recon["depth_sigma_scales"] == {c: [2.0] * 5 for c in MOTION_CLASSES}
     classical = replay(rec, decoder=Decoder(classical=True), truth=False)
     assert classical.recon["depth_sigma_scales"] == DEPTH_SIGMA_SCALES.as_dict()
+
+
+def test_bursts_spanning_beyond_the_calibrated_span_are_counted_and_warned(clean_renderer, gear, caplog) -> None:
+    """A network burst spanning more than CALIBRATED_SPAN_DEG gets network_faster's scales, which no val run measured
+    there: the reconstructor counts it and warns once; three-step PS and the network within the span are not counted."""
+    import logging
+    from dataclasses import replace
+
+    from gearscan.recon.depth_sigma import CALIBRATED_SPAN_DEG, sigma_calibrated
+
+    angle = math.radians(3.0)
+    frames, _ = clean_renderer.render(angle, PatternSet.three_step(PERIOD))
+    rc = Reconstructor.for_gear(clean_renderer.rig, PERIOD, gear, network_support_px=None)
+
+    def burst(span_deg: float) -> Burst:
+        return Burst(tuple(Frame(f, i, 1000 * i, i) for i, f in enumerate(frames)),
+                     (angle, angle + math.radians(span_deg / 2), angle + math.radians(span_deg)))
+
+    with caplog.at_level(logging.WARNING, logger="gearscan.recon.measure"):
+        for span, net in ((CALIBRATED_SPAN_DEG, True), (7.0, False), (6.0, True), (-8.0, True)):
+            b = burst(span)
+            result = classical_result(b)
+            rc(b, replace(result, mode="deterministic") if net else result)
+    assert rc.uncalibrated_bursts == 2
+    assert len([r for r in caplog.records if "calibrated on val" in r.getMessage()]) == 1  # once, then counted
+    assert sigma_calibrated((0.0, 0.0, math.radians(CALIBRATED_SPAN_DEG)), True)
+    assert not sigma_calibrated((0.0, 0.0, math.radians(5.1)), True) and sigma_calibrated((0.0, 0.0, 1.0), False)
