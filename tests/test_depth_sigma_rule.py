@@ -190,6 +190,14 @@ def test_the_default_rig_options_own_scales_are_its_val_choice() -> None:
     assert per_class == {c: tuple(v) for c, v in classes["scales"].items()} and not classes["check_passed"]
     assert check(recheck(classes["check_raw"], family_scales(classes["check_raw"], per_class))) == [
         "default_rig/network_fast 1.5-2.5 px: 5.6% beyond 2 sigma", "default_rig/network_fast 2.5-4.5 px: 6.1% beyond 2 sigma"]
+    # ... and the seventh (10 bursts per motion) missed too: recomputed, nothing written
+    tenfold = json.loads((ROOT / "benchmarks" / "depth_sigma_val_default_rig_classes10.json").read_text())
+    assert tenfold["per_motion"] == 10 and tenfold["check_seed"] not in (classes["check_seed"], classes["fit_seed"])
+    assert "written" not in tenfold and not tenfold["check_passed"]
+    ten = choose_worst_family(tenfold["fit_raw"])
+    assert ten == {c: tuple(v) for c, v in tenfold["scales"].items()}
+    assert check(recheck(tenfold["check_raw"], family_scales(tenfold["check_raw"], ten))) == [
+        "default_rig/network_faster 8.5-inf px: 5.9% beyond 2 sigma"]
     # and with the product's scales its moving bursts flattered on those gears (why it has its own)
     shipped = json.loads((ROOT / "benchmarks" / "depth_sigma_check_default_rig.json").read_text())
     assert shipped["scales"] == list(FIRST_CHOICE_SCALES) and not shipped["check_passed"]  # the product's then
