@@ -37,11 +37,13 @@ def main() -> None:
     from inspect_bench import commit, host
 
     from gearscan.inference.decoder import Decoder
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
     from gearscan.recon.track import REST_SIGMA_SCALE, TrackRefiner
 
     decoder = Decoder(None)
     out = {"split": "val", "look": "chooses nothing; sizes the rest-sigma rule's next rerun", "commit": commit(),
-           "host": host(), "shipped_rest_sigma_scale": REST_SIGMA_SCALE, "bursts": args.bursts, "cells": []}
+           "host": host(), "shipped_rest_sigma_scale": REST_SIGMA_SCALE,
+           "depth_sigma_scales": DEPTH_SIGMA_SCALES.as_dict(), "bursts": args.bursts, "cells": []}
     arrays = []
     for s in STRETCHES:
         for alternate in (True, False):
