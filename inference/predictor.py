@@ -637,8 +637,8 @@ def model_depth_sigma_scales(meta: dict) -> tuple[float, ...] | dict[str, tuple[
                                                    and math.isfinite(x) and x >= 1 for x in xs))
         return tuple(float(x) for x in xs) if ok else None
 
-    if factors(scales) is not None:
-        return factors(scales)
+    if (flat := factors(scales)) is not None:
+        return flat
     if isinstance(scales, dict) and scales and all(factors(v) is not None for v in scales.values()):
         return {str(k): factors(v) for k, v in scales.items()}
     raise ModelFileError(f"{DEPTH_SIGMA_KEY}: expected {{'scales': [factors >= 1, nearest the edge first] or "

@@ -80,12 +80,7 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
     return {k: np.concatenate(v) for k, v in zs.items()}
 
 
-def by_cell(zs: dict[tuple[str, int, str, str], np.ndarray]) -> dict[tuple[str, int], np.ndarray]:
-    """The z of each (class, band) cell, pooled over motions and val folders."""
-    cells: dict[tuple[str, int], list[np.ndarray]] = {}
-    for (cls, b, *_), z in zs.items():
-        cells.setdefault((cls, b), []).append(z)
-    return {k: np.concatenate(v) for k, v in cells.items()}
+Zs = dict[tuple[str, int, str, str], np.ndarray]  # (motion class, band, motion, val folder) -> z
 
 
 def family(root: str) -> str:
@@ -93,12 +88,22 @@ def family(root: str) -> str:
     return "default_rig" if root.startswith("data/default_rig/") else root.rstrip("/").split("/")[-1]
 
 
-def by_family_cell(zs: dict[tuple[str, int, str, str], np.ndarray]) -> dict[tuple[str, int], np.ndarray]:
+def _pool(zs: Zs, key) -> dict:
+    """The z of ``zs`` pooled by ``key(cls, band, motion, root)``."""
+    groups: dict = {}
+    for k, z in zs.items():
+        groups.setdefault(key(*k), []).append(z)
+    return {k: np.concatenate(v) for k, v in groups.items()}
+
+
+def by_cell(zs: Zs) -> dict[tuple[str, int], np.ndarray]:
+    """The z of each (class, band) cell, pooled over motions and val folders."""
+    return _pool(zs, lambda cls, b, motion, root: (cls, b))
+
+
+def by_family_cell(zs: Zs) -> dict[tuple[str, int], np.ndarray]:
     """The z of each (family/class, band) cell, pooled over motions and the family's folders."""
-    cells: dict[tuple[str, int], list[np.ndarray]] = {}
-    for (cls, b, _, root), z in zs.items():
-        cells.setdefault((f"{family(root)}/{cls}", b), []).append(z)
-    return {k: np.concatenate(v) for k, v in cells.items()}
+    return _pool(zs, lambda cls, b, motion, root: (f"{family(root)}/{cls}", b))
 
 
 def family_scales(table_: dict, chosen: dict[str, tuple[float, ...]]) -> dict[str, tuple[float, ...]]:
@@ -106,34 +111,29 @@ def family_scales(table_: dict, chosen: dict[str, tuple[float, ...]]) -> dict[st
     return {kind: chosen[kind.split("/", 1)[1]] for kind in table_}
 
 
-def by_family_motion(zs: dict[tuple[str, int, str, str], np.ndarray], scales: dict[str, tuple[float, ...]]) -> dict:
-    """Per family and motion, pooled over bands and classes, with each band's scale (a report; judged by nothing)."""
+def _shares(zs: Zs, scales: dict[str, tuple[float, ...]], key) -> dict:
+    """Points, median z and share beyond 2 sigma per ``key(cls, band, motion, root)``, each z divided by its class's
+    band scale (a report of where the tail sits; the check judges cells)."""
     from gearscan.evaluate import z_summary
 
-    per: dict[tuple[str, str], list[np.ndarray]] = {}
-    for (cls, b, motion, root), z in zs.items():
-        per.setdefault((family(root), motion), []).append(z / scales[cls][b])
-    out: dict = {}
-    for (fam, motion), parts in sorted(per.items()):
-        s = z_summary(np.concatenate(parts))
-        out.setdefault(fam, {})[motion] = {"points": int(sum(p.size for p in parts)), "median": s["median_z"],
-                                           "beyond_2sigma": s["beyond_2sigma"]}
+    scaled = {k: z / scales[k[0]][k[1]] for k, z in zs.items()}
+    out = {}
+    for k, z in sorted(_pool(scaled, key).items()):
+        s = z_summary(z)
+        out[k] = {"points": int(z.size), "median": s["median_z"], "beyond_2sigma": s["beyond_2sigma"]}
     return out
 
 
-def by_motion(zs: dict[tuple[str, int, str, str], np.ndarray], scales: dict[str, tuple[float, ...]]) -> dict:
-    """Per motion, pooled over its bands and classes, with each band's scale: points, median z, share beyond 2 sigma
-    (a report of where the tail sits; the check judges cells)."""
-    from gearscan.evaluate import z_summary
+def by_motion(zs: Zs, scales: dict[str, tuple[float, ...]]) -> dict:
+    """Per motion, pooled over its bands, classes and folders, with each band's scale."""
+    return _shares(zs, scales, lambda cls, b, motion, root: motion)
 
-    per: dict[str, list[np.ndarray]] = {}
-    for (cls, b, motion, _), z in zs.items():
-        per.setdefault(motion, []).append(z / scales[cls][b])
-    out = {}
-    for motion, parts in per.items():
-        s = z_summary(np.concatenate(parts))
-        out[motion] = {"points": int(sum(p.size for p in parts)), "median": s["median_z"],
-                       "beyond_2sigma": s["beyond_2sigma"]}
+
+def by_family_motion(zs: Zs, scales: dict[str, tuple[float, ...]]) -> dict:
+    """Per family and motion, pooled over bands and classes, with each band's scale (a report; judged by nothing)."""
+    out: dict = {}
+    for (fam, motion), cell in _shares(zs, scales, lambda cls, b, motion, root: (family(root), motion)).items():
+        out.setdefault(fam, {})[motion] = cell
     return out
 
 
@@ -192,13 +192,14 @@ def choose_pooled(fit: dict) -> tuple[float, ...]:
     return tuple(_round_up(max(fit[k][label].get("needed_scale", 1.0) for k in fit)) for label in band_labels())
 
 
-def choose(fit: dict) -> dict[str, tuple[float, ...]]:
-    """The second amendment: per motion class and band, that class's need on the fit set, rounded up to 0.05, at
-    least 1. Every class must have points in every band (else a ValueError: the rule cannot choose for it)."""
+def choose(fit: dict, classes: tuple[str, ...] | None = None) -> dict[str, tuple[float, ...]]:
+    """The second and third amendments: per motion class and band, that class's need on the fit set, rounded up to
+    0.05, at least 1. ``classes``: those to choose for (default ``MOTION_CLASSES``; the second amendment had three).
+    Every class must have points in every band (else a ValueError: the rule cannot choose for it)."""
     from gearscan.recon.depth_sigma import MOTION_CLASSES, band_labels
 
     out = {}
-    for cls in MOTION_CLASSES:
+    for cls in classes or MOTION_CLASSES:
         cells = fit.get(cls, {})
         missing = [label for label in band_labels() if not cells.get(label, {}).get("points")]
         if missing:

@@ -137,7 +137,7 @@ def test_the_stored_val_run_recomputes_its_choice_and_the_product_ships_it() -> 
     assert choose_pooled(first["fit_raw"]) == tuple(first["scales"]) == FIRST_CHOICE_SCALES
     missed = earlier["amend2_missed"]  # one fast class: missed its check, nothing shipped
     missed_scales = {c: tuple(v) for c, v in missed["scales"].items()}
-    assert choose_classes_of(missed["fit_raw"]) == missed_scales
+    assert choose(missed["fit_raw"], classes=tuple(missed["fit_raw"])) == missed_scales
     assert check(recheck(missed["check_raw"], missed_scales)) == ["network_fast 8.5-inf px: 6.1% beyond 2 sigma"]
     third = earlier["amend3"]  # four classes, pooled over families: passed, shipped, replaced by this one
     assert choose(third["fit_raw"]) == {c: tuple(v) for c, v in third["scales"].items()}
@@ -147,13 +147,6 @@ def test_the_stored_val_run_recomputes_its_choice_and_the_product_ships_it() -> 
     assert fourth_scales == {c: tuple(v) for c, v in fourth["scales"].items()}
     assert check(recheck(fourth["check_raw"], family_scales(fourth["check_raw"], fourth_scales))) == [
         "val_radial/network_faster 8.5-inf px: 5.7% beyond 2 sigma", "val_views/network_fast 4.5-8.5 px: 6.2% beyond 2 sigma"]
-
-
-def choose_classes_of(fit: dict) -> dict[str, tuple[float, ...]]:
-    """The per-class choice over whatever classes a stored fit table holds (the second amendment had three)."""
-    from calibrate_depth_sigma import _round_up
-
-    return {c: tuple(_round_up(cell["needed_scale"]) for cell in fit[c].values()) for c in fit}
 
 
 def test_the_inspection_revolution_met_the_shipping_condition_with_these_scales() -> None:
