@@ -12,7 +12,8 @@ departure's RMS over 7x7 px. Each candidate form is fitted by the product's code
 (the event score of the ECE's event) on two families and scored on the third, so each family plays an unseen rig;
 cells are family or view x moving/still. It decides only as ``sigma_map_form_rule.md`` (written before its
 deciding run, seed 2) says; the seed-1 run reported (session 41, with a modulation row since dropped). The two
-local terms (the last form) decide only as ``sigma_map_local_rule.md`` says, on its deciding run (seed 4).
+local terms decide only as ``sigma_map_local_rule.md`` says, on its deciding run (seed 4). In MC mode a last form
+also reads the aleatoric part of the sigma apart; it decides only as ``sigma_map_data_mc_rule.md`` says (seed 8).
 """
 
 from __future__ import annotations
@@ -74,16 +75,18 @@ FORMS = (
     Form(("sigma", "departure", "density"), 0, True),
     Form(("sigma", "departure", "density"), 3, False),
     Form(("sigma", "departure", "density"), 3, True),  # B of sigma_map_form_rule.md, A of sigma_map_local_rule.md
-    Form(FORM_FEATURES["additive-local"], 3, True),  # B of sigma_map_local_rule.md
+    Form(FORM_FEATURES["additive-local"], 3, True),  # B of sigma_map_local_rule.md, A of sigma_map_data_mc_rule.md
+    Form(FORM_FEATURES["additive-local-data"], 3, True),  # B of sigma_map_data_mc_rule.md (MC mode only)
 )
 FORM_RULE = (FORMS[0], FORMS[7])  # sigma_map_form_rule.md: A, B
 LOCAL_RULE = (FORMS[7], FORMS[8])  # sigma_map_local_rule.md: A, B
+DATA_RULE = (FORMS[8], FORMS[9])  # sigma_map_data_mc_rule.md: A, B (MC mode)
 INPUTS = MAP_FEATURES[1:]  # what a map reads besides the sigma
 
 
 def collect(predictor: Predictor, seed: int, items: int, mc: int = 0) -> dict[str, np.ndarray]:
-    """Per truth-mask pixel of the sampled val bursts (:func:`collect_errors`): error, sigma, departure, fringe
-    density, gated, still, family and view."""
+    """Per truth-mask pixel of the sampled val bursts (:func:`collect_errors`): error, sigma, every other map input
+    (departure, fringe density, curvature, local departure, aleatoric sigma), gated, still, family and view."""
     names = list(FAMILIES)
     views = {f: [e["rig"]["name"] for e in json.loads((Path(f) / "index.json").read_text())["entries"]]
              for fs in FAMILIES.values() for f in fs}
@@ -162,6 +165,8 @@ def main() -> None:
     rows = {f"shipped map (fitted on {fitted_on}: not held out there)":
             cell_eces(px, np.where(px["gated"], px["sigma"], shipped(px["sigma"], **inputs(px, slice(None)))))}
     for form in FORMS:
+        if not args.mc and "sigma_data" in form.features:  # the deterministic pass's aleatoric sigma is its total
+            continue
         sigma = np.zeros(px["error"].size)
         for fam in FAMILIES:
             sigma[px["family"] == fam] = fit_held_out(form, px, fam)
@@ -191,8 +196,8 @@ def write(args, rows: dict[str, dict[str, float]], px: dict[str, np.ndarray], ma
     head = "| form (held out by family) | " + " | ".join(cells) + " | worst |"
     lines = [
         f"# Sigma-map forms{', MC mode' if args.mc else ''}, leave one val family out (issue 13, item 7; val only)", "",
-        ("Decides only as `sigma_map_form_mc_rule.md` (its deciding run: seed 3, MC T=20) and "
-         "`sigma_map_local_mc_rule.md` (seed 5) say; other runs report."
+        ("Decides only as `sigma_map_form_mc_rule.md` (its deciding run: seed 3, MC T=20), "
+         "`sigma_map_local_mc_rule.md` (seed 5) and `sigma_map_data_mc_rule.md` (seed 8) say; other runs report."
          if args.mc else
          "Decides only as `sigma_map_form_rule.md` (its deciding run: seed 2) and `sigma_map_local_rule.md` (seed 4) "
          "say; other seeds report."), "",
@@ -211,7 +216,8 @@ def write(args, rows: dict[str, dict[str, float]], px: dict[str, np.ndarray], ma
         lines.append(f"| {name} | " + " | ".join(
             f"**{r[c]:.3f}**" if r[c] > ECE_TARGET else f"{r[c]:.3f}" for c in cells) + f" | {worst:.3f} |")
     lines += ["", "Bold: above the issue's 0.05. Pixels per cell: " + ", ".join(f"{c} {n}" for c, n in pixels.items()) + "."]
-    rules = [(FORM_RULE, "`sigma_map_form_mc_rule.md`", 3), (LOCAL_RULE, "`sigma_map_local_mc_rule.md`", 5)] \
+    rules = [(FORM_RULE, "`sigma_map_form_mc_rule.md`", 3), (LOCAL_RULE, "`sigma_map_local_mc_rule.md`", 5),
+             (DATA_RULE, "`sigma_map_data_mc_rule.md`", 8)] \
         if args.mc else [(FORM_RULE, "`sigma_map_form_rule.md`", 2), (LOCAL_RULE, "`sigma_map_local_rule.md`", 4)]
     data["rule"] = {}
     for rule, name, deciding in rules:

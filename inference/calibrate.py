@@ -40,6 +40,7 @@ from gearscan.inference.uncertainty import (
     FORM_FEATURES,
     MAP_FEATURES,
     MAP_FORMS,
+    MC_ONLY_FORMS,
     SigmaMap,
     departure,
     event_log_score,
@@ -65,7 +66,8 @@ class PixelErrors:
     three-step PS (rad), the pixel's validation family (``folder``), start point and still flag, whether the
     still-burst gate decoded its burst by three-step PS (its sigma is then three-step's own, which the map
     never touches at run time: such pixels are scored, not fitted), the fringe density of the network's
-    phase (rad/px), its curvature (rad/px^2) and the local departure (rad): every feature a sigma map may read."""
+    phase (rad/px), its curvature (rad/px^2), the local departure (rad) and the uncalibrated aleatoric part of
+    the sigma (rad; MC mode: the passes' mean data sigma): every feature a sigma map may read."""
 
     error: np.ndarray
     sigma: np.ndarray
@@ -77,6 +79,7 @@ class PixelErrors:
     density: np.ndarray
     curvature: np.ndarray
     local_departure: np.ndarray
+    sigma_data: np.ndarray
 
     def features(self) -> dict[str, np.ndarray]:
         """The map inputs besides the sigma, as :class:`~gearscan.inference.uncertainty.AdditiveSigmaMap` names them."""
@@ -126,7 +129,8 @@ def collect_errors(
             phase_error(r.phase, item["phase"])[mask].astype(np.float32), r.sigma_total[mask],
             dep[mask], np.full(k, folder, np.int16),
             np.full(k, int(item["group"]), np.int32), np.full(k, still, bool), np.full(k, r.mode == "three-step"),
-            fringe_density(net.phase)[mask], phase_curvature(net.phase)[mask], local_departure(dep)[mask]))
+            fringe_density(net.phase)[mask], phase_curvature(net.phase)[mask], local_departure(dep)[mask],
+            r.sigma_data[mask]))
         if progress:
             progress(n + 1, len(items))
     return PixelErrors.concat(parts)
@@ -252,6 +256,9 @@ def calibrate_model(
         raise ValueError(f"modes: expected some of ('deterministic', 'mc'), got {tuple(modes)}")
     if form is not None and form not in MAP_FORMS:
         raise ValueError(f"form: expected one of {MAP_FORMS} or None (the model's), got {form!r}")
+    if form in MC_ONLY_FORMS and "deterministic" in modes:
+        raise ValueError(f"form {form!r} reads the aleatoric sigma apart, which in the deterministic pass is the "
+                         f"total: MC mode only; expected modes=('mc',), got {tuple(modes)}")
     path = model_path(model)
     if items < 2:
         raise ValueError(f"items: expected >= 2 validation bursts, got {items}")

@@ -559,9 +559,14 @@ def calibrate_uncertainty(
     form: Annotated[
         str | None,
         typer.Option(help="the map's form: power (sigma' = a sigma^b (departure + d0)^c), additive (hinges in log "
-                     "sigma, departure and the network's fringe density) or additive-local (also the phase's "
-                     "curvature and the departure's 7x7 RMS); default: the form of the model's map"),
+                     "sigma, departure and the network's fringe density), additive-local (also the phase's "
+                     "curvature and the departure's 7x7 RMS) or additive-local-data (also the aleatoric part of "
+                     "the sigma apart: MC mode only, with --modes mc); default: the form of the model's map"),
     ] = None,
+    modes: Annotated[
+        str,
+        typer.Option(help="which maps to refit, comma-joined: deterministic, mc (the others are kept as stored)"),
+    ] = "deterministic,mc",
 ) -> None:
     """Fit the uncertainty calibration per mode (by the log score of the ECE's event) and store it in the
     model's JSON; prints the ECE before and after on held-out data (each family scored by a map fitted on the
@@ -570,13 +575,15 @@ def calibrate_uncertainty(
     from gearscan.inference.model_io import ModelFileError
     from gearscan.twin.dataset import DatasetError
 
+    mode_list = tuple(m.strip() for m in modes.split(",") if m.strip())
     missing = [repr(f) for v in val for f in v.split(",") if not f.strip() or not Path(f).is_dir()]
     if missing:
         typer.echo(f"error: validation folder(s) {', '.join(missing)}: expected existing twin dataset folders", err=True)
         raise typer.Exit(2)
     try:
         report = calibrate_model(model, val, items=items, mc=mc, seed=seed, output=output,
-                                 progress=lambda s: typer.echo(f"- {s}"), orientation=orientation, form=form)
+                                 progress=lambda s: typer.echo(f"- {s}"), orientation=orientation, form=form,
+                                 modes=mode_list)
     except (ModelFileError, DatasetError, ValueError) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

@@ -242,6 +242,7 @@ class SigmaCalibration:
 
     needs_density = False  # the power law does not read the fringe density
     needs_local = False  # nor the curvature or the local departure
+    needs_sigma_data = False  # nor the aleatoric part apart
 
     @property
     def needs_classical(self) -> bool:
@@ -291,10 +292,13 @@ class SigmaCalibration:
 SIGMA_FLOOR = 1e-6  # rad: the sigma feature's floor before its log
 DENSITY_FLOOR = 0.02  # rad/px: the fringe density's floor before its log
 LOCAL_FLOOR = 0.01  # rad/px^2, rad: the curvature's and the local departure's floor before their logs
-MAP_FEATURES = ("sigma", "departure", "density", "curvature", "local_departure")
-# the additive forms by the features they read (benchmarks/sigma_map_form_rule.md, sigma_map_local_rule.md)
+MAP_FEATURES = ("sigma", "departure", "density", "curvature", "local_departure", "sigma_data")
+# the additive forms by the features they read (benchmarks/sigma_map_form_rule.md, sigma_map_local_rule.md,
+# sigma_map_data_mc_rule.md: the aleatoric part apart, MC mode only)
 FORM_FEATURES = {"additive": ("sigma", "departure", "density"),
-                 "additive-local": ("sigma", "departure", "density", "curvature", "local_departure")}
+                 "additive-local": ("sigma", "departure", "density", "curvature", "local_departure"),
+                 "additive-local-data": ("sigma", "departure", "density", "curvature", "local_departure", "sigma_data")}
+MC_ONLY_FORMS = ("additive-local-data",)  # the deterministic pass's aleatoric sigma is its total: nothing apart
 LOCAL_WINDOW = 7  # px: the local departure's window (benchmarks/sigma_map_local_rule.md)
 LOG_SIGMA_RANGE = (math.log(1e-5), math.log(10.0))  # a mapped sigma stays within 1e-5..10 rad, where hinges extrapolate
 
@@ -335,10 +339,11 @@ def local_departure(departure_map: np.ndarray, window: int = LOCAL_WINDOW) -> np
 
 
 def log_map_feature(name: str, values: np.ndarray) -> np.ndarray:
-    """The additive map's x for feature ``name`` (:data:`MAP_FEATURES`): log sigma, log(departure + 0.01),
-    log(min(density, pi) + 0.02), log(curvature + 0.01), log(local departure + 0.01)."""
+    """The additive map's x for feature ``name`` (:data:`MAP_FEATURES`): log sigma (the total, or the aleatoric part
+    ``sigma_data``), log(departure + 0.01), log(min(density, pi) + 0.02), log(curvature + 0.01), log(local departure +
+    0.01)."""
     v = np.asarray(values, np.float32)
-    if name == "sigma":
+    if name in ("sigma", "sigma_data"):
         return np.log(np.maximum(v, np.float32(SIGMA_FLOOR)))
     if name == "departure":
         return np.log(v + np.float32(DEPARTURE_FLOOR))
@@ -378,7 +383,9 @@ class AdditiveSigmaMap:
     """Map of the total phase sigma, additive in log features: ``log sigma' = intercept + sum of terms``, each a
     piecewise-linear function (:class:`HingeTerm`) of log sigma, log(departure + 0.01) or log(fringe density + 0.02),
     and in form ``"additive-local"`` also log(curvature + 0.01) and log(local departure + 0.01)
-    (:func:`phase_curvature`, :func:`local_departure`; ``benchmarks/sigma_map_local_rule.md``).
+    (:func:`phase_curvature`, :func:`local_departure`; ``benchmarks/sigma_map_local_rule.md``), and in form
+    ``"additive-local-data"`` (MC mode) also the log of the aleatoric part of the sigma (``sigma_data``: the passes'
+    mean data sigma; the total adds their spread; ``benchmarks/sigma_map_data_mc_rule.md``).
 
     Where the power law (:class:`SigmaCalibration`) is one curve for every rig, the hinges let each feature bend and
     the fringe density (:func:`fringe_density`, the network's own phase, no CAD) tells dense fringes, where the
@@ -414,6 +421,11 @@ class AdditiveSigmaMap:
         return self._term("curvature") is not None or self._term("local_departure") is not None
 
     @property
+    def needs_sigma_data(self) -> bool:
+        """The map reads the aleatoric part of the sigma apart (form ``"additive-local-data"``, MC mode)."""
+        return self._term("sigma_data") is not None
+
+    @property
     def needs_classical(self) -> bool:
         """The map reads three-step PS's phase (through the departure or the local departure)."""
         return self.needs_departure or self._term("local_departure") is not None
@@ -424,9 +436,9 @@ class AdditiveSigmaMap:
 
     def log_sigma(self, sigma: np.ndarray, departure: np.ndarray | None = None,
                   density: np.ndarray | None = None, *, curvature: np.ndarray | None = None,
-                  local_departure: np.ndarray | None = None) -> np.ndarray:
+                  local_departure: np.ndarray | None = None, sigma_data: np.ndarray | None = None) -> np.ndarray:
         values = {"sigma": sigma, "departure": departure, "density": density, "curvature": curvature,
-                  "local_departure": local_departure}
+                  "local_departure": local_departure, "sigma_data": sigma_data}
         s = np.asarray(sigma)
         out = np.full(s.shape, np.float32(self.intercept), np.float32)
         for t in self.terms:
@@ -439,17 +451,17 @@ class AdditiveSigmaMap:
 
     def __call__(self, sigma: np.ndarray, departure: np.ndarray | None = None,
                  density: np.ndarray | None = None, *, curvature: np.ndarray | None = None,
-                 local_departure: np.ndarray | None = None) -> np.ndarray:
+                 local_departure: np.ndarray | None = None, sigma_data: np.ndarray | None = None) -> np.ndarray:
         return np.exp(self.log_sigma(sigma, departure, density, curvature=curvature,
-                                     local_departure=local_departure)).astype(np.float32)
+                                     local_departure=local_departure, sigma_data=sigma_data)).astype(np.float32)
 
     def factor(self, sigma_total: np.ndarray, departure: np.ndarray | None = None,
                density: np.ndarray | None = None, *, curvature: np.ndarray | None = None,
-               local_departure: np.ndarray | None = None) -> np.ndarray:
+               local_departure: np.ndarray | None = None, sigma_data: np.ndarray | None = None) -> np.ndarray:
         """``sigma'/sigma`` per pixel (float32)."""
         s = np.maximum(np.asarray(sigma_total, np.float32), np.float32(1e-12))
-        return np.exp(self.log_sigma(s, departure, density, curvature=curvature, local_departure=local_departure)
-                      - np.log(s)).astype(np.float32)
+        return np.exp(self.log_sigma(s, departure, density, curvature=curvature, local_departure=local_departure,
+                                     sigma_data=sigma_data) - np.log(s)).astype(np.float32)
 
     def departure_factor(self, departure: np.ndarray, local_departure: np.ndarray | None = None) -> np.ndarray:
         """``exp`` of the departure's terms (1 without one): the pixel's own and, where the map reads it, the local
@@ -505,6 +517,8 @@ def map_form(cal: SigmaMap | None) -> str:
     term)."""
     if not isinstance(cal, AdditiveSigmaMap):
         return "power"
+    if cal.needs_sigma_data:
+        return "additive-local-data"
     return "additive-local" if cal.needs_local else "additive"
 
 
@@ -547,6 +561,7 @@ def fit_additive_map(
     *,
     curvature: np.ndarray | None = None,
     local_departure: np.ndarray | None = None,
+    sigma_data: np.ndarray | None = None,
     weights: np.ndarray | None = None,
     features: tuple[str, ...] = FORM_FEATURES["additive"],
     knots: int = 3,
@@ -557,15 +572,15 @@ def fit_additive_map(
     """Fit :class:`AdditiveSigmaMap` (``features``, the sigma among them; ``knots`` hinges each at the quantiles of
     the fitted pixels) by the weighted event log score at ``eps`` (the ECE's event); returns it and the metrics as
     :func:`fit_sigma_calibration` does. ``weights`` per pixel (e.g. every val family x kind the same total);
-    ``departure``, ``density``, ``curvature`` and ``local_departure`` may be None where ``features`` leaves them
-    out."""
+    ``departure``, ``density``, ``curvature``, ``local_departure`` and ``sigma_data`` may be None where ``features``
+    leaves them out."""
     from scipy.optimize import minimize
 
     e = np.asarray(error, np.float64).ravel()
     if "sigma" not in features or not set(features) <= set(MAP_FEATURES) or len(set(features)) != len(features):
         raise ValueError(f"features: expected distinct names of {MAP_FEATURES}, the sigma among them, got {features}")
     given = {"sigma": sigma, "departure": departure, "density": density, "curvature": curvature,
-             "local_departure": local_departure}
+             "local_departure": local_departure, "sigma_data": sigma_data}
     cols = {n: v for n, v in given.items() if n in features}
     if any(v is None for v in cols.values()):
         raise ValueError(f"fit_additive_map: features {features} need a map for each")
@@ -714,8 +729,9 @@ def to_phase_result(
     ``var_scale`` multiplies every variance (model and data) before propagation, so the phase
     sigmas scale by ``sqrt(var_scale)`` (the calibration fitted by :func:`fit_variance_scale`);
     ``calibration`` then maps the propagated sigmas (:class:`SigmaCalibration` or :class:`AdditiveSigmaMap`),
-    reading the departure from ``classical_phase`` (three-step PS of the same frames, ``(H, W)``) and the fringe
-    density, curvature and local departure from the phase when it needs them (:func:`map_inputs`).
+    reading the departure from ``classical_phase`` (three-step PS of the same frames, ``(H, W)``), the fringe
+    density, curvature and local departure from the phase (:func:`map_inputs`) and the propagated data sigma
+    when it needs them.
     """
 
     def np_(t: torch.Tensor) -> np.ndarray:
@@ -739,6 +755,8 @@ def to_phase_result(
             inputs = map_inputs(calibration, phase, classical_phase)
         except ValueError as exc:
             raise ValueError(f"to_phase_result: {exc}") from exc
+        if calibration.needs_sigma_data:
+            inputs["sigma_data"] = s_data
         f = calibration.factor(s_total, **inputs)
         s_model, s_data, s_total = s_model * f, s_data * f, s_total * f
         var_M, var_D = var_M * f**2, var_D * f**2

@@ -13,7 +13,7 @@ from gearscan.cli import app
 from gearscan.core.gear import GearSpec
 from gearscan.inference.calibrate import calibrate_model, collect_errors
 from gearscan.inference.model_io import save_model
-from gearscan.inference.models import build_model
+from gearscan.inference.models import build_model, classical_md
 from gearscan.inference.predictor import Predictor
 from gearscan.inference.uncertainty import SigmaCalibration
 from gearscan.twin.dataset import DatasetSpec, TwinBurstDataset, generate_dataset
@@ -95,7 +95,12 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
     res = runner.invoke(app, ["calibrate-uncertainty", f"{val_set},", "--model", str(model_path)])
     assert res.exit_code == 2 and "validation folder(s) '': expected existing" in res.output
     res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--form", "spline"])
-    assert res.exit_code == 2 and "form: expected one of ('power', 'additive', 'additive-local')" in res.output, res.output
+    assert res.exit_code == 2 and "form: expected one of ('power', 'additive', 'additive-local', " \
+        "'additive-local-data')" in res.output, res.output
+    res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--items", "4",
+                              "--form", "additive-local-data"])
+    assert res.exit_code == 2 and "MC mode only; expected modes=('mc',), got ('deterministic', 'mc')" in res.output, \
+        res.output
 
 
 def test_collected_errors_follow_the_burst_gate_as_the_predictor_applies_it(val_set, model_path):
@@ -127,12 +132,14 @@ def test_the_sigma_map_is_fitted_without_the_gated_bursts():
     error = (rng.normal(0, 1, n) * 0.5 * sigma).astype(np.float32)  # the network's sigma is 2x too wide
     dep = np.abs(rng.normal(0, 0.05, n)).astype(np.float32)
     base = PixelErrors(error, sigma, dep, np.zeros(n, np.int16), np.arange(n, dtype=np.int32) % 8, np.zeros(n, bool),
-                       np.zeros(n, bool), np.full(n, 0.3, np.float32), np.full(n, 0.1, np.float32), dep.copy())
+                       np.zeros(n, bool), np.full(n, 0.3, np.float32), np.full(n, 0.1, np.float32), dep.copy(),
+                       sigma.copy())
     # gated pixels: tiny errors with a huge sigma, which would drag a map fitted on them
     g = 2000
     gated = PixelErrors(np.full(g, 1e-3, np.float32), np.full(g, 5.0, np.float32), np.zeros(g, np.float32),
                         np.zeros(g, np.int16), np.arange(g, dtype=np.int32) % 8, np.ones(g, bool), np.ones(g, bool),
-                        np.full(g, 0.3, np.float32), np.full(g, 0.1, np.float32), np.zeros(g, np.float32))
+                        np.full(g, 0.3, np.float32), np.full(g, 0.1, np.float32), np.zeros(g, np.float32),
+                        np.full(g, 5.0, np.float32))
     alone, _ = fit_mode(base, ["val"])
     mixed, report = fit_mode(PixelErrors.concat([base, gated]), ["val"])
     np.testing.assert_allclose(mixed(sigma, dep), alone(sigma, dep), rtol=1e-6)
@@ -158,6 +165,43 @@ def test_a_refit_of_the_mc_map_alone_keeps_the_deterministic_one(val_set, model_
         calibrate_model(out, val_set, items=8, mc=3, modes=("median",))
     with pytest.raises(ValueError, match="nothing to fit"):
         calibrate_model(out, val_set, items=8, mc=0, modes=("mc",))
+
+
+def test_the_data_form_refits_the_mc_map_alone_and_the_predictor_applies_it(val_set, model_path, tmp_path):
+    """``--form additive-local-data --modes mc`` (sigma_map_data_mc_rule.md): the MC map reads the aleatoric sigma
+    apart, the deterministic map is kept, and MC mode's sigma is that map applied to the passes' own data sigma."""
+    from gearscan.inference.uncertainty import FORM_FEATURES, map_form, map_inputs
+
+    out = tmp_path / "cal" / "net.safetensors"
+    calibrate_model(model_path, val_set, items=8, mc=3, output=out, form="additive-local")
+    before = json.loads(out.with_suffix(".json").read_text())
+    res = CliRunner().invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(out), "--items", "8",
+                                   "--mc", "3", "--form", "additive-local-data", "--modes", "mc"])
+    assert res.exit_code == 0, res.output
+    assert "mc: additive map in log sigma (3 knots)" in res.output and "sigma_data (3 knots)" in res.output
+    assert "deterministic:" not in res.output
+    after = json.loads(out.with_suffix(".json").read_text())
+    assert after["sigma_calibration"]["deterministic"] == before["sigma_calibration"]["deterministic"]
+    pred = Predictor.load(out)
+    cal = pred.calibration["mc"]
+    assert map_form(cal) == "additive-local-data" and cal.features == FORM_FEATURES["additive-local-data"]
+    assert after["uncertainty_calibration"]["mc"]["form"] == "additive-local-data"
+    # MC mode's sigma: the stored map of the raw total and the passes' data sigma, drawn with the same masks
+    ds = TwinBurstDataset(val_set, crop=None, reverse=True)
+    x = torch.from_numpy(np.asarray(ds[0]["input"], np.float32))[None]
+    raw_pred = Predictor.load(out)
+    raw_pred.calibration = {}
+    raw_pred.still_gate_rad = raw_pred.still_burst_rad = pred.still_gate_rad = pred.still_burst_rad = 0.0
+    torch.manual_seed(1)
+    raw = raw_pred.predict_tensor(x, 3)
+    torch.manual_seed(1)
+    got = pred.predict_tensor(x, 3)
+    np.testing.assert_array_equal(got.phase, raw.phase)
+    classical = classical_md(x[:, :3])[0].numpy()
+    inputs = map_inputs(cal, raw.phase, np.arctan2(*classical))
+    np.testing.assert_allclose(got.sigma_total, cal(raw.sigma_total, sigma_data=raw.sigma_data, **inputs), rtol=1e-4)
+    with pytest.raises(ValueError, match="MC mode only"):
+        calibrate_model(out, val_set, items=8, mc=3, modes=("deterministic",), form="additive-local-data")
 
 
 def test_the_mc_phase_table_scores_each_draw_against_the_truth(val_set, model_path):
