@@ -67,7 +67,8 @@ class PixelErrors:
     still-burst gate decoded its burst by three-step PS (its sigma is then three-step's own, which the map
     never touches at run time: such pixels are scored, not fitted), the fringe density of the network's
     phase (rad/px), its curvature (rad/px^2), the local departure (rad) and the uncalibrated aleatoric part of
-    the sigma (rad; MC mode: the passes' mean data sigma): every feature a sigma map may read."""
+    the sigma (rad; MC mode: the passes' mean data variance propagated at the reported M, D): every feature a sigma
+    map may read."""
 
     error: np.ndarray
     sigma: np.ndarray
@@ -242,9 +243,9 @@ def calibrate_model(
 
     ``val``: one or more validation families, each a twin validation folder or a list of folders pooled as one
     (e.g. one rig's gears; or comma-joined, as the report stores it); per family ``items`` moving bursts and
-    ``items // 2`` still ones. ``form``: the map's form, ``"power"``, ``"additive"`` or ``"additive-local"``
-    (:data:`~gearscan.inference.uncertainty.MAP_FORMS`); None: per mode, the form of the model's stored map (none
-    stored: the power law). Writes ``sigma_calibration`` and an ``uncertainty_calibration`` report into the model's
+    ``items // 2`` still ones. ``form``: the map's form, ``"power"``, ``"additive"``, ``"additive-local"`` or, for
+    the MC map alone, ``"additive-local-data"`` (:data:`~gearscan.inference.uncertainty.MAP_FORMS`); None: per mode,
+    the form of the model's stored map (none stored: the power law). Writes ``sigma_calibration`` and an ``uncertainty_calibration`` report into the model's
     JSON (or into ``output``'s JSON, copying the weights there); returns
     that report. ``orientation``: the Predictor's fringe orientation on the val bursts; every twin
     rig's is ``"normal"``, as a user sets it for the rig (``"auto"``'s per-burst vote misreads some
@@ -258,7 +259,7 @@ def calibrate_model(
         raise ValueError(f"form: expected one of {MAP_FORMS} or None (the model's), got {form!r}")
     if form in MC_ONLY_FORMS and "deterministic" in modes:
         raise ValueError(f"form {form!r} reads the aleatoric sigma apart, which in the deterministic pass is the "
-                         f"total: MC mode only; expected modes=('mc',), got {tuple(modes)}")
+                         f"total: MC mode only; pass --modes mc (modes=('mc',)), got {tuple(modes)}")
     path = model_path(model)
     if items < 2:
         raise ValueError(f"items: expected >= 2 validation bursts, got {items}")

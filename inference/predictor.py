@@ -341,6 +341,10 @@ class Predictor:
                 calibration[mode] = sigma_map_from_json(entry, f"sigma_calibration.{mode}")
             except ValueError as exc:
                 raise ModelFileError(f"{path.with_suffix('.json')}: {exc}") from exc
+            if mode == "deterministic" and calibration[mode].needs_sigma_data:
+                raise ModelFileError(f"{path.with_suffix('.json')}: sigma_calibration.deterministic reads the "
+                                     f"aleatoric sigma apart (sigma_data), which the deterministic pass does not "
+                                     f"have apart; expected a map without it (an MC map only)")
         return cls(
             model,
             var_scale=float(meta.get("var_scale", 1.0)),

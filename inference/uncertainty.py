@@ -22,7 +22,9 @@ how far the network's phase lies from three-step PS's on the same frames, or :cl
 piecewise-linear in log sigma, log departure and the log fringe density of the network's phase
 (session 41, ``benchmarks/sigma_map_form_rule.md`` and ``sigma_map_form_mc_rule.md``) and, in form
 ``"additive-local"``, also the log curvature of that phase and the log local departure (v9's maps in both modes
-since session 42, ``sigma_map_local_rule.md`` and ``sigma_map_local_mc_rule.md``). Either is fitted by the log
+since session 42, ``sigma_map_local_rule.md`` and ``sigma_map_local_mc_rule.md``); an MC map may also read the
+aleatoric part of its sigma apart (form ``"additive-local-data"``, ``sigma_map_data_mc_rule.md``: not shipped).
+Either is fitted by the log
 score of the ECE's own event ``|err| < eps`` (:func:`event_log_score`), a proper scoring rule:
 ECE alone is minimised by a constant sigma (measured: ECE 0.001 with every pixel at 0.07 rad),
 which would erase where the network is unsure; the Gaussian NLL is pulled by the errors' heavy
@@ -385,7 +387,8 @@ class AdditiveSigmaMap:
     and in form ``"additive-local"`` also log(curvature + 0.01) and log(local departure + 0.01)
     (:func:`phase_curvature`, :func:`local_departure`; ``benchmarks/sigma_map_local_rule.md``), and in form
     ``"additive-local-data"`` (MC mode) also the log of the aleatoric part of the sigma (``sigma_data``: the passes'
-    mean data sigma; the total adds their spread; ``benchmarks/sigma_map_data_mc_rule.md``).
+    mean data variance propagated at the reported M, D; the total adds their spread;
+    ``benchmarks/sigma_map_data_mc_rule.md``).
 
     Where the power law (:class:`SigmaCalibration`) is one curve for every rig, the hinges let each feature bend and
     the fringe density (:func:`fringe_density`, the network's own phase, no CAD) tells dense fringes, where the
@@ -513,8 +516,8 @@ def sigma_map_from_json(data: Any, source: str = "sigma_calibration") -> SigmaMa
 
 def map_form(cal: SigmaMap | None) -> str:
     """The map's form (:data:`MAP_FORMS`): ``"power"`` (no map: the power law too), or the additive form whose
-    features it reads (:data:`FORM_FEATURES`; a map fitted on other features: ``"additive"`` if it reads no local
-    term)."""
+    features it reads (:data:`FORM_FEATURES`; a map fitted on other features: ``"additive-local-data"`` if it reads
+    the aleatoric sigma, else ``"additive"`` if it reads no local term), so a refit of that form reads them all."""
     if not isinstance(cal, AdditiveSigmaMap):
         return "power"
     if cal.needs_sigma_data:
@@ -524,7 +527,8 @@ def map_form(cal: SigmaMap | None) -> str:
 
 def map_inputs(cal: SigmaMap, phase: np.ndarray, classical_phase: np.ndarray | None) -> dict[str, np.ndarray | None]:
     """The per-pixel features ``cal`` reads besides the sigma, from the network's ``(H, W)`` phase and three-step
-    PS's: ``departure``, ``density``, ``curvature``, ``local_departure`` (None where the map does not read it)."""
+    PS's: ``departure``, ``density``, ``curvature``, ``local_departure`` (None where the map does not read it). Not
+    the aleatoric sigma a data map reads (``sigma_data``): :func:`to_phase_result` adds it from the moments."""
     dep = None
     if cal.needs_classical:
         if classical_phase is None:

@@ -315,7 +315,8 @@ def main() -> None:
     misses = check(recheck(check_raw, per_kind))
     model = args.model or DEFAULT_MODEL
     out = {
-        "split": "val", "rule": "benchmarks/depth_sigma_rule.md (fifth amendment: per motion class, the worst val family, 5 bursts per motion)"
+        "split": "val", "rule": "benchmarks/depth_sigma_rule.md (fifth amendment: per motion class, the worst val family, "
+                                f"{args.per_motion} bursts per motion)"
                 + (" (its amendment: a model's own)" if args.model else ""),
         "commit": commit(), "host": host(), "model": str(model.relative_to(ROOT) if model.is_relative_to(ROOT) else model),
         "model_fingerprint": model_fingerprint(model),  # the decode it was chosen for (weights, sigma maps)

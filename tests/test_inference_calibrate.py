@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from gearscan.cli import app
 from gearscan.core.gear import GearSpec
 from gearscan.inference.calibrate import calibrate_model, collect_errors
-from gearscan.inference.model_io import save_model
+from gearscan.inference.model_io import ModelFileError, save_model
 from gearscan.inference.models import build_model, classical_md
 from gearscan.inference.predictor import Predictor
 from gearscan.inference.uncertainty import SigmaCalibration
@@ -99,7 +99,10 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
         "'additive-local-data')" in res.output, res.output
     res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--items", "4",
                               "--form", "additive-local-data"])
-    assert res.exit_code == 2 and "MC mode only; expected modes=('mc',), got ('deterministic', 'mc')" in res.output, \
+    assert res.exit_code == 2 and "MC mode only; pass --modes mc (modes=('mc',)), got ('deterministic', 'mc')" \
+        in res.output, res.output
+    res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--modes", "median"])
+    assert res.exit_code == 2 and "modes: expected some of ('deterministic', 'mc'), got ('median',)" in res.output, \
         res.output
 
 
@@ -202,6 +205,14 @@ def test_the_data_form_refits_the_mc_map_alone_and_the_predictor_applies_it(val_
     np.testing.assert_allclose(got.sigma_total, cal(raw.sigma_total, sigma_data=raw.sigma_data, **inputs), rtol=1e-4)
     with pytest.raises(ValueError, match="MC mode only"):
         calibrate_model(out, val_set, items=8, mc=3, modes=("deterministic",), form="additive-local-data")
+    # a data map copied into the deterministic slot: refused on load and on a refit that keeps the stored form
+    meta = json.loads(out.with_suffix(".json").read_text())
+    meta["sigma_calibration"]["deterministic"] = meta["sigma_calibration"]["mc"]
+    out.with_suffix(".json").write_text(json.dumps(meta))
+    with pytest.raises(ModelFileError, match="sigma_calibration.deterministic reads the aleatoric sigma apart"):
+        Predictor.load(out)
+    with pytest.raises(ModelFileError, match="sigma_calibration.deterministic reads the aleatoric sigma apart"):
+        calibrate_model(out, val_set, items=8, mc=0, modes=("deterministic",))  # loads it first
 
 
 def test_the_mc_phase_table_scores_each_draw_against_the_truth(val_set, model_path):
