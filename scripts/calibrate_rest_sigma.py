@@ -85,6 +85,18 @@ def honest(per_cell: list[dict]) -> bool:
                for p in per_cell)
 
 
+def depth_scales_read() -> dict[str, dict[str, list[float]]]:
+    """The per-burst depth-sigma scales the cells' reconstructors read: the product's (the shipped model's cells) and
+    the default-rig option's own (its JSON), as ``{class: scales}``."""
+    from gearscan.inference.model_io import read_config
+    from gearscan.inference.predictor import model_depth_sigma_scales
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales
+
+    option = model_depth_sigma_scales(read_config(ROOT / "inference" / "weights" / "default_rig.safetensors"))
+    return {"depth_sigma_scales": DEPTH_SIGMA_SCALES.as_dict(),
+            "option_depth_sigma_scales": (DEPTH_SIGMA_SCALES if option is None else check_scales(option)).as_dict()}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "rest_sigma_val.json")
@@ -93,6 +105,10 @@ def main() -> None:
     args = ap.parse_args()
 
     done = load_or_start(args.out)  # refuses a json scored with other shipped weights
+    scales = depth_scales_read()
+    if done["cells"] and {k: done.get(k) for k in scales} != scales:  # the cells' unfitted sigma reads them
+        raise SystemExit(f"{args.out}: its cells were scored with other depth-sigma scales "
+                         f"({ {k: done.get(k) for k in scales} }, now {scales}); write to another --out")
     cells = done["cells"]
     for model, decoder, seed, order, rec in val_cells(args.recordings, args.bursts):
         if any((c["model"], c["seed"], c["order"]) == (model, seed, order) for c in cells):
@@ -118,9 +134,7 @@ def main() -> None:
             scale = float(c)
             break
     done["scan"], done["scale"] = rows, scale
-    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES
-
-    done["depth_sigma_scales"] = DEPTH_SIGMA_SCALES.as_dict()  # the product's, which its v9 cells read (the option its own)
+    done |= scales  # the product's, which its v9 cells read, and the option's own
     # said apart: a scale that passes because no unfitted point is left drops them all, it does not calibrate them
     done["scale_keeps_no_unfitted_point"] = bool(rows) and all(p["median_z"] is None for p in rows[-1]["cells"])
     args.out.write_text(json.dumps(done, indent=1))

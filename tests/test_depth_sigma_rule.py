@@ -173,8 +173,8 @@ def test_the_default_rig_options_own_scales_are_its_val_choice() -> None:
     assert all(s.startswith("data/default_rig/val/") for s in stored["sets"])  # its own rig's val gears only
     scales = choose_pooled(stored["fit_raw"])  # the first amendment: one set for every burst of this model
     assert check(recheck(stored["check_raw"], scales)) == [] and stored["check_passed"]
+    assert scales == tuple(stored["scales"])  # what it carried until the eighth amendment (below)
     meta = read_config(weights)
-    assert model_depth_sigma_scales(meta) == scales == tuple(stored["scales"])
     assert meta["depth_sigma"]["edge_bands_px"] == list(EDGE_BANDS_PX)
     # the sixth amendment (per class, the fifth form) missed its check on those gears: recomputed, nothing written
     classes = json.loads((ROOT / "benchmarks" / "depth_sigma_val_default_rig_classes.json").read_text())
@@ -191,6 +191,18 @@ def test_the_default_rig_options_own_scales_are_its_val_choice() -> None:
     assert ten == {c: tuple(v) for c, v in tenfold["scales"].items()}
     assert check(recheck(tenfold["check_raw"], family_scales(tenfold["check_raw"], ten))) == [
         "default_rig/network_faster 8.5-inf px: 5.9% beyond 2 sigma"]
+    # the eighth (30 bursts per motion, a fresh check set) passed: recomputed, and what its JSON carries now
+    thirty = json.loads((ROOT / "benchmarks" / "depth_sigma_val_default_rig_classes30.json").read_text())
+    assert thirty["model_fingerprint"] == model_fingerprint(weights) and thirty["per_motion"] == 30
+    seen = {stored["check_seed"], classes["check_seed"], tenfold["check_seed"], classes["fit_seed"]}
+    assert thirty["fit_seed"] == 2000 and thirty["check_seed"] not in seen
+    own = choose_worst_family(thirty["fit_raw"])
+    assert own == {c: tuple(v) for c, v in thirty["scales"].items()}
+    assert check(recheck(thirty["check_raw"], family_scales(thirty["check_raw"], own))) == [] and thirty["check_passed"]
+    assert thirty["written"] == "default_rig.json" and model_depth_sigma_scales(meta) == own
+    assert thirty["model_scales_before"] == {c: list(scales) for c in own}  # the first amendment's one set ...
+    before = check(thirty["check_model_before_scaled"])  # ... flattered the fast classes on that check set
+    assert before == thirty["check_model_before_misses"] and before and all("network_fast" in m for m in before)
     # and with the product's scales its moving bursts flattered on those gears (why it has its own)
     shipped = json.loads((ROOT / "benchmarks" / "depth_sigma_check_default_rig.json").read_text())
     assert shipped["scales"] == list(FIRST_CHOICE_SCALES) and not shipped["check_passed"]  # the product's then
