@@ -25,6 +25,7 @@ from gearscan.core.types import Burst, Cloud, Measurement
 from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
+from gearscan.recon.depth_sigma import decoder_depth_sigma_source
 from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
 from gearscan.recon.measure import (
@@ -329,6 +330,7 @@ def replay(
         metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px, "max_sigma_rad": max_sigma,
                          "unwrapper_sees": unwrapper_sees(recon.unwrap_max_sigma),
                          "depth_sigma_scales": recon.depth_sigma_scales.as_dict(),
+                         "depth_sigma_source": decoder_depth_sigma_source(decoder),
                          "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:

@@ -127,6 +127,12 @@ class Decoder:
         names none (the product's apply)."""
         return None if self.predictor is None else self.predictor.depth_sigma_scales
 
+    @property
+    def model_fingerprint(self) -> str | None:
+        """The network decode's :func:`~gearscan.inference.model_io.model_fingerprint` (weights, sigma maps, gates);
+        None for three-step PS."""
+        return None if self.predictor is None else self.predictor.fingerprint
+
     def summary(self) -> dict:
         """What decoded the run: mode, bursts sent to three-step PS as still, the fringe orientation
         asked for and the rig's as adopted (None: voted per burst throughout) with where it came from."""

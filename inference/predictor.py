@@ -30,7 +30,7 @@ from gearscan.core.phase import (
 )
 from gearscan.core.types import Burst, PhaseResult
 from gearscan.inference.blocks import fold_batchnorm
-from gearscan.inference.model_io import ModelFileError, load_model
+from gearscan.inference.model_io import ModelFileError, load_model, model_fingerprint
 from gearscan.inference.models import PRIOR_CHANNELS, classical_md, motion_channels
 from gearscan.inference.uncertainty import (
     MomentStats,
@@ -300,6 +300,7 @@ class Predictor:
                                    else check_motion_limit(still_burst_motion, "still_burst_motion"))
         self.network_support = model_network_support(self.meta)
         self.depth_sigma_scales = model_depth_sigma_scales(self.meta)
+        self.fingerprint: str | None = None  # the decode's model_fingerprint, known when loaded from files
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
         if self.channels_last:
@@ -358,7 +359,13 @@ class Predictor:
             still_burst_rad=still_burst_rad,
             still_burst_motion=still_burst_motion,
             mc_phase=mc_phase,
-        )
+        )._loaded_from(path)
+
+    def _loaded_from(self, path: Path) -> Predictor:
+        """Remember the decode this predictor runs (:func:`model_fingerprint` of its files): what a val choice made
+        for one decode (the product's depth-sigma scales) is checked against."""
+        self.fingerprint = model_fingerprint(path)
+        return self
 
     def replica(self) -> Predictor:
         """The same predictor on its own copy of the network, for a second thread."""

@@ -48,6 +48,36 @@ TRAINED_SPAN_DEG = 1.75
 # scales, which no val run measured there (the reconstructor counts such bursts and warns)
 CALIBRATED_SPAN_DEG = 5.0
 MOTION_CLASSES: tuple[str, ...] = ("three_step", "network", "network_fast", "network_faster")
+# the network decode the product's scales were chosen for: the shipped model's weights, sigma maps and gates
+# (inference.model_io.model_fingerprint; benchmarks/depth_sigma_val.json). Another network decode that carries no
+# scales of its own borrows them unmeasured (depth_sigma_source)
+SCALES_CHOSEN_FOR = "751d358c3dfe"
+
+
+def depth_sigma_source(own: bool, network: bool, fingerprint: str | None) -> str:
+    """Where a run's depth-sigma scales come from: ``"model"`` (the decoding model's own, chosen on its rig's val
+    scenes), ``"product"`` (the product's, chosen for this decode: the shipped network, or three-step PS, whose
+    ``three_step`` class reads no network) or ``"borrowed"`` (the product's on another network decode, e.g. a model
+    fine-tuned on a user's rig or refitted sigma maps, which no val run measured: its points' sigma is no k = 2 bound;
+    a fine-tuned default-rig model flattered 11-21 % beyond 2 sigma with them, ``depth_sigma_check_default_rig.json``)."""
+    if own:
+        return "model"
+    return "product" if not network or fingerprint == SCALES_CHOSEN_FOR else "borrowed"
+
+
+def decoder_depth_sigma_source(decoder: object) -> str:
+    """:func:`depth_sigma_source` of an app decoder (``inference.decoder.Decoder``: its ``depth_sigma_scales``,
+    ``predictor`` and ``model_fingerprint``; a plain callable counts as no network)."""
+    return depth_sigma_source(getattr(decoder, "depth_sigma_scales", None) is not None,
+                              getattr(decoder, "predictor", None) is not None,
+                              getattr(decoder, "model_fingerprint", None))
+
+
+BORROWED_NOTE = ("the per-burst depth sigma is scaled by the product's depth-sigma scales, chosen for the shipped "
+                 "model's decode; this model carries none of its own, so its points' sigma is not a measured k = 2 "
+                 "bound (a model fine-tuned on one rig flattered 11-21 % beyond 2 sigma with them): choose its own "
+                 "on its rig's val scenes, `python scripts/calibrate_depth_sigma.py --model MODEL.safetensors --sets "
+                 "VAL1,VAL2 --out MODEL_depth_sigma.json --write` (benchmarks/depth_sigma_rule.md)")
 
 
 def span_deg(angles: Sequence[float]) -> float:

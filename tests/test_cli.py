@@ -261,3 +261,30 @@ def test_replay_says_when_bursts_span_beyond_the_calibrated_sigma(tmp_path):
     assert res.exit_code == 0, res.output
     assert json.loads(metrics.read_text())["recon"]["bursts_sigma_uncalibrated"] == 0
     assert "spanned more than" not in res.output
+
+
+def test_replay_says_when_a_model_borrows_the_products_depth_sigma(tmp_path):
+    """The product's depth-sigma scales were chosen for the shipped decode (recon.depth_sigma.SCALES_CHOSEN_FOR): the
+    shipped model and three-step PS use them as measured, the default-rig option its own, and a model with other
+    sigma maps and none of its own borrows them unmeasured, which the metrics record and replay says."""
+    import shutil
+
+    from gearscan.inference.predictor import DEFAULT_MODEL
+
+    rec = tmp_path / "rec"
+    res = runner.invoke(app, ["twin", "render", str(rec), "--bursts", "1", "--width", "64", "--height", "64"])
+    assert res.exit_code == 0, res.output
+    refitted = tmp_path / "refitted.safetensors"  # the shipped weights with an identity deterministic map
+    shutil.copyfile(DEFAULT_MODEL, refitted)
+    meta = json.loads(DEFAULT_MODEL.with_suffix(".json").read_text())
+    meta["sigma_calibration"]["deterministic"] = {"a": 1.0, "b": 1.0}
+    refitted.with_suffix(".json").write_text(json.dumps(meta))
+    metrics = tmp_path / "m.json"
+    option = DEFAULT_MODEL.with_name("default_rig.safetensors")
+    for extra, source in (([], "product"), (["--classical"], "product"), (["--model", str(option)], "model"),
+                          (["--model", str(refitted)], "borrowed")):
+        res = runner.invoke(app, ["replay", str(rec), "--no-truth", "--metrics", str(metrics), *extra])
+        assert res.exit_code == 0, res.output
+        assert json.loads(metrics.read_text())["recon"]["depth_sigma_source"] == source, extra
+        assert ("chosen for the shipped model's decode; this model carries none of its own" in res.output) == (
+            source == "borrowed"), res.output

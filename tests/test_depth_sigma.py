@@ -209,3 +209,22 @@ def test_bursts_spanning_beyond_the_calibrated_span_are_counted_and_warned(clean
     assert len([r for r in caplog.records if "calibrated on val" in r.getMessage()]) == 1  # once, then counted
     assert sigma_calibrated((0.0, 0.0, math.radians(CALIBRATED_SPAN_DEG)), True)
     assert not sigma_calibrated((0.0, 0.0, math.radians(5.1)), True) and sigma_calibrated((0.0, 0.0, 1.0), False)
+
+
+def test_the_products_scales_name_the_decode_they_were_chosen_for():
+    """SCALES_CHOSEN_FOR is the shipped decode's fingerprint and the one the rule's run recorded; a network decode
+    with its own scales uses those, another without borrows the product's, three-step PS reads no network."""
+    import json
+    from pathlib import Path
+
+    from gearscan.inference.model_io import model_fingerprint
+    from gearscan.inference.predictor import DEFAULT_MODEL
+    from gearscan.recon.depth_sigma import SCALES_CHOSEN_FOR, depth_sigma_source
+
+    run = json.loads((Path(__file__).resolve().parents[1] / "benchmarks" / "depth_sigma_val.json").read_text())
+    assert SCALES_CHOSEN_FOR == run["model_fingerprint"] == model_fingerprint(DEFAULT_MODEL)
+    assert depth_sigma_source(False, True, SCALES_CHOSEN_FOR) == "product"
+    assert depth_sigma_source(False, False, None) == "product"
+    assert depth_sigma_source(True, True, "0123456789ab") == "model"
+    assert depth_sigma_source(False, True, "0123456789ab") == "borrowed"
+    assert depth_sigma_source(False, True, None) == "borrowed"  # a network decode of unknown files
