@@ -347,10 +347,10 @@ def replay_cmd(
             web.close()
     for k, v in result.summary().items():
         typer.echo(f"{k}: {v:.4f}" if isinstance(v, float) else f"{k}: {v}")
-    if (result.recon or {}).get("depth_sigma_source") == "borrowed":
-        from gearscan.recon.depth_sigma import BORROWED_NOTE
+    from gearscan.recon.depth_sigma import UNMEASURED_NOTES
 
-        typer.secho(f"sigma: {BORROWED_NOTE}", fg=typer.colors.YELLOW)
+    if note := UNMEASURED_NOTES.get((result.recon or {}).get("depth_sigma_source")):
+        typer.secho(f"sigma: {note}", fg=typer.colors.YELLOW)
     if uncalibrated := (result.recon or {}).get("bursts_sigma_uncalibrated", 0):
         from gearscan.recon.depth_sigma import CALIBRATED_SPAN_DEG
 
@@ -668,13 +668,12 @@ def inspect_cmd(
     from gearscan.inspect import chip_verdict
 
     typer.echo(f"chipped teeth: {chip_verdict(report.inspection)}")
-    from gearscan.recon.depth_sigma import BORROWED_NOTE, decoder_depth_sigma_source
+    from gearscan.recon.depth_sigma import UNMEASURED_NOTES
 
     refined = report.fused.refined
     unfitted = len(report.fused) if refined is None else int((~refined).sum())
-    if unfitted and decoder_depth_sigma_source(decoder) == "borrowed":  # a fitted point carries the fit's own sigma
-        typer.secho(f"sigma of the {unfitted:,} point(s) the frame fit did not take: {BORROWED_NOTE}",
-                    fg=typer.colors.YELLOW)
+    if unfitted and (note := UNMEASURED_NOTES.get(report.depth_sigma_source)):  # a fitted point: the fit's own sigma
+        typer.secho(f"sigma of the {unfitted:,} point(s) the frame fit did not take: {note}", fg=typer.colors.YELLOW)
     typer.echo(f"report: {report.files['markdown']}")
 
 

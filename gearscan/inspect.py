@@ -48,6 +48,7 @@ class InspectionReport:
     files: dict[str, Path]
     truth: dict | None = None
     refine: dict | None = None  # the frame fit's counts (recon.track.TrackRefiner.refine_fused), if it ran
+    depth_sigma_source: str | None = None  # whose depth-sigma scales the unfitted points carry (recon.depth_sigma)
 
 
 def dropped_note(refine: dict | None) -> str:
@@ -164,7 +165,8 @@ def run_inspection(
     out.mkdir(parents=True, exist_ok=True)
     files = {"fused": save_fused(fused, out / "fused.ply")}
     files.update(write_plots(insp, out, tolerances))
-    report = InspectionReport(insp, fused, grade, tolerances, classes, span, files, truth, metrics.refine or None)
+    report = InspectionReport(insp, fused, grade, tolerances, classes, span, files, truth, metrics.refine or None,
+                              (metrics.recon or {}).get("depth_sigma_source"))
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
@@ -190,7 +192,9 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                   "sigma_bound_um": (1e3 * report.refine["sigma_bound_mm"]
                                      if (report.refine or {}).get("sigma_bound_mm") else None),
                   "unsettled_fits": (report.refine or {}).get("unsettled"),
-                  "implausible_fits": (report.refine or {}).get("implausible")},
+                  "implausible_fits": (report.refine or {}).get("implausible"),
+                  # whose depth-sigma scales an unfitted point's sigma carries: model, product or unmeasured
+                  "depth_sigma_source": report.depth_sigma_source},
         "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
         "grade": report.grade,
         "tolerances_um": report.tolerances,

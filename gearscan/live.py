@@ -19,7 +19,7 @@ from gearscan.config import LiveConfig
 from gearscan.core.types import Burst, Measurement
 from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineError, PipelineReport, StageSpec
-from gearscan.recon.depth_sigma import BORROWED_NOTE, decoder_depth_sigma_source
+from gearscan.recon.depth_sigma import UNMEASURED_NOTES, decoder_depth_sigma_source
 from gearscan.recon.deviation import CadScorer
 from gearscan.recon.measure import CoarseStage, Reconstructor, network_support_option
 
@@ -192,8 +192,8 @@ def run_live(
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
                                    unwrap=cfg.recon.unwrap, network_support_px=support,
                                    depth_sigma_scales=getattr(decoder, "depth_sigma_scales", None))  # the model's own
-    if decoder_depth_sigma_source(decoder) == "borrowed":
-        log.warning("%s", BORROWED_NOTE)
+    if note := UNMEASURED_NOTES.get(decoder_depth_sigma_source(decoder)):
+        log.warning("%s", note)
     coarse = CoarseStage(rig, cfg.projector.coarse_period_px, cfg.gear, recon if cfg.recon.unwrap == "coarse" else None)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None
     logger = None

@@ -133,6 +133,12 @@ class Decoder:
         None for three-step PS."""
         return None if self.predictor is None else self.predictor.fingerprint
 
+    @property
+    def depth_sigma_chosen_for(self) -> str | None:
+        """The decode (model fingerprint) the network's own depth-sigma scales were chosen for, where its JSON names
+        it; None otherwise."""
+        return None if self.predictor is None else self.predictor.depth_sigma_chosen_for
+
     def summary(self) -> dict:
         """What decoded the run: mode, bursts sent to three-step PS as still, the fringe orientation
         asked for and the rig's as adopted (None: voted per burst throughout) with where it came from."""

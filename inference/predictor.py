@@ -300,6 +300,8 @@ class Predictor:
                                    else check_motion_limit(still_burst_motion, "still_burst_motion"))
         self.network_support = model_network_support(self.meta)
         self.depth_sigma_scales = model_depth_sigma_scales(self.meta)
+        # the decode its own scales were chosen for (model_fingerprint), where the JSON names it
+        self.depth_sigma_chosen_for = (self.meta.get(DEPTH_SIGMA_KEY) or {}).get("model_fingerprint")
         self.fingerprint: str | None = None  # the decode's model_fingerprint, known when loaded from files
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
@@ -362,8 +364,9 @@ class Predictor:
         )._loaded_from(path)
 
     def _loaded_from(self, path: Path) -> Predictor:
-        """Remember the decode this predictor runs (:func:`model_fingerprint` of its files): what a val choice made
-        for one decode (the product's depth-sigma scales) is checked against."""
+        """Remember the decode this predictor's files define (:func:`model_fingerprint`: weights, both sigma maps,
+        gates; not the overrides passed to :meth:`load`): what a val choice made for one decode (depth-sigma
+        scales) is checked against."""
         self.fingerprint = model_fingerprint(path)
         return self
 

@@ -54,30 +54,46 @@ MOTION_CLASSES: tuple[str, ...] = ("three_step", "network", "network_fast", "net
 SCALES_CHOSEN_FOR = "751d358c3dfe"
 
 
-def depth_sigma_source(own: bool, network: bool, fingerprint: str | None) -> str:
-    """Where a run's depth-sigma scales come from: ``"model"`` (the decoding model's own, chosen on its rig's val
-    scenes), ``"product"`` (the product's, chosen for this decode: the shipped network, or three-step PS, whose
-    ``three_step`` class reads no network) or ``"borrowed"`` (the product's on another network decode, e.g. a model
-    fine-tuned on a user's rig or refitted sigma maps, which no val run measured: its points' sigma is no k = 2 bound;
-    a fine-tuned default-rig model flattered 11-21 % beyond 2 sigma with them, ``depth_sigma_check_default_rig.json``)."""
+def depth_sigma_source(*, network: bool, mc: int = 0, decode: str | None = None, own: bool = False,
+                       own_chosen_for: str | None = None) -> str:
+    """Whether a run's depth-sigma scales were measured for its decode, and whose they are: ``"model"`` (the
+    decoding model's own, chosen on its rig's val scenes for this decode), ``"product"`` (the product's, chosen for
+    this decode: the shipped network's ``decode`` fingerprint, :data:`SCALES_CHOSEN_FOR`, or three-step PS), or not
+    measured: ``"borrowed"`` (the product's on another network decode: a fine-tuned model, refitted sigma maps, an
+    older model), ``"stale"`` (the model's own, chosen for a decode its files no longer are, e.g. after a sigma-map
+    refit) or ``"mc"`` (Monte Carlo mode: every scale was chosen on the deterministic decode; its sigma is the MC
+    map's). ``own_chosen_for``: the fingerprint the model's own scales name (None: not recorded, trusted)."""
+    if network and mc > 0:
+        return "mc"
     if own:
-        return "model"
-    return "product" if not network or fingerprint == SCALES_CHOSEN_FOR else "borrowed"
+        return "model" if own_chosen_for is None or own_chosen_for == decode else "stale"
+    return "product" if not network or decode == SCALES_CHOSEN_FOR else "borrowed"
 
 
 def decoder_depth_sigma_source(decoder: object) -> str:
-    """:func:`depth_sigma_source` of an app decoder (``inference.decoder.Decoder``: its ``depth_sigma_scales``,
-    ``predictor`` and ``model_fingerprint``; a plain callable counts as no network)."""
-    return depth_sigma_source(getattr(decoder, "depth_sigma_scales", None) is not None,
-                              getattr(decoder, "predictor", None) is not None,
-                              getattr(decoder, "model_fingerprint", None))
+    """:func:`depth_sigma_source` of an app decoder (``inference.decoder.Decoder``: its ``predictor``, ``mc``,
+    ``model_fingerprint``, ``depth_sigma_scales`` and ``depth_sigma_chosen_for``; a plain callable counts as no
+    network)."""
+    return depth_sigma_source(network=getattr(decoder, "predictor", None) is not None, mc=getattr(decoder, "mc", 0),
+                              decode=getattr(decoder, "model_fingerprint", None),
+                              own=getattr(decoder, "depth_sigma_scales", None) is not None,
+                              own_chosen_for=getattr(decoder, "depth_sigma_chosen_for", None))
 
 
-BORROWED_NOTE = ("the per-burst depth sigma is scaled by the product's depth-sigma scales, chosen for the shipped "
-                 "model's decode; this model carries none of its own, so its points' sigma is not a measured k = 2 "
-                 "bound (a model fine-tuned on one rig flattered 11-21 % beyond 2 sigma with them): choose its own "
-                 "on its rig's val scenes, `python scripts/calibrate_depth_sigma.py --model MODEL.safetensors --sets "
-                 "VAL1,VAL2 --out MODEL_depth_sigma.json --write` (benchmarks/depth_sigma_rule.md)")
+_CHOOSE_OWN = ("choose its own on its rig's val scenes: `python scripts/calibrate_depth_sigma.py --model M.safetensors "
+               "--sets VAL1,VAL2 --out M_depth_sigma.json --write` (benchmarks/depth_sigma_rule.md)")
+# what a user is told where the scales were not measured for the run's decode (depth_sigma_source)
+UNMEASURED_NOTES: Mapping[str, str] = MappingProxyType({
+    "borrowed": "the per-burst depth sigma is scaled by the product's depth-sigma scales, chosen for the shipped "
+                "model's decode; this model carries none of its own, so its points' sigma is not a measured k = 2 "
+                "bound (the default-rig option, with them, put 8.9-15.1 % of its moving points beyond 2 sigma on its "
+                "val gears): " + _CHOOSE_OWN,
+    "stale": "the model's own depth-sigma scales were chosen for another decode of it (its weights or sigma maps "
+             "changed since), so its points' sigma is not a measured k = 2 bound: " + _CHOOSE_OWN,
+    "mc": "the depth-sigma scales were chosen on the deterministic decode; in Monte Carlo mode the phase sigma is the "
+          "MC map's, so the points' sigma is not a measured k = 2 bound (use the deterministic decode, --mc 0, for "
+          "a measured one)",
+})
 
 
 def span_deg(angles: Sequence[float]) -> float:

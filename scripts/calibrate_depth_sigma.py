@@ -350,6 +350,7 @@ def main() -> None:
 
         meta = read_config(args.model)
         meta[DEPTH_SIGMA_KEY] = {"scales": {c: list(v) for c, v in scales.items()}, "edge_bands_px": list(EDGE_BANDS_PX),
+                                 "model_fingerprint": out["model_fingerprint"],  # the decode they were chosen for
                                  "chosen_by": f"benchmarks/depth_sigma_rule.md (amendment), {args.out.name}, "
                                               f"commit {out['commit']}"}
         out["written"] = write_config(args.model, meta).name

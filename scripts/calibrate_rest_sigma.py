@@ -109,6 +109,7 @@ def main() -> None:
     if done["cells"] and {k: done.get(k) for k in scales} != scales:  # the cells' unfitted sigma reads them
         raise SystemExit(f"{args.out}: its cells were scored with other depth-sigma scales "
                          f"({ {k: done.get(k) for k in scales} }, now {scales}); write to another --out")
+    done |= scales  # the product's, which its v9 cells read, and the option's own (before any cell is written)
     cells = done["cells"]
     for model, decoder, seed, order, rec in val_cells(args.recordings, args.bursts):
         if any((c["model"], c["seed"], c["order"]) == (model, seed, order) for c in cells):
@@ -134,7 +135,6 @@ def main() -> None:
             scale = float(c)
             break
     done["scan"], done["scale"] = rows, scale
-    done |= scales  # the product's, which its v9 cells read, and the option's own
     # said apart: a scale that passes because no unfitted point is left drops them all, it does not calibrate them
     done["scale_keeps_no_unfitted_point"] = bool(rows) and all(p["median_z"] is None for p in rows[-1]["cells"])
     args.out.write_text(json.dumps(done, indent=1))

@@ -265,11 +265,13 @@ def test_replay_says_when_bursts_span_beyond_the_calibrated_sigma(tmp_path):
 
 def test_replay_says_when_a_model_borrows_the_products_depth_sigma(tmp_path):
     """The product's depth-sigma scales were chosen for the shipped decode (recon.depth_sigma.SCALES_CHOSEN_FOR): the
-    shipped model and three-step PS use them as measured, the default-rig option its own, and a model with other
-    sigma maps and none of its own borrows them unmeasured, which the metrics record and replay says."""
+    shipped model and three-step PS use them as measured, the default-rig option its own (chosen for its decode);
+    unmeasured, which the metrics record and replay says: a model with other sigma maps and none of its own
+    (borrowed), the option with a refitted map (its own scales stale), and Monte Carlo mode (chosen deterministic)."""
     import shutil
 
     from gearscan.inference.predictor import DEFAULT_MODEL
+    from gearscan.recon.depth_sigma import UNMEASURED_NOTES
 
     rec = tmp_path / "rec"
     res = runner.invoke(app, ["twin", "render", str(rec), "--bursts", "1", "--width", "64", "--height", "64"])
@@ -279,12 +281,18 @@ def test_replay_says_when_a_model_borrows_the_products_depth_sigma(tmp_path):
     meta = json.loads(DEFAULT_MODEL.with_suffix(".json").read_text())
     meta["sigma_calibration"]["deterministic"] = {"a": 1.0, "b": 1.0}
     refitted.with_suffix(".json").write_text(json.dumps(meta))
-    metrics = tmp_path / "m.json"
     option = DEFAULT_MODEL.with_name("default_rig.safetensors")
+    stale = tmp_path / "stale.safetensors"  # the option with its deterministic map refitted
+    shutil.copyfile(option, stale)
+    meta = json.loads(option.with_suffix(".json").read_text())
+    meta["sigma_calibration"]["deterministic"] = {"a": 1.0, "b": 1.0}
+    stale.with_suffix(".json").write_text(json.dumps(meta))
+    metrics = tmp_path / "m.json"
     for extra, source in (([], "product"), (["--classical"], "product"), (["--model", str(option)], "model"),
-                          (["--model", str(refitted)], "borrowed")):
+                          (["--model", str(refitted)], "borrowed"), (["--model", str(stale)], "stale"),
+                          (["--mc", "2"], "mc"), (["--model", str(option), "--mc", "2"], "mc")):
         res = runner.invoke(app, ["replay", str(rec), "--no-truth", "--metrics", str(metrics), *extra])
         assert res.exit_code == 0, res.output
         assert json.loads(metrics.read_text())["recon"]["depth_sigma_source"] == source, extra
-        assert ("chosen for the shipped model's decode; this model carries none of its own" in res.output) == (
-            source == "borrowed"), res.output
+        for name, note in UNMEASURED_NOTES.items():  # said where unmeasured, and only there
+            assert (note.split(":")[0][:60] in " ".join(res.output.split())) == (name == source), (extra, res.output)

@@ -223,8 +223,16 @@ def test_the_products_scales_name_the_decode_they_were_chosen_for():
 
     run = json.loads((Path(__file__).resolve().parents[1] / "benchmarks" / "depth_sigma_val.json").read_text())
     assert SCALES_CHOSEN_FOR == run["model_fingerprint"] == model_fingerprint(DEFAULT_MODEL)
-    assert depth_sigma_source(False, True, SCALES_CHOSEN_FOR) == "product"
-    assert depth_sigma_source(False, False, None) == "product"
-    assert depth_sigma_source(True, True, "0123456789ab") == "model"
-    assert depth_sigma_source(False, True, "0123456789ab") == "borrowed"
-    assert depth_sigma_source(False, True, None) == "borrowed"  # a network decode of unknown files
+    other = "0123456789ab"
+    assert depth_sigma_source(network=True, decode=SCALES_CHOSEN_FOR) == "product"
+    assert depth_sigma_source(network=False) == "product"  # three-step PS reads no network
+    assert depth_sigma_source(network=True, decode=other, own=True, own_chosen_for=other) == "model"
+    assert depth_sigma_source(network=True, decode=other, own=True) == "model"  # a JSON that names no decode
+    assert depth_sigma_source(network=True, decode=other, own=True, own_chosen_for=SCALES_CHOSEN_FOR) == "stale"
+    assert depth_sigma_source(network=True, decode=other) == "borrowed"
+    assert depth_sigma_source(network=True, decode=None) == "borrowed"  # a network decode of unknown files
+    assert depth_sigma_source(network=True, mc=20, decode=SCALES_CHOSEN_FOR) == "mc"  # chosen deterministic
+    # the default-rig option names the decode its own scales were chosen for
+    option = DEFAULT_MODEL.with_name("default_rig.safetensors")
+    entry = json.loads(option.with_suffix(".json").read_text())["depth_sigma"]
+    assert entry["model_fingerprint"] == model_fingerprint(option)
