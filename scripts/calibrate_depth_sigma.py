@@ -31,9 +31,12 @@ CHECK_MIN_POINTS = 1000  # smaller cells are reported, not judged
 
 
 def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
-            sets: tuple[str, ...] | None = None) -> dict[tuple[str, int, str, str], np.ndarray]:
+            sets: tuple[str, ...] | None = None, mc: int = 0) -> dict[tuple[str, int, str, str], np.ndarray]:
     """z = |depth error along the ray| / raw sigma per (motion class, band, motion, val folder), over the val scenes
-    rendered from ``seed`` (scene i from ``seed + i``, in the order of ``sets``)."""
+    rendered from ``seed`` (scene i from ``seed + i``, in the order of ``sets``); ``mc`` > 0: the network's bursts
+    decoded in Monte Carlo mode with that many passes (the dropout masks seeded, torch seed 0, at the start)."""
+    import torch
+
     from gearscan.core.phase import still_result
     from gearscan.core.types import Burst, Frame
     from gearscan.evaluate import (
@@ -49,6 +52,7 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
     from gearscan.recon.measure import Reconstructor
 
     predictor = Predictor.load(model, orientation="normal")  # every twin rig is normal by its geometry
+    torch.manual_seed(0)
     scenes = [(root, s) for root in (sets or VAL_CLOUD_SETS) for s in scenes_from_dataset(ROOT / root)]
     zs: dict[tuple[str, int, str, str], list[np.ndarray]] = {}
     for i, (root, scene) in enumerate(scenes):
@@ -61,7 +65,7 @@ def collect(seed: int, motions: str, per_motion: int, model: Path | None = None,
                 if turned_less_than(burst.angles, STILL_SPAN_DEG):  # as inference.decoder.Decoder routes it
                     result = still_result(burst)
                 else:
-                    result = replace(predictor.predict(case.frames, 0, full_scale=case.full_scale),
+                    result = replace(predictor.predict(case.frames, mc, full_scale=case.full_scale),
                                      angle=burst.angles[0])
                 m = rc(burst, result)
                 if m.cloud is None or not len(m.cloud):
@@ -251,6 +255,9 @@ def main() -> None:
     ap.add_argument("--sets", default=None,
                     help="with --model or --check-model: comma-separated val folders (default: "
                          "evaluate.VAL_CLOUD_SETS), e.g. the default rig's val gears for a model fine-tuned on that rig")
+    ap.add_argument("--mc", type=int, default=0,
+                    help="Monte Carlo passes of the network's decode (the ninth amendment; 0: deterministic); with "
+                         "it the deterministic table's check on the same MC decodes is recorded too")
     ap.add_argument("--write", action="store_true",
                     help="with --model: store the scales in the model's JSON (depth_sigma) if the check passes")
     args = ap.parse_args()
@@ -264,6 +271,10 @@ def main() -> None:
         ap.error(f"--model: expected a model's .safetensors file, got {args.model}")
     if args.model is not None and args.out == ROOT / "benchmarks" / "depth_sigma_val.json":
         ap.error("--model: give its own --out (benchmarks/depth_sigma_val.json is the product's choice)")
+    if args.mc and (args.model is not None or args.check_model is not None or args.write):
+        ap.error("--mc: only for the product's choice (a model's own scales are chosen deterministic)")
+    if args.mc and args.out == ROOT / "benchmarks" / "depth_sigma_val.json":
+        ap.error("--mc: give its own --out (benchmarks/depth_sigma_val.json is the deterministic choice)")
     if args.fit_seed == args.check_seed:
         ap.error(f"--check-seed: expected another seed set than --fit-seed ({args.fit_seed})")
     if args.check_model is not None:
@@ -306,10 +317,10 @@ def main() -> None:
         return
 
     sets = tuple(args.sets.split(",")) if args.sets else None
-    fit_z = collect(args.fit_seed, args.motions, args.per_motion, args.model, sets)
+    fit_z = collect(args.fit_seed, args.motions, args.per_motion, args.model, sets, args.mc)
     fit = table(by_family_cell(fit_z))
     scales = choose_worst_family(fit)
-    check_z = collect(args.check_seed, args.motions, args.per_motion, args.model, sets)
+    check_z = collect(args.check_seed, args.motions, args.per_motion, args.model, sets, args.mc)
     per_kind = family_scales(table(by_family_cell(check_z)), scales)
     check_raw = table(by_family_cell(check_z), at=per_kind)
     misses = check(recheck(check_raw, per_kind))
@@ -317,11 +328,12 @@ def main() -> None:
     out = {
         "split": "val", "rule": "benchmarks/depth_sigma_rule.md (fifth amendment: per motion class, the worst val family, "
                                 f"{args.per_motion} bursts per motion)"
-                + (" (its amendment: a model's own)" if args.model else ""),
+                + (" (its amendment: a model's own)" if args.model else "")
+                + (f" (ninth amendment: Monte Carlo mode, T = {args.mc})" if args.mc else ""),
         "commit": commit(), "host": host(), "model": str(model.relative_to(ROOT) if model.is_relative_to(ROOT) else model),
         "model_fingerprint": model_fingerprint(model),  # the decode it was chosen for (weights, sigma maps)
         "sets": list(sets or VAL_CLOUD_SETS),
-        "motions": args.motions, "per_motion": args.per_motion, "fit_seed": args.fit_seed,
+        "motions": args.motions, "per_motion": args.per_motion, "mc": args.mc, "fit_seed": args.fit_seed,
         "check_seed": args.check_seed, "edge_bands_px": list(EDGE_BANDS_PX),
         "motion_classes": {"classes": list(MOTION_CLASSES), "trained_span_deg": TRAINED_SPAN_DEG},
         "scales": {c: list(v) for c, v in scales.items()},
@@ -333,6 +345,10 @@ def main() -> None:
         "check_by_family_motion": by_family_motion(check_z, scales),
         "check_by_family_motion_shipped_before": by_family_motion(check_z, shipped),
     }
+    if args.mc:  # the deterministic table on the same MC decodes, judged per family cell as the check is
+        det_kinds = family_scales(check_raw, shipped)
+        out["check_deterministic_scales_scaled"] = table(by_family_cell(check_z), det_kinds)
+        out["check_deterministic_scales_misses"] = check(out["check_deterministic_scales_scaled"])
     if args.model is not None:  # what the model carries now (its own scales, else the product's), on the check set
         from gearscan.inference.model_io import read_config
         from gearscan.inference.predictor import model_depth_sigma_scales
