@@ -19,7 +19,11 @@ from gearscan.config import LiveConfig
 from gearscan.core.types import Burst, Measurement
 from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineError, PipelineReport, StageSpec
-from gearscan.recon.depth_sigma import UNMEASURED_NOTES, decoder_depth_sigma_source
+from gearscan.recon.depth_sigma import (
+    UNMEASURED_NOTES,
+    decoder_depth_sigma_scales,
+    decoder_depth_sigma_source,
+)
 from gearscan.recon.deviation import CadScorer
 from gearscan.recon.measure import CoarseStage, Reconstructor, network_support_option
 
@@ -191,7 +195,7 @@ def run_live(
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
                                    unwrap=cfg.recon.unwrap, network_support_px=support,
-                                   depth_sigma_scales=getattr(decoder, "depth_sigma_scales", None))  # the model's own
+                                   depth_sigma_scales=decoder_depth_sigma_scales(decoder))  # the model's own, else the product's
     if note := UNMEASURED_NOTES.get(decoder_depth_sigma_source(decoder)):
         log.warning("%s", note)
     coarse = CoarseStage(rig, cfg.projector.coarse_period_px, cfg.gear, recon if cfg.recon.unwrap == "coarse" else None)

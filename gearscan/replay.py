@@ -25,7 +25,7 @@ from gearscan.core.types import Burst, Cloud, Measurement
 from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
-from gearscan.recon.depth_sigma import decoder_depth_sigma_source
+from gearscan.recon.depth_sigma import decoder_depth_sigma_scales, decoder_depth_sigma_source
 from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
 from gearscan.recon.measure import (
@@ -314,7 +314,7 @@ def replay(
     max_sigma = keep_bound_option(max_sigma, frame_fit=refine and fuse is not None)
     recon = (Reconstructor.for_gear(rig, period, gear, unwrap=unwrap, network_support_px=network_support_px,
                                     max_sigma=max_sigma,  # the decoding model's own depth-sigma scales, else the product's
-                                    depth_sigma_scales=getattr(decoder, "depth_sigma_scales", None))
+                                    depth_sigma_scales=decoder_depth_sigma_scales(decoder))
              if (reconstruct and gear is not None) else None)
     coarse = CoarseStage(rig, coarse_period, gear, recon if unwrap == "coarse" else None)
     scorer = TruthScorer(reader) if (truth and reader.has_truth()) else None

@@ -12,8 +12,11 @@ PS (a still burst, by the encoder or the frames' gate) carries its own measured 
 more than it was trained on (:data:`TRAINED_SPAN_DEG`) needs more, the more the farther (session 50's test: 6.8-9.3 %
 beyond 2 sigma at 2 deg/frame with one pooled set). Each class's scale per band is the largest that any val family
 (the twin's radial rigs, its any-view rigs, the default rig) needs: pooled, the any-view rigs hid the others. These are the product's scales, chosen for the
-shipped model; a model whose sigma differs carries its own in its JSON (``depth_sigma``, the rule's amendment;
-``inference.predictor.model_depth_sigma_scales``), which ``replay``, ``inspect`` and ``live`` pass on.
+shipped model (:data:`SCALES_CHOSEN_FOR`), with a table of their own for its Monte Carlo mode (the rule's ninth
+amendment); a model whose sigma differs carries its own in its JSON (``depth_sigma``, the rule's amendment;
+``inference.predictor.model_depth_sigma_scales``), which ``replay``, ``inspect`` and ``live`` pass on
+(:func:`decoder_depth_sigma_scales`), and a run says where its scales were not measured for its decode
+(:func:`depth_sigma_source`).
 """
 
 from __future__ import annotations
@@ -38,6 +41,15 @@ DEPTH_SIGMA_BY_CLASS: Mapping[str, tuple[float, ...]] = MappingProxyType({
     "network_fast": (7.25, 4.85, 3.35, 2.15, 2.15),
     "network_faster": (8.95, 6.4, 4.75, 3.35, 2.4),
 })
+# Monte Carlo mode's (the rule's ninth amendment, session 52: the same form on MC decodes, T = 20, of the same val
+# scenes, benchmarks/depth_sigma_val_mc.json, check seed set 3400 passed in every family; the deterministic table
+# missed there once, val_radial network_faster beyond 8.5 px 6.0 %). Three-step PS decodes alike in both modes.
+DEPTH_SIGMA_BY_CLASS_MC: Mapping[str, tuple[float, ...]] = MappingProxyType({
+    "three_step": (4.15, 3.25, 1.75, 1.65, 1.6),
+    "network": (3.45, 2.4, 1.95, 1.65, 1.6),
+    "network_fast": (6.9, 5.0, 3.4, 2.15, 2.2),
+    "network_faster": (7.85, 5.9, 4.45, 3.25, 2.5),
+})
 FIRST_CHOICE_SCALES: tuple[float, ...] = (4.95, 3.55, 2.6, 1.85, 1.4)  # benchmarks/depth_sigma_val_pooled.json
 NO_SCALES: tuple[float, ...] = (1.0,) * (len(EDGE_BANDS_PX) + 1)  # the raw propagated sigma (calibration runs)
 # the network's training bursts span at most 1.7 deg from the first frame to the last (18 poses 0.1 deg apart,
@@ -61,13 +73,25 @@ def depth_sigma_source(*, network: bool, mc: int = 0, decode: str | None = None,
     this decode: the shipped network's ``decode`` fingerprint, :data:`SCALES_CHOSEN_FOR`, or three-step PS), or not
     measured: ``"borrowed"`` (the product's on another network decode: a fine-tuned model, refitted sigma maps, an
     older model), ``"stale"`` (the model's own, chosen for a decode its files no longer are, e.g. after a sigma-map
-    refit) or ``"mc"`` (Monte Carlo mode: every scale was chosen on the deterministic decode; its sigma is the MC
-    map's). ``own_chosen_for``: the fingerprint the model's own scales name (None: not recorded, trusted)."""
-    if network and mc > 0:
-        return "mc"
+    refit) or ``"mc"`` (a model's own in Monte Carlo mode: they were chosen on its deterministic decode, whose sigma
+    is another map's; the product's have a Monte Carlo table, :data:`DEPTH_SIGMA_BY_CLASS_MC`).
+    ``own_chosen_for``: the fingerprint the model's own scales name (None: not recorded, trusted)."""
     if own:
+        if network and mc > 0:
+            return "mc"
         return "model" if own_chosen_for is None or own_chosen_for == decode else "stale"
     return "product" if not network or decode == SCALES_CHOSEN_FOR else "borrowed"
+
+
+def decoder_depth_sigma_scales(decoder: object) -> DepthSigmaScales | None:
+    """The scales a run with an app decoder reconstructs with: the model's own (its JSON), else in Monte Carlo mode
+    the product's MC table, else None (the reconstructor's default, the product's deterministic table)."""
+    own = getattr(decoder, "depth_sigma_scales", None)
+    if own is not None:
+        return check_scales(own)
+    if getattr(decoder, "predictor", None) is not None and getattr(decoder, "mc", 0) > 0:
+        return DEPTH_SIGMA_SCALES_MC
+    return None
 
 
 def decoder_depth_sigma_source(decoder: object) -> str:
@@ -90,9 +114,9 @@ UNMEASURED_NOTES: Mapping[str, str] = MappingProxyType({
                 "val gears): " + _CHOOSE_OWN,
     "stale": "the model's own depth-sigma scales were chosen for another decode of it (its weights or sigma maps "
              "changed since), so its points' sigma is not a measured k = 2 bound: " + _CHOOSE_OWN,
-    "mc": "the depth-sigma scales were chosen on the deterministic decode; in Monte Carlo mode the phase sigma is the "
-          "MC map's, so the points' sigma is not a measured k = 2 bound (use the deterministic decode, --mc 0, for "
-          "a measured one)",
+    "mc": "the model's own depth-sigma scales were chosen on its deterministic decode; in Monte Carlo mode the phase "
+          "sigma is its MC map's, so the points' sigma is not a measured k = 2 bound (use the deterministic decode, "
+          "--mc 0, for a measured one)",
 })
 
 
@@ -152,6 +176,7 @@ class DepthSigmaScales:
 
 
 DEPTH_SIGMA_SCALES = DepthSigmaScales(DEPTH_SIGMA_BY_CLASS)
+DEPTH_SIGMA_SCALES_MC = DepthSigmaScales(DEPTH_SIGMA_BY_CLASS_MC)
 
 
 def band_labels() -> list[str]:

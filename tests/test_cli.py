@@ -267,11 +267,16 @@ def test_replay_says_when_a_model_borrows_the_products_depth_sigma(tmp_path):
     """The product's depth-sigma scales were chosen for the shipped decode (recon.depth_sigma.SCALES_CHOSEN_FOR): the
     shipped model and three-step PS use them as measured, the default-rig option its own (chosen for its decode);
     unmeasured, which the metrics record and replay says: a model with other sigma maps and none of its own
-    (borrowed), the option with a refitted map (its own scales stale), and Monte Carlo mode (chosen deterministic)."""
+    (borrowed), the option with a refitted map (its own scales stale), the option in Monte Carlo mode (its own were
+    chosen deterministic). The shipped model in Monte Carlo mode reconstructs with the product's MC table."""
     import shutil
 
     from gearscan.inference.predictor import DEFAULT_MODEL
-    from gearscan.recon.depth_sigma import UNMEASURED_NOTES
+    from gearscan.recon.depth_sigma import (
+        DEPTH_SIGMA_SCALES,
+        DEPTH_SIGMA_SCALES_MC,
+        UNMEASURED_NOTES,
+    )
 
     rec = tmp_path / "rec"
     res = runner.invoke(app, ["twin", "render", str(rec), "--bursts", "1", "--width", "64", "--height", "64"])
@@ -290,9 +295,13 @@ def test_replay_says_when_a_model_borrows_the_products_depth_sigma(tmp_path):
     metrics = tmp_path / "m.json"
     for extra, source in (([], "product"), (["--classical"], "product"), (["--model", str(option)], "model"),
                           (["--model", str(refitted)], "borrowed"), (["--model", str(stale)], "stale"),
-                          (["--mc", "2"], "mc"), (["--model", str(option), "--mc", "2"], "mc")):
+                          (["--mc", "2"], "product"), (["--model", str(option), "--mc", "2"], "mc")):
         res = runner.invoke(app, ["replay", str(rec), "--no-truth", "--metrics", str(metrics), *extra])
         assert res.exit_code == 0, res.output
-        assert json.loads(metrics.read_text())["recon"]["depth_sigma_source"] == source, extra
+        recon = json.loads(metrics.read_text())["recon"]
+        assert recon["depth_sigma_source"] == source, extra
+        if "--model" not in extra:  # the product's scales: the MC table in Monte Carlo mode
+            assert recon["depth_sigma_scales"] == (DEPTH_SIGMA_SCALES_MC if "--mc" in extra else
+                                                   DEPTH_SIGMA_SCALES).as_dict(), extra
         for name, note in UNMEASURED_NOTES.items():  # said where unmeasured, and only there
             assert (note.split(":")[0][:60] in " ".join(res.output.split())) == (name == source), (extra, res.output)

@@ -231,7 +231,9 @@ def test_the_products_scales_name_the_decode_they_were_chosen_for():
     assert depth_sigma_source(network=True, decode=other, own=True, own_chosen_for=SCALES_CHOSEN_FOR) == "stale"
     assert depth_sigma_source(network=True, decode=other) == "borrowed"
     assert depth_sigma_source(network=True, decode=None) == "borrowed"  # a network decode of unknown files
-    assert depth_sigma_source(network=True, mc=20, decode=SCALES_CHOSEN_FOR) == "mc"  # chosen deterministic
+    assert depth_sigma_source(network=True, mc=20, decode=SCALES_CHOSEN_FOR) == "product"  # the product's MC table
+    assert depth_sigma_source(network=True, mc=20, decode=other, own=True, own_chosen_for=other) == "mc"
+    assert depth_sigma_source(network=True, mc=20, decode=other) == "borrowed"
     # the default-rig option names the decode its own scales were chosen for
     option = DEFAULT_MODEL.with_name("default_rig.safetensors")
     entry = json.loads(option.with_suffix(".json").read_text())["depth_sigma"]

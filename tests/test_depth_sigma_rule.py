@@ -209,6 +209,26 @@ def test_the_default_rig_options_own_scales_are_its_val_choice() -> None:
     assert check(recheck(shipped["check_raw"], FIRST_CHOICE_SCALES))
 
 
+def test_monte_carlo_modes_scales_are_the_ninth_amendments_val_choice() -> None:
+    """The ninth amendment: the fifth form on MC decodes (T = 20) of the same val scenes, recomputed from the committed
+    run; its check passed on a fresh seed set, where the deterministic table missed in one cell."""
+    from gearscan.inference.model_io import model_fingerprint
+    from gearscan.inference.predictor import DEFAULT_MODEL
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_BY_CLASS_MC
+
+    run = json.loads((ROOT / "benchmarks" / "depth_sigma_val_mc.json").read_text())
+    det = json.loads((ROOT / "benchmarks" / "depth_sigma_val.json").read_text())
+    assert run["mc"] == 20 and run["model_fingerprint"] == model_fingerprint(DEFAULT_MODEL) == det["model_fingerprint"]
+    assert run["fit_seed"] == det["fit_seed"] and run["check_seed"] not in (det["check_seed"], det["fit_seed"])
+    chosen = choose_worst_family(run["fit_raw"])
+    assert chosen == {c: tuple(v) for c, v in DEPTH_SIGMA_BY_CLASS_MC.items()} == {
+        c: tuple(v) for c, v in run["scales"].items()}
+    assert check(recheck(run["check_raw"], family_scales(run["check_raw"], chosen))) == [] and run["check_passed"]
+    assert chosen["three_step"] == DEPTH_SIGMA_SCALES.by_class["three_step"]  # three-step PS decodes alike
+    misses = check(run["check_deterministic_scales_scaled"])
+    assert misses == run["check_deterministic_scales_misses"] == ["val_radial/network_faster 8.5-inf px: 6.0% beyond 2 sigma"]
+
+
 def test_the_options_revolution_met_the_amendments_shipping_condition_with_its_own_scales() -> None:
     """Recomputed from the committed run (benchmarks/inspect_default_rig_report.json), which records the scales its
     reconstructor read: the option's own, from its JSON."""
