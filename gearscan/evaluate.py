@@ -156,7 +156,10 @@ def network_method(predictor, mc: int = 0) -> Method:
         return predictor.predict(frames, mc, full_scale=full_scale, angles=angles)
 
     run.network_support = getattr(predictor, "network_support", None)
-    run.depth_sigma_scales = getattr(predictor, "depth_sigma_scales", None)  # the clouds' sigma scales (its JSON's)
+    from gearscan.recon.depth_sigma import run_depth_sigma_scales
+
+    # the clouds' sigma scales as the app picks them: the model's own (its JSON), else in MC mode the product's MC table
+    run.depth_sigma_scales = run_depth_sigma_scales(getattr(predictor, "depth_sigma_scales", None), network=True, mc=mc)
     return run
 
 

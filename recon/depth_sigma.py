@@ -83,15 +83,18 @@ def depth_sigma_source(*, network: bool, mc: int = 0, decode: str | None = None,
     return "product" if not network or decode == SCALES_CHOSEN_FOR else "borrowed"
 
 
-def decoder_depth_sigma_scales(decoder: object) -> DepthSigmaScales | None:
-    """The scales a run with an app decoder reconstructs with: the model's own (its JSON), else in Monte Carlo mode
-    the product's MC table, else None (the reconstructor's default, the product's deterministic table)."""
-    own = getattr(decoder, "depth_sigma_scales", None)
+def run_depth_sigma_scales(own, *, network: bool, mc: int = 0) -> DepthSigmaScales | None:
+    """The scales a run reconstructs with: the decoding model's ``own`` (its JSON; flat or per class), else in Monte
+    Carlo mode the product's MC table, else None (the reconstructor's default, the product's deterministic table)."""
     if own is not None:
         return check_scales(own)
-    if getattr(decoder, "predictor", None) is not None and getattr(decoder, "mc", 0) > 0:
-        return DEPTH_SIGMA_SCALES_MC
-    return None
+    return DEPTH_SIGMA_SCALES_MC if network and mc > 0 else None
+
+
+def decoder_depth_sigma_scales(decoder: object) -> DepthSigmaScales | None:
+    """:func:`run_depth_sigma_scales` of an app decoder (its ``depth_sigma_scales``, ``predictor`` and ``mc``)."""
+    return run_depth_sigma_scales(getattr(decoder, "depth_sigma_scales", None),
+                                  network=getattr(decoder, "predictor", None) is not None, mc=getattr(decoder, "mc", 0))
 
 
 def decoder_depth_sigma_source(decoder: object) -> str:
