@@ -239,6 +239,22 @@ def check(scaled: dict) -> list[str]:
             if cell.get("points", 0) >= CHECK_MIN_POINTS and cell["beyond_2sigma"] > CHECK_BEYOND_2]
 
 
+def val_sets(arg: str | None, ap: argparse.ArgumentParser) -> tuple[str, ...] | None:
+    """``--sets`` as folders: relative to the working directory (the repository's own, ``data/...``, as its rule runs
+    name them), each a twin dataset (its ``index.json``); None: the product's val scenes. A folder outside the
+    repository, or not named ``data/default_rig/...``, is a val family of its own (:func:`family`)."""
+    if arg is None:
+        return None
+    out = []
+    for name in (n.strip() for n in arg.split(",")):
+        path = Path(name).resolve()
+        if not name or not (path / "index.json").is_file():
+            ap.error(f"--sets: {name!r} is not a twin dataset folder (expected a folder with index.json, e.g. from "
+                     f"`gearscan twin dataset`)")
+        out.append(str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path))
+    return tuple(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "depth_sigma_val.json")
@@ -297,7 +313,7 @@ def main() -> None:
 
     shipped = {c: tuple(v) for c, v in DEPTH_SIGMA_SCALES.by_class.items()}
     if args.check_model is not None:  # the shipped scales on another model's bursts: a report, no choice
-        sets = tuple(args.sets.split(",")) if args.sets else None
+        sets = val_sets(args.sets, ap)
         check_z = collect(args.check_seed, args.motions, args.per_motion, args.check_model, sets)
         check_kinds = family_scales(table(by_family_cell(check_z)), shipped)  # judged per family, as the rule does
         check_raw = table(by_family_cell(check_z), at=check_kinds)
@@ -316,7 +332,7 @@ def main() -> None:
         print(f"{args.check_model}: check {'passed' if not misses else 'MISSED: ' + '; '.join(misses)}")
         return
 
-    sets = tuple(args.sets.split(",")) if args.sets else None
+    sets = val_sets(args.sets, ap)
     fit_z = collect(args.fit_seed, args.motions, args.per_motion, args.model, sets, args.mc)
     fit = table(by_family_cell(fit_z))
     scales = choose_worst_family(fit)

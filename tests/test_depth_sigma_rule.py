@@ -243,3 +243,21 @@ def test_the_options_revolution_met_the_amendments_shipping_condition_with_its_o
     assert run["fused_rms_mm"] <= 0.0045 and run["coverage"] >= 0.867
     assert run["chipped"] == run["truth_chipped"] and run["fp_max_error_um"] <= 5 + 0.05 * 30
     assert all(abs(measured - truth) <= 5 + 0.05 * abs(truth) for _, truth, measured, _ in run["rows"])
+
+
+def test_the_scripts_val_sets_name_what_is_wrong(tmp_path, monkeypatch) -> None:
+    """``--sets`` (a user's model's own val scenes, README): folders relative to the working directory, each a twin
+    dataset; anything else stops with the folder named and what was expected."""
+    import argparse
+
+    from calibrate_depth_sigma import val_sets
+
+    ap = argparse.ArgumentParser(prog="calibrate_depth_sigma.py")
+    (tmp_path / "gear1").mkdir()
+    (tmp_path / "gear1" / "index.json").write_text("{}")
+    monkeypatch.chdir(tmp_path)
+    assert val_sets("gear1", ap) == (str(tmp_path / "gear1"),)  # outside the repository: absolute
+    assert val_sets(None, ap) is None  # the product's val scenes
+    for bad in ("gear2", "gear1,", ""):
+        with pytest.raises(SystemExit):
+            val_sets(bad, ap)
