@@ -351,6 +351,10 @@ def replay_cmd(
 
     if note := UNMEASURED_NOTES.get((result.recon or {}).get("depth_sigma_source")):
         typer.secho(f"sigma: {note}", fg=typer.colors.YELLOW)
+    if turning := (result.decoder or {}).get("turning_three_step", 0):
+        typer.secho(f"sigma: three-step PS decoded {turning} burst(s) that turned (--classical, a baseline): its sigma "
+                    "has no motion term and its depth scales were measured on still bursts, so their points' sigma is "
+                    "not a measured k = 2 bound", fg=typer.colors.YELLOW)
     if uncalibrated := (result.recon or {}).get("bursts_sigma_uncalibrated", 0):
         from gearscan.recon.depth_sigma import CALIBRATED_SPAN_DEG
 

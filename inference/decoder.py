@@ -70,6 +70,7 @@ class Decoder:
             raise ValueError(f"model.still_span_deg: expected >= 0 degrees, got {still_span_deg}")
         self.still_span_deg = float(still_span_deg)
         self.still_bursts = 0
+        self.turning_three_step = 0  # three-step PS (classical mode) on bursts that turned: no motion term in its sigma
         self.orientation = orientation
         self.rig_orientation: str | None = None if orientation == "auto" else orientation
         self.orientation_source: str | None = None if orientation == "auto" else "set"
@@ -103,6 +104,9 @@ class Decoder:
 
     def __call__(self, burst: Burst) -> PhaseResult:
         if self.predictor is None or burst.group != 0:  # coarse bursts: three-step PS (the net knows fine fringes)
+            if self.predictor is None and burst.group == 0 and not turned_less_than(burst.angles, self.still_span_deg):
+                with self._lock:
+                    self.turning_three_step += 1
             return classical_result(burst)
         if turned_less_than(burst.angles, self.still_span_deg):
             self.still_bursts += 1
@@ -140,9 +144,11 @@ class Decoder:
         return None if self.predictor is None else self.predictor.depth_sigma_chosen_for
 
     def summary(self) -> dict:
-        """What decoded the run: mode, bursts sent to three-step PS as still, the fringe orientation
-        asked for and the rig's as adopted (None: voted per burst throughout) with where it came from."""
-        return {"mode": self.mode, "still_bursts": self.still_bursts, "orientation": self.orientation,
+        """What decoded the run: mode, bursts sent to three-step PS as still (and, in three-step mode, the bursts it
+        decoded that turned: a baseline whose sigma has no motion term), the fringe orientation asked for and the
+        rig's as adopted (None: voted per burst throughout) with where it came from."""
+        return {"mode": self.mode, "still_bursts": self.still_bursts, "turning_three_step": self.turning_three_step,
+                "orientation": self.orientation,
                 "rig_orientation": self.rig_orientation, "orientation_source": self.orientation_source,
                 "orientation_votes": dict(self._votes)}
 

@@ -261,6 +261,16 @@ def test_replay_says_when_bursts_span_beyond_the_calibrated_sigma(tmp_path):
     assert res.exit_code == 0, res.output
     assert json.loads(metrics.read_text())["recon"]["bursts_sigma_uncalibrated"] == 0
     assert "spanned more than" not in res.output
+    # ... but three-step PS on a turning burst has no motion term at all: a baseline, said and counted
+    assert json.loads(metrics.read_text())["decoder"]["turning_three_step"] == 2
+    assert "three-step PS decoded 2 burst(s) that turned (--classical, a baseline)" in res.output
+    still = tmp_path / "still"
+    res = runner.invoke(app, ["twin", "render", str(still), "--bursts", "2", "--width", "64", "--height", "64",
+                              "--motion", "uniform:0"])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["replay", str(still), "--no-truth", "--classical", "--metrics", str(metrics)])
+    assert res.exit_code == 0, res.output
+    assert json.loads(metrics.read_text())["decoder"]["turning_three_step"] == 0 and "that turned" not in res.output
 
 
 def test_replay_says_when_a_model_borrows_the_products_depth_sigma(tmp_path):
