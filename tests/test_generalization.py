@@ -246,7 +246,16 @@ def test_evaluate_scores_each_models_cloud_with_its_own_support_test(cases, monk
 
     monkeypatch.setattr(ev, "cloud_accuracy", spy)
     ev.score({BASELINE: classical_method, NETWORK: ev.network_method(Stub())}, cases[:1], clouds=True)
-    assert seen == [(None, None), (NetworkSupport(3, None), (2.0,) * 5)]
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES_MC, check_scales
+
+    assert seen[0] == (None, None) and seen[1][0] == NetworkSupport(3, None)
+    assert check_scales(seen[1][1]) == check_scales((2.0,) * 5)  # its own, as the app picks them
+    # a model without its own: the product's deterministic table (None, the reconstructor's default), or in MC mode
+    # the product's MC table (recon.depth_sigma.run_depth_sigma_scales, as replay and live pick them)
+    Stub.depth_sigma_scales = None
+    seen.clear()
+    ev.score({NETWORK: ev.network_method(Stub()), "mc": ev.network_method(Stub(), 2)}, cases[:1], clouds=True)
+    assert [s for _, s in seen] == [None, DEPTH_SIGMA_SCALES_MC]
 
 
 def test_val_cloud_samples_name_their_motions() -> None:
