@@ -672,12 +672,10 @@ def inspect_cmd(
     from gearscan.inspect import chip_verdict
 
     typer.echo(f"chipped teeth: {chip_verdict(report.inspection)}")
-    from gearscan.recon.depth_sigma import UNMEASURED_NOTES
+    from gearscan.inspect import unmeasured_sigma_note
 
-    refined = report.fused.refined
-    unfitted = len(report.fused) if refined is None else int((~refined).sum())
-    if unfitted and (note := UNMEASURED_NOTES.get(report.depth_sigma_source)):  # a fitted point: the fit's own sigma
-        typer.secho(f"sigma of the {unfitted:,} point(s) the frame fit did not take: {note}", fg=typer.colors.YELLOW)
+    if note := unmeasured_sigma_note(report):
+        typer.secho(note, fg=typer.colors.YELLOW)
     typer.echo(f"report: {report.files['markdown']}")
 
 

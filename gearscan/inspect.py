@@ -21,6 +21,7 @@ from typing import Literal
 import numpy as np
 
 from gearscan.core.recording import RecordingError, RecordingReader
+from gearscan.recon.depth_sigma import UNMEASURED_NOTES
 from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
 from gearscan.recon.inspect import Inspection, inspect_gear, iso1328_class, iso1328_tolerances
 from gearscan.recon.measure import PRODUCT_SUPPORT
@@ -49,6 +50,15 @@ class InspectionReport:
     truth: dict | None = None
     refine: dict | None = None  # the frame fit's counts (recon.track.TrackRefiner.refine_fused), if it ran
     depth_sigma_source: str | None = None  # whose depth-sigma scales the unfitted points carry (recon.depth_sigma)
+
+
+def unmeasured_sigma_note(report: InspectionReport) -> str | None:
+    """What to say where the points the frame fit did not take carry depth-sigma scales not measured for this decode
+    (``recon.depth_sigma.depth_sigma_source``; a fitted point carries the fit's own sigma); None where none do."""
+    refined = report.fused.refined
+    unfitted = len(report.fused) if refined is None else int((~refined).sum())
+    note = UNMEASURED_NOTES.get(report.depth_sigma_source)
+    return f"sigma of the {unfitted:,} point(s) the frame fit did not take: {note}" if unfitted and note else None
 
 
 def dropped_note(refine: dict | None) -> str:
@@ -236,6 +246,8 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         f"Gear axis fitted from the flanks: {insp.eccentricity_um:.1f} µm from the turntable axis towards "
         f"{insp.eccentricity_deg:.1f}°; transverse section z = {insp.section_mm[0]:.1f} to {insp.section_mm[1]:.1f} mm.",
     ]
+    if note := unmeasured_sigma_note(report):
+        lines += ["", f"**{note}.**"]
     if report.revolution_deg < 360 - 360 / insp.teeth:
         lines += ["", f"**Warning:** the recording covers {report.revolution_deg:.0f}° only: teeth never seen have no "
                   "pitch or profile, and Fp covers the teeth that were."]

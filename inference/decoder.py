@@ -109,7 +109,8 @@ class Decoder:
                     self.turning_three_step += 1
             return classical_result(burst)
         if turned_less_than(burst.angles, self.still_span_deg):
-            self.still_bursts += 1
+            with self._lock:  # the decoder runs on several worker threads
+                self.still_bursts += 1
             self._vote_orientation(burst)
             return still_result(burst)
         predictor = self._pool.get()

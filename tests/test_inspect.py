@@ -374,3 +374,32 @@ def test_dropped_note_says_what_the_frame_fit_left_out_and_refused():
     assert "1,200 with a sigma above the fit's bound (30 µm)" in dropped_note({"uncertain": 1200, "sigma_bound_mm": 0.03})
     assert dropped_note({"off_surface": 0, "uncertain": 0, "unsettled": 0, "implausible": 0}) == ""
     assert dropped_note(None) == ""
+
+
+def test_inspect_says_when_unfitted_points_carry_unmeasured_depth_scales() -> None:
+    """An unfitted point keeps its fused sigma, which the burst's depth-sigma scales made: where they were not measured
+    for the decode (recon.depth_sigma.depth_sigma_source), the report and the CLI say so with the count; fitted points
+    (the fit's own sigma) and measured scales say nothing."""
+    from dataclasses import dataclass
+
+    from gearscan.inspect import unmeasured_sigma_note
+    from gearscan.recon.depth_sigma import UNMEASURED_NOTES
+
+    @dataclass
+    class Fused:
+        refined: np.ndarray | None
+
+        def __len__(self) -> int:
+            return 5 if self.refined is None else len(self.refined)
+
+    @dataclass
+    class Report:
+        fused: Fused
+        depth_sigma_source: str | None
+
+    some = Fused(np.array([True, False, True, False, False]))
+    note = unmeasured_sigma_note(Report(some, "borrowed"))
+    assert note.startswith("sigma of the 3 point(s) the frame fit did not take: ") and UNMEASURED_NOTES["borrowed"] in note
+    assert "5 point(s)" in unmeasured_sigma_note(Report(Fused(None), "mc"))  # no fit ran: every point
+    assert unmeasured_sigma_note(Report(Fused(np.ones(5, bool)), "borrowed")) is None  # all fitted
+    assert unmeasured_sigma_note(Report(some, "product")) is None and unmeasured_sigma_note(Report(some, None)) is None
