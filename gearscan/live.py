@@ -19,11 +19,7 @@ from gearscan.config import LiveConfig
 from gearscan.core.types import Burst, Measurement
 from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineError, PipelineReport, StageSpec
-from gearscan.recon.depth_sigma import (
-    UNMEASURED_NOTES,
-    decoder_depth_sigma_scales,
-    decoder_depth_sigma_source,
-)
+from gearscan.recon.depth_sigma import UNMEASURED_NOTES, decoder_depth_sigma
 from gearscan.recon.deviation import CadScorer
 from gearscan.recon.measure import CoarseStage, Reconstructor, network_support_option
 
@@ -192,11 +188,12 @@ def run_live(
         adopt_rig(rig)
     support = network_support_option(cfg.recon.network_support_px,  # unset: the model's own (its JSON)
                                      model=getattr(decoder, "network_support", None))
+    depth_scales, depth_source = decoder_depth_sigma(decoder)  # the model's own, else the product's
     recon = Reconstructor.for_gear(rig, cfg.projector.period_px, cfg.gear,
                                    min_modulation=cfg.recon.min_modulation, max_sigma=cfg.recon.max_sigma_rad,
                                    unwrap=cfg.recon.unwrap, network_support_px=support,
-                                   depth_sigma_scales=decoder_depth_sigma_scales(decoder))  # the model's own, else the product's
-    if note := UNMEASURED_NOTES.get(decoder_depth_sigma_source(decoder)):
+                                   depth_sigma_scales=depth_scales)
+    if note := UNMEASURED_NOTES.get(depth_source):
         log.warning("%s", note)
     coarse = CoarseStage(rig, cfg.projector.coarse_period_px, cfg.gear, recon if cfg.recon.unwrap == "coarse" else None)
     cad = CadScorer(cfg.gear) if cfg.recon.cad_deviation else None

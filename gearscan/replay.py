@@ -25,7 +25,7 @@ from gearscan.core.types import Burst, Cloud, Measurement
 from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
-from gearscan.recon.depth_sigma import decoder_depth_sigma_scales, decoder_depth_sigma_source
+from gearscan.recon.depth_sigma import decoder_depth_sigma
 from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
 from gearscan.recon.measure import (
@@ -312,9 +312,10 @@ def replay(
         network_support_px = network_support_option(None, frame_fit=refine and fuse is not None,
                                                      model=getattr(decoder, "network_support", None))
     max_sigma = keep_bound_option(max_sigma, frame_fit=refine and fuse is not None)
+    depth_scales, depth_source = decoder_depth_sigma(decoder)
     recon = (Reconstructor.for_gear(rig, period, gear, unwrap=unwrap, network_support_px=network_support_px,
                                     max_sigma=max_sigma,  # the decoding model's own depth-sigma scales, else the product's
-                                    depth_sigma_scales=decoder_depth_sigma_scales(decoder))
+                                    depth_sigma_scales=depth_scales)
              if (reconstruct and gear is not None) else None)
     coarse = CoarseStage(rig, coarse_period, gear, recon if unwrap == "coarse" else None)
     scorer = TruthScorer(reader) if (truth and reader.has_truth()) else None
@@ -330,7 +331,7 @@ def replay(
         metrics.recon = {"unwrap": unwrap, "network_support_px": network_support_px, "max_sigma_rad": max_sigma,
                          "unwrapper_sees": unwrapper_sees(recon.unwrap_max_sigma),
                          "depth_sigma_scales": recon.depth_sigma_scales.as_dict(),
-                         "depth_sigma_source": decoder_depth_sigma_source(decoder),
+                         "depth_sigma_source": depth_source,
                          "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:

@@ -348,7 +348,7 @@ class Predictor:
                 raise ModelFileError(f"{path.with_suffix('.json')}: sigma_calibration.deterministic reads the "
                                      f"aleatoric sigma apart (sigma_data), which the deterministic pass does not "
                                      f"have apart; expected a map without it (an MC map only)")
-        return cls(
+        predictor = cls(
             model,
             var_scale=float(meta.get("var_scale", 1.0)),
             device=device,
@@ -361,14 +361,11 @@ class Predictor:
             still_burst_rad=still_burst_rad,
             still_burst_motion=still_burst_motion,
             mc_phase=mc_phase,
-        )._loaded_from(path)
-
-    def _loaded_from(self, path: Path) -> Predictor:
-        """Remember the decode this predictor's files define (:func:`model_fingerprint`: weights, both sigma maps,
-        gates; not the overrides passed to :meth:`load`): what a val choice made for one decode (depth-sigma
-        scales) is checked against."""
-        self.fingerprint = model_fingerprint(path)
-        return self
+        )
+        # the decode its files define (weights, both sigma maps, gates; not the overrides above): what a val choice
+        # made for one decode (depth-sigma scales) is checked against
+        predictor.fingerprint = model_fingerprint(path)
+        return predictor
 
     def replica(self) -> Predictor:
         """The same predictor on its own copy of the network, for a second thread."""

@@ -15,7 +15,7 @@ beyond 2 sigma at 2 deg/frame with one pooled set). Each class's scale per band 
 shipped model (:data:`SCALES_CHOSEN_FOR`), with a table of their own for its Monte Carlo mode (the rule's ninth
 amendment); a model whose sigma differs carries its own in its JSON (``depth_sigma``, the rule's amendment;
 ``inference.predictor.model_depth_sigma_scales``), which ``replay``, ``inspect`` and ``live`` pass on
-(:func:`decoder_depth_sigma_scales`), and a run says where its scales were not measured for its decode
+(:func:`decoder_depth_sigma`), and a run says where its scales were not measured for its decode
 (:func:`depth_sigma_source`).
 """
 
@@ -91,20 +91,16 @@ def run_depth_sigma_scales(own, *, network: bool, mc: int = 0) -> DepthSigmaScal
     return DEPTH_SIGMA_SCALES_MC if network and mc > 0 else None
 
 
-def decoder_depth_sigma_scales(decoder: object) -> DepthSigmaScales | None:
-    """:func:`run_depth_sigma_scales` of an app decoder (its ``depth_sigma_scales``, ``predictor`` and ``mc``)."""
-    return run_depth_sigma_scales(getattr(decoder, "depth_sigma_scales", None),
-                                  network=getattr(decoder, "predictor", None) is not None, mc=getattr(decoder, "mc", 0))
-
-
-def decoder_depth_sigma_source(decoder: object) -> str:
-    """:func:`depth_sigma_source` of an app decoder (``inference.decoder.Decoder``: its ``predictor``, ``mc``,
-    ``model_fingerprint``, ``depth_sigma_scales`` and ``depth_sigma_chosen_for``; a plain callable counts as no
-    network)."""
-    return depth_sigma_source(network=getattr(decoder, "predictor", None) is not None, mc=getattr(decoder, "mc", 0),
-                              decode=getattr(decoder, "model_fingerprint", None),
-                              own=getattr(decoder, "depth_sigma_scales", None) is not None,
-                              own_chosen_for=getattr(decoder, "depth_sigma_chosen_for", None))
+def decoder_depth_sigma(decoder: object) -> tuple[DepthSigmaScales | None, str]:
+    """An app decoder's run (``inference.decoder.Decoder``: its ``predictor``, ``mc``, ``model_fingerprint``,
+    ``depth_sigma_scales`` and ``depth_sigma_chosen_for``; a plain callable counts as no network): the scales its
+    reconstructor reads (:func:`run_depth_sigma_scales`) and whether they were measured for it
+    (:func:`depth_sigma_source`)."""
+    own = getattr(decoder, "depth_sigma_scales", None)
+    network, mc = getattr(decoder, "predictor", None) is not None, getattr(decoder, "mc", 0)
+    source = depth_sigma_source(network=network, mc=mc, decode=getattr(decoder, "model_fingerprint", None),
+                                own=own is not None, own_chosen_for=getattr(decoder, "depth_sigma_chosen_for", None))
+    return run_depth_sigma_scales(own, network=network, mc=mc), source
 
 
 _CHOOSE_OWN = ("choose its own on its rig's val scenes: `python scripts/calibrate_depth_sigma.py --model M.safetensors "

@@ -251,7 +251,7 @@ def test_evaluate_scores_each_models_cloud_with_its_own_support_test(cases, monk
     assert seen[0] == (None, None) and seen[1][0] == NetworkSupport(3, None)
     assert check_scales(seen[1][1]) == check_scales((2.0,) * 5)  # its own, as the app picks them
     # a model without its own: the product's deterministic table (None, the reconstructor's default), or in MC mode
-    # the product's MC table (recon.depth_sigma.run_depth_sigma_scales, as replay and live pick them)
+    # the product's MC table (recon.depth_sigma.run_depth_sigma_scales, as replay and live pick them through decoder_depth_sigma)
     Stub.depth_sigma_scales = None
     seen.clear()
     ev.score({NETWORK: ev.network_method(Stub()), "mc": ev.network_method(Stub(), 2)}, cases[:1], clouds=True)
