@@ -368,10 +368,10 @@ def main() -> None:
     if args.model is not None:  # what the model carries now (its own scales, else the product's), on the check set
         from gearscan.inference.model_io import read_config
         from gearscan.inference.predictor import model_depth_sigma_scales
-        from gearscan.recon.depth_sigma import check_scales
+        from gearscan.recon.depth_sigma import run_depth_sigma_scales
 
-        own = model_depth_sigma_scales(read_config(args.model))
-        before = DEPTH_SIGMA_SCALES if own is None else check_scales(own)
+        before = run_depth_sigma_scales(model_depth_sigma_scales(read_config(args.model)), network=True) \
+            or DEPTH_SIGMA_SCALES
         before_kinds = family_scales(check_raw, {c: tuple(v) for c, v in before.by_class.items()})
         out["model_scales_before"] = before.as_dict()
         out["check_model_before_scaled"] = table(by_family_cell(check_z), before_kinds)

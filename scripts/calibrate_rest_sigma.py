@@ -90,11 +90,11 @@ def depth_scales_read() -> dict[str, dict[str, list[float]]]:
     the default-rig option's own (its JSON), as ``{class: scales}``."""
     from gearscan.inference.model_io import read_config
     from gearscan.inference.predictor import model_depth_sigma_scales
-    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, run_depth_sigma_scales
 
     option = model_depth_sigma_scales(read_config(ROOT / "inference" / "weights" / "default_rig.safetensors"))
     return {"depth_sigma_scales": DEPTH_SIGMA_SCALES.as_dict(),
-            "option_depth_sigma_scales": (DEPTH_SIGMA_SCALES if option is None else check_scales(option)).as_dict()}
+            "option_depth_sigma_scales": (run_depth_sigma_scales(option, network=True) or DEPTH_SIGMA_SCALES).as_dict()}
 
 
 def main() -> None:
