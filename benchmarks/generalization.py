@@ -6,7 +6,7 @@ Scenes come from :mod:`gearscan.twin.families` (fixed test seeds, rendered on th
 disk); per scene the paper's three motions both ways, two random spans in (0, 2] deg (random
 sense and split) and two still bursts. Scored with :mod:`gearscan.generalization` against the
 twin's analytic phase at the first frame: per family and motion group RMSE of the network
-(deterministic; MC T=20 on the first ``--mc-scenes`` scenes of each family) and of three-step PS,
+(deterministic; MC T=20 on the first ``--mc-scenes`` scenes of each family, ``--mc-motions all``: on every burst) and of three-step PS,
 their ratio, ECE and coverage, and the error by stratum of camera fringe period, modulation,
 distance to the mask edge, burst span, image motion (px) and fringe phase change (periods). Writes benchmarks/generalization_report.{md,json,png}
 (``--quick``: a tiny run into the temp folder).
@@ -35,6 +35,7 @@ from gearscan.generalization import (
     ALL,
     AXES,
     BASELINE,
+    GROUPS,
     MOVING,
     MOVING_ONLY,
     NETWORK,
@@ -196,6 +197,8 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=16, help="scenes per family")
     ap.add_argument("--mc-scenes", type=int, default=2, help="scenes per family also decoded with MC dropout")
     ap.add_argument("--mc", type=int, default=20)
+    ap.add_argument("--mc-motions", choices=("paper", "all"), default="paper",
+                    help="MC on the paper's motions forwards and still bursts (paper) or on every burst (all)")
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--model", default=None, help="default: the shipped model")
     ap.add_argument("--threads", type=int, default=2)
@@ -228,8 +231,9 @@ def main() -> None:
     det = GeneralizationScorer([BASELINE, NETWORK, other_name, RIG_NAME],
                                supports={NETWORK: own, other_name: own, RIG_NAME: own})
     mc_rig = mc_rig_name(mc_name)
-    mc = GeneralizationScorer([BASELINE, NETWORK, mc_name, mc_rig],
-                              supports={NETWORK: own, mc_name: own, mc_rig: own})
+    mc = GeneralizationScorer([BASELINE, NETWORK, RIG_NAME, mc_name, mc_rig],
+                              supports={NETWORK: own, RIG_NAME: own, mc_name: own, mc_rig: own})
+    mc_groups = ("paper", "still") if args.mc_motions == "paper" else GROUPS
     scenes_json, timing = [], {"render_s": 0.0, "decode_s": 0.0, "mc_s": 0.0, "bursts": 0, "mc_bursts": 0}
     still_sigma: dict[str, dict[str, list[np.ndarray]]] = {}
     for fam in families:
@@ -252,7 +256,7 @@ def main() -> None:
                 timing["bursts"] += 1
                 if motion.kind == STILL:
                     add_still_sigma(still_sigma, fam, case, res[BASELINE])
-                if k < args.mc_scenes and motion.group in ("paper", "still"):
+                if k < args.mc_scenes and motion.group in mc_groups:
                     t0 = time.perf_counter()
                     # the dropout draws of a rerun are this run's, and each burst of a scene draws its own masks
                     torch.manual_seed(1000 * scene.seed + j)
@@ -339,12 +343,13 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
     out.with_suffix(".json").write_text(json.dumps(report, indent=1, default=str))
     png = out.with_suffix(".png")
     plot_strata(strata, fams, png, "test split: RMSE by stratum, shipped network (solid) vs three-step PS (dashed)")
-    mc_rows = [c for c in mc_cells if c.group in ("paper", "still")]
+    mc_rows = mc_cells if args.mc_motions == "all" else [c for c in mc_cells if c.group in ("paper", "still")]
     h = machine
     lines = [
         "# Generalization on the test split: families a user would bring, stratified",
         "",
         f"`python benchmarks/generalization.py --scenes {args.scenes} --mc-scenes {args.mc_scenes} --mc {args.mc}"
+        f"{' --mc-motions all' if args.mc_motions == 'all' else ''}"
         f"{' --quick' if args.quick else ''}{f' --model {args.model}' if args.model else ''}"
         f"{f' --out {args.out}' if args.out else ''}`; commit `{commit}`{' (working tree had uncommitted edits)' if dirty else ''}; "
         f"{total_s / 60:.1f} min.",
@@ -409,7 +414,8 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "",
         rig_weak_strata(strata),
         "",
-        f"## MC dropout T={args.mc} (first {args.mc_scenes} scenes of each family: paper motions forwards and still, test split)",
+        f"## MC dropout T={args.mc} (first {args.mc_scenes} scenes of each family: "
+        f"{'every burst' if args.mc_motions == 'all' else 'paper motions forwards and still'}, test split)",
         "",
         "Deterministic and MC on the same bursts:",
         "",
@@ -419,11 +425,12 @@ def write_report(out: Path, args, machine: dict, predictor: Predictor, det: Gene
         "(the scene's still-burst orientation, as in the tables above; it equals the rig calibration's, what `live`, "
         "`replay` and `inspect` use, in every scene where the section above says so; the same dropout draws):",
         "",
-        "| family | motions | MC RMSE (rad) | gain | ECE MC | MC RMSE, rig orientation (rad) | gain | ECE MC, rig orientation |",
-        "|---|---|---|---|---|---|---|---|",
+        "| family | motions | MC RMSE (rad) | gain | ECE MC | MC RMSE, rig orientation (rad) | gain | ECE MC, rig orientation "
+        "| ECE det, rig orientation (same bursts) |",
+        "|---|---|---|---|---|---|---|---|---|",
         *[f"| {c.family} | {c.group} | {c.rmse[mc_name]:.4f} | {c.gain(mc_name):.2f}x | {c.ece.get(mc_name, float('nan')):.3f} "
           f"| {c.rmse[mc_rig_name(mc_name)]:.4f} | {c.gain(mc_rig_name(mc_name)):.2f}x "
-          f"| {c.ece.get(mc_rig_name(mc_name), float('nan')):.3f} |"
+          f"| {c.ece.get(mc_rig_name(mc_name), float('nan')):.3f} | {c.ece.get(RIG_NAME, float('nan')):.3f} |"
           for c in mc_rows],
         "",
         "## Weak strata: every stratum where the network is worse than three-step PS (test split)",
