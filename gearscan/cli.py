@@ -665,11 +665,12 @@ def inspect_cmd(
                                 point_sigma_mm=point_sigma_mm)
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
+    from gearscan.inspect import chip_verdict, quantity_line
+
     summary = report.inspection.summary()
-    for key, (sym, text) in QUANTITIES.items():
+    for key in QUANTITIES:
         tol = f" (class {grade}: {report.tolerances[key]:g})" if report.tolerances else ""
-        typer.echo(f"{sym}: {summary[key]:.1f} µm{tol}  {text}")
-    from gearscan.inspect import chip_verdict
+        typer.echo(quantity_line(report.inspection, key, summary[key], tol))
 
     typer.echo(f"chipped teeth: {chip_verdict(report.inspection)}")
     from gearscan.inspect import unmeasured_sigma_note

@@ -52,6 +52,36 @@ class InspectionReport:
     depth_sigma_source: str | None = None  # whose depth-sigma scales the unfitted points carry (recon.depth_sigma)
 
 
+def partial(insp: Inspection, key: str) -> str:
+    """``"k of n"`` where a headline quantity rests on fewer values than a whole gear has (its value is then a lower
+    bound and its class the finest the gear can be); "" where every one was measured."""
+    k, n = insp.coverage()[key]
+    return f"{k} of {n}" if k < n else ""
+
+
+def class_text(insp: Inspection, key: str, value: float, cls: int | None, graded: bool) -> str:
+    """The ISO 1328-1 class as the report states it: "n/a" for a quantity not measured, "> 11" beyond the coarsest
+    class, "C or coarser" where the value is a lower bound (:func:`partial`), "–" where no class applies."""
+    if not graded:
+        return "–"
+    if not np.isfinite(value):
+        return "n/a"
+    if cls is None:
+        return "> 11"
+    return f"{cls} or coarser" if partial(insp, key) else str(cls)
+
+
+def quantity_line(insp: Inspection, key: str, value: float, tolerance: str = "") -> str:
+    """One headline quantity for the console: its value, ``tolerance`` (e.g. " (class 6: 12")") and, where it rests on
+    part of the gear, that it is a lower bound."""
+    sym, text = QUANTITIES[key]
+    if not np.isfinite(value):
+        return f"{sym}: not measured (too little of it was seen)  {text}"
+    part = partial(insp, key)
+    bound = f" on {part} only: a lower bound, those not measured may deviate more" if part else ""
+    return f"{sym}: {value:.1f} µm{tolerance}{bound}  {text}"
+
+
 def unmeasured_sigma_note(report: InspectionReport) -> str | None:
     """What to say where the points the frame fit did not take carry depth-sigma scales not measured for this decode
     (``recon.depth_sigma.depth_sigma_source``; a fitted point carries the fit's own sigma); None where none do."""
@@ -209,6 +239,8 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         "grade": report.grade,
         "tolerances_um": report.tolerances,
         "iso1328_class": report.classes,
+        # per quantity, how many of a whole gear's values were measured: short of all, the value is a lower bound
+        "coverage": {k: {"measured": m, "of": n} for k, (m, n) in insp.coverage().items()},
         "inspection": insp.to_json(),
         "twin_truth": report.truth,
         "files": {k: str(v) for k, v in report.files.items()},
@@ -255,11 +287,15 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
     lines += ["", "## Summary", "", head, "|---|---|" + ("---|---|" if tol else "") + "---|"]
     for key, (sym, text) in QUANTITIES.items():
         v = summary.get(key, math.nan)
-        row = f"| {sym}: {text} | {_fmt(v)} |"
+        part = partial(insp, key) if np.isfinite(v) else ""
+        row = f"| {sym}: {text} | {_fmt(v) if np.isfinite(v) else 'not measured'}{f' (on {part})' if part else ''} |"
         if tol:
-            row += f" {tol[key]:g} | {'yes' if np.isfinite(v) and abs(v) <= tol[key] else 'NO'} |"
-        cls = report.classes.get(key)
-        lines.append(row + f" {cls if cls is not None else '> 11' if report.classes else '–'} |")
+            within = "n/a" if not np.isfinite(v) else "yes" if abs(v) <= tol[key] else "NO"
+            row += f" {tol[key]:g} | {within}{f', on {part}' if part else ''} |"
+        lines.append(row + f" {class_text(insp, key, v, report.classes.get(key), bool(report.classes))} |")
+    if any(partial(insp, k) for k in QUANTITIES if np.isfinite(summary.get(k, math.nan))):
+        lines += ["", "A value measured on fewer pitches, tooth spaces or flanks than the gear has (\"on k of n\") is a "
+                  "lower bound: those not measured may deviate more, so its class is the finest the gear can be."]
     lines += ["", f"Runout: {_fmt(insp.runout_from_eccentricity_um)} µm from the eccentricity (≈ 2e), "
               f"{_fmt(insp.runout_about_gear_axis_um)} µm from the tooth spaces about the gear's own axis.", ""]
     lines += [f"**Chipped / damaged teeth:** {chip_verdict(insp)}.", ""]

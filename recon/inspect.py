@@ -173,12 +173,32 @@ class Inspection:
     settings: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict[str, float]:
-        """The headline values per quantity (worst over flanks/sides), µm, for grading."""
-        return {"fp": max(self.fp_um.values()), "Fp": max(self.Fp_um.values()), "Fr": self.Fr_um, **self.profile_um}
+        """The headline values per quantity (worst over the flanks/sides measured; NaN: none was), µm, for grading."""
+        return {"fp": _worst(self.fp_um.values()), "Fp": _worst(self.Fp_um.values()), "Fr": self.Fr_um,
+                **self.profile_um}
+
+    def coverage(self) -> dict[str, tuple[int, int]]:
+        """Per :meth:`summary` quantity: how many of the values it is the worst (or range) of were measured, and how
+        many a whole gear has. Short of all, the headline is a lower bound: teeth not measured may deviate more."""
+        def finite(v) -> int:
+            return int(np.isfinite(np.asarray(v, np.float64)).sum())
+
+        sides = ("left", "right")
+        flanks = sum(fl.measured for fl in self.flanks)
+        return {"fp": (sum(finite(self.single_pitch_um[s]) for s in sides), 2 * self.teeth),
+                "Fp": (sum(finite(self.position_um[s]) for s in sides), 2 * self.teeth),
+                "Fr": (finite(self.runout_curve_um), self.teeth),
+                **{k: (flanks, 2 * self.teeth) for k in self.profile_um}}
 
     def to_json(self) -> dict:
         """Plain JSON (NaN as null)."""
         return _jsonable(asdict(self))
+
+
+def _worst(values) -> float:
+    """The largest finite value (NaN when none is finite): a side not measured leaves the other's."""
+    finite = [float(v) for v in values if v is not None and np.isfinite(v)]
+    return max(finite) if finite else math.nan
 
 
 def _jsonable(x):

@@ -127,6 +127,9 @@ def test_profile_slope_is_read_on_every_flank(inspected):
 
 def test_report_files_and_grade(inspected):
     report, _, out, output = inspected
+    # a whole revolution measures every pitch, tooth space and flank: each headline covers the gear, graded plainly
+    assert all(c["measured"] == c["of"] for c in report["coverage"].values()), report["coverage"]
+    assert "or coarser" not in (out / "report.md").read_text() and "lower bound" not in output
     for name in ("report.md", "report.json", "pitch.png", "runout.png", "profiles.png", "fused.ply"):
         assert (out / name).stat().st_size > 0, name
     assert report["grade"] == 8 and report["tolerances_um"] == iso1328_tolerances(2.0, 40.0, 8)
@@ -403,3 +406,47 @@ def test_inspect_says_when_unfitted_points_carry_unmeasured_depth_scales() -> No
     assert "5 point(s)" in unmeasured_sigma_note(Report(Fused(None), "mc"))  # no fit ran: every point
     assert unmeasured_sigma_note(Report(Fused(np.ones(5, bool)), "borrowed")) is None  # all fitted
     assert unmeasured_sigma_note(Report(some, "product")) is None and unmeasured_sigma_note(Report(some, None)) is None
+
+
+def partly_seen_inspection(teeth: int = 4):
+    """An inspection whose right flanks were never measured and whose left flanks were on teeth 0-1 only."""
+    from gearscan.recon.inspect import Flank, Inspection, ToothTip
+
+    nan = math.nan
+    left = [10.0, 14.0, nan, nan]
+    flanks = tuple(Flank(k, side, 50, side == "left" and k < 2, F_alpha_um=3.0 if side == "left" and k < 2 else nan)
+                   for k in range(teeth) for side in ("left", "right"))
+    return Inspection(
+        teeth=teeth, module=2.0, pitch_diameter_mm=2.0 * teeth, centre_mm=(0.0, 0.0), eccentricity_um=0.0,
+        eccentricity_deg=0.0, rotation_deg=0.0, section_mm=(0.0, 1.0), flanks=flanks,
+        position_um={"left": left, "right": [nan] * teeth},
+        single_pitch_um={"left": [nan, 4.0, nan, nan], "right": [nan] * teeth},
+        cumulative_pitch_um={"left": [0.0, 4.0, nan, nan], "right": [nan] * teeth},
+        fp_um={"right": nan, "left": 4.0}, Fp_um={"right": nan, "left": 4.0},
+        runout_curve_um=[nan] * teeth, Fr_um=nan, runout_from_eccentricity_um=nan, runout_about_gear_axis_um=nan,
+        tips=tuple(ToothTip(k, 0, 0.0, 0.0, False) for k in range(teeth)), chipped_teeth=(),
+        profile_um={"F_alpha": 3.0, "ff_alpha": 1.0, "fH_alpha": 0.5})
+
+
+def test_a_side_not_measured_leaves_the_other_and_partial_values_are_lower_bounds():
+    """The headline is the worst over the sides measured (a side with no value must not turn it into NaN), each
+    quantity says on how much of the gear it rests, and where that is short of all its class is only the finest the
+    gear can be; a quantity never measured is "not measured" / "n/a", not graded beyond class 11."""
+    from gearscan.inspect import class_text, partial, quantity_line
+
+    insp = partly_seen_inspection()
+    summary = insp.summary()
+    assert summary["fp"] == 4.0 and summary["Fp"] == 4.0 and math.isnan(summary["Fr"])
+    cov = insp.coverage()
+    assert cov["fp"] == (1, 8) and cov["Fp"] == (2, 8) and cov["Fr"] == (0, 4) and cov["F_alpha"] == (2, 8)
+    assert partial(insp, "fp") == "1 of 8"
+    classes = iso1328_class(summary, 2.0, 8.0)
+    assert classes["Fr"] is None
+    assert class_text(insp, "Fr", summary["Fr"], classes["Fr"], True) == "n/a"
+    assert class_text(insp, "fp", summary["fp"], classes["fp"], True) == f"{classes['fp']} or coarser"
+    assert class_text(insp, "fp", summary["fp"], None, True) == "> 11"
+    assert class_text(insp, "fp", summary["fp"], classes["fp"], False) == "–"
+    assert "not measured" in quantity_line(insp, "Fr", summary["Fr"])
+    line = quantity_line(insp, "fp", summary["fp"], " (class 6: 9.5)")
+    assert line.startswith("fp: 4.0 µm (class 6: 9.5) on 1 of 8 only: a lower bound")
+
