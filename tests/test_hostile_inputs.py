@@ -149,3 +149,31 @@ def test_predict_takes_the_fringe_orientation_from_a_rig_calibration(tmp_path):
     said = " ".join(res.output.replace("│", " ").split())  # the error box wraps its lines
     assert res.exit_code == 2 and "Invalid value for --rig" in said and "not a gearscan rig file" in said, res.output
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_predict_reports_the_sigma_of_the_pixels_with_fringes_not_the_background(tmp_path):
+    """A gear filling part of the frame: the printed median sigma is the fringe pixels' (three-step modulation >= 0.05,
+    recomputed here from the frames), not the whole image's, which the dark background's large sigma would swamp."""
+    import re
+
+    import pytest
+
+    from gearscan.core.phase import three_step
+
+    frames = _fringes(64, 64).astype(np.float64)
+    rng = np.random.default_rng(3)
+    dark = np.zeros((64, 64), bool)
+    dark[:, 24:] = True  # the background, most of the frame: no fringes
+    frames[:, dark] = 6.0
+    frames += rng.normal(0, 1.5, frames.shape)  # sensor noise everywhere: the sigma has something to propagate
+    path = _frames(tmp_path, np.clip(frames, 0, 255).astype(np.uint8))
+    out = tmp_path / "out.npz"
+    res = runner.invoke(app, ["predict", str(path), "--orientation", "normal", "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    _, m, d = three_step(np.load(path)["frames"], 255.0)
+    lit = np.hypot(m, d) >= 0.05
+    assert 0.3 < lit.mean() < 0.45  # the fringe part, not the background
+    sigma = np.load(out)["sigma_total"]
+    printed = float(re.search(r"median sigma_total ([0-9.]+) rad over the (\d+) %", res.output).group(1))
+    assert printed == pytest.approx(float(np.median(sigma[lit])), abs=1e-4)
+    assert np.median(sigma) > 1.5 * printed  # what the whole image's median would have said
