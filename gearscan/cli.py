@@ -78,8 +78,8 @@ def twin_render(
     face_width: Annotated[float, typer.Option(help="face width, mm")] = 20.0,
     bore: Annotated[float, typer.Option(help="bore diameter, mm")] = 10.0,
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON (default: the built-in rig)")] = None,
-    width: Annotated[int, typer.Option(help="camera width, px (rescales the rig)")] = 512,
-    height: Annotated[int, typer.Option(help="camera height, px")] = 512,
+    width: Annotated[int | None, typer.Option(help="camera width, px (default 512; with --rig: the camera's; another rescales the rig)")] = None,
+    height: Annotated[int | None, typer.Option(help="camera height, px (default 512; with --rig: the camera's)")] = None,
     period: Annotated[float, typer.Option(help="fringe period, projector px")] = 40.0,
     start: Annotated[float, typer.Option(help="start angle, degrees")] = 0.0,
     noise: Annotated[bool, typer.Option(help="camera shot + read noise")] = True,
@@ -110,8 +110,13 @@ def twin_render(
             defects, eccentricity_um=eccentricity_um, pitch_errors=pitch_error, chips=chip, wear=wear, module=true_module
         )
         the_rig = Rig.load(rig) if rig else default_rig()
-        if (width, height) != (the_rig.camera.width, the_rig.camera.height):
-            the_rig = the_rig.with_camera_resolution(width, height)
+        size = (the_rig.camera.width, the_rig.camera.height) if rig else (512, 512)
+        size = (width or size[0], height or size[1])
+        if size != (the_rig.camera.width, the_rig.camera.height):
+            if rig:  # a user's calibration rendered at another size: said, not silent
+                typer.echo(f"note: --width/--height {size[0]}x{size[1]}: the rig's camera "
+                           f"({the_rig.camera.width}x{the_rig.camera.height}, {rig}) rescaled to it", err=True)
+            the_rig = the_rig.with_camera_resolution(*size)
         optics = Optics() if noise else Optics().noise_free()
         with _progress("rendering") as prog:
             frames = 3 * (bursts + (-(-bursts // coarse_every) if coarse_period else 0))  # coarse bursts too

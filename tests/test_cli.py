@@ -46,6 +46,25 @@ def test_bad_motion_is_named(tmp_path):
     assert "wobble:3" in res.output and "uniform" in res.output
 
 
+def test_render_with_a_rig_keeps_its_camera_unless_told_and_says_so(tmp_path):
+    """A user's rig renders at its calibrated size by default (it had been rescaled to 512 px silently); an explicit
+    other size rescales it and says so."""
+    from gearscan.core.rig import default_rig
+
+    rig = tmp_path / "rig.json"
+    default_rig(64, 48).save(rig)
+    res = runner.invoke(app, ["twin", "render", str(tmp_path / "own"), "--rig", str(rig), "--bursts", "1"])
+    assert res.exit_code == 0, res.output
+    camera = json.loads((tmp_path / "own" / "recording.json").read_text())["rig"]["camera"]
+    assert (camera["width"], camera["height"]) == (64, 48) and "rescaled" not in res.output
+    res = runner.invoke(app, ["twin", "render", str(tmp_path / "big"), "--rig", str(rig), "--bursts", "1",
+                              "--width", "96", "--height", "72"])
+    assert res.exit_code == 0, res.output
+    camera = json.loads((tmp_path / "big" / "recording.json").read_text())["rig"]["camera"]
+    assert (camera["width"], camera["height"]) == (96, 72)
+    assert "64x48" in res.output and "rescaled to it" in res.output
+
+
 @pytest.fixture(scope="module")
 def twin_recording(tmp_path_factory):
     out = tmp_path_factory.mktemp("cli") / "rec"
