@@ -283,8 +283,17 @@ def main() -> None:
         ap.error("--write: only with --model (the product's scales are recon.depth_sigma.DEPTH_SIGMA_SCALES)")
     if args.model is not None and args.check_model is not None:
         ap.error("--model and --check-model: give one")
-    if args.model is not None and not args.model.is_file():
-        ap.error(f"--model: expected a model's .safetensors file, got {args.model}")
+    from gearscan.inference.model_io import ModelFileError, read_config
+
+    for flag, path in (("--model", args.model), ("--check-model", args.check_model)):
+        if path is None:
+            continue
+        if not path.is_file():
+            ap.error(f"{flag}: expected a model's .safetensors file, got {path}")
+        try:  # its JSON (config, sigma maps) beside it: a clear error here, not a traceback after the decodes
+            read_config(path)
+        except ModelFileError as exc:
+            ap.error(f"{flag}: {exc}")
     if args.model is not None and args.out == ROOT / "benchmarks" / "depth_sigma_val.json":
         ap.error("--model: give its own --out (benchmarks/depth_sigma_val.json is the product's choice)")
     if args.mc and (args.model is not None or args.check_model is not None or args.write):
@@ -294,8 +303,6 @@ def main() -> None:
     if args.fit_seed == args.check_seed:
         ap.error(f"--check-seed: expected another seed set than --fit-seed ({args.fit_seed})")
     if args.check_model is not None:
-        if not args.check_model.is_file():
-            ap.error(f"--check-model: expected a model's .safetensors file, got {args.check_model}")
         if args.out == ROOT / "benchmarks" / "depth_sigma_val.json":
             ap.error("--check-model: give its own --out (benchmarks/depth_sigma_val.json is the rule's choice)")
 
@@ -335,7 +342,12 @@ def main() -> None:
     sets = val_sets(args.sets, ap)
     fit_z = collect(args.fit_seed, args.motions, args.per_motion, args.model, sets, args.mc)
     fit = table(by_family_cell(fit_z))
-    scales = choose_worst_family(fit)
+    try:
+        scales = choose_worst_family(fit)
+    except ValueError as exc:  # too few points for the rule to choose in some class and band: no scales, said why
+        raise SystemExit(f"error: {exc}: the val scenes are too small for a measured choice (the rule needs "
+                         f"{CHECK_MIN_POINTS} points per class and edge band in some family); render more start points "
+                         "or larger images, or raise --per-motion. Nothing chosen, nothing written.") from exc
     check_z = collect(args.check_seed, args.motions, args.per_motion, args.model, sets, args.mc)
     per_kind = family_scales(table(by_family_cell(check_z)), scales)
     check_raw = table(by_family_cell(check_z), at=per_kind)
@@ -390,6 +402,9 @@ def main() -> None:
     args.out.write_text(json.dumps(out, indent=1) + "\n")
     print(f"scales {scales}; check {'passed' if not misses else 'MISSED: ' + '; '.join(misses)}"
           + (f"; written to {out['written']}" if out.get("written") else ""))
+    if args.write and misses:  # a choice that missed its check is no measured bound: the model keeps what it had
+        raise SystemExit(f"error: the check missed, so nothing was written to {args.model}'s JSON (record: {args.out}); "
+                         "its points keep the scales they had (`depth_sigma_source` says whether those were measured)")
 
 
 if __name__ == "__main__":

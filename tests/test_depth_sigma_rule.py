@@ -261,3 +261,35 @@ def test_the_scripts_val_sets_name_what_is_wrong(tmp_path, monkeypatch) -> None:
     for bad in ("gear2", "gear1,", ""):
         with pytest.raises(SystemExit):
             val_sets(bad, ap)
+
+
+def test_the_script_refuses_a_model_without_its_json_and_val_scenes_too_small(tmp_path, monkeypatch, capsys) -> None:
+    """A user's model whose JSON is missing stops before any decode with the file named; val scenes too small for
+    the rule to choose in some class and band stop with why and what to do, and nothing is written."""
+    import shutil
+
+    import calibrate_depth_sigma as script
+
+    from gearscan.inference.predictor import DEFAULT_MODEL
+
+    lone = tmp_path / "lone.safetensors"
+    shutil.copy(DEFAULT_MODEL, lone)  # the weights without their JSON
+    (tmp_path / "val").mkdir()
+    (tmp_path / "val" / "index.json").write_text("{}")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["calibrate_depth_sigma.py", "--model", str(lone), "--sets", "val",
+                                      "--out", str(tmp_path / "o.json"), "--write"])
+    with pytest.raises(SystemExit) as stop:
+        script.main()
+    assert stop.value.code == 2 and "--model" in capsys.readouterr().err
+    own = tmp_path / "own.safetensors"
+    shutil.copy(DEFAULT_MODEL, own)
+    shutil.copy(DEFAULT_MODEL.with_suffix(".json"), own.with_suffix(".json"))
+    before = own.with_suffix(".json").read_text()
+    monkeypatch.setattr(sys, "argv", ["calibrate_depth_sigma.py", "--model", str(own), "--sets", "val",
+                                      "--out", str(tmp_path / "o.json"), "--write"])
+    monkeypatch.setattr(script, "collect", lambda *a, **k: {})  # no point in any cell: scenes far too small
+    with pytest.raises(SystemExit) as stop:
+        script.main()
+    assert "too small for a measured choice" in str(stop.value.code) and "nothing written" in str(stop.value.code)
+    assert own.with_suffix(".json").read_text() == before and not (tmp_path / "o.json").exists()
