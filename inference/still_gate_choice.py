@@ -279,6 +279,7 @@ def choose_rig_gate(folders: list[Path], model: Path | None = None, output: Path
     for folder in folders:  # each a twin dataset, before anything is copied or written
         TwinBurstDataset(folder)
     weights = model_path(model)
+    Predictor.load(weights)  # the model loads (weights and the JSON beside them) before anything is copied or written
     if output is None and weights.resolve().parent == WEIGHTS_DIR.resolve():
         raise ValueError(f"{weights.name} is a shipped model: a gate chosen on one rig would replace the one chosen "
                          "for every rig; write a copy with --output MY_RIG.safetensors (or pass your own --model)")

@@ -336,3 +336,11 @@ def test_a_rigs_own_gate_is_chosen_on_its_twin_data_and_written_to_its_copy(tmp_
     res = CliRunner().invoke(app, ["still-gate", str(tmp_path), "--output", str(tmp_path / "other.safetensors")])
     assert res.exit_code == 2 and "not a twin dataset" in res.output
     assert not (tmp_path / "other.safetensors").exists()  # nothing copied for input that was refused
+    # a model that is not there, or whose JSON is not beside its weights: named, and nothing half-copied
+    lone = tmp_path / "lone.safetensors"
+    lone.write_bytes(copy.read_bytes())
+    for model in (tmp_path / "nope.safetensors", lone):
+        out = tmp_path / f"from_{model.stem}.safetensors"
+        res = CliRunner().invoke(app, ["still-gate", str(data), "--model", str(model), "--output", str(out)])
+        assert res.exit_code == 2 and model.stem in res.output and "Traceback" not in res.output, res.output
+        assert not out.exists() and not out.with_suffix(".json").exists()
