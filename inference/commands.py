@@ -307,9 +307,9 @@ def predict(
 
 
 def _load_dataset(spec: str, max_items: int | None = None, motion_input: bool = False,
-                  reverse: bool = False):
+                  reverse: bool = False, flag: str = "--data"):
     """A twin dataset folder (``gearscan twin dataset``), a folder of .npz items, or
-    ``package.module:function`` returning a dataset or (train, val)."""
+    ``package.module:function`` returning a dataset or (train, val); ``flag`` names the option in an error."""
     import importlib
 
     from gearscan.inference.data import MotionInput, NpzBurstDataset
@@ -333,7 +333,7 @@ def _load_dataset(spec: str, max_items: int | None = None, motion_input: bool = 
         mod, fn = spec.split(":", 1)
         return getattr(importlib.import_module(mod), fn)()
     raise typer.BadParameter(
-        f"--data: expected a folder of .npz items or 'module:function', got {spec!r}"
+        f"{flag}: expected a twin dataset folder, a folder of .npz items or 'module:function', got {spec!r}"
     )
 
 
@@ -521,7 +521,7 @@ def train(
         deadline=None if wall_minutes is None else time.time() + 60.0 * wall_minutes,
     )
     train_set = _load_dataset(data, motion_input=motion_input, reverse=reverse)
-    val_set = (_load_dataset(val_data, max_items=64, motion_input=motion_input, reverse=reverse)
+    val_set = (_load_dataset(val_data, max_items=64, motion_input=motion_input, reverse=reverse, flag="--val-data")
                if val_data else None)
     if isinstance(train_set, tuple):
         train_set, val_set = train_set

@@ -163,3 +163,7 @@ def test_cli_fine_tunes_from_the_bank_within_a_wall_clock_budget(adapt, tmp_path
                               "--out", str(tmp_path / "no"), "--device", "cpu", "--no-progress"])
     assert res.exit_code == 2 and "expected twin dataset folders" in res.output
     assert not (tmp_path / "no" / "best.safetensors").exists()
+    # a val folder that is not there is named by its own flag (it had been called --data)
+    res = runner.invoke(app, ["train", "--data", str(root), "--val-data", str(tmp_path / "nope_val"),
+                              "--out", str(tmp_path / "no"), "--device", "cpu", "--no-progress"])
+    assert res.exit_code == 2 and "--val-data" in res.output and "nope_val" in res.output, res.output
