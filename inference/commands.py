@@ -580,6 +580,7 @@ def calibrate_uncertainty(
     others; one family: half its start points)."""
     from gearscan.inference.calibrate import calibrate_model
     from gearscan.inference.model_io import ModelFileError
+    from gearscan.inference.predictor import model_path
     from gearscan.twin.dataset import DatasetError
 
     mode_list = tuple(m.strip() for m in modes.split(",") if m.strip())
@@ -605,11 +606,22 @@ def calibrate_uncertainty(
             if "c" in m:
                 line += f" * (departure + {m['d0']:g})^{m['c']:.3f}"
         typer.echo(line)
+        worse = []
         for piece in r["held_out"]:
             b, a = piece["before"], piece["after"]
             parts = [f"ECE {b['ece']:.3f} -> {a['ece']:.3f}"]
             parts += [f"{k} {b[f'ece_{k}']:.3f} -> {a[f'ece_{k}']:.3f}" for k in ("moving", "still") if f"ece_{k}" in a]
             typer.echo(f"  held-out {piece['scored']}: " + ", ".join(parts) + f" (RMSE {a['rmse']:.4f} rad)")
+            if a["ece"] > b["ece"]:
+                worse.append(piece["scored"])
+        if worse:  # stored as asked, but a map that scores worse than no map where it was not fitted is said
+            typer.secho(f"warning: {mode}: on {', '.join(worse)} the map fitted without it is less calibrated than the "
+                        f"uncalibrated sigma (ECE above): the sample ({report['items']['moving']} moving, "
+                        f"{report['items']['still']} still bursts) may be too small or unlike that data; more --items "
+                        "or more val folders, or keep the model's previous map (its JSON before this run)",
+                        fg=typer.colors.YELLOW, err=True)
+    written = (output if output is not None else model_path(model)).with_suffix(".json")
+    typer.echo(f"wrote the sigma maps ({', '.join(report['fitted'])}) to {written}")
 
 
 def still_gate(

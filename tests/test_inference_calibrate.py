@@ -75,6 +75,12 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
     res = runner.invoke(app, ["calibrate-uncertainty", str(val_set), "--model", str(model_path), "--items", "4", "--mc", "0"])
     assert res.exit_code == 0, res.output
     assert "deterministic: sigma' = " in res.output and "held-out start points [1]: ECE" in res.output
+    assert f"wrote the sigma maps (deterministic) to {model_path.with_suffix('.json')}" in res.output
+    # a held-out piece scored worse by the map than by the raw sigma is said (this tiny sample's may or may not be)
+    import re
+
+    worse = [float(b) < float(a) for b, a in re.findall(r"held-out [^:]+: ECE ([0-9.]+) -> ([0-9.]+)", res.output)]
+    assert worse and any(worse) == ("warning: deterministic: on start points" in res.output)
     meta = json.loads(model_path.with_suffix(".json").read_text())
     assert set(meta["sigma_calibration"]) == {"deterministic"} and meta["var_scale"] == 1.0
     not_a_dataset = tmp_path / "empty"
