@@ -443,11 +443,14 @@ def train(
 
     Fine-tuning the shipped model on your rig (the paper's digital-twin workflow)::
 
-        gearscan twin dataset adapt --rig rig.json --teeth 35 --module 2 --seed 1
-        gearscan twin dataset adapt_val --rig rig.json --teeth 35 --module 2 --seed 2 --start-step-deg 3.1
+        gearscan twin dataset adapt --rig rig.json --teeth 35 --module 2 --period 40 --seed 1 --max-start-points 8
+        gearscan twin dataset adapt_val --rig rig.json --teeth 35 --module 2 --period 40 --seed 2 \
+            --start-step-deg 3.3 --max-start-points 2
         gearscan train --init inference/weights/default.safetensors --data adapt --val-data adapt_val \
             --budget-cpu-min 30 --epochs-dropout 0 --schedule constant --lr 3e-4 --crop 128 --batch-size 8 \
-            --steps-per-epoch 25 --epochs-deterministic 100000 --out runs/my-rig
+            --steps-per-epoch 40 --epochs-deterministic 100000 --out runs/my-rig
+
+    (the README's recipe, as ``benchmarks/adaptation.py`` measures it); then the README's calibration steps.
     """
     import dataclasses
 

@@ -111,7 +111,7 @@ UNMEASURED_NOTES: Mapping[str, str] = MappingProxyType({
                 "model's decode; this model carries none of its own, so its points' sigma is not a measured k = 2 "
                 "bound (the default-rig option, with them, put 8.9-15.1 % of its moving points beyond 2 sigma on its "
                 "val gears): " + _CHOOSE_OWN,
-    "stale": "the model's own depth-sigma scales were chosen for another decode of it (its weights or sigma maps "
+    "stale": "the model's own depth-sigma scales were chosen for another decode of it (its weights, sigma maps or still gates "
              "changed since), so its points' sigma is not a measured k = 2 bound: " + _CHOOSE_OWN,
     "mc": "the model's own depth-sigma scales were chosen on its deterministic decode; in Monte Carlo mode the phase "
           "sigma is its MC map's, so the points' sigma is not a measured k = 2 bound (use the deterministic decode, "

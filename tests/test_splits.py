@@ -177,3 +177,15 @@ def test_v10_candidate_record_matches_the_lease_run_that_made_it() -> None:
     differ = {k for k in meta["trainer"] if meta["trainer"][k] != v9_record["trainer"].get(k)}
     assert differ == {"epochs_deterministic", "init"}
     assert meta["loss"] == v9_record["loss"] == meta["trainer"]["loss"]  # what a fine-tune from it reads
+
+
+def test_a_test_seed_for_a_users_own_gear_is_refused_with_a_hint_that_fits_it():
+    """An adaptation dataset (a user's own gear: any tooth count) on a test seed: the hint names other seeds, not the
+    train split's tooth counts, which do not bind it."""
+    from gearscan.twin.splits import SplitError, refuse_test
+
+    with pytest.raises(SplitError) as err:
+        refuse_test(seed=20001, what="adaptation dataset")
+    text = str(err.value)
+    assert "seed 20001 belongs to the test split" in text and "use another seed" in text
+    assert "20000-29999" in text and "teeth 6-9" not in text
