@@ -394,8 +394,16 @@ def test_weight_average_is_a_candidate_kept_only_if_better_on_val(tmp_path, monk
 def test_weight_average_fits_in_the_cpu_budget(tmp_path, monkeypatch):
     """Under a CPU budget the average is still made and validated, and the run ends as a plain budgeted one does:
     at most a step and a validation past the budget (no epoch starts without room for the average's validation)."""
+    import itertools
+
+    import gearscan.inference.train as train_module
+
     ds = TensorBurstDataset(list(twin_items()))
     monkeypatch.setattr(Trainer, "_validate_once", lambda self: {"val_loss": 1.0, "val_rmse": 1.0})
+    # the CPU clock advances a fixed 0.05 s per reading: the budget's arithmetic, not this machine's load, decides
+    # (a loaded host had fitted one averaged step in 1.2 real CPU seconds, where a quiet one fits several)
+    clock = itertools.count(0.0, 0.05)
+    monkeypatch.setattr(train_module.time, "process_time", lambda: next(clock))
     budget = train(_cfg(tmp_path, epochs_deterministic=100_000, epochs_dropout=0, steps_per_epoch=1, lr=1e-3,
                         schedule="constant", patience=100_000, budget_cpu_min=0.02, average_from=0.5,
                         calibrate=False), ds, ds)
