@@ -23,7 +23,13 @@ import numpy as np
 from gearscan.core.recording import RecordingError, RecordingReader
 from gearscan.recon.depth_sigma import UNMEASURED_NOTES
 from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
-from gearscan.recon.inspect import Inspection, inspect_gear, iso1328_class, iso1328_tolerances
+from gearscan.recon.inspect import (
+    Inspection,
+    inspect_gear,
+    iso1328_class,
+    iso1328_tolerances,
+    jsonable,
+)
 from gearscan.recon.measure import PRODUCT_SUPPORT
 
 QUANTITIES = {  # key in Inspection.summary() -> (symbol, description)
@@ -139,8 +145,9 @@ def truth_comparison(meta: dict, insp: Inspection) -> dict | None:
         t_fp = np.asarray(truth["single_pitch_um"][side], dtype=float)
         m_fp = np.asarray(insp.single_pitch_um[side], dtype=float)
         out[f"Fp_um_{side}"] = {"truth": truth["total_cumulative_pitch_um"][side], "measured": insp.Fp_um[side]}
+        err = np.abs(m_fp - t_fp)
         out[f"fp_um_{side}"] = {"truth": float(np.max(np.abs(t_fp))), "measured": insp.fp_um[side],
-                                "largest_per_tooth_error": float(np.nanmax(np.abs(m_fp - t_fp)))}
+                                "largest_per_tooth_error": float(np.nanmax(err)) if np.isfinite(err).any() else math.nan}
     return out
 
 
@@ -238,11 +245,14 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
         "grade": report.grade,
         "tolerances_um": report.tolerances,
-        "iso1328_class": report.classes,
+        "iso1328_class": report.classes,  # None: beyond class 11 or not measured (the text below tells which)
+        # the class as the report states it: "n/a" (not measured), "> 11", "C or coarser" (a lower bound), "C"
+        "iso1328_class_text": {k: class_text(insp, k, insp.summary()[k], report.classes.get(k), bool(report.classes))
+                               for k in QUANTITIES},
         # per quantity, how many of a whole gear's values were measured: short of all, the value is a lower bound
         "coverage": {k: {"measured": m, "of": n} for k, (m, n) in insp.coverage().items()},
         "inspection": insp.to_json(),
-        "twin_truth": report.truth,
+        "twin_truth": jsonable(report.truth),
         "files": {k: str(v) for k, v in report.files.items()},
     }
 
@@ -290,8 +300,10 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         part = partial(insp, key) if np.isfinite(v) else ""
         row = f"| {sym}: {text} | {_fmt(v) if np.isfinite(v) else 'not measured'}{f' (on {part})' if part else ''} |"
         if tol:
-            within = "n/a" if not np.isfinite(v) else "yes" if abs(v) <= tol[key] else "NO"
-            row += f" {tol[key]:g} | {within}{f', on {part}' if part else ''} |"
+            # a lower bound beyond the tolerance fails it; within it, it shows nothing about the values not measured
+            within = ("n/a" if not np.isfinite(v) else "NO" if abs(v) > tol[key] else
+                      f"not shown (on {part})" if part else "yes")
+            row += f" {tol[key]:g} | {within} |"
         lines.append(row + f" {class_text(insp, key, v, report.classes.get(key), bool(report.classes))} |")
     if any(partial(insp, k) for k in QUANTITIES if np.isfinite(summary.get(k, math.nan))):
         lines += ["", "A value measured on fewer pitches, tooth spaces or flanks than the gear has (\"on k of n\") is a "

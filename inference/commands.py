@@ -621,7 +621,7 @@ def calibrate_uncertainty(
             typer.secho(f"warning: {mode}: on {', '.join(worse)} the map fitted without it is less calibrated than the "
                         f"uncalibrated sigma (ECE above): the sample ({report['items']['moving']} moving, "
                         f"{report['items']['still']} still bursts) may be too small or unlike that data; more --items "
-                        "or more val folders, or keep the model's previous map (its JSON before this run)",
+                        "or more val folders (to compare a refit before it replaces a map, write a copy with -o)",
                         fg=typer.colors.YELLOW, err=True)
     written = (output if output is not None else model_path(model)).with_suffix(".json")
     typer.echo(f"wrote the sigma maps ({', '.join(report['fitted'])}) to {written}")

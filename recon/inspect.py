@@ -192,7 +192,7 @@ class Inspection:
 
     def to_json(self) -> dict:
         """Plain JSON (NaN as null)."""
-        return _jsonable(asdict(self))
+        return jsonable(asdict(self))
 
 
 def _worst(values) -> float:
@@ -201,11 +201,12 @@ def _worst(values) -> float:
     return max(finite) if finite else math.nan
 
 
-def _jsonable(x):
+def jsonable(x):
+    """``x`` with NaN and infinite floats as None and numpy scalars as Python ones: strict JSON."""
     if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
     if isinstance(x, float | np.floating):
         return float(x) if np.isfinite(x) else None
     if isinstance(x, np.integer):

@@ -79,8 +79,13 @@ def test_cli_calibrates_in_place_and_names_bad_input(val_set, model_path, tmp_pa
     # a held-out piece scored worse by the map than by the raw sigma is said (this tiny sample's may or may not be)
     import re
 
-    worse = [float(b) < float(a) for b, a in re.findall(r"held-out [^:]+: ECE ([0-9.]+) -> ([0-9.]+)", res.output)]
-    assert worse and any(worse) == ("warning: deterministic: on start points" in res.output)
+    pairs = [(float(b), float(a)) for b, a in re.findall(r"held-out [^:]+: ECE ([0-9.]+) -> ([0-9.]+)", res.output)]
+    warned = "warning: deterministic: on start points" in res.output
+    assert pairs
+    if any(b < a for b, a in pairs):  # printed to 3 decimals: a printed tie says nothing either way
+        assert warned, res.output
+    if all(b > a for b, a in pairs):
+        assert not warned, res.output
     meta = json.loads(model_path.with_suffix(".json").read_text())
     assert set(meta["sigma_calibration"]) == {"deterministic"} and meta["var_scale"] == 1.0
     not_a_dataset = tmp_path / "empty"

@@ -450,3 +450,37 @@ def test_a_side_not_measured_leaves_the_other_and_partial_values_are_lower_bound
     line = quantity_line(insp, "fp", summary["fp"], " (class 6: 9.5)")
     assert line.startswith("fp: 4.0 µm (class 6: 9.5) on 1 of 8 only: a lower bound")
 
+
+def test_the_report_grades_a_partly_seen_gear_only_as_far_as_it_was_measured(tmp_path):
+    """The report's summary table and JSON for a partly seen gear: a lower bound within the tolerance shows nothing
+    ("not shown"), beyond it fails ("NO"); a quantity never measured is "n/a"; strict JSON (no NaN token)."""
+    import dataclasses
+    from pathlib import Path
+
+    from gearscan.inspect import InspectionReport, report_json, report_markdown
+    from gearscan.recon.inspect import iso1328_tolerances
+
+    insp = dataclasses.replace(partly_seen_inspection(), settings={"evaluation_roll_mm": (1.0, 2.0)})
+
+    class Fused:  # the few fields the report reads
+        bursts_added, voxel_mm, refined, deviation_sigma = 3, 0.1, None, None
+        sigma, bursts = np.full(5, 0.01), np.ones(5)
+
+        def __len__(self) -> int:
+            return 5
+
+    tol = iso1328_tolerances(2.0, 8.0, 6)
+    tight = {k: (1.0 if k == "F_alpha" else v) for k, v in tol.items()}  # F_alpha's 3.0 lower bound beyond it
+    for tolerances in (tol, tight):
+        report = InspectionReport(insp, Fused(), 6, tolerances, iso1328_class(insp.summary(), 2.0, 8.0), 360.0, {},
+                                  {"fp_um_right": {"truth": 0.0, "measured": math.nan}})
+        rows = {line.split(":")[0].strip("| "): line for line in report_markdown(report, Path("rec")).splitlines()
+                if line.startswith("| ") and "µm" not in line}
+        assert "| not measured | " in rows["Fr"] and rows["Fr"].endswith("| n/a | n/a |")
+        assert "4.0 (on 1 of 8)" in rows["fp"] and "| not shown (on 1 of 8) |" in rows["fp"]
+        assert ("| NO |" if tolerances is tight else "| not shown (on 2 of 8) |") in rows["Fα"]
+        doc = report_json(report, Path("rec"))
+        assert doc["iso1328_class_text"]["Fr"] == "n/a" and doc["iso1328_class_text"]["fp"].endswith("or coarser")
+        assert doc["coverage"]["Fr"] == {"measured": 0, "of": 4}
+        json.loads(json.dumps(doc, allow_nan=False))  # strict: the twin truth's NaN became null
+

@@ -189,3 +189,6 @@ def test_a_test_seed_for_a_users_own_gear_is_refused_with_a_hint_that_fits_it():
     text = str(err.value)
     assert "seed 20001 belongs to the test split" in text and "use another seed" in text
     assert "20000-29999" in text and "teeth 6-9" not in text
+    with pytest.raises(SplitError) as err:  # a project dataset (its teeth checked) keeps the split's own hint
+        refuse_test(teeth=[11], seed=20001)
+    assert "use train teeth/seeds" in str(err.value) and "any tooth count" not in str(err.value)

@@ -169,10 +169,12 @@ def refuse_test(*, teeth: list[int] | tuple[int, ...] = (), seed: int | None = N
     if seed is not None and test.has_seed(seed):
         msg.append(f"seed {seed}")
     if msg:
-        hint = (f"use train teeth/seeds ({describe('train')}) or val ones ({describe('val')})" if bad else
-                f"use another seed (the test split's seeds: {', '.join(f'{r.start}-{r.stop - 1}' for r in test.seeds)}; any tooth count is fine for your own "
-                "gear)")
-        raise SplitError(f"{what}: {' and '.join(msg)} {'belong' if bad else 'belongs'} to the test split (touched only to report); {hint}")
+        seeds = ", ".join(f"{r.start}-{r.stop - 1}" for r in test.seeds)
+        hint = (f"use train teeth/seeds ({describe('train')}) or val ones ({describe('val')})" if teeth else
+                f"use another seed (the test split's seeds: {seeds}; any tooth count is fine for your own gear in an "
+                "adaptation dataset)")
+        verb = "belong" if bad else "belongs"
+        raise SplitError(f"{what}: {' and '.join(msg)} {verb} to the test split (touched only to report); {hint}")
 
 
 def _runs(values: frozenset[int], limit: int = 80) -> str:
