@@ -205,3 +205,35 @@ def test_writer_refuses_a_frame_of_another_format(tmp_path):
         with pytest.raises(RecordingError, match=r"frame 2 is 8x8 uint16 \(16-bit\), the recording holds 8x8 uint8 \(8-bit\)"):
             w.write_frame(Frame(np.zeros((8, 8), np.uint16), 2, 0, bit_depth=16))
     assert RecordingReader(tmp_path / "r").meta["frame_format"] == {"dtype": "uint8", "width": 8, "height": 8, "bit_depth": 8}
+
+
+def test_a_blank_or_merged_index_line_loses_no_burst(rec, caplog):
+    """A blank line in frames.jsonl, or two records on one line (a lost newline), had shifted every later burst's
+    position and so thrown away every burst after it: each record keeps its place and every burst replays."""
+    index = rec / "frames.jsonl"
+    lines = index.read_text().splitlines()
+    assert len(lines) == 9
+    index.write_text("\n".join([*lines[:4], "", *lines[4:]]) + "\n")  # a blank line inside burst 1
+    m, _, damage = _replay(rec, caplog)
+    assert m.bursts == 3 and damage["count"] == 0
+    index.write_text("\n".join([*lines[:3], lines[3] + " " + lines[4], *lines[5:]]) + "\n")  # burst 1's first two
+    m, _, damage = _replay(rec, caplog)
+    assert m.bursts == 3 and damage["count"] == 0 and "2 records on one line" in caplog.text
+    r = RecordingReader(rec)
+    assert len(r) == 9 and [rec_.pattern_index for rec_ in r.records] == [0, 1, 2] * 3
+
+
+def test_a_recording_without_its_header_is_not_written_over(rec, tmp_path):
+    """What is left of a recording whose recording.json was lost (its index, frames) is refused as a target without
+    --overwrite (a new one had replaced its frames and appended to its index); a path that cannot hold one is named."""
+    (rec / "recording.json").unlink()
+    before = (rec / "frames.jsonl").read_bytes()
+    with pytest.raises(RecordingError, match="part of a recording without its recording.json"):
+        RecordingWriter(rec, {})
+    assert (rec / "frames.jsonl").read_bytes() == before
+    res = runner.invoke(app, ["twin", "render", str(rec), "--bursts", "1", "--width", "64", "--height", "64"])
+    assert res.exit_code == 2 and "--overwrite" in res.output and (rec / "frames.jsonl").read_bytes() == before
+    (tmp_path / "a_file").write_text("x")
+    for bad in (tmp_path / "a_file", "/proc/gearscan_rec"):
+        with pytest.raises(RecordingError, match="not a folder|cannot write a recording there"):
+            RecordingWriter(bad, {})

@@ -319,11 +319,35 @@ def _jsonl_lines(path: Path) -> Iterator[tuple[int, Any]]:
                 try:
                     value = json.loads(raw.rstrip(b"\r\n"))
                 except (ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError are ValueErrors
+                    if (merged := _split_objects(raw)) is not None:  # a lost newline: each record kept, in order
+                        log.warning("%s:%d: %d records on one line (a newline was lost): read apart", path, n,
+                                    len(merged))
+                        for value in merged:
+                            yield n, value
+                        continue
                     what = exc.msg if isinstance(exc, json.JSONDecodeError) else type(exc).__name__
                     value = Damage(kind, path.name, n, f"not a JSON line ({what}): {raw.rstrip()[:60]!r}")
                 yield n, value
     except OSError as exc:  # a directory in its place, no permission, an I/O error
         yield n + 1, Damage(kind, path.name, n + 1 if n else None, f"cannot read past here ({exc.strerror or exc})")
+
+
+def _split_objects(raw: bytes) -> list[dict] | None:
+    """The JSON objects of one line that holds several back to back (``{...} {...}``: a newline lost or turned into
+    another byte), or None where the line is not exactly that."""
+    try:
+        text = raw.decode("utf-8").strip()
+        decoder, i, out = json.JSONDecoder(), 0, []
+        while i < len(text):
+            obj, i = decoder.raw_decode(text, i)
+            if not isinstance(obj, dict):
+                return None
+            out.append(obj)
+            while i < len(text) and text[i] in " \t\x00\x0b\x0c\r":  # what the newline may have become
+                i += 1
+    except (ValueError, RecursionError):
+        return None
+    return out if len(out) > 1 else None
 
 
 class RecordingWriter:
@@ -335,9 +359,20 @@ class RecordingWriter:
 
     @staticmethod
     def check_target(path: str | Path, overwrite: bool = False) -> None:
-        """Raise :class:`RecordingError` if ``path`` already holds a recording and ``overwrite`` is off."""
-        if (Path(path) / "recording.json").exists() and not overwrite:
-            raise RecordingError(f"{path} already holds a recording (pass overwrite to replace it)")
+        """Raise :class:`RecordingError` if ``path`` already holds a recording, or what is left of one (its index, its
+        encoder log, a frame the writer would overwrite: a recording whose header was lost), and ``overwrite`` is
+        off; or if ``path`` cannot hold one (a file, a folder that cannot be made)."""
+        path = Path(path)
+        if path.exists() and not path.is_dir():
+            raise RecordingError(f"{path}: not a folder (a recording is written into a folder)")
+        if overwrite:
+            return
+        if (path / "recording.json").exists():
+            raise RecordingError(f"{path} already holds a recording (--overwrite replaces it)")
+        left = [n for n in ("frames.jsonl", "encoder.jsonl", "frames/000000.png") if (path / n).exists()]
+        if left:
+            raise RecordingError(f"{path} holds part of a recording without its recording.json ({', '.join(left)}): "
+                                 "writing there would mix the two; choose another folder, or --overwrite to replace it")
 
     @staticmethod
     def remove(path: Path) -> None:
@@ -362,7 +397,6 @@ class RecordingWriter:
         # that holds no recording (no header, no index) is not emptied
         if overwrite and any((self.path / n).exists() for n in ("recording.json", "frames.jsonl")):
             self.remove(self.path)
-        (self.path / "frames").mkdir(parents=True, exist_ok=True)
         self.meta = {
             "format": FORMAT,
             "version": VERSION,
@@ -371,9 +405,13 @@ class RecordingWriter:
             "frame_count": 0,
             **meta,
         }
-        _atomic_write_text(self.path / "recording.json", json.dumps(self.meta, indent=2))
-        self._frames = open(self.path / "frames.jsonl", "a")
-        self._encoder = open(self.path / "encoder.jsonl", "a")
+        try:  # a folder that cannot be made or written (a read-only disk, /proc): said before any frame is taken
+            (self.path / "frames").mkdir(parents=True, exist_ok=True)
+            _atomic_write_text(self.path / "recording.json", json.dumps(self.meta, indent=2))
+            self._frames = open(self.path / "frames.jsonl", "a")
+            self._encoder = open(self.path / "encoder.jsonl", "a")
+        except OSError as exc:
+            raise RecordingError(f"{self.path}: cannot write a recording there ({exc.strerror or exc})") from exc
         self._durable = durable
         self.frame_count = 0
         self.encoder_count = 0
@@ -568,7 +606,10 @@ class RecordingReader:
             raise RecordingError(f"{self.path / 'recording.json'}: frame_format: {exc}") from exc
         cycle = len(self.patterns) if "patterns" in self.meta else None
         self.records: list[FrameRecord] = []
-        self.lines: list[int] = []  # frames.jsonl line of each record
+        self.lines: list[int] = []  # frames.jsonl line of each record (for messages)
+        # each record's place among frames.jsonl's records, damaged ones included and blank lines not: what its burst
+        # position follows (a blank line, or two records on one line, must not shift every later burst)
+        self.slots: list[int] = []
         self._read_index(cycle)
         # the recording's bit depth: declared, else what most frames say (recordings before frame_format)
         self._bits = self.format.bit_depth if self.format else (
@@ -590,16 +631,18 @@ class RecordingReader:
     def _read_index(self, cycle: int | None) -> None:
         """Parse ``frames.jsonl`` into :attr:`records`, reporting bad lines and frame files."""
         root = self.path.resolve()
-        for n, rec in self._valid_lines("frames.jsonl", FrameRecord.from_json, "frame_count"):
+        for n, slot, rec in self._valid_lines("frames.jsonl", FrameRecord.from_json, "frame_count"):
             if self._frame_file_damage(rec, n, root) is None:
                 self.records.append(rec)
                 self.lines.append(n)
+                self.slots.append(slot)
 
-    def _valid_lines(self, name: str, parse: Callable[[Any], _T], count_key: str) -> Iterator[tuple[int, _T]]:
-        """``(line number, parse(line))`` for each line of index file ``name`` that parses; the
-        others are reported, and so is a line count that differs from the finished recording's."""
+    def _valid_lines(self, name: str, parse: Callable[[Any], _T], count_key: str) -> Iterator[tuple[int, int, _T]]:
+        """``(line number, record slot, parse(record))`` for each record of index file ``name`` that parses (the slot:
+        its place among the file's records, counting damaged ones); the others are reported, and so is a record
+        count that differs from the finished recording's."""
         lines = 0
-        for n, d in _jsonl_lines(self.path / name):
+        for slot, (n, d) in enumerate(_jsonl_lines(self.path / name)):
             lines += 1
             if isinstance(d, Damage):
                 self.report(d)
@@ -609,30 +652,32 @@ class RecordingReader:
             except ValueError as exc:
                 self.report(Damage(_line_damage_kind(name), name, n, str(exc)))
                 continue
-            yield n, value
+            yield n, slot, value
         self._check_count(name, count_key, lines)
 
     def _keep(self, keep: list[bool]) -> None:
         self.records = [r for r, k in zip(self.records, keep, strict=True) if k]
         self.lines = [n for n, k in zip(self.lines, keep, strict=True) if k]
+        self.slots = [n for n, k in zip(self.slots, keep, strict=True) if k]
 
     def _check_order(self, cycle: int | None) -> None:
         """A recording holds whole bursts in capture order (the recorder writes only complete
-        bursts, frame after frame): line n holds pattern ``(n - 1) % cycle`` (three-frame bursts: 0, 1, 2
+        bursts, frame after frame): the record in slot k (its place among the index's records, blank lines
+        not counted) holds pattern ``k % cycle`` (three-frame bursts: 0, 1, 2
         or 0, 2, 1, as an alternating sequence shows them), ids increase, and
         within a burst they increase by one. A line that breaks this has a wrong number in it,
         which the assembler would otherwise turn into an unexplained lost burst."""
-        unwrap, keep, prev = FrameIdUnwrapper(self.frame_id_wrap), [], None  # prev: (line, extended id)
+        unwrap, keep, prev = FrameIdUnwrapper(self.frame_id_wrap), [], None  # prev: (line, extended id, slot)
         angles = any(r.encoder_angle is not None for r in self.records)
         groups = cycle is not None and self.patterns.coarse_period_px is not None  # fine and coarse 3-frame bursts
         if groups:
             cycle = 3
         group = 0  # the pattern group (fine 0, coarse 1) of the burst the line belongs to
         seen: list[int] = []  # the burst's patterns so far, within its group
-        for rec, n in zip(self.records, self.lines, strict=True):
+        for rec, n, slot in zip(self.records, self.lines, self.slots, strict=True):
             ext = unwrap(rec.frame_id)
             why = ""
-            pos = (n - 1) % 3
+            pos = slot % 3
             if groups and pos == 0:
                 group = rec.pattern_index // 3
             if cycle == 3 or groups:  # three-frame bursts in either of the BURST_ORDERS
@@ -651,18 +696,18 @@ class RecordingReader:
             elif not groups and cycle == 3 and rec.pattern_index not in allowed:
                 why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole "
                        f"3-frame bursts holds pattern {' or '.join(map(str, allowed))}")
-            elif not groups and cycle is not None and cycle != 3 and rec.pattern_index != (n - 1) % cycle:
+            elif not groups and cycle is not None and cycle != 3 and rec.pattern_index != slot % cycle:
                 why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole "
-                       f"{cycle}-frame bursts holds pattern {(n - 1) % cycle}")
+                       f"{cycle}-frame bursts holds pattern {slot % cycle}")
             elif prev is not None and ext <= prev[1]:
                 why = f"frame id {rec.frame_id} does not come after the id on line {prev[0]}"
-            elif (cycle is not None and prev is not None and prev[0] == n - 1 and (n - 1) // cycle == (n - 2) // cycle
+            elif (cycle is not None and prev is not None and prev[2] == slot - 1 and slot // cycle == (slot - 1) // cycle
                   and ext != prev[1] + 1):
                 why = f"frame id {rec.frame_id} is {ext - prev[1]} after the id on line {prev[0]}, within a burst it is 1"
             if why:
                 self.report(Damage("index_line", "frames.jsonl", n, why))
             else:
-                prev = (n, ext)
+                prev = (n, ext, slot)
                 self.extended_ids.append(ext)
             keep.append(not why)
         self._keep(keep)
@@ -836,7 +881,7 @@ class RecordingReader:
     def encoder_samples(self) -> list[EncoderSample]:
         """Valid samples of ``encoder.jsonl``; damaged lines are reported and skipped."""
         # ~10 us a line on a slow host: 6 s for 10 minutes of a 1 kHz encoder
-        return [sample for _, sample in self._valid_lines("encoder.jsonl", encoder_sample_from_json, "encoder_count")]
+        return [sample for _, _, sample in self._valid_lines("encoder.jsonl", encoder_sample_from_json, "encoder_count")]
 
     # -- whole-recording check ---------------------------------------------------------------
     def check(self) -> list[str]:
