@@ -219,20 +219,24 @@ class AcquisitionSession:
                 f"camera delivers {width}x{height} frames: set camera.roi to the calibrated area or calibrate this setting"
             )
 
-    def bursts(self, max_frames: int | None = None) -> Iterator[Burst]:
-        """Valid bursts, recorded before they are yielded; raises if ``max_frames`` yield none."""
+    def bursts(self, max_frames: int | None = None, stop: Callable[[], bool] | None = None) -> Iterator[Burst]:
+        """Valid bursts, recorded before they are yielded; raises if ``max_frames`` yield none. ``stop``: asked after
+        every frame; True ends the bursts there (a caller in another thread, e.g. live's --duration or Ctrl-C, must
+        not wait for the next burst: a restarted encoder waiting for its index mark yields none for long)."""
         assert self.assembler is not None, "use AcquisitionSession as a context manager"
         try:
-            yield from self._assemble(max_frames)
+            yield from self._assemble(max_frames, stop)
         except GrabTimeout:
             exhausted = getattr(self.camera, "exhausted", None)
             if exhausted is not None and exhausted.is_set():
                 return  # a replay camera reached the end of its recording: end of input
             raise
 
-    def _assemble(self, max_frames: int | None) -> Iterator[Burst]:
+    def _assemble(self, max_frames: int | None, stop: Callable[[], bool] | None = None) -> Iterator[Burst]:
         since_burst = 0
         for frame in self._frames():
+            if stop is not None and stop():
+                return
             self.frames += 1
             since_burst += 1
             if self.frames == 1:

@@ -214,7 +214,9 @@ def run_live(
 
     def source() -> Iterator[Burst]:
         with session:
-            for burst in session.bursts(max_frames=30):
+            # the pipeline's stop (--duration, Ctrl-C, an error downstream) is asked after every frame, not only at
+            # a burst: a restarted encoder waiting for its index mark delivers frames but no burst for long
+            for burst in session.bursts(max_frames=30, stop=lambda: pipeline.stopping):
                 yield burst
                 if bursts is not None and session.burst_count >= bursts:
                     pipeline.stop(f"--bursts {bursts} reached")

@@ -83,3 +83,36 @@ def test_a_dead_encoder_reader_stops_acquisition_at_once_with_its_cause(tmp_path
     assert bursts > 3 and caught - died[0] < 0.5  # it measured until the fault, then stopped at once
     out = RecordingReader(tmp_path / "rec")
     assert out.finished and len(out) == 3 * bursts  # every burst measured is in the recording
+
+
+def test_a_stop_ends_the_bursts_while_a_restarted_encoder_waits_for_its_index(tmp_path, sim):  # noqa: F811
+    """The encoder restarts while the turntable stands still, so its index mark never comes back and no burst is made:
+    a stop asked from another thread (live's --duration, Ctrl-C) ends the bursts at the next frame instead of waiting
+    for a burst that does not come (it had run on until the device's end, 30 s here); the recording stays whole."""
+    import threading
+    import time
+
+    from gearscan.acquire import AcquisitionSession
+    from gearscan.mocks.encoder_device import MockEncoderProcess
+
+    link = str(tmp_path / "enc")
+    stop, asked = threading.Event(), []
+
+    def ask() -> None:
+        asked.append(time.monotonic())
+        stop.set()
+
+    timer = threading.Timer(3.0, ask)  # well after the restart (1 s), from another thread
+    with MockEncoderProcess(link, rate=1000, cpr=10000, rpm=30.0, start_angle=-0.3, motion="stop", stop_at=0.5,
+                            reboot_at=1.0, disconnect_for=0.3, duration=30, linger=0):
+        session = AcquisitionSession(AcquisitionConfig.load(_toml(tmp_path, sim.serial, link)), tmp_path / "rec")
+        with session:
+            timer.start()
+            for _burst in session.bursts(max_frames=30, stop=stop.is_set):
+                pass
+            ended = time.monotonic()
+    timer.join()
+    assert asked and session.encoder.stats.restarts == 1 and session.encoder.resyncing
+    assert ended - asked[0] < 5.0  # the next frame (a grab waits at most 2 s), not the device's end
+    out = RecordingReader(tmp_path / "rec")
+    assert out.finished and len(out) == 3 * session.burst_count
