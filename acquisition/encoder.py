@@ -52,6 +52,10 @@ MAX_LINE = 256
 RESTART_SEQ_MAX = 10_000
 #: consecutive lines behind the last one (seq and time) that follow each other: a restart, not a glitch
 RESTART_CONFIRM = 3
+# a count step faster than this is no turntable's motion (3000 rpm); a device's counter narrower than the protocol's
+# int64 that wraps makes such a step of one of these widths, which is undone (and counted); any other is a fault
+MAX_TURNS_PER_S = 50.0
+COUNTER_BITS = (16, 24, 32)
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +78,7 @@ class EncoderStats:
     reconnects: int = 0
     index_ignored: int = 0  # index marks after the reference was frozen at the first count
     restarts: int = 0  # device restarts (seq and clock back near 0)
+    count_wraps: int = 0  # the device's count wrapped (a 16/24/32-bit counter): undone, the angle continues
     unreferenced: int = 0  # samples after a restart before the index restored the angle reference
 
     def as_dict(self) -> dict[str, int]:
@@ -84,7 +89,7 @@ class EncoderStats:
 class LinkEvent:
     host_time_ns: int
     kind: str  # "connected", "disconnected", "reconnected", "banner", "version", "index", "reference",
-    # "restart", "resync", "error"
+    # "restart", "resync", "count_wrap", "error"
     detail: str
 
 
@@ -214,6 +219,8 @@ class EncoderReader:
         self._last_seq: int | None = None
         self._last_t_us = 0
         self._last_rel = 0  # last sample's count - zero_count
+        self._count_offset = 0  # added to the device's count: undoes its counter's wraps (COUNTER_BITS)
+        self._last_count: int | None = None  # the last accepted sample's count, wraps undone
         self._index_rel: int | None = None  # where the index mark is in the current reference (counts)
         self._pending: list[tuple[RawSample, int]] = []  # lines behind the last one: a restart or a glitch
         self.resync_wait_s = resync_wait_s
@@ -430,6 +437,7 @@ class EncoderReader:
         was = f"seq {self._last_seq} -> {first.seq}, device time {self._last_t_us} -> {first.t_us} us"
         self.clock.reset()
         self._last_seq = None
+        self._count_offset, self._last_count = 0, None  # a restarted device counts from a new zero
         self._after_reconnect = False
         if not self.reference_frozen and self._index_rel is None:  # no run yet: a fresh start
             self.zero_count, self.zeroed = None, False
@@ -467,7 +475,49 @@ class EncoderReader:
         self._event("resync", msg)
         log.warning("%s", msg)
 
+    def _unwrap_count(self, s: RawSample) -> RawSample | None:
+        """``s`` with its count (and index count) continued past a wrap of the device's counter; None (and the reader
+        failed) where the count jumps faster than a turntable turns and no counter width explains it."""
+        count = s.count + self._count_offset
+        if self._last_count is not None:
+            dt = max(s.t_us - self._last_t_us, 0) / 1e6
+            limit = self.counts_per_rev * (MAX_TURNS_PER_S * dt + 0.25)
+            step = count - self._last_count
+            if abs(step) > limit:
+                wrap = next(((1 << b) * round(step / (1 << b)) for b in COUNTER_BITS
+                             if round(step / (1 << b)) and abs(step - (1 << b) * round(step / (1 << b))) <= limit), None)
+                if wrap is None:
+                    self._fail(
+                        f"encoder at {self.port}: count jumped by {step} ({step / self.counts_per_rev:+.2f} turns) in "
+                        f"{1e3 * dt:.1f} ms, faster than any turntable ({MAX_TURNS_PER_S:g} turns/s) and no counter "
+                        "wrap: the angle reference is lost (check the encoder's counter and wiring), start a new run"
+                    )
+                    return None
+                self._count_offset -= wrap
+                count -= wrap
+                self.stats.count_wraps += 1
+                msg = (f"encoder count wrapped ({wrap:+d} counts: a {int(math.log2(abs(wrap)))}-bit counter): "
+                       "undone, the angle continues")
+                self._event("count_wrap", msg)
+                if self.stats.count_wraps == 1:
+                    log.warning("encoder at %s: %s", self.port, msg)
+        index_count = s.index_count
+        if index_count is not None:  # latched on the same counter; the nearest to the count where a wrap fell between
+            index_count += self._count_offset
+            for b in COUNTER_BITS:
+                k = round((count - index_count) / (1 << b))
+                if k and abs(count - index_count - k * (1 << b)) < self.counts_per_rev:
+                    index_count += k * (1 << b)
+                    break
+        return s if (count, index_count) == (s.count, s.index_count) else \
+            RawSample(s.seq, s.t_us, count, s.index, index_count)
+
     def _accept(self, s: RawSample, arrival_ns: int) -> None:
+        unwrapped = self._unwrap_count(s)
+        if unwrapped is None:
+            return
+        s = unwrapped
+        self._last_count = s.count
         self._last_seq, self._last_t_us = s.seq, s.t_us
         self._after_reconnect = False
         self.clock.add(s.t_us * 1000, arrival_ns)  # also while resyncing: the new clock is fitted meanwhile

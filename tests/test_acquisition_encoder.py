@@ -313,3 +313,24 @@ def test_a_dying_reader_thread_sets_its_error(tmp_path):
         reader.raise_if_failed()
     assert isinstance(err.value.__cause__, ZeroDivisionError)
     assert "died: ZeroDivisionError" in reader.history.interpolate(10**9, 10**9)[1]
+
+
+def test_a_narrow_counter_that_wraps_is_continued_and_an_impossible_jump_stops_the_reader(tmp_path):
+    """A device whose count is a 16-bit counter wraps from 65535 to 0 while turning slowly: the angle continues
+    (the wrap undone and counted) instead of jumping thousands of degrees between two frames; a jump no turntable
+    makes and no counter width explains stops the reader with the cause named."""
+    master, slave, reader = _pty_reader(tmp_path)
+    try:
+        line = lambda seq, t_us, count: RawSample(seq, t_us, count, False, None).encode()  # noqa: E731
+        counts = [65_500 + 10 * k for k in range(20)]  # 10 counts per ms: crosses 65 536 at k = 4
+        _feed(master, reader, [line(k, 1000 * k, c % 65_536) for k, c in enumerate(counts)], 20)
+        assert reader.error is None and reader.stats.count_wraps == 1 and reader.stats.samples == 20
+        assert reader.last_sample.angle == pytest.approx(2 * math.pi * (counts[-1] - counts[0]) / CPR)
+        assert [e.kind for e in reader.events].count("count_wrap") == 1
+        _feed(master, reader, [line(20, 20_000, 2_000_000)], 21)  # 30 turns in 1 ms, no counter's wrap
+    finally:
+        reader.stop()
+        os.close(master)
+        os.close(slave)
+    with pytest.raises(EncoderError, match=r"count jumped by .* faster than any turntable"):
+        reader.raise_if_failed()
