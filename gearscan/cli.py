@@ -352,14 +352,12 @@ def replay_cmd(
             web.close()
     for k, v in result.summary().items():
         typer.echo(f"{k}: {v:.4f}" if isinstance(v, float) else f"{k}: {v}")
-    from gearscan.recon.depth_sigma import UNMEASURED_NOTES
+    from gearscan.recon.depth_sigma import UNMEASURED_NOTES, turning_three_step_note
 
     if note := UNMEASURED_NOTES.get((result.recon or {}).get("depth_sigma_source")):
         typer.secho(f"sigma: {note}", fg=typer.colors.YELLOW)
     if turning := (result.decoder or {}).get("turning_three_step", 0):
-        typer.secho(f"sigma: three-step PS decoded {turning} burst(s) that turned (--classical, a baseline): its sigma "
-                    "has no motion term and its depth scales were measured on still bursts, so their points' sigma is "
-                    "not a measured k = 2 bound", fg=typer.colors.YELLOW)
+        typer.secho(f"sigma: {turning_three_step_note(turning)}", fg=typer.colors.YELLOW)
     if uncalibrated := (result.recon or {}).get("bursts_sigma_uncalibrated", 0):
         from gearscan.recon.depth_sigma import CALIBRATED_SPAN_DEG
 
@@ -678,9 +676,11 @@ def inspect_cmd(
         typer.echo(quantity_line(report.inspection, key, summary[key], tol))
 
     typer.echo(f"chipped teeth: {chip_verdict(report.inspection)}")
-    from gearscan.inspect import unmeasured_sigma_note
+    from gearscan.inspect import turning_note, unmeasured_sigma_note
 
     if note := unmeasured_sigma_note(report):
+        typer.secho(note, fg=typer.colors.YELLOW)
+    if note := turning_note(report):
         typer.secho(note, fg=typer.colors.YELLOW)
     typer.echo(f"report: {report.files['markdown']}")
 

@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 
 from gearscan.core.recording import RecordingError, RecordingReader
-from gearscan.recon.depth_sigma import UNMEASURED_NOTES
+from gearscan.recon.depth_sigma import UNMEASURED_NOTES, turning_three_step_note
 from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
 from gearscan.recon.inspect import (
     Inspection,
@@ -56,6 +56,7 @@ class InspectionReport:
     truth: dict | None = None
     refine: dict | None = None  # the frame fit's counts (recon.track.TrackRefiner.refine_fused), if it ran
     depth_sigma_source: str | None = None  # whose depth-sigma scales the unfitted points carry (recon.depth_sigma)
+    turning_three_step: int = 0  # bursts that turned and were decoded by three-step PS (--classical): sigma unmeasured
 
 
 def partial(insp: Inspection, key: str) -> str:
@@ -95,6 +96,16 @@ def unmeasured_sigma_note(report: InspectionReport) -> str | None:
     unfitted = len(report.fused) if refined is None else int((~refined).sum())
     note = UNMEASURED_NOTES.get(report.depth_sigma_source)
     return f"sigma of the {unfitted:,} point(s) the frame fit did not take: {note}" if unfitted and note else None
+
+
+def turning_note(report: InspectionReport) -> str | None:
+    """What to say where three-step PS decoded bursts that turned (``--classical``): the unfitted points from them carry
+    a sigma that is no measured bound; None where it decoded none."""
+    if not report.turning_three_step:
+        return None
+    refined = report.fused.refined
+    unfitted = len(report.fused) if refined is None else int((~refined).sum())
+    return f"sigma of the {unfitted:,} point(s) the frame fit did not take: {turning_three_step_note(report.turning_three_step)}"
 
 
 def dropped_note(refine: dict | None) -> str:
@@ -213,7 +224,8 @@ def run_inspection(
     files = {"fused": save_fused(fused, out / "fused.ply")}
     files.update(write_plots(insp, out, tolerances))
     report = InspectionReport(insp, fused, grade, tolerances, classes, span, files, truth, metrics.refine or None,
-                              (metrics.recon or {}).get("depth_sigma_source"))
+                              (metrics.recon or {}).get("depth_sigma_source"),
+                              (metrics.decoder or {}).get("turning_three_step", 0))
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
@@ -241,7 +253,9 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                   "unsettled_fits": (report.refine or {}).get("unsettled"),
                   "implausible_fits": (report.refine or {}).get("implausible"),
                   # whose depth-sigma scales an unfitted point's sigma carries: model, product or unmeasured
-                  "depth_sigma_source": report.depth_sigma_source},
+                  "depth_sigma_source": report.depth_sigma_source,
+                  # bursts that turned, decoded by three-step PS (--classical): their unfitted points' sigma unmeasured
+                  "turning_three_step_bursts": report.turning_three_step},
         "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
         "grade": report.grade,
         "tolerances_um": report.tolerances,
@@ -288,8 +302,9 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         f"Gear axis fitted from the flanks: {insp.eccentricity_um:.1f} µm from the turntable axis towards "
         f"{insp.eccentricity_deg:.1f}°; transverse section z = {insp.section_mm[0]:.1f} to {insp.section_mm[1]:.1f} mm.",
     ]
-    if note := unmeasured_sigma_note(report):
-        lines += ["", f"**{note}.**"]
+    for note in (unmeasured_sigma_note(report), turning_note(report)):
+        if note:
+            lines += ["", f"**{note}.**"]
     if report.revolution_deg < 360 - 360 / insp.teeth:
         lines += ["", f"**Warning:** the recording covers {report.revolution_deg:.0f}° only: teeth never seen have no "
                   "pitch or profile, and Fp covers the teeth that were."]

@@ -103,6 +103,14 @@ def decoder_depth_sigma(decoder: object) -> tuple[DepthSigmaScales | None, str]:
     return run_depth_sigma_scales(own, network=network, mc=mc), source
 
 
+def turning_three_step_note(bursts: int) -> str:
+    """What to say where three-step PS (``--classical``, a baseline) decoded ``bursts`` that turned: its phase sigma has
+    no motion term and its class's depth scales were measured on still bursts (``decoder.turning_three_step``)."""
+    return (f"three-step PS decoded {bursts} burst(s) that turned (--classical, a baseline): its sigma has no motion "
+            "term and its depth scales were measured on still bursts, so their points' sigma is not a measured k = 2 "
+            "bound")
+
+
 _CHOOSE_OWN = ("choose its own on its rig's val scenes: `python scripts/calibrate_depth_sigma.py --model M.safetensors "
                "--sets VAL1,VAL2 --out M_depth_sigma.json --write` (benchmarks/depth_sigma_rule.md)")
 # what a user is told where the scales were not measured for the run's decode (depth_sigma_source)

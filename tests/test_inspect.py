@@ -408,6 +408,35 @@ def test_inspect_says_when_unfitted_points_carry_unmeasured_depth_scales() -> No
     assert unmeasured_sigma_note(Report(some, "product")) is None and unmeasured_sigma_note(Report(some, None)) is None
 
 
+def test_inspect_says_when_three_step_decoded_turning_bursts(inspected) -> None:
+    """`inspect --classical` on a turning gear: three-step PS's sigma has no motion term, so the unfitted points' sigma
+    is no measured bound, said as replay says it (one text, recon.depth_sigma.turning_three_step_note); still bursts
+    (the fixture's) say nothing."""
+    from dataclasses import dataclass
+
+    from gearscan.inspect import turning_note
+    from gearscan.recon.depth_sigma import turning_three_step_note
+
+    report, _, out, output = inspected
+    assert report["fused"]["turning_three_step_bursts"] == 0 and "turned" not in output
+
+    @dataclass
+    class Fused:
+        refined: np.ndarray
+
+        def __len__(self) -> int:
+            return len(self.refined)
+
+    @dataclass
+    class Report:
+        fused: Fused
+        turning_three_step: int
+
+    note = turning_note(Report(Fused(np.array([True, False, False])), 7))
+    assert note == f"sigma of the 2 point(s) the frame fit did not take: {turning_three_step_note(7)}"
+    assert turning_note(Report(Fused(np.array([False])), 0)) is None
+
+
 def partly_seen_inspection(teeth: int = 4):
     """An inspection whose right flanks were never measured and whose left flanks were on teeth 0-1 only."""
     from gearscan.recon.inspect import Flank, Inspection, ToothTip
