@@ -44,6 +44,24 @@ def _fail(msg: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
+def _writable(path: Path | None, flag: str, *, folder: bool = False) -> None:
+    """Fail now, naming ``flag``, where ``path`` (a file, or with ``folder`` a folder) cannot be written: its folder made
+    and a file created and removed there. Checked before a run, not found after its work is done."""
+    import tempfile
+
+    if path is None:
+        return
+    where = path if folder else path.parent
+    if (folder and path.exists() and not path.is_dir()) or (not folder and path.is_dir()):
+        raise _fail(f"{flag}: {path} is {'not ' if folder else ''}a folder; expected a {'folder' if folder else 'file'}")
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=where, prefix=".gearscan-write-check-"):
+            pass
+    except OSError as exc:
+        raise _fail(f"{flag}: cannot write to {where} ({exc.strerror or exc})") from exc
+
+
 def _progress(description: str):
     from rich.progress import (
         BarColumn,
@@ -300,6 +318,10 @@ def replay_cmd(
         connect = web.grpc_url
     if not (save or connect):
         save = Path("out") / f"{recording.name}.rrd"
+    for flag, target in (("--save", save), ("--metrics", metrics), ("--fuse", fuse)):
+        _writable(target, flag)
+    for flag, target in (("--ply", ply), ("--csv", csv)):
+        _writable(target, flag, folder=True)
     try:
         if unwrap not in ("cad", "envelope", "coarse"):
             raise typer.BadParameter(f"expected 'cad', 'envelope' or 'coarse', got {unwrap!r}", param_hint="--unwrap")
@@ -503,6 +525,15 @@ def live_cmd(
         if check:
             _live_check(cfg, rig, config or Path("--simulate"))
             return
+        _writable(save, "--save")
+        if record is not None:  # what it holds is the writer's to judge (an old recording needs --overwrite)
+            from gearscan.core.recording import RecordingError, RecordingWriter
+
+            try:
+                RecordingWriter.check_target(record, overwrite)
+            except RecordingError as exc:
+                raise _fail(f"--record: {exc}") from exc
+            _writable(record, "--record", folder=True)
         _live_run(cfg, record=record, overwrite=overwrite, bursts=bursts, duration=duration, save=save,
                   max_save_mb=max_save_mb, connect=connect, serve=serve, bind=bind,
                   ports=(grpc_port, web_port))
@@ -659,6 +690,8 @@ def inspect_cmd(
     if unwrap not in ("cad", "envelope"):
         raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")
     point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine, needs="leave the frame fit on (no --no-refine)")
+    _writable(out, "--out", folder=True)
+    _writable(save, "--save")
     decoder = _decoder(classical, 0, model)
     try:
         report = run_inspection(recording, out, decoder=decoder, grade=grade, voxel_mm=voxel_mm, min_bursts=min_bursts,

@@ -334,3 +334,26 @@ def test_replay_says_when_a_model_borrows_the_products_depth_sigma(tmp_path):
                                                    DEPTH_SIGMA_SCALES).as_dict(), extra
         for name, note in UNMEASURED_NOTES.items():  # said where unmeasured, and only there
             assert (note.split(":")[0][:60] in " ".join(res.output.split())) == (name == source), (extra, res.output)
+
+
+def test_an_output_that_cannot_be_written_is_named_before_the_run(twin_recording, tmp_path):
+    """Outputs are checked before any work: a folder that cannot be made (/proc), a file where a folder is expected
+    and a folder where a file is: exit 2 naming the option, no traceback; a missing parent folder is made."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    cases = [
+        (["replay", str(twin_recording), "--classical", "--metrics", "/proc/gearscan_x/m.json"], "--metrics"),
+        (["replay", str(twin_recording), "--classical", "--save", str(tmp_path)], "--save"),
+        (["replay", str(twin_recording), "--classical", "--fuse", "/proc/gearscan_x/f.ply"], "--fuse"),
+        (["replay", str(twin_recording), "--classical", "--ply", str(blocker)], "--ply"),
+        (["inspect", str(twin_recording), "--classical", "-o", str(blocker / "rep")], "--out"),
+        (["twin", "render", "/proc/gearscan_x", "--bursts", "1", "--width", "64", "--height", "64"], "/proc/gearscan_x"),
+    ]
+    for args, named in cases:
+        res = runner.invoke(app, args)
+        assert res.exit_code == 2 and named in res.output and "Traceback" not in res.output, (args, res.output)
+    metrics = tmp_path / "new" / "deeper" / "m.json"
+    res = runner.invoke(app, ["replay", str(twin_recording), "--classical", "--metrics", str(metrics),
+                              "--save", str(tmp_path / "r.rrd")])
+    assert res.exit_code == 0, res.output
+    assert len(json.loads(metrics.read_text())["bursts"]) == 2  # the fixture's two bursts
