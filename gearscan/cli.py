@@ -456,6 +456,12 @@ def check_cmd(
         typer.echo(f"damaged: {d} [{d.kind}]")
     for note in [str(w.message) for w in caught] + notes:
         typer.echo(f"note: {note}")
+    header = [d for d in reader.damage if d.kind == "header"]
+    if header:  # replay cannot measure without its rig, patterns or gear: unreadable as a measurement, not skippable
+        typer.secho(f"{recording}: recording.json's {', '.join(d.what.split(':')[0] for d in header)} damaged: "
+                    "replay refuses it (give --rig for a damaged rig; the rest needs the header mended)",
+                    fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=2)
     if reader.damage:
         typer.secho(f"{recording}: {len(reader.damage)} damaged part(s); replay skips them and measures the rest",
                     fg=typer.colors.YELLOW)

@@ -161,6 +161,19 @@ def test_check_lists_damage_without_decoding_and_exit_codes(rec, tmp_path, monke
     assert res.exit_code == 2 and "not a recording" in res.output
 
 
+def test_check_says_a_damaged_header_is_unreadable_as_replay_does(rec):
+    """A header section replay cannot measure without (here the gear's module) is exit 2 in `check`, as replay refuses
+    it, not exit 1 with "replay skips them and measures the rest"."""
+    meta = json.loads((rec / "recording.json").read_text())
+    meta["gear"]["module"] = -2.0
+    (rec / "recording.json").write_text(json.dumps(meta))
+    res = runner.invoke(app, ["check", str(rec)])
+    assert res.exit_code == 2 and "gear" in res.output and "replay refuses it" in res.output, res.output
+    assert "measures the rest" not in res.output
+    res = runner.invoke(app, ["replay", str(rec), "--classical", "--save", str(rec.parent / "x.rrd")])
+    assert res.exit_code == 2, res.output
+
+
 def test_replay_strict_exits_1_on_damage_and_0_without(rec, tmp_path):
     os.remove(rec / "frames" / "000000.png")
     args = ["replay", str(rec), "--classical", "--save", str(tmp_path / "o.rrd"), "--no-truth"]
