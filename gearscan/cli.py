@@ -715,12 +715,14 @@ def inspect_cmd(
         typer.echo(quantity_line(report.inspection, key, summary[key], tol))
 
     typer.echo(f"chipped teeth: {chip_verdict(report.inspection)}")
-    from gearscan.inspect import turning_note, unmeasured_sigma_note
+    from gearscan.inspect import spec_note, turning_note, unmeasured_sigma_note
 
     if note := unmeasured_sigma_note(report):
         typer.secho(note, fg=typer.colors.YELLOW)
     if note := turning_note(report):
         typer.secho(note, fg=typer.colors.YELLOW)
+    if note := spec_note(report):
+        typer.secho(f"warning: {note}", fg=typer.colors.YELLOW)
     typer.echo(f"report: {report.files['markdown']}")
 
 

@@ -98,6 +98,18 @@ def unmeasured_sigma_note(report: InspectionReport) -> str | None:
     return f"sigma of the {unfitted:,} point(s) the frame fit did not take: {note}" if unfitted and note else None
 
 
+def spec_note(report: InspectionReport) -> str | None:
+    """A warning where a whole revolution measured fewer than half of the gear's pitches: most often the gear spec
+    (teeth, module, pressure angle) or the rig calibration does not match the gear on the turntable; None otherwise."""
+    insp = report.inspection
+    k, n = insp.coverage()["fp"]
+    if report.revolution_deg < 360 - 360 / insp.teeth or k >= n / 2:
+        return None
+    return (f"a whole revolution measured only {k} of {n} pitches: check that the gear spec (z = {insp.teeth}, "
+            f"m = {insp.module:g} mm) and the rig calibration match the gear on the turntable (the fitted gear axis is "
+            f"{insp.eccentricity_um:.0f} µm from the turntable axis)")
+
+
 def turning_note(report: InspectionReport) -> str | None:
     """What to say where three-step PS decoded bursts that turned (``--classical``): the unfitted points from them carry
     a sigma that is no measured bound; None where it decoded none."""
@@ -137,6 +149,9 @@ def chip_verdict(insp) -> str:
 def revolution_deg(reader: RecordingReader) -> float:
     """Turntable angle the recording's frames cover, degrees (360 or more: every tooth seen)."""
     angles = np.array([r.encoder_angle for r in reader.records if r.encoder_angle is not None], dtype=float)
+    # in frame order, unwrapped: angles stored modulo a turn must not read as a whole revolution (no turntable turns
+    # half a turn between two frames)
+    angles = np.unwrap(angles)
     return float(np.degrees(angles.max() - angles.min())) if len(angles) else 0.0
 
 
@@ -199,6 +214,10 @@ def run_inspection(
         raise RecordingError(f"{reader.path}/recording.json: no 'gear' section: inspection needs the gear's nominal spec")
     if grade is not None:
         iso1328_tolerances(gear.module, 2 * gear.pitch_radius, grade)  # refuse a bad grade before the replay
+    truth_teeth = len(((reader.meta.get("truth") or {}).get("single_pitch_um") or {}).get("left", [])) or None
+    if truth_teeth is not None and truth_teeth != gear.teeth:
+        raise RecordingError(f"{reader.path}/recording.json: its gear states {gear.teeth} teeth, its twin truth holds "
+                             f"{truth_teeth}: the gear spec does not match the gear that was recorded")
     if point_sigma_mm is not None and not refine:
         raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine)")
     span = revolution_deg(reader)
@@ -265,6 +284,7 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                                for k in QUANTITIES},
         # per quantity, how many of a whole gear's values were measured: short of all, the value is a lower bound
         "coverage": {k: {"measured": m, "of": n} for k, (m, n) in insp.coverage().items()},
+        "spec_warning": spec_note(report),
         "inspection": insp.to_json(),
         "twin_truth": jsonable(report.truth),
         "files": {k: str(v) for k, v in report.files.items()},
@@ -305,6 +325,8 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
     for note in (unmeasured_sigma_note(report), turning_note(report)):
         if note:
             lines += ["", f"**{note}.**"]
+    if note := spec_note(report):
+        lines += ["", f"**Warning:** {note}."]
     if report.revolution_deg < 360 - 360 / insp.teeth:
         lines += ["", f"**Warning:** the recording covers {report.revolution_deg:.0f}° only: teeth never seen have no "
                   "pitch or profile, and Fp covers the teeth that were."]

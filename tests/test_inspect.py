@@ -513,3 +513,31 @@ def test_the_report_grades_a_partly_seen_gear_only_as_far_as_it_was_measured(tmp
         assert doc["coverage"]["Fr"] == {"measured": 0, "of": 4}
         json.loads(json.dumps(doc, allow_nan=False))  # strict: the twin truth's NaN became null
 
+
+
+def test_a_gear_spec_that_does_not_match_is_refused_or_warned(inspected, tmp_path):
+    """A recording whose header's gear disagrees with its twin truth is refused before any work (it had ended in a
+    numpy broadcast error); a whole revolution that measured under half the pitches says the spec or the rig may not
+    match (nothing else hinted at it); angles stored modulo a turn are not read as a whole revolution."""
+    import shutil
+    from types import SimpleNamespace
+
+    from gearscan.cli import app
+    from gearscan.inspect import revolution_deg, spec_note
+
+    _, _, out, _ = inspected
+    rec = tmp_path / "rec"
+    shutil.copytree(json.loads((out / "report.json").read_text())["recording"], rec)
+    meta = json.loads((rec / "recording.json").read_text())
+    meta["gear"]["teeth"] -= 1
+    (rec / "recording.json").write_text(json.dumps(meta))
+    res = CliRunner().invoke(app, ["inspect", str(rec), "-o", str(tmp_path / "r"), "--classical"])
+    assert res.exit_code == 2 and "the gear spec does not match" in res.output, res.output
+
+    insp = partly_seen_inspection()  # 1 of 8 pitches
+    assert "measured only 1 of 8 pitches" in spec_note(SimpleNamespace(inspection=insp, revolution_deg=360.0))
+    assert spec_note(SimpleNamespace(inspection=insp, revolution_deg=180.0)) is None  # a partial turn says so itself
+
+    wrapped = [math.radians(a % 360) for a in range(324, 397, 9)]  # 72 deg across the zero, stored modulo a turn
+    reader = SimpleNamespace(records=[SimpleNamespace(encoder_angle=a) for a in wrapped])
+    assert revolution_deg(reader) == pytest.approx(72.0)
