@@ -142,6 +142,8 @@ def chip_verdict(insp) -> str:
     """The chip check's answer in words: the flagged teeth, none, or why it cannot tell."""
     if not insp.chip_check_conclusive:
         chip_mm = insp.settings.get("chip_mm", 0.05)
+        if not np.isfinite(insp.chip_noise_um):  # no tip cell seen by enough teeth to compare (a partial turn)
+            return "inconclusive: too few teeth's tips were measured to compare them with the median tooth"
         return (f"inconclusive: the tip cells stray {insp.chip_noise_um:.0f} µm (95th percentile) from the median "
                 f"tooth, too close to the {1e3 * chip_mm:.0f} µm chip threshold to tell a chip from noise")
     return ", ".join(str(t) for t in insp.chipped_teeth) or "none"

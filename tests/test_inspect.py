@@ -541,3 +541,17 @@ def test_a_gear_spec_that_does_not_match_is_refused_or_warned(inspected, tmp_pat
     wrapped = [math.radians(a % 360) for a in range(324, 397, 9)]  # 72 deg across the zero, stored modulo a turn
     reader = SimpleNamespace(records=[SimpleNamespace(encoder_angle=a) for a in wrapped])
     assert revolution_deg(reader) == pytest.approx(72.0)
+
+
+def test_the_chip_verdict_of_a_gear_whose_tips_were_barely_seen_names_why():
+    """No tip cell seen by enough teeth (a partial turn): the verdict says so, not "stray inf µm"."""
+    import dataclasses
+
+    from gearscan.inspect import chip_verdict
+
+    insp = partly_seen_inspection()
+    unseen = dataclasses.replace(insp, chip_check_conclusive=False, chip_noise_um=math.inf)
+    assert chip_verdict(unseen) == "inconclusive: too few teeth's tips were measured to compare them with the median tooth"
+    noisy = dataclasses.replace(insp, chip_check_conclusive=False, chip_noise_um=48.0, settings={"chip_mm": 0.05})
+    assert "stray 48 µm" in chip_verdict(noisy) and "50 µm chip threshold" in chip_verdict(noisy)
+
