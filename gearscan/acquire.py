@@ -258,6 +258,12 @@ class AcquisitionSession:
                         self.writer.write_frame(dataclasses.replace(f, encoder_angle=a))
                 yield burst
             elif max_frames is not None and since_burst >= max_frames:
+                if self.encoder is not None and not self.encoder.connected.is_set():  # the cause, not its symptom
+                    raise EncoderError(
+                        f"encoder on {self.encoder.port} is disconnected (cable or power?): no angle for the last "
+                        f"{since_burst} frames, so no burst could be measured; reconnect it (the reader reconnects by "
+                        "itself) or stop the run"
+                    )
                 raise CameraError(
                     f"no valid burst in {since_burst} frames; assembler: {self.assembler.stats.as_dict()}, "
                     f"last events: {[e.detail for e in self.assembler.events[-3:]]}"

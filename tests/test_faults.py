@@ -116,3 +116,23 @@ def test_a_stop_ends_the_bursts_while_a_restarted_encoder_waits_for_its_index(tm
     assert ended - asked[0] < 5.0  # the next frame (a grab waits at most 2 s), not the device's end
     out = RecordingReader(tmp_path / "rec")
     assert out.finished and len(out) == 3 * session.burst_count
+
+
+def test_a_pulled_encoder_cable_is_named_as_the_cause_when_no_burst_comes(tmp_path, sim):  # noqa: F811
+    """The encoder's cable is pulled and stays out: no frame gets an angle, so no burst is made; the run stops naming
+    the disconnected encoder (it had said "no valid burst in 30 frames" with the assembler's raw counters)."""
+    from gearscan.acquire import AcquisitionSession
+    from gearscan.acquisition.encoder import EncoderError
+    from gearscan.mocks.encoder_device import MockEncoderProcess
+
+    link = str(tmp_path / "enc")
+    with MockEncoderProcess(link, rate=1000, cpr=10000, rpm=30.0, duration=60, disconnect_at=1.0, disconnect_for=50,
+                            linger=0):
+        session = AcquisitionSession(AcquisitionConfig.load(_toml(tmp_path, sim.serial, link)), tmp_path / "rec")
+        bursts = 0
+        with pytest.raises(EncoderError, match=r"encoder on .* is disconnected \(cable or power\?\)"), session:
+            for _ in session.bursts(max_frames=30):
+                bursts += 1
+    assert bursts >= 1 and session.encoder.stats.disconnects >= 1
+    out = RecordingReader(tmp_path / "rec")
+    assert out.finished and len(out) == 3 * bursts  # what was measured before the cable came out is kept
