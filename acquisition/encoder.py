@@ -484,8 +484,10 @@ class EncoderReader:
             limit = self.counts_per_rev * (MAX_TURNS_PER_S * dt + 0.25)
             step = count - self._last_count
             if abs(step) > limit:
-                wrap = next(((1 << b) * round(step / (1 << b)) for b in COUNTER_BITS
-                             if round(step / (1 << b)) and abs(step - (1 << b) * round(step / (1 << b))) <= limit), None)
+                # one wrap of a counter of b bits, where one can be told from motion at all (half its range beyond
+                # what the turntable could have turned since the last sample; after a long gap it cannot)
+                wrap = next((w for b in COUNTER_BITS if (1 << (b - 1)) > limit
+                             for w in (1 << b, -(1 << b)) if abs(step - w) <= limit), None)
                 if wrap is None:
                     self._fail(
                         f"encoder at {self.port}: count jumped by {step} ({step / self.counts_per_rev:+.2f} turns) in "
@@ -496,7 +498,7 @@ class EncoderReader:
                 self._count_offset -= wrap
                 count -= wrap
                 self.stats.count_wraps += 1
-                msg = (f"encoder count wrapped ({wrap:+d} counts: a {int(math.log2(abs(wrap)))}-bit counter): "
+                msg = (f"encoder count wrapped ({wrap:+d} counts: a {abs(wrap).bit_length() - 1}-bit counter): "
                        "undone, the angle continues")
                 self._event("count_wrap", msg)
                 if self.stats.count_wraps == 1:

@@ -14,7 +14,8 @@ Sample (device -> host, at the device's sample rate, e.g. 1 kHz)::
     seq          uint32, +1 per sample, wraps to 0 after 2**32-1 (gaps = lost lines)
     t_us         device clock, microseconds since device start, 0 <= t_us <= (2**63-1) // 1000
                  (292 years: the host keeps device time as int64 nanoseconds)
-    count        signed accumulated quadrature count, int64 (never wraps in practice)
+    count        signed accumulated quadrature count, int64 (never wraps in practice; a device whose counter is
+                 16, 24 or 32 bits wide and wraps is continued by the reader, EncoderReader._unwrap_count)
     index        1 on the first sample after the index pulse, else 0
     index_count  count latched at the index pulse when index = 1 (int64), else empty
 

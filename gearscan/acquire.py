@@ -261,8 +261,8 @@ class AcquisitionSession:
                 if self.encoder is not None and not self.encoder.connected.is_set():  # the cause, not its symptom
                     raise EncoderError(
                         f"encoder on {self.encoder.port} is disconnected (cable or power?): no angle for the last "
-                        f"{since_burst} frames, so no burst could be measured; reconnect it (the reader reconnects by "
-                        "itself) or stop the run"
+                        f"{since_burst} frames, so no burst could be measured and the run stopped; reconnect it and "
+                        "start again (what was measured before is recorded)"
                     )
                 raise CameraError(
                     f"no valid burst in {since_burst} frames; assembler: {self.assembler.stats.as_dict()}, "

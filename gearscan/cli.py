@@ -318,15 +318,17 @@ def replay_cmd(
         connect = web.grpc_url
     if not (save or connect):
         save = Path("out") / f"{recording.name}.rrd"
-    for flag, target in (("--save", save), ("--metrics", metrics), ("--fuse", fuse)):
-        _writable(target, flag)
-    for flag, target in (("--ply", ply), ("--csv", csv)):
-        _writable(target, flag, folder=True)
     try:
         if unwrap not in ("cad", "envelope", "coarse"):
             raise typer.BadParameter(f"expected 'cad', 'envelope' or 'coarse', got {unwrap!r}", param_hint="--unwrap")
         if fuse is not None and fuse.suffix.lower() not in (".ply", ".pcd", ".csv"):
             raise typer.BadParameter(f"expected a .ply, .pcd or .csv file, got {fuse}", param_hint="--fuse")
+        if not (recording / "recording.json").is_file():  # before any output folder is made for it
+            raise RecordingError(f"{recording}: not a recording (expected a folder with recording.json)")
+        for flag, target in (("--save", save), ("--metrics", metrics), ("--fuse", fuse)):
+            _writable(target, flag)
+        for flag, target in (("--ply", ply), ("--csv", csv)):
+            _writable(target, flag, folder=True)
         export = None
         if ply is not None or csv is not None:
             from gearscan.replay import CloudExport
@@ -440,7 +442,8 @@ def check_cmd(
 ) -> None:
     """List a recording's damage without decoding images (PNG structure and CRCs, index and
     encoder lines, header). Exit 0: clean; 1: damaged (replay skips what is listed); 2: not a
-    readable recording (recording.json missing or damaged)."""
+    readable recording (recording.json missing or damaged, or its gear or pattern section, which replay needs; a damaged
+    rig is 1: replay takes --rig)."""
     import warnings
 
     from gearscan.core.recording import RecordingError, RecordingReader
@@ -456,12 +459,13 @@ def check_cmd(
         typer.echo(f"damaged: {d} [{d.kind}]")
     for note in [str(w.message) for w in caught] + notes:
         typer.echo(f"note: {note}")
-    header = [d for d in reader.damage if d.kind == "header"]
-    if header:  # replay cannot measure without its rig, patterns or gear: unreadable as a measurement, not skippable
-        typer.secho(f"{recording}: recording.json's {', '.join(d.what.split(':')[0] for d in header)} damaged: "
-                    "replay refuses it (give --rig for a damaged rig; the rest needs the header mended)",
-                    fg=typer.colors.RED, err=True)
+    sections = [d.what.split(":")[0] for d in reader.damage if d.kind == "header"]
+    if [s for s in sections if s != "rig"]:  # replay cannot measure without its patterns or gear: not skippable
+        typer.secho(f"{recording}: recording.json's {', '.join(sections)} damaged: replay refuses it until the header "
+                    "is mended", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2)
+    if sections:  # a damaged rig: replay measures with --rig, as for a recording made without one
+        typer.secho(f"{recording}: recording.json's rig damaged: replay it with --rig RIG.json", fg=typer.colors.YELLOW)
     if reader.damage:
         typer.secho(f"{recording}: {len(reader.damage)} damaged part(s); replay skips them and measures the rest",
                     fg=typer.colors.YELLOW)
@@ -531,15 +535,7 @@ def live_cmd(
         if check:
             _live_check(cfg, rig, config or Path("--simulate"))
             return
-        _writable(save, "--save")
-        if record is not None:  # what it holds is the writer's to judge (an old recording needs --overwrite)
-            from gearscan.core.recording import RecordingError, RecordingWriter
-
-            try:
-                RecordingWriter.check_target(record, overwrite)
-            except RecordingError as exc:
-                raise _fail(f"--record: {exc}") from exc
-            _writable(record, "--record", folder=True)
+        _writable(save, "--save")  # --record: the recording writer judges it as the session starts, before any frame
         _live_run(cfg, record=record, overwrite=overwrite, bursts=bursts, duration=duration, save=save,
                   max_save_mb=max_save_mb, connect=connect, serve=serve, bind=bind,
                   ports=(grpc_port, web_port))
@@ -696,6 +692,8 @@ def inspect_cmd(
     if unwrap not in ("cad", "envelope"):
         raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")
     point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine, needs="leave the frame fit on (no --no-refine)")
+    if not (recording / "recording.json").is_file():  # before any output folder is made for it
+        raise _fail(f"{recording}: not a recording (expected a folder with recording.json)")
     _writable(out, "--out", folder=True)
     _writable(save, "--save")
     decoder = _decoder(classical, 0, model)

@@ -105,7 +105,8 @@ def spec_note(report: InspectionReport) -> str | None:
     k, n = insp.coverage()["fp"]
     if report.revolution_deg < 360 - 360 / insp.teeth or k >= n / 2:
         return None
-    return (f"a whole revolution measured only {k} of {n} pitches: check that the gear spec (z = {insp.teeth}, "
+    return (f"a whole revolution measured only {k} of the {n} flank pitches (both flanks of {insp.teeth} teeth): "
+            f"check that the gear spec (z = {insp.teeth}, "
             f"m = {insp.module:g} mm) and the rig calibration match the gear on the turntable (the fitted gear axis is "
             f"{insp.eccentricity_um:.0f} µm from the turntable axis)")
 
@@ -113,11 +114,12 @@ def spec_note(report: InspectionReport) -> str | None:
 def turning_note(report: InspectionReport) -> str | None:
     """What to say where three-step PS decoded bursts that turned (``--classical``): the unfitted points from them carry
     a sigma that is no measured bound; None where it decoded none."""
-    if not report.turning_three_step:
-        return None
     refined = report.fused.refined
     unfitted = len(report.fused) if refined is None else int((~refined).sum())
-    return f"sigma of the {unfitted:,} point(s) the frame fit did not take: {turning_three_step_note(report.turning_three_step)}"
+    if not report.turning_three_step or not unfitted:
+        return None
+    return (f"sigma of the {unfitted:,} point(s) the frame fit did not take (some from other bursts): "
+            f"{turning_three_step_note(report.turning_three_step)}")
 
 
 def dropped_note(refine: dict | None) -> str:

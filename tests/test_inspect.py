@@ -433,7 +433,8 @@ def test_inspect_says_when_three_step_decoded_turning_bursts(inspected) -> None:
         turning_three_step: int
 
     note = turning_note(Report(Fused(np.array([True, False, False])), 7))
-    assert note == f"sigma of the 2 point(s) the frame fit did not take: {turning_three_step_note(7)}"
+    assert note == f"sigma of the 2 point(s) the frame fit did not take (some from other bursts): {turning_three_step_note(7)}"
+    assert turning_note(Report(Fused(np.array([True])), 7)) is None  # every point fitted: nothing to say
     assert turning_note(Report(Fused(np.array([False])), 0)) is None
 
 
@@ -535,7 +536,7 @@ def test_a_gear_spec_that_does_not_match_is_refused_or_warned(inspected, tmp_pat
     assert res.exit_code == 2 and "the gear spec does not match" in res.output, res.output
 
     insp = partly_seen_inspection()  # 1 of 8 pitches
-    assert "measured only 1 of 8 pitches" in spec_note(SimpleNamespace(inspection=insp, revolution_deg=360.0))
+    assert "measured only 1 of the 8 flank pitches" in spec_note(SimpleNamespace(inspection=insp, revolution_deg=360.0))
     assert spec_note(SimpleNamespace(inspection=insp, revolution_deg=180.0)) is None  # a partial turn says so itself
 
     wrapped = [math.radians(a % 360) for a in range(324, 397, 9)]  # 72 deg across the zero, stored modulo a turn

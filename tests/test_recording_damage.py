@@ -172,6 +172,13 @@ def test_check_says_a_damaged_header_is_unreadable_as_replay_does(rec):
     assert "measures the rest" not in res.output
     res = runner.invoke(app, ["replay", str(rec), "--classical", "--save", str(rec.parent / "x.rrd")])
     assert res.exit_code == 2, res.output
+    # a damaged rig alone: replay measures with --rig, so it is damage (exit 1) that says how
+    meta["gear"]["module"] = 2.0
+    rig = meta["rig"]
+    meta["rig"] = {k: v for k, v in rig.items() if k != "camera"}
+    (rec / "recording.json").write_text(json.dumps(meta))
+    res = runner.invoke(app, ["check", str(rec)])
+    assert res.exit_code == 1 and "replay it with --rig" in res.output, res.output
 
 
 def test_replay_strict_exits_1_on_damage_and_0_without(rec, tmp_path):
@@ -250,3 +257,26 @@ def test_a_recording_without_its_header_is_not_written_over(rec, tmp_path):
     for bad in (tmp_path / "a_file", "/proc/gearscan_rec"):
         with pytest.raises(RecordingError, match="not a folder|cannot write a recording there"):
             RecordingWriter(bad, {})
+
+
+@pytest.mark.parametrize("lost", [b"\x1a", b"*", b"\xff", b""], ids=["SUB", "star", "0xff", "nothing"])
+def test_a_newline_turned_into_another_byte_keeps_both_records(rec, caplog, lost):
+    index = rec / "frames.jsonl"
+    lines = index.read_bytes().splitlines()
+    index.write_bytes(b"\n".join([*lines[:3], lines[3] + lost + lines[4], *lines[5:]]) + b"\n")
+    m, _, damage = _replay(rec, caplog)
+    assert m.bursts == 3 and damage["count"] == 0, damage
+
+
+def test_overwrite_replaces_what_is_left_of_a_recording_whole(rec):
+    """Remains without a header (an encoder log, a first frame) refuse the folder without --overwrite and are removed
+    by it, not appended to."""
+    (rec / "recording.json").unlink()
+    (rec / "frames.jsonl").unlink()
+    assert RecordingWriter.remains(rec) == ["encoder.jsonl", "frames/000000.png"]
+    with pytest.raises(RecordingError, match="part of a recording"):
+        RecordingWriter(rec, {})
+    with RecordingWriter(rec, {}, overwrite=True) as w:
+        w.write_frame(Frame(np.zeros((8, 8), np.uint8), 1, 0))
+    r = RecordingReader(rec)
+    assert len(r) == 1 and r.encoder_samples() == [] and not (rec / "frames" / "000004.png").exists()

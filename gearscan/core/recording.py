@@ -336,15 +336,17 @@ def _split_objects(raw: bytes) -> list[dict] | None:
     """The JSON objects of one line that holds several back to back (``{...} {...}``: a newline lost or turned into
     another byte), or None where the line is not exactly that."""
     try:
-        text = raw.decode("utf-8").strip()
+        text = raw.decode("utf-8", errors="surrogateescape").strip()  # the lost newline may be any byte
         decoder, i, out = json.JSONDecoder(), 0, []
         while i < len(text):
             obj, i = decoder.raw_decode(text, i)
             if not isinstance(obj, dict):
                 return None
             out.append(obj)
-            while i < len(text) and text[i] in " \t\x00\x0b\x0c\r":  # what the newline may have become
-                i += 1
+            gap = text.find("{", i) if i < len(text) else len(text)
+            if gap < 0 or gap - i > 4:  # a newline turned into a few other bytes at most: else not two records
+                return None
+            i = gap
     except (ValueError, RecursionError):
         return None
     return out if len(out) > 1 else None
@@ -369,10 +371,17 @@ class RecordingWriter:
             return
         if (path / "recording.json").exists():
             raise RecordingError(f"{path} already holds a recording (--overwrite replaces it)")
-        left = [n for n in ("frames.jsonl", "encoder.jsonl", "frames/000000.png") if (path / n).exists()]
+        left = RecordingWriter.remains(path)
         if left:
             raise RecordingError(f"{path} holds part of a recording without its recording.json ({', '.join(left)}): "
                                  "writing there would mix the two; choose another folder, or --overwrite to replace it")
+
+    @staticmethod
+    def remains(path: Path) -> list[str]:
+        """The pieces of a recording in ``path`` (its header, index, encoder log, a frame the writer would name): what
+        ``overwrite`` replaces and what, without it, refuses the folder."""
+        return [n for n in ("recording.json", "frames.jsonl", "encoder.jsonl", "frames/000000.png")
+                if (Path(path) / n).exists()]
 
     @staticmethod
     def remove(path: Path) -> None:
@@ -395,8 +404,6 @@ class RecordingWriter:
         self.check_target(self.path, overwrite)
         # an old truth/ or frame left behind would be read as part of the new recording; a folder
         # that holds no recording (no header, no index) is not emptied
-        if overwrite and any((self.path / n).exists() for n in ("recording.json", "frames.jsonl")):
-            self.remove(self.path)
         self.meta = {
             "format": FORMAT,
             "version": VERSION,
@@ -406,6 +413,8 @@ class RecordingWriter:
             **meta,
         }
         try:  # a folder that cannot be made or written (a read-only disk, /proc): said before any frame is taken
+            if overwrite and self.remains(self.path):  # the whole old recording, or what is left of one
+                self.remove(self.path)
             (self.path / "frames").mkdir(parents=True, exist_ok=True)
             _atomic_write_text(self.path / "recording.json", json.dumps(self.meta, indent=2))
             self._frames = open(self.path / "frames.jsonl", "a")
@@ -678,6 +687,7 @@ class RecordingReader:
             ext = unwrap(rec.frame_id)
             why = ""
             pos = slot % 3
+            where = f"line {n}" if n == slot + 1 else f"line {n} (record {slot + 1}: blank or merged lines before it)"
             if groups and pos == 0:
                 group = rec.pattern_index // 3
             if cycle == 3 or groups:  # three-frame bursts in either of the BURST_ORDERS
@@ -690,14 +700,14 @@ class RecordingReader:
                 why = "encoder_angle_rad is null where the recording's other frames have an angle"
             elif groups and not (rec.pattern_index < 6 and rec.pattern_index // 3 == group
                                  and rec.pattern_index % 3 in allowed):
-                why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole three-frame "
+                why = (f"pattern_index {rec.pattern_index} where {where} of a recording of whole three-frame "
                        f"fine (0-2) and coarse (3-5) bursts holds pattern "
                        f"{' or '.join(str(3 * group + a) for a in allowed)}")
             elif not groups and cycle == 3 and rec.pattern_index not in allowed:
-                why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole "
+                why = (f"pattern_index {rec.pattern_index} where {where} of a recording of whole "
                        f"3-frame bursts holds pattern {' or '.join(map(str, allowed))}")
             elif not groups and cycle is not None and cycle != 3 and rec.pattern_index != slot % cycle:
-                why = (f"pattern_index {rec.pattern_index} where line {n} of a recording of whole "
+                why = (f"pattern_index {rec.pattern_index} where {where} of a recording of whole "
                        f"{cycle}-frame bursts holds pattern {slot % cycle}")
             elif prev is not None and ext <= prev[1]:
                 why = f"frame id {rec.frame_id} does not come after the id on line {prev[0]}"
