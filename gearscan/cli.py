@@ -323,8 +323,9 @@ def replay_cmd(
             raise typer.BadParameter(f"expected 'cad', 'envelope' or 'coarse', got {unwrap!r}", param_hint="--unwrap")
         if fuse is not None and fuse.suffix.lower() not in (".ply", ".pcd", ".csv"):
             raise typer.BadParameter(f"expected a .ply, .pcd or .csv file, got {fuse}", param_hint="--fuse")
+        pace = _speed(speed)
         if not (recording / "recording.json").is_file():  # before any output folder is made for it
-            raise RecordingError(f"{recording}: not a recording (expected a folder with recording.json)")
+            raise RecordingError(f"{recording} is not a recording: recording.json is missing")
         for flag, target in (("--save", save), ("--metrics", metrics), ("--fuse", fuse)):
             _writable(target, flag)
         for flag, target in (("--ply", ply), ("--csv", csv)):
@@ -346,7 +347,7 @@ def replay_cmd(
 
         if max_sigma_rad is not None and not math.isfinite(max_sigma_rad):
             raise typer.BadParameter(f"expected a finite bound in rad, got {max_sigma_rad}", param_hint="--max-sigma-rad")
-        result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=_speed(speed),
+        result = replay(recording, decoder=decoder, save=save, connect=connect, metrics_path=metrics, speed=pace,
                         truth=truth, unwrap=unwrap, fuse=fuser, rig=rig, export=export, refine=refine and fuser is not None,
                         network_support_px=network_support_option(network_support_px,
                                                                   frame_fit=refine and fuser is not None,
@@ -693,7 +694,7 @@ def inspect_cmd(
         raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")
     point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine, needs="leave the frame fit on (no --no-refine)")
     if not (recording / "recording.json").is_file():  # before any output folder is made for it
-        raise _fail(f"{recording}: not a recording (expected a folder with recording.json)")
+        raise _fail(f"{recording} is not a recording: recording.json is missing")
     _writable(out, "--out", folder=True)
     _writable(save, "--save")
     decoder = _decoder(classical, 0, model)
