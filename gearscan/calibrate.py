@@ -43,6 +43,7 @@ def calibrate(
     from gearscan.core.rig import Rig, RigError, default_rig
     from gearscan.recon.board_io import load_captures, save_captures
     from gearscan.recon.calibration import (
+        FEW_VIEWS,
         CalibrationError,
         calibrate_rig,
         decode_capture,
@@ -76,8 +77,13 @@ def calibrate(
         caps, board, cam_size, proj_size = load_captures(captures)
     except (FileNotFoundError, ValueError) as exc:
         raise typer.BadParameter(str(exc), param_hint="CAPTURES") from exc
+    if output.is_dir():  # before any work: the rig file is written there at the end
+        raise typer.BadParameter(f"{output} is a folder; expected the rig JSON file to write", param_hint="--output")
     with console.status(f"decoding {len(caps)} board views"):
-        views = [decode_capture(c, proj_size) for c in caps]
+        try:
+            views = [decode_capture(c, proj_size) for c in caps]
+        except ValueError as exc:  # e.g. periods_u/periods_v without one covering the projector
+            raise typer.BadParameter(f"{captures / 'board.json'}: {exc}", param_hint="CAPTURES") from exc
     try:
         result = calibrate_rig(views, board, cam_size, proj_size)
     except CalibrationError as exc:
@@ -95,6 +101,14 @@ def calibrate(
         f"stereo RMS {rep['stereo_rms_px']:.3f} px, baseline {rep['baseline_mm']:.3f} mm, "
         f"{len(rep['views_used'])} views used, {len(rep['views_skipped'])} skipped"
     )
+    if "angle_error_deg_rms" in rep.get("turntable_axis", {}):
+        console.print(f"turntable: the board's rotations agree with the encoder angles within "
+                      f"{rep['turntable_axis']['angle_error_deg_rms']:.3f} deg RMS")
+    if len(rep["views_used"]) < FEW_VIEWS:
+        console.print(f"[yellow]warning:[/yellow] only {len(rep['views_used'])} usable views: the RMS above says "
+                      "nothing about what so few leave unconstrained (on the twin, 3 views put the turntable axis "
+                      f"1.6 deg off where 16 put it 0.06 deg); use {FEW_VIEWS} or more, spread over the image and "
+                      "the turntable")
     if truth is not None:
         cmp = compare_rigs(result.rig, truth)
         console.print(

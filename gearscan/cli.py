@@ -488,7 +488,11 @@ def config_init(
 
     if path.exists() and not force:
         raise _fail(f"{path} exists (use --force to overwrite)")
-    path.write_text(TEMPLATE)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(TEMPLATE)
+    except OSError as exc:
+        raise _fail(f"cannot write {path} ({exc.strerror or exc})") from exc
     typer.echo(f"wrote {path}; edit it, then run: gearscan live --config {path} --check")
 
 

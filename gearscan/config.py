@@ -174,7 +174,13 @@ class LiveConfig(AcquisitionConfig):
         path = Path(path)
         if not path.exists():
             raise ConfigError(f"config file {path} does not exist (write a template with `gearscan config init {path}`)")
-        return cls.from_toml(path.read_text(), str(path), path.parent)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"config file {path}: not UTF-8 text (TOML is UTF-8; byte {exc.start}): save it as UTF-8") from exc
+        except OSError as exc:  # a folder, no permission
+            raise ConfigError(f"config file {path}: cannot read it ({exc.strerror or exc}): expected a TOML file") from exc
+        return cls.from_toml(text, str(path), path.parent)
 
     def recording_meta(self, rig, source: str) -> dict:
         """What a recording made with this config stores besides the acquisition (rig, gear, the

@@ -85,13 +85,28 @@ def save_captures(
 
 def load_captures(folder: str | Path) -> tuple[list[BoardCapture], Checkerboard, tuple[int, int], tuple[int, int]]:
     """Read a captures folder: (captures, board, camera (W, H), projector (W, H))."""
-    import cv2
 
     folder = Path(folder)
     meta_path = folder / "board.json"
     if not meta_path.exists():
         raise FileNotFoundError(f"{meta_path} not found: is {folder} a board-captures folder?")
-    meta = json.loads(meta_path.read_text())
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"{meta_path}: not readable JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise ValueError(f"{meta_path}: expected a JSON object, got {type(meta).__name__}")
+    try:
+        return _load(folder, meta_path, meta)
+    except (KeyError, TypeError, AttributeError) as exc:  # a hand-edited file: a field missing or of another type
+        raise ValueError(f"{meta_path}: {type(exc).__name__} {exc} (a field missing or of the wrong type; expected the "
+                         "layout gearscan.recon.board_io writes)") from exc
+
+
+def _load(folder: Path, meta_path: Path, meta: dict) -> tuple[list[BoardCapture], Checkerboard, tuple[int, int],
+                                                                tuple[int, int]]:
+    import cv2
+
     if meta.get("format") != FORMAT:
         raise ValueError(f"{meta_path}: expected \"format\": \"{FORMAT}\", got {meta.get('format')!r}")
     for key in ("board", "camera", "projector", "steps", "periods_u", "periods_v", "views"):

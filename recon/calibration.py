@@ -237,6 +237,14 @@ def _rt_to_t(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return t
 
 
+# the board's measured rotation between turntable views against the encoder's: a wrong counts_per_rev or unit is
+# tens of degrees (the twin's calibration agrees within a few hundredths)
+MAX_ANGLE_ERROR_DEG = 1.0
+# fewer usable views than this calibrate, with a warning: the fit's RMS says nothing about what so few views leave
+# unconstrained (the twin's 16 views put its axis 0.06 deg from the truth, 3 of them 1.6 deg; session 53's audit)
+FEW_VIEWS = 8
+
+
 def fit_turntable_axis(t_cam_from_board: Sequence[np.ndarray], angles: Sequence[float]) -> tuple[np.ndarray, np.ndarray, dict]:
     """Rotation axis of a board turned on the turntable, in the camera frame.
 
@@ -370,6 +378,11 @@ def calibrate_rig(
     axis_stats: dict = {}
     if len(turn) >= 3:
         direction, point, axis_stats = fit_turntable_axis([poses[i] for i in turn], [used[i].turntable_angle for i in turn])
+        if axis_stats["angle_error_deg_rms"] > MAX_ANGLE_ERROR_DEG:  # the encoder and the board disagree: no rig
+            raise CalibrationError(
+                f"the board's measured rotations disagree with its views' turntable_angle_deg by "
+                f"{axis_stats['angle_error_deg_rms']:.2f} deg RMS (expected within {MAX_ANGLE_ERROR_DEG:g}): a wrong "
+                "encoder counts_per_rev, angles stored in radians, or angles of other views? No rig written")
         level = (poses[turn[0]] @ np.append(board.centre, 1.0))[:3]
         t_cam_from_world = world_from_axis(direction, point, level)
     else:

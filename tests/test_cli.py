@@ -357,3 +357,16 @@ def test_an_output_that_cannot_be_written_is_named_before_the_run(twin_recording
                               "--save", str(tmp_path / "r.rrd")])
     assert res.exit_code == 0, res.output
     assert len(json.loads(metrics.read_text())["bursts"]) == 2  # the fixture's two bursts
+
+
+def test_a_config_that_is_a_folder_or_not_utf8_and_an_init_into_a_new_folder(tmp_path):
+    """`live --config` on a folder or a Latin-1 file: the file named, not IsADirectoryError/UnicodeDecodeError;
+    `config init` into a folder that does not exist yet makes it."""
+    (tmp_path / "adir.toml").mkdir()
+    latin = tmp_path / "latin.toml"
+    latin.write_bytes("[gear]\n# Zahnrad f\xfcr die Pr\xfcfung\n".encode("latin-1"))
+    for cfg, needle in ((tmp_path / "adir.toml", "cannot read it"), (latin, "not UTF-8 text")):
+        res = runner.invoke(app, ["live", "--config", str(cfg), "--check"])
+        assert res.exit_code == 2 and needle in res.output and str(cfg) in res.output, res.output
+    res = runner.invoke(app, ["config", "init", str(tmp_path / "new" / "rig.toml")])
+    assert res.exit_code == 0 and (tmp_path / "new" / "rig.toml").is_file(), res.output

@@ -157,3 +157,43 @@ def test_calibrate_states_the_unambiguous_depth_range():
     fine, coarse = numbers(depth_range_line(default_rig(), 40.0)), numbers(depth_range_line(default_rig(), 160.0))
     assert all(1.3 < v < 1.9 for v in fine)
     assert all(3.5 < c / f < 4.5 for c, f in zip(coarse, fine, strict=True))
+
+
+def test_calibration_refuses_encoder_angles_the_board_contradicts(twin_set):
+    """Angles in another unit (here doubled, as a wrong counts_per_rev would make them) disagree with the board's
+    measured rotations by tens of degrees: no rig, the cause named; the true ones agree within a few hundredths."""
+    import dataclasses
+
+    from gearscan.recon.calibration import MAX_ANGLE_ERROR_DEG, CalibrationError
+
+    _, board, _, views = twin_set
+    good = calibrate_rig(views, board, (512, 512), PROJ)
+    assert good.report["turntable_axis"]["angle_error_deg_rms"] < 0.1 * MAX_ANGLE_ERROR_DEG
+    doubled = [dataclasses.replace(v, turntable_angle=None if v.turntable_angle is None else 2 * v.turntable_angle)
+               for v in views]
+    with pytest.raises(CalibrationError, match=r"disagree with its views' turntable_angle_deg by .* deg RMS"):
+        calibrate_rig(doubled, board, (512, 512), PROJ)
+
+
+def test_calibrate_names_bad_captures_and_outputs_and_warns_on_few_views(twin_set, tmp_path, capsys):
+    import typer
+
+    rig, board, captures, _ = twin_set
+    folder = save_captures(tmp_path / "caps", captures, board, PROJ)
+    meta = json.loads((folder / "board.json").read_text())
+    # a hand-edited board.json: a field missing, a list given as an object: named, not a KeyError/TypeError
+    for broken in ({**meta, "board": {k: v for k, v in meta["board"].items() if k != "rows"}},
+                   {**meta, "views": {"a": 1}}, {**meta, "periods_u": [20.0]}):
+        (folder / "board.json").write_text(json.dumps(broken))
+        with pytest.raises(typer.BadParameter, match="board.json"):
+            calibrate(captures=folder, output=tmp_path / "rig.json", twin=None)
+    # the output is a folder: refused before the work
+    (folder / "board.json").write_text(json.dumps(meta))
+    with pytest.raises(typer.BadParameter, match="is a folder"):
+        calibrate(captures=folder, output=tmp_path, twin=None)
+    # three turntable views only: calibrated, with a warning
+    turn = [v for v in meta["views"] if v.get("turntable_angle_deg") is not None][:3]
+    (folder / "board.json").write_text(json.dumps({**meta, "views": turn}))
+    calibrate(captures=folder, output=tmp_path / "few.json", twin=None)
+    out = capsys.readouterr().out
+    assert "only 3 usable views" in out and (tmp_path / "few.json").is_file()

@@ -62,6 +62,10 @@ def test_json_round_trip(tmp_path):
         (lambda d: d["projector"].pop("dist"), "projector: missing keys ['dist']"),
         (lambda d: d.update(units="inch"), 'units must be "mm"'),
         (lambda d: d["camera"].update(T_from_world=np.diag([1, 1, -1, 1]).tolist()), "not a proper rotation"),
+        # a hand-edited last row: singular (zeros) or a silent scale (2): both refused, naming the row
+        (lambda d: d["camera"]["T_from_world"].__setitem__(3, [0, 0, 0, 0]), "last row must be [0, 0, 0, 1]"),
+        (lambda d: d["projector"]["T_from_world"].__setitem__(3, [0, 0, 0, 2]), "last row must be [0, 0, 0, 1]"),
+        (lambda d: d["camera"]["K"].__setitem__(2, [0, 0, 0]), "K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]"),
     ],
 )
 def test_bad_calibration_file_names_the_key(tmp_path, mutate, needle):

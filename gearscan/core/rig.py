@@ -109,9 +109,13 @@ class PinholeDevice:
         r = t[:3, :3]
         if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
             raise RigError("T_from_world: rotation part is not a proper rotation matrix")
+        if not np.array_equal(t[3], [0.0, 0.0, 0.0, 1.0]):  # a rigid transform: any other row scales or projects
+            raise RigError(f"T_from_world: last row must be [0, 0, 0, 1] (a rigid transform), got {t[3].tolist()}")
         object.__setattr__(self, "T_from_world", t)
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
             raise RigError(f"K: focal lengths must be positive, got fx={self.K[0, 0]}, fy={self.K[1, 1]}")
+        if not np.array_equal(self.K[2], [0.0, 0.0, 1.0]) or self.K[1, 0] != 0:  # OpenCV's pinhole intrinsics
+            raise RigError(f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {self.K.tolist()}")
 
     @property
     def T_world_from(self) -> np.ndarray:
