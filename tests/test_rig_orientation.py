@@ -130,10 +130,10 @@ def test_a_broken_rig_file_is_a_rig_error_naming_the_file(tmp_path, bad):
 def test_a_singular_camera_matrix_is_a_rig_error_and_each_run_counts_its_own_still_bursts():
     """A K whose last row is zero cannot back-project: a RigError the Decoder survives (it votes instead); and
     ``adopt_rig``, a run's start, resets the run's still-burst count that ``summary`` reports."""
+    import copy
+
     from gearscan.core.rig import RigError
     from gearscan.inference.decoder import Decoder
-
-    import copy
 
     rig = default_rig(64, 64)
     k = rig.camera.K.copy()
