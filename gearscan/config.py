@@ -192,6 +192,13 @@ class LiveConfig(AcquisitionConfig):
         from gearscan.core.rig import Rig, RigError
 
         try:
-            return Rig.load(self.rig.calibration)
+            rig = Rig.load(self.rig.calibration)
         except RigError as exc:
             raise ConfigError(f"rig.calibration: {exc}") from exc
+        size, calibrated = (self.projector.width, self.projector.height), (rig.projector.width, rig.projector.height)
+        if self.projector.backend != "mock" and size != calibrated:  # fringes drawn at one size, decoded at another
+            raise ConfigError(
+                f"projector: {size[0]}x{size[1]} px, but the rig calibration ({self.rig.calibration}) has a "
+                f"{calibrated[0]}x{calibrated[1]} projector: period_px and every decoded point are in the calibrated "
+                "projector's pixels; set projector.width/height to it or calibrate this projector")
+        return rig

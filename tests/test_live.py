@@ -409,3 +409,25 @@ def test_live_gives_the_reconstructor_the_models_own_support_test(twin, tmp_path
         with pytest.raises(support_spy.Called):
             run_live(config, bursts=1, decoder=decoder, handle_signals=False)
         assert support_spy.calls[-1]["network_support_px"] == expected
+
+
+def test_a_real_projector_at_another_size_than_its_calibration_is_refused(tmp_path):
+    """The template's window projector (1280x800) against a rig calibrated at 912x1140: the fringe period and every
+    decoded point are in the calibrated projector's pixels, so the mismatch is named at load; the mock backend, which
+    draws for no camera, is not held to it; the calibrated size loads."""
+    import dataclasses
+
+    from gearscan.acquisition.config import ConfigError
+    from gearscan.config import TEMPLATE
+    from gearscan.core.rig import default_rig
+
+    rig = default_rig()
+    other = dataclasses.replace(rig, projector=dataclasses.replace(rig.projector, width=912, height=1140))
+    other.save(tmp_path / "rig.json")
+    cfg = LiveConfig.from_toml(TEMPLATE, "live.toml", tmp_path)
+    with pytest.raises(ConfigError, match=r"projector: 1280x800 px, but the rig calibration .* has a 912x1140"):
+        cfg.load_rig()
+    mock = LiveConfig.from_toml(TEMPLATE.replace('backend = "window"', 'backend = "mock"'), "live.toml", tmp_path)
+    assert mock.load_rig().projector.width == 912
+    rig.save(tmp_path / "rig.json")
+    assert cfg.load_rig().projector.width == 1280
