@@ -402,8 +402,6 @@ class RecordingWriter:
     def __init__(self, path: str | Path, meta: dict[str, Any], *, overwrite: bool = False, durable: bool = False):
         self.path = Path(path)
         self.check_target(self.path, overwrite)
-        # an old truth/ or frame left behind would be read as part of the new recording; a folder
-        # that holds no recording (no header, no index) is not emptied
         self.meta = {
             "format": FORMAT,
             "version": VERSION,
@@ -413,7 +411,9 @@ class RecordingWriter:
             **meta,
         }
         try:  # a folder that cannot be made or written (a read-only disk, /proc): said before any frame is taken
-            if overwrite and self.remains(self.path):  # the whole old recording, or what is left of one
+            # an old truth/ or frame left behind would be read as part of the new recording: with overwrite the old
+            # recording goes whole, or what is left of one; a folder holding none of it (other files) is not emptied
+            if overwrite and self.remains(self.path):
                 self.remove(self.path)
             (self.path / "frames").mkdir(parents=True, exist_ok=True)
             _atomic_write_text(self.path / "recording.json", json.dumps(self.meta, indent=2))
