@@ -53,6 +53,8 @@ def calibrate(
     from gearscan.recon.unity import unity_parameters
 
     console = Console()
+    if output.is_dir():  # before any work: the rig file is written there at the end
+        raise typer.BadParameter(f"{output} is a folder; expected the rig JSON file to write", param_hint="--output")
     truth = None
     if twin is not None:
         from gearscan.twin.board import render_calibration_set
@@ -77,12 +79,10 @@ def calibrate(
         caps, board, cam_size, proj_size = load_captures(captures)
     except (FileNotFoundError, ValueError) as exc:
         raise typer.BadParameter(str(exc), param_hint="CAPTURES") from exc
-    if output.is_dir():  # before any work: the rig file is written there at the end
-        raise typer.BadParameter(f"{output} is a folder; expected the rig JSON file to write", param_hint="--output")
     with console.status(f"decoding {len(caps)} board views"):
         try:
             views = [decode_capture(c, proj_size) for c in caps]
-        except ValueError as exc:  # e.g. periods_u/periods_v without one covering the projector
+        except (ValueError, CalibrationError) as exc:  # periods_u/periods_v none of which covers the projector
             raise typer.BadParameter(f"{captures / 'board.json'}: {exc}", param_hint="CAPTURES") from exc
     try:
         result = calibrate_rig(views, board, cam_size, proj_size)

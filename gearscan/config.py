@@ -196,7 +196,9 @@ class LiveConfig(AcquisitionConfig):
         except RigError as exc:
             raise ConfigError(f"rig.calibration: {exc}") from exc
         size, calibrated = (self.projector.width, self.projector.height), (rig.projector.width, rig.projector.height)
-        if self.projector.backend != "mock" and size != calibrated:  # fringes drawn at one size, decoded at another
+        # the window backend draws the fringes at this size (the mock draws for no camera; a LightCrafter plays its own
+        # resolution): drawn at one size, decoded at another, every point would be wrong
+        if self.projector.backend == "window" and size != calibrated:
             raise ConfigError(
                 f"projector: {size[0]}x{size[1]} px, but the rig calibration ({self.rig.calibration}) has a "
                 f"{calibrated[0]}x{calibrated[1]} projector: period_px and every decoded point are in the calibrated "

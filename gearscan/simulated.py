@@ -39,6 +39,8 @@ def simulated_config(base: LiveConfig | None, camera_id: str, encoder_port: str,
     if base is None:  # the built-in rig, its projector and fringe period (as in `config init`'s template)
         default_rig().save(workdir / "rig.json")
         cfg = cfg.model_copy(update={"rig": RigRef(calibration=workdir / "rig.json")})
+    # the simulators draw with the mock projector: a config's real one (and its size) is not used
+    cfg = cfg.model_copy(update={"projector": cfg.projector.model_copy(update={"backend": "mock"})})
     rig = cfg.load_rig()
     if base is None:
         cfg = cfg.model_copy(update={"projector": cfg.projector.model_copy(update={

@@ -101,6 +101,8 @@ def load_captures(folder: str | Path) -> tuple[list[BoardCapture], Checkerboard,
     except (KeyError, TypeError, AttributeError) as exc:  # a hand-edited file: a field missing or of another type
         raise ValueError(f"{meta_path}: {type(exc).__name__} {exc} (a field missing or of the wrong type; expected the "
                          "layout gearscan.recon.board_io writes)") from exc
+    except ValueError as exc:  # a value that does not read (steps 0, a board size "x"): the file named
+        raise ValueError(exc if str(meta_path) in str(exc) else f"{meta_path}: {exc}") from exc
 
 
 def _load(folder: Path, meta_path: Path, meta: dict) -> tuple[list[BoardCapture], Checkerboard, tuple[int, int],
@@ -117,6 +119,12 @@ def _load(folder: Path, meta_path: Path, meta: dict) -> tuple[list[BoardCapture]
     proj = (int(meta["projector"]["width"]), int(meta["projector"]["height"]))
     full_scale = (1 << int(meta["camera"].get("bit_depth", 8))) - 1
     steps = int(meta["steps"])
+    if steps < 3:
+        raise ValueError(f"{meta_path}: steps: expected >= 3 phase steps per period, got {steps}")
+    for axis in ("u", "v"):
+        if not isinstance(meta[f"periods_{axis}"], list) or not meta[f"periods_{axis}"]:
+            raise ValueError(f"{meta_path}: periods_{axis}: expected a non-empty list of fringe periods (projector px), "
+                             f"got {meta[f'periods_{axis}']!r}")
 
     def read(path: Path) -> np.ndarray:
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

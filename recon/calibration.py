@@ -272,7 +272,7 @@ def fit_turntable_axis(t_cam_from_board: Sequence[np.ndarray], angles: Sequence[
         rel = t_i @ t0_inv
         rvec = cv2.Rodrigues(rel[:3, :3])[0].ravel()
         theta = np.linalg.norm(rvec)
-        step = a_i - angles[0]
+        step = (a_i - angles[0] + math.pi) % (2 * math.pi) - math.pi  # a dial's 350 deg after 0 is -10 deg
         if theta < 1e-6 or abs(step) < 1e-6:
             continue
         d = rvec / theta * np.sign(step)

@@ -431,3 +431,12 @@ def test_a_real_projector_at_another_size_than_its_calibration_is_refused(tmp_pa
     assert mock.load_rig().projector.width == 912
     rig.save(tmp_path / "rig.json")
     assert cfg.load_rig().projector.width == 1280
+    # --simulate draws with the mock projector: a config's window projector at another size is not held against it
+    from gearscan.simulated import simulated_config
+
+    other.save(tmp_path / "rig.json")
+    sim = simulated_config(cfg, "sim-camera", str(tmp_path / "enc"), tmp_path)
+    assert sim.projector.backend == "mock" and sim.load_rig().projector.width == 912
+    # a LightCrafter plays its own resolution: its configured size is not compared
+    lc = LiveConfig.from_toml(TEMPLATE.replace('backend = "window"', 'backend = "lightcrafter"'), "live.toml", tmp_path)
+    assert lc.load_rig().projector.width == 912

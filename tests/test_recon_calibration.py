@@ -183,7 +183,8 @@ def test_calibrate_names_bad_captures_and_outputs_and_warns_on_few_views(twin_se
     meta = json.loads((folder / "board.json").read_text())
     # a hand-edited board.json: a field missing, a list given as an object: named, not a KeyError/TypeError
     for broken in ({**meta, "board": {k: v for k, v in meta["board"].items() if k != "rows"}},
-                   {**meta, "views": {"a": 1}}, {**meta, "periods_u": [20.0]}):
+                   {**meta, "views": {"a": 1}}, {**meta, "periods_u": [20.0]}, {**meta, "periods_u": []},
+                   {**meta, "steps": 0}, {**meta, "steps": "x"}):
         (folder / "board.json").write_text(json.dumps(broken))
         with pytest.raises(typer.BadParameter, match="board.json"):
             calibrate(captures=folder, output=tmp_path / "rig.json", twin=None)
@@ -197,3 +198,19 @@ def test_calibrate_names_bad_captures_and_outputs_and_warns_on_few_views(twin_se
     calibrate(captures=folder, output=tmp_path / "few.json", twin=None)
     out = capsys.readouterr().out
     assert "only 3 usable views" in out and (tmp_path / "few.json").is_file()
+
+
+def test_turntable_angles_read_off_a_dial_across_zero_fit_the_axis():
+    """Encoder angles that cross 0/360 deg (350 after 0, as a dial reads) are steps of -10 deg, not +350: the axis and
+    the angle agreement come out as with unwrapped angles (they had read 196 deg RMS and refused the rig)."""
+
+    cam_from_world = default_rig().camera.T_from_world
+    board_in_world = np.eye(4)
+    board_in_world[:3, 3] = [5.0, 0.0, 10.0]
+    degs = [0.0, 10.0, 20.0, 350.0]
+    poses = [cam_from_world @ rot_z(math.radians(d)) @ board_in_world for d in degs]
+    for angles in (degs, [d if d < 180 else d - 360 for d in degs]):
+        direction, _, stats = fit_turntable_axis(poses, [math.radians(a) for a in angles])
+        axis = cam_from_world[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        assert float(direction @ axis) == pytest.approx(1.0, abs=1e-9) and stats["angle_error_deg_rms"] < 1e-6
+

@@ -65,7 +65,9 @@ def test_json_round_trip(tmp_path):
         # a hand-edited last row: singular (zeros) or a silent scale (2): both refused, naming the row
         (lambda d: d["camera"]["T_from_world"].__setitem__(3, [0, 0, 0, 0]), "last row must be [0, 0, 0, 1]"),
         (lambda d: d["projector"]["T_from_world"].__setitem__(3, [0, 0, 0, 2]), "last row must be [0, 0, 0, 1]"),
-        (lambda d: d["camera"]["K"].__setitem__(2, [0, 0, 0]), "K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]]"),
+        (lambda d: d["camera"]["K"].__setitem__(2, [0, 0, 0]), "K: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"),
+        (lambda d: d["projector"]["K"][0].__setitem__(1, 0.5), "K: expected [[fx, 0, cx]"),  # skew: no OpenCV model
+        (lambda d: d["camera"]["K"][1].__setitem__(0, 0.5), "K: expected [[fx, 0, cx]"),
     ],
 )
 def test_bad_calibration_file_names_the_key(tmp_path, mutate, needle):

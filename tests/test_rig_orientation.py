@@ -138,7 +138,7 @@ def test_a_singular_camera_matrix_is_a_rig_error_and_each_run_counts_its_own_sti
     rig = default_rig(64, 64)
     k = rig.camera.K.copy()
     k[2] = 0.0
-    with pytest.raises(RigError, match=r"K: expected \[\[fx, s, cx\]"):  # a rig file cannot hold one any more
+    with pytest.raises(RigError, match=r"K: expected \[\[fx, 0, cx\]"):  # a rig file cannot hold one any more
         replace(rig.camera, K=k)
     camera = copy.copy(rig.camera)  # one made past the check, as code that builds a device by hand could
     object.__setattr__(camera, "K", k)

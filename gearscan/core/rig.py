@@ -114,8 +114,9 @@ class PinholeDevice:
         object.__setattr__(self, "T_from_world", t)
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
             raise RigError(f"K: focal lengths must be positive, got fx={self.K[0, 0]}, fy={self.K[1, 1]}")
-        if not np.array_equal(self.K[2], [0.0, 0.0, 1.0]) or self.K[1, 0] != 0:  # OpenCV's pinhole intrinsics
-            raise RigError(f"K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {self.K.tolist()}")
+        if not np.array_equal(self.K[2], [0.0, 0.0, 1.0]) or self.K[1, 0] != 0 or self.K[0, 1] != 0:
+            # OpenCV's pinhole intrinsics, which model no skew (its calibration never estimates one)
+            raise RigError(f"K: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {self.K.tolist()}")
 
     @property
     def T_world_from(self) -> np.ndarray:
