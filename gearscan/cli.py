@@ -530,6 +530,8 @@ def live_cmd(
     with contextlib.ExitStack() as devices:
         try:
             cfg = LiveConfig.load(config) if config is not None else None
+            for note in cfg.defaulted_sections() if cfg is not None else []:
+                typer.secho(f"{config}: {note}", fg=typer.colors.YELLOW, err=True)
             if simulate:
                 cfg = devices.enter_context(simulated_devices(cfg))
                 typer.echo(f"simulated devices: camera {cfg.camera.id} (Aravis GigE simulator on 127.0.0.1, test ramp), "
@@ -753,6 +755,8 @@ def record(
     console = Console()
     try:
         cfg = LiveConfig.load(config)
+        for note in cfg.defaulted_sections():
+            console.print(f"[yellow]{config}: {note}[/yellow]")
         meta = cfg.recording_meta(cfg.load_rig(), source="record")
         with Progress(console=console) as progress:
             task = progress.add_task("recording bursts", total=bursts)

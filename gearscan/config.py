@@ -182,6 +182,16 @@ class LiveConfig(AcquisitionConfig):
             raise ConfigError(f"config file {path}: cannot read it ({exc.strerror or exc}): expected a TOML file") from exc
         return cls.from_toml(text, str(path), path.parent)
 
+    def defaulted_sections(self) -> list[str]:
+        """What a user should be told was not in their file and runs on defaults: the gear measured against (a
+        20-tooth module-2 CAD) and the projector driven (the mock: none)."""
+        notes = {"gear": f"no [gear] section: measuring against the default gear (z = {self.gear.teeth}, "
+                         f"m = {self.gear.module:g} mm); set it to the gear on the turntable",
+                 "projector": "no [projector] section: the mock projector (no projector is driven, "
+                              f"{self.projector.width}x{self.projector.height} px, period {self.projector.period_px:g} "
+                              "px); set it to yours"}
+        return [text for key, text in notes.items() if key not in self.model_fields_set]
+
     def recording_meta(self, rig, source: str) -> dict:
         """What a recording made with this config stores besides the acquisition (rig, gear, the
         config itself), so that ``gearscan replay`` measures it as the run that recorded it did."""

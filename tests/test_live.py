@@ -440,3 +440,24 @@ def test_a_real_projector_at_another_size_than_its_calibration_is_refused(tmp_pa
     # a LightCrafter plays its own resolution: its configured size is not compared
     lc = LiveConfig.from_toml(TEMPLATE.replace('backend = "window"', 'backend = "lightcrafter"'), "live.toml", tmp_path)
     assert lc.load_rig().projector.width == 912
+
+
+def test_a_config_without_gear_or_projector_says_what_it_runs_on(tmp_path):
+    """A live config lacking [gear] or [projector] runs on defaults (a 20-tooth module-2 CAD, the mock projector):
+    said, not silent; the template lacks neither."""
+    import re
+
+    from typer.testing import CliRunner
+
+    from gearscan.cli import app
+    from gearscan.config import TEMPLATE
+
+    assert LiveConfig.from_toml(TEMPLATE).defaulted_sections() == []
+    sections = re.split(r"(?m)^(?=\[)", TEMPLATE)  # the template's tables, each from its header line
+    bare = "".join(t for t in sections if not t.startswith(("[gear]", "[projector]")))
+    notes = LiveConfig.from_toml(bare).defaulted_sections()
+    assert len(notes) == 2 and "default gear (z = 20, m = 2 mm)" in notes[0] and "mock projector" in notes[1]
+    path = tmp_path / "bare.toml"
+    path.write_text(bare)
+    res = CliRunner().invoke(app, ["live", "--config", str(path), "--check"])  # the devices are absent: it stops
+    assert "no [gear] section" in res.output and "no [projector] section" in res.output, res.output
