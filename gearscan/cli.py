@@ -62,6 +62,18 @@ def _writable(path: Path | None, flag: str, *, folder: bool = False) -> None:
         raise _fail(f"{flag}: cannot write to {where} ({exc.strerror or exc})") from exc
 
 
+def _connect_url(url: str | None, flag: str) -> str | None:
+    """``url`` if the viewer can connect to it (None: no --connect), else exit 2 naming ``flag``."""
+    if url is None:
+        return None
+    from gearscan.viewer.log import check_connect_url
+
+    try:
+        return check_connect_url(url)
+    except ValueError as exc:
+        raise _fail(f"{flag}: {exc}") from exc
+
+
 def _progress(description: str):
     from rich.progress import (
         BarColumn,
@@ -316,6 +328,7 @@ def replay_cmd(
     if serve:
         web = _serve(bind, grpc_port, web_port)
         connect = web.grpc_url
+    _connect_url(connect, "--connect")
     if not (save or connect):
         save = Path("out") / f"{recording.name}.rrd"
     try:
@@ -601,7 +614,7 @@ def _live_run(cfg, *, record, overwrite, bursts, duration, save, max_save_mb, co
                        workers=cfg.model.workers, still_span_deg=cfg.model.still_span_deg,
                        orientation=cfg.model.orientation)
     save = save or cfg.viewer.save
-    connect = connect or cfg.viewer.connect
+    connect = _connect_url(connect or cfg.viewer.connect, "--connect / viewer.connect")
     cap = cfg.viewer.max_save_mb if max_save_mb is None else max_save_mb
     web = None
     if serve if serve is not None else cfg.viewer.serve:

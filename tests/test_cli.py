@@ -370,3 +370,21 @@ def test_a_config_that_is_a_folder_or_not_utf8_and_an_init_into_a_new_folder(tmp
         assert res.exit_code == 2 and needle in res.output and str(cfg) in res.output, res.output
     res = runner.invoke(app, ["config", "init", str(tmp_path / "new" / "rig.toml")])
     assert res.exit_code == 0 and (tmp_path / "new" / "rig.toml").is_file(), res.output
+
+
+def test_a_connect_url_rerun_cannot_use_is_named_before_the_run(twin_recording, tmp_path):
+    """`--connect bogus://nope` (or the live config's viewer.connect): exit 2 naming the option and the schemes rerun
+    takes, before any burst (it was a RuntimeError traceback from the stream); a served viewer's own URL passes."""
+    from gearscan.config import TEMPLATE
+    from gearscan.core.rig import default_rig
+    from gearscan.viewer.log import check_connect_url
+
+    res = runner.invoke(app, ["replay", str(twin_recording), "--classical", "--connect", "bogus://nope"])
+    assert res.exit_code == 2 and "--connect" in res.output and "rerun+http://" in res.output, res.output
+    assert "Traceback" not in res.output
+    default_rig().save(tmp_path / "rig.json")
+    cfg = tmp_path / "live.toml"
+    cfg.write_text(TEMPLATE.replace("\n[viewer]\n", '\n[viewer]\nconnect = "127.0.0.1:9876"\n', 1))
+    res = runner.invoke(app, ["live", "--config", str(cfg), "--bursts", "1"])
+    assert res.exit_code == 2 and "viewer.connect" in res.output and "'127.0.0.1:9876'" in res.output, res.output
+    assert check_connect_url("rerun+http://127.0.0.1:9876/proxy") == "rerun+http://127.0.0.1:9876/proxy"

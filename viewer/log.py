@@ -45,6 +45,16 @@ from gearscan.core.types import Burst, Cloud, PhaseResult
 
 APP_ID = "gearscan"
 log = logging.getLogger(__name__)
+CONNECT_SCHEMES = ("rerun://", "rerun+http://", "rerun+https://")  # what rerun's connect_grpc takes
+
+
+def check_connect_url(url: str) -> str:
+    """``url`` if rerun can connect to it (a gRPC URL such as ``rerun+http://127.0.0.1:9876/proxy``), else a
+    ValueError naming it and what was expected: said before a run, not as a traceback when the stream opens."""
+    if not isinstance(url, str) or not url.startswith(CONNECT_SCHEMES) or len(url) <= len(url.split("//", 1)[0]) + 2:
+        raise ValueError(f"{url!r} is not a rerun gRPC URL: expected one starting {', '.join(CONNECT_SCHEMES)} "
+                         "(e.g. rerun+http://127.0.0.1:9876/proxy, what `--serve` or the viewer prints)")
+    return url
 
 
 def _lut(name: str) -> np.ndarray:
