@@ -106,8 +106,9 @@ def calibrate(
                       f"{rep['turntable_axis']['angle_error_deg_rms']:.3f} deg RMS")
     if len(rep["views_used"]) < FEW_VIEWS:
         console.print(f"[yellow]warning:[/yellow] only {len(rep['views_used'])} usable views: the RMS above says "
-                      "nothing about what so few leave unconstrained (on the twin, 3 views put the turntable axis "
-                      f"1.6 deg off where 16 put it 0.06 deg); use {FEW_VIEWS} or more, spread over the image and "
+                      "nothing about what so few leave unconstrained (on the twin, two choices of 3 views put the "
+                      f"turntable axis 0.33 and 1.58 deg off where 16 put it 0.06 deg); use {FEW_VIEWS} or more, "
+                      "spread over the image and "
                       "the turntable")
     if truth is not None:
         cmp = compare_rigs(result.rig, truth)
@@ -126,7 +127,7 @@ def depth_range_line(rig, period_px: float) -> str:
 
     from gearscan.recon.reconstruct import SingleFrequencyReconstructor
 
-    if np.any(rig.projector.dist != 0) or rig.projector.K[0, 1] != 0:
+    if np.any(rig.projector.dist != 0):
         return "unambiguous depth range: not stated for a distorted projector (see `gearscan live --check` with a gear)"
     z_axis = float((rig.camera.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
     sf = SingleFrequencyReconstructor(rig, period_px, threads=1)

@@ -74,6 +74,12 @@ def _connect_url(url: str | None, flag: str) -> str | None:
         raise _fail(f"{flag}: {exc}") from exc
 
 
+def _require_recording(recording: Path) -> None:
+    """Exit 2 where ``recording`` holds no recording: said before any output folder is made for it."""
+    if not (recording / "recording.json").is_file():
+        raise _fail(f"{recording} is not a recording: recording.json is missing")
+
+
 def _progress(description: str):
     from rich.progress import (
         BarColumn,
@@ -337,8 +343,7 @@ def replay_cmd(
         if fuse is not None and fuse.suffix.lower() not in (".ply", ".pcd", ".csv"):
             raise typer.BadParameter(f"expected a .ply, .pcd or .csv file, got {fuse}", param_hint="--fuse")
         pace = _speed(speed)
-        if not (recording / "recording.json").is_file():  # before any output folder is made for it
-            raise RecordingError(f"{recording} is not a recording: recording.json is missing")
+        _require_recording(recording)
         for flag, target in (("--save", save), ("--metrics", metrics), ("--fuse", fuse)):
             _writable(target, flag)
         for flag, target in (("--ply", ply), ("--csv", csv)):
@@ -712,8 +717,7 @@ def inspect_cmd(
     if unwrap not in ("cad", "envelope"):
         raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")
     point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine, needs="leave the frame fit on (no --no-refine)")
-    if not (recording / "recording.json").is_file():  # before any output folder is made for it
-        raise _fail(f"{recording} is not a recording: recording.json is missing")
+    _require_recording(recording)
     _writable(out, "--out", folder=True)
     _writable(save, "--save")
     decoder = _decoder(classical, 0, model)

@@ -89,11 +89,17 @@ def quantity_line(insp: Inspection, key: str, value: float, tolerance: str = "")
     return f"{sym}: {value:.1f} µm{tolerance}{bound}  {text}"
 
 
+def _unfitted(report: InspectionReport) -> int:
+    """Points of the fused model the frame fit did not take (all of them where no fit ran): they keep their fused
+    sigma, which the bursts' decode and depth scales made."""
+    refined = report.fused.refined
+    return len(report.fused) if refined is None else int((~refined).sum())
+
+
 def unmeasured_sigma_note(report: InspectionReport) -> str | None:
     """What to say where the points the frame fit did not take carry depth-sigma scales not measured for this decode
     (``recon.depth_sigma.depth_sigma_source``; a fitted point carries the fit's own sigma); None where none do."""
-    refined = report.fused.refined
-    unfitted = len(report.fused) if refined is None else int((~refined).sum())
+    unfitted = _unfitted(report)
     note = UNMEASURED_NOTES.get(report.depth_sigma_source)
     return f"sigma of the {unfitted:,} point(s) the frame fit did not take: {note}" if unfitted and note else None
 
@@ -114,8 +120,7 @@ def spec_note(report: InspectionReport) -> str | None:
 def turning_note(report: InspectionReport) -> str | None:
     """What to say where three-step PS decoded bursts that turned (``--classical``): the unfitted points from them carry
     a sigma that is no measured bound; None where it decoded none."""
-    refined = report.fused.refined
-    unfitted = len(report.fused) if refined is None else int((~refined).sum())
+    unfitted = _unfitted(report)
     if not report.turning_three_step or not unfitted:
         return None
     return (f"sigma of the {unfitted:,} point(s) the frame fit did not take (some from other bursts): "
@@ -259,6 +264,7 @@ def run_inspection(
 def report_json(report: InspectionReport, recording: Path) -> dict:
     """The report as JSON (NaN as null)."""
     insp = report.inspection
+    summary = insp.summary()
     return {
         "recording": str(recording),
         "revolution_deg": report.revolution_deg,
@@ -279,12 +285,12 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                   "depth_sigma_source": report.depth_sigma_source,
                   # bursts that turned, decoded by three-step PS (--classical): their unfitted points' sigma unmeasured
                   "turning_three_step_bursts": report.turning_three_step},
-        "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in insp.summary().items()},
+        "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in summary.items()},
         "grade": report.grade,
         "tolerances_um": report.tolerances,
         "iso1328_class": report.classes,  # None: beyond class 11 or not measured (the text below tells which)
         # the class as the report states it: "n/a" (not measured), "> 11", "C or coarser" (a lower bound), "C"
-        "iso1328_class_text": {k: class_text(insp, k, insp.summary()[k], report.classes.get(k), bool(report.classes))
+        "iso1328_class_text": {k: class_text(insp, k, summary[k], report.classes.get(k), bool(report.classes))
                                for k in QUANTITIES},
         # per quantity, how many of a whole gear's values were measured: short of all, the value is a lower bound
         "coverage": {k: {"measured": m, "of": n} for k, (m, n) in insp.coverage().items()},

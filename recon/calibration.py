@@ -241,7 +241,8 @@ def _rt_to_t(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
 # tens of degrees (the twin's calibration agrees within a few hundredths)
 MAX_ANGLE_ERROR_DEG = 1.0
 # fewer usable views than this calibrate, with a warning: the fit's RMS says nothing about what so few views leave
-# unconstrained (the twin's 16 views put its axis 0.06 deg from the truth, 3 of them 1.6 deg; session 53's audit)
+# unconstrained (the twin's 16 views put its axis 0.06 deg from the truth; three of them 0.33 deg (its first three
+# turntable views) or 1.58 deg (another three, session 53's audit))
 FEW_VIEWS = 8
 
 

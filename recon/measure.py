@@ -217,7 +217,7 @@ class Reconstructor:
                 raise ValueError(f"envelope_mm: expected >= 0, got {envelope_mm}")
             self._envelope = phase_bounds(rig, envelope_bounds(rig, gear, envelope_mm), period_px)
         self.fused = None
-        if not np.any(rig.projector.dist != 0) and rig.projector.K[0, 1] == 0:
+        if not np.any(rig.projector.dist != 0):  # (a rig's K has no skew: PinholeDevice refuses one)
             self.fused = SingleFrequencyReconstructor(rig, period_px, margin=margin, threads=threads)
         else:
             self.triangulator = Triangulator(rig, period_px)
