@@ -104,6 +104,7 @@ RUNS = (
         prior_crops=12_600 * 32),
     # v10 (a candidate, session 50): v9's run from the same start (v6) on twice v9's data, 9 000 steps: the data-size
     # point. Its log's val RMSE is on the same lease val render as v9's (not v6's), so the val panel leaves it out too
+    # (its weights left the tree in session 54 to fit a lease's carry: `git show a0c2e8a:inference/weights/v10.safetensors`)
     Run("v10 (twice v9's data)", REPO / "inference/weights/v10.safetensors", 8, 9_000, 128,
         "v9's run from v6 on twice v9's data (scale 1.4), a lent H100", None, continues="v6",
         prior_crops=12_600 * 32),

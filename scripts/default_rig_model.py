@@ -1,13 +1,16 @@
 """Fine-tune the shipped network on the product's default rig: the twin renders that rig with train gears.
 
     python scripts/default_rig_model.py --out runs/default_rig [--budget 40] [--gears 16]
+    python scripts/default_rig_model.py --device cuda --bank --jobs 16 --batch 128 --lr 1e-3 \
+        --schedule cosine-time --deadline-minutes 8 ...         # on a lent GPU (scripts/lease_train.sh)
 
 The paper's digital-twin workflow (per-rig adaptation, `benchmarks/adaptation.py`) applied to the rig the
 product ships with, over many gears instead of one: the default rig (`twin.families.default_rig_scene`)
 aimed at train-split gears (module 2, random pressure angle and face width as the test family draws them,
 train seeds), the shipped model fine-tuned under a CPU budget (batch 8, 128^2 crops, lr 3e-4 constant,
-or annealed to 0 over ``--epochs`` with ``--schedule cosine``; still bursts x20, both senses; the weights
-best on the val folders are kept). Val: the same rig with
+or annealed to 0 over ``--epochs`` with ``--schedule cosine``, or over the time left with ``cosine-time``; still
+bursts x20, both senses; the weights best on the val folders are kept). On a GPU the same script takes
+``--device cuda --bank`` and a wall-clock ``--deadline-minutes`` instead of the CPU budget. Val: the same rig with
 val-split gears and a val seed. Test gears and seeds are refused by the dataset writer. Writes the
 datasets under ``--data`` and the run (weights, metrics, ``default_rig.json``) under ``--out``.
 """
@@ -17,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -60,20 +64,25 @@ class CenterCrop(Dataset):
         return item
 
 
-def render(root: Path, teeth: list[int], seed: int, start_points: int, size: int) -> list[Path]:
-    """One dataset folder per gear: the default rig aimed at it, ``start_points`` start angles each."""
-    out = []
-    for k, z in enumerate(teeth):
-        gear = draw_gear(np.random.default_rng([seed, k]), module=DEFAULT_RIG_MODULE, teeth=z)
-        rig, optics = default_rig_scene(gear, (size, size))
-        spec = DatasetSpec(gears=[gear], width=size, height=size, period_px=DEFAULT_RIG_PERIOD_PX, seed=seed + k,
-                           max_start_points=start_points)
-        folder = root / f"z{z:02d}"
-        t0 = time.perf_counter()
-        generate_dataset(folder, spec, scene=(rig, optics, gear, DEFAULT_RIG_PERIOD_PX))
-        print(f"{folder}: {time.perf_counter() - t0:.0f} s", flush=True)
-        out.append(folder)
-    return out
+def _render_one(folder: Path, z: int, k: int, seed: int, start_points: int, size: int) -> Path:
+    gear = draw_gear(np.random.default_rng([seed, k]), module=DEFAULT_RIG_MODULE, teeth=z)
+    rig, optics = default_rig_scene(gear, (size, size))
+    spec = DatasetSpec(gears=[gear], width=size, height=size, period_px=DEFAULT_RIG_PERIOD_PX, seed=seed + k,
+                       max_start_points=start_points)
+    t0 = time.perf_counter()
+    generate_dataset(folder, spec, scene=(rig, optics, gear, DEFAULT_RIG_PERIOD_PX))
+    print(f"{folder}: {time.perf_counter() - t0:.0f} s", flush=True)
+    return folder
+
+
+def render(root: Path, teeth: list[int], seed: int, start_points: int, size: int, jobs: int = 1) -> list[Path]:
+    """One dataset folder per gear: the default rig aimed at it, ``start_points`` start angles each; ``jobs``
+    gears rendered at once (each folder is the same whatever the number)."""
+    tasks = [(root / f"z{z:02d}", z, k, seed, start_points, size) for k, z in enumerate(teeth)]
+    if jobs <= 1:
+        return [_render_one(*t) for t in tasks]
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        return list(pool.map(_render_one, *zip(*tasks, strict=True)))
 
 
 def main() -> None:
@@ -87,10 +96,18 @@ def main() -> None:
     ap.add_argument("--val-seed", type=int, default=10005)
     ap.add_argument("--sizes", type=lambda v: [int(x) for x in v.split(",")], default=[256],
                     help="camera resolutions (square) to render the rig at, e.g. 256,512: the same gears and seeds at each")
-    ap.add_argument("--budget", type=float, default=40.0, help="CPU minutes of fine-tuning")
+    ap.add_argument("--budget", type=float, default=None,
+                    help="CPU minutes of fine-tuning (default 40; none with --deadline-minutes)")
+    ap.add_argument("--deadline-minutes", type=float, default=None,
+                    help="wall-clock minutes from this script's start by which training ends (a GPU lease's limit)")
+    ap.add_argument("--device", default="cpu", help="cpu, cuda or auto")
+    ap.add_argument("--bank", action="store_true", help="draw the training bursts on the device (inference/burst_bank.py)")
+    ap.add_argument("--jobs", type=int, default=1, help="gears rendered at once (processes)")
+    ap.add_argument("--steps-per-epoch", type=int, default=40, help="steps between val reads")
     ap.add_argument("--lr", type=float, default=3e-4)
-    ap.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
-                    help="constant lr until the budget, or cosine from lr to 0 over --epochs")
+    ap.add_argument("--schedule", choices=("constant", "cosine", "cosine-time"), default="constant",
+                    help="constant lr until the budget, cosine from lr to 0 over --epochs, or cosine-time over the "
+                         "time left (budget or deadline)")
     ap.add_argument("--epochs", type=int, default=None,
                     help="epochs of 40 steps (cosine: the schedule's length; the budget still caps the run)")
     ap.add_argument("--batch", type=int, default=8)
@@ -102,6 +119,16 @@ def main() -> None:
                     help="the weights fine-tuned (default: v6, which the option was fine-tuned from; the option itself to "
                          "continue it)")
     args = ap.parse_args()
+    t_start = time.time()
+    if args.deadline_minutes is not None:
+        if not args.deadline_minutes > 0:
+            ap.error(f"--deadline-minutes: expected > 0, got {args.deadline_minutes}")
+        if args.budget is not None:
+            ap.error("--budget and --deadline-minutes: expected one (CPU minutes here, wall minutes on a GPU)")
+    elif args.budget is None:
+        args.budget = 40.0
+    if args.jobs < 1 or args.steps_per_epoch < 1:
+        ap.error(f"--jobs, --steps-per-epoch: expected >= 1, got {args.jobs}, {args.steps_per_epoch}")
     if not SPLITS["train"].has_seed(args.seed) or not SPLITS["train"].has_seed(args.seed + args.gears - 1):
         ap.error(f"--seed: expected train seeds for all {args.gears} gears, got {args.seed}")
     if not SPLITS["val"].has_seed(args.val_seed) or not SPLITS["val"].has_seed(args.val_seed + len(VAL_TEETH) - 1):
@@ -122,8 +149,9 @@ def main() -> None:
     train_dirs, val_dirs = [], []
     for size in args.sizes:  # one size keeps the flat layout of the first run (data/default_rig/train/zNN)
         sub = "" if len(args.sizes) == 1 else f"{size}"
-        train_dirs += render(args.data / "train" / sub, train_teeth, args.seed, args.start_points, size)
-        val_dirs += render(args.data / "val" / sub, list(VAL_TEETH), args.val_seed, args.val_start_points, size)
+        train_dirs += render(args.data / "train" / sub, train_teeth, args.seed, args.start_points, size, args.jobs)
+        val_dirs += render(args.data / "val" / sub, list(VAL_TEETH), args.val_seed, args.val_start_points, size,
+                           args.jobs)
     render_s = time.perf_counter() - t0
     train_set = ConcatDataset([TwinBurstDataset(d, static=True, static_repeat=20, reverse=True, crop=args.crop, seed=i)
                                for i, d in enumerate(train_dirs)])
@@ -138,14 +166,18 @@ def main() -> None:
         out_dir=str(args.out), model=ModelConfig.from_json(meta["model"]), loss=LossConfig(**meta["training"]["loss"]),
         epochs_deterministic=args.epochs or 1_000_000, epochs_dropout=0, batch_size=args.batch, lr=args.lr,
         schedule=args.schedule,
-        patience=1_000_000, steps_per_epoch=40, init=str(args.init), progress=False, calibrate=False,
-        budget_cpu_min=args.budget, checkpoints_cpu_min=tuple(m for m in (10.0, 20.0, 30.0) if m < args.budget),
-        seed=0, precision=args.precision,
+        patience=1_000_000, steps_per_epoch=args.steps_per_epoch, init=str(args.init), progress=False,
+        calibrate=False, budget_cpu_min=args.budget,
+        checkpoints_cpu_min=tuple(m for m in (10.0, 20.0, 30.0) if args.budget and m < args.budget),
+        deadline=None if args.deadline_minutes is None else t_start + 60.0 * args.deadline_minutes,
+        device=args.device, bank=args.bank, seed=0, precision=args.precision,
     )
     t1 = time.perf_counter()
     result = train(config, train_set, val_set)
-    shown = {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in vars(args).items() if v is not None}
-    info = {"command": "python scripts/default_rig_model.py " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in shown.items()),
+    shown = {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in vars(args).items()
+             if v is not None and v is not False}
+    words = [f"--{k.replace('_', '-')}" + ("" if v is True else f" {v}") for k, v in shown.items()]
+    info = {"command": "python scripts/default_rig_model.py " + " ".join(words),
             "train_teeth": train_teeth, "val_teeth": list(VAL_TEETH), "train_dirs": [str(d) for d in train_dirs],
             "val_dirs": [str(d) for d in val_dirs], "render_s": render_s, "train_wall_s": time.perf_counter() - t1,
             "cpu_min": result.cpu_seconds / 60.0, "budget_hit": result.budget_hit, "best": str(result.best_path),

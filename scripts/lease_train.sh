@@ -15,6 +15,10 @@
 # training bursts drawn on the GPU (--bank; inference/burst_bank.py) at batch 128. The sigma map is not fitted
 # there (--no-calibrate): `gearscan calibrate-uncertainty` refits it here on val, as for every shipped model.
 #
+# LEASE_TASK=default-rig runs the default-rig option's command instead (scripts/default_rig_model.py: v9 fine-tuned on
+# the product's default rig, rendered there with train gears, by the same deadline; no step profile, not compiled):
+# back come lease.log, best.*, metrics.csv, default_rig.json (the run's record) and the step profile if any.
+#
 # Comes back in $OUT (8 files): lease.log (everything printed, written as it goes, so a killed run still
 # reports), best.* (the run's final model: stage 2's best; reproduce.json's stages_run says whether stage 2 ran),
 # stage1_best.*, metrics.csv, reproduce.json and train_step_profile.md (step time by width and batch without a
@@ -23,6 +27,8 @@
 # backstop timeout stopped the training (its last and stage1_best weights come back).
 set -uo pipefail
 T0=$(date +%s)
+TASK=${LEASE_TASK:-shipped}
+case "$TASK" in shipped|default-rig) ;; *) echo "LEASE_TASK=$TASK: expected shipped or default-rig"; exit 3 ;; esac
 : "${OUT:?OUT: expected the folder whose files come back (the device tool sets it)}"
 LIMIT_S=${LEASE_LIMIT_S:-575}  # this script's whole run, under run()'s 600 s
 PY=${LEASE_PYTHON:-python3}
@@ -88,6 +94,25 @@ say "installed, $(left) s left"
 # profile still reports)
 batch=${LEASE_BATCH:-128}
 compile=${LEASE_COMPILE:-auto}
+if [ "$TASK" = default-rig ]; then
+  # the option's fine-tune: render the default rig with train gears, continue v9 on it to the deadline
+  total=$(($(left) - 25))
+  [ "$total" -ge 120 ] || { say "only $total s left for render and training: nothing trained"; finish 3; }
+  minutes=$(awk "BEGIN { printf \"%.3f\", $total / 60 }")
+  run="$WORK/run"
+  timeout --signal=TERM --kill-after=5 "$((total + 15))" "$PY" -P scripts/default_rig_model.py \
+    --device "$DEVICE" --bank --jobs "${LEASE_JOBS:-16}" --data "$WORK/data" --out "$run" \
+    --init "${LEASE_INIT:-inference/weights/default.safetensors}" --gears "${LEASE_GEARS:-32}" \
+    --start-points "${LEASE_START_POINTS:-16}" --seed 3301 --batch "$batch" --lr "${LEASE_LR:-1e-3}" \
+    --schedule cosine-time --deadline-minutes "$minutes" --steps-per-epoch "${LEASE_STEPS_PER_EPOCH:-200}" \
+    --precision auto --threads "${LEASE_THREADS:-4}" ${LEASE_EXTRA:-}
+  status=$?
+  say "default_rig_model.py exited $status, $(left) s left"
+  for f in best.safetensors best.json metrics.csv default_rig.json; do [ -f "$run/$f" ] && cp "$run/$f" "$OUT/"; done
+  [ -f "$run/best.safetensors" ] || cp "$run/last.safetensors" "$run/last.json" "$OUT/" 2>/dev/null
+  ls -l "$OUT"
+  finish $status
+fi
 case "$compile" in auto|0|1) ;; *) say "LEASE_COMPILE=$compile: expected auto, 0 or 1"; finish 3 ;; esac
 read -r pw pb <<< "${LEASE_PROFILE:-8,32 32,128,512}"
 timeout -k 5 120 "$PY" benchmarks/train_step_profile.py --device "$DEVICE" --widths "$pw" --batches "$pb" \
