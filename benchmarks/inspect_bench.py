@@ -106,6 +106,7 @@ def main() -> None:
     truth = reader.meta["truth"]
     decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
     depth_scales = check_scales(decoder.depth_sigma_scales or DEPTH_SIGMA_SCALES)  # what the reconstructor reads (the model's own)
+    rest_scale = decoder.rest_sigma_scale or REST_SIGMA_SCALE  # what the frame fit's unfitted points carry (the model's own)
     # the frame-fit path's test (the model's own for inspect, else the product's) and keep bound on both runs: the
     # fused-only run is the same fused cloud before the fit, voxel for voxel (the 'before' figures below rely on it)
     support = network_support_option(args.network_support_px, frame_fit=True, model=decoder.network_support)
@@ -289,7 +290,7 @@ def main() -> None:
         "several bursts put in one voxel. These settings were chosen on this revolution. "
         f"{uncertain:,} more unfitted points carried a sigma above the fit's own 30 µm bound and were dropped (counted; "
         "`TrackRefiner.refine_fused`: one bound for every point of the refined cloud; a rule, not tuned here; an "
-        f"unfitted point carries {REST_SIGMA_SCALE:g} times its bursts' sigma (each burst's scaled by distance to its "
+        f"unfitted point carries {rest_scale:g} times its bursts' sigma (each burst's scaled by distance to its "
         f"cloud's edge, {depth_scales.describe()} from the edge inward: `depth_sigma_rule.md`) "
         "without credit for averaging, "
         "calibrated on val stretches: `rest_sigma_rule.md`).",
@@ -334,7 +335,7 @@ def main() -> None:
         "uncertain": uncertain,
         "unsettled": unsettled,
         "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE,
-        "rest_sigma_scale": REST_SIGMA_SCALE, "depth_sigma_scales": depth_scales.as_dict(),
+        "rest_sigma_scale": rest_scale, "depth_sigma_scales": depth_scales.as_dict(),
         "implausible": implausible,
         "modulation_ratio": MODULATION_RATIO,
         "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "fused_only_fp_max_error_um": plain_fp_err,

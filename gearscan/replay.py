@@ -210,11 +210,12 @@ class CloudExport:
 REFINE_MAX_BYTES = 8 << 30
 
 
-def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: CloudFuser | None, factory=None):
+def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: CloudFuser | None, factory=None,
+                 rest_sigma_scale: float | None = None):
     """The frame fit of a fused replay (``factory(rig, period_px)``, default
-    :class:`~gearscan.recon.track.TrackRefiner` with the product's settings), refused up front (not after the
-    replay) when it cannot run."""
-    from gearscan.recon.track import TrackRefiner
+    :class:`~gearscan.recon.track.TrackRefiner` with the product's settings, the unfitted points' sigma scale the
+    decoding model's own where it names one), refused up front (not after the replay) when it cannot run."""
+    from gearscan.recon.track import REST_SIGMA_SCALE, TrackRefiner
 
     if fuse is None:
         raise ValueError("refine: the frame fit refines a fused model; fuse the replay too (--fuse FILE)")
@@ -224,7 +225,9 @@ def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: Clou
         raise RecordingError(f"{reader.path}: refining keeps every frame in memory, {need / 2**30:.1f} GiB for "
                              f"{len(reader)} frames (limit {REFINE_MAX_BYTES / 2**30:.0f} GiB); replay a shorter "
                              "stretch (one revolution) or leave refinement off (--no-refine)")
-    return (factory or TrackRefiner)(rig, period_px)
+    if factory is not None:
+        return factory(rig, period_px)
+    return TrackRefiner(rig, period_px, rest_sigma_scale=REST_SIGMA_SCALE if rest_sigma_scale is None else rest_sigma_scale)
 
 
 def replay(
@@ -335,7 +338,10 @@ def replay(
                          "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:
-        refiner = make_refiner(reader, rig, period, fuse, refiner_factory)
+        refiner = make_refiner(reader, rig, period, fuse, refiner_factory,
+                               rest_sigma_scale=getattr(decoder, "rest_sigma_scale", None))
+        if metrics.recon is not None:  # the scale the unfitted points' sigma carries (the model's own or the product's)
+            metrics.recon["rest_sigma_scale"] = getattr(refiner, "rest_sigma_scale", None)
     assembler = BurstAssembler(groups=1 if coarse_period is None else 2)
     camera = ReplayCamera(reader, realtime=speed is not None, speed=speed or 1.0)
 

@@ -133,6 +133,13 @@ class Decoder:
         return None if self.predictor is None else self.predictor.depth_sigma_scales
 
     @property
+    def rest_sigma_scale(self) -> float | None:
+        """The network's own scale for the sigma of the points the frame fit cannot take
+        (:func:`~gearscan.inference.predictor.model_rest_sigma_scale`); None for three-step PS or a model whose JSON
+        names none (the product's applies)."""
+        return None if self.predictor is None else self.predictor.rest_sigma_scale
+
+    @property
     def model_fingerprint(self) -> str | None:
         """The network decode's :func:`~gearscan.inference.model_io.model_fingerprint` (weights, sigma maps, gates);
         None for three-step PS."""

@@ -302,6 +302,7 @@ class Predictor:
         self.depth_sigma_scales = model_depth_sigma_scales(self.meta)
         # the decode its own scales were chosen for (model_fingerprint), where the JSON names it
         self.depth_sigma_chosen_for = (self.meta.get(DEPTH_SIGMA_KEY) or {}).get("model_fingerprint")
+        self.rest_sigma_scale = model_rest_sigma_scale(self.meta)
         self.fingerprint: str | None = None  # the decode's model_fingerprint, known when loaded from files
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
@@ -654,6 +655,23 @@ def model_depth_sigma_scales(meta: dict) -> tuple[float, ...] | dict[str, tuple[
         return {str(k): factors(v) for k, v in scales.items()}
     raise ModelFileError(f"{DEPTH_SIGMA_KEY}: expected {{'scales': [factors >= 1, nearest the edge first] or "
                          f"{{motion class: [factors >= 1]}}, ...}}, got {raw!r}")
+
+
+REST_SIGMA_KEY = "rest_sigma"
+
+
+def model_rest_sigma_scale(meta: dict) -> float | None:
+    """A model's own scale for the sigma of the fused points the frame fit cannot take (``rest_sigma`` in its JSON:
+    ``{"scale": c, "chosen_by": ...}``, chosen on its own val stretches by ``benchmarks/rest_sigma_rule.md``); None
+    where the JSON names none (the frame fit then uses the product's, ``recon.track.REST_SIGMA_SCALE``)."""
+    raw = meta.get(REST_SIGMA_KEY)
+    if raw is None:
+        return None
+    scale = raw.get("scale") if isinstance(raw, dict) else None
+    if isinstance(scale, int | float) and not isinstance(scale, bool) and math.isfinite(scale) and scale >= 1:
+        return float(scale)
+    raise ModelFileError(f"{REST_SIGMA_KEY}: expected {{'scale': a factor >= 1 (it may not shrink a sigma), ...}}, "
+                         f"got {raw!r}")
 
 
 def still_burst_noise(frames: np.ndarray) -> float | None:

@@ -117,8 +117,8 @@ _CHOOSE_OWN = ("choose its own on its rig's val scenes: `python scripts/calibrat
 UNMEASURED_NOTES: Mapping[str, str] = MappingProxyType({
     "borrowed": "the per-burst depth sigma is scaled by the product's depth-sigma scales, chosen for the shipped "
                 "model's decode; this model carries none of its own, so its points' sigma is not a measured k = 2 "
-                "bound (the default-rig option, with them, put 8.9-15.1 % of its moving points beyond 2 sigma on its "
-                "val gears): " + _CHOOSE_OWN,
+                "bound (the default-rig option, with them, put up to 7.5 % of its moving points beyond 2 sigma in one band "
+                "of distance to the edge on its val gears, its predecessor 8.9-15.1 %): " + _CHOOSE_OWN,
     "stale": "the model's own depth-sigma scales were chosen for another decode of it (its weights, sigma maps or still gates "
              "changed since), so its points' sigma is not a measured k = 2 bound: " + _CHOOSE_OWN,
     "mc": "the model's own depth-sigma scales were chosen on its deterministic decode; in Monte Carlo mode the phase "

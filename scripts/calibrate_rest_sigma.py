@@ -9,6 +9,8 @@ and, for the points it cannot take that the off-surface test keeps (before the s
 true surface and their sigma without credit for averaging (sigma * sqrt(bursts)). The scale (amended rule): the
 smallest c in steps of 0.5 from 1 for which, in every cell, the points that c * sigma keeps under the 30 um bound have
 a median |error| / (c * sigma) of at most 0.6745. Each cell's arrays are kept in ``--recordings`` (``rest_*.npz``).
+Since rerun 6 (the rule's per-model amendment) the scale is chosen per model on its own cells: the shipped model's is
+the product's (``recon.track.REST_SIGMA_SCALE``), the option's goes into its JSON (``rest_sigma``) with ``--write``.
 """
 
 from __future__ import annotations
@@ -102,6 +104,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "rest_sigma_val.json")
     ap.add_argument("--recordings", type=Path, default=ROOT / "out" / "fused_support_val")
     ap.add_argument("--bursts", type=int, default=60)
+    ap.add_argument("--write", action="store_true",
+                    help="store the default-rig option's own scale in its JSON (rest_sigma) with the decode it was chosen for")
     args = ap.parse_args()
 
     done = load_or_start(args.out)  # refuses a json scored with other shipped weights
@@ -127,19 +131,57 @@ def main() -> None:
 
     bound = TrackRefiner.__init__.__kwdefaults__["max_sigma_mm"]  # the bound every point of the refined cloud meets
     arrays = [np.load(ROOT / c["arrays"]) for c in cells]  # relative paths in runs before this form: under ROOT
-    scale, rows = None, []
+    done["scan"], done["scale"] = scan(arrays, bound)  # every cell together: the rule's form until rerun 5
+    # said apart: a scale that passes because no unfitted point is left drops them all, it does not calibrate them
+    done["scale_keeps_no_unfitted_point"] = keeps_none(done["scan"])
+    # the per-model amendment (rerun 6): each model's scale on its own cells; the shipped model's is the product's
+    done["scale_by_model"] = {}
+    for model in dict.fromkeys(c["model"] for c in cells):
+        own = [a for a, c in zip(arrays, cells, strict=True) if c["model"] == model]
+        rows, c = scan(own, bound)
+        done["scale_by_model"][model] = {"scale": c, "keeps_no_unfitted_point": keeps_none(rows), "scan": rows}
+    shipped = next(m for m in done["scale_by_model"] if m.endswith("(shipped)"))
+    done["scale"] = done["scale_by_model"][shipped]["scale"]  # the product's (recon.track.REST_SIGMA_SCALE)
+    done["scale_all_cells"] = done["scan"][-1]["scale"] if done["scan"] else None
+    args.out.write_text(json.dumps(done, indent=1))
+    for model, row in done["scale_by_model"].items():
+        print(f"{model}: scale {row['scale']}; keeps no unfitted point on val: {row['keeps_no_unfitted_point']}")
+    print(f"every cell together (the rule's form until rerun 5): {done['scale_all_cells']} (first form "
+          f"{done['scale_first_form']})")
+    if args.write:
+        write_option_scale(done, args.out)
+
+
+def scan(arrays: list, bound: float) -> tuple[list[dict], float | None]:
+    """The scale rows from 1 in steps of 0.5 up to the first honest one (:func:`honest`), and that scale."""
+    rows = []
     for c in np.arange(1.0, 20.5, 0.5):
         per_cell = at_scale(arrays, float(c), bound)
         rows.append({"scale": float(c), "cells": per_cell})
         if honest(per_cell):
-            scale = float(c)
-            break
-    done["scan"], done["scale"] = rows, scale
-    # said apart: a scale that passes because no unfitted point is left drops them all, it does not calibrate them
-    done["scale_keeps_no_unfitted_point"] = bool(rows) and all(p["median_z"] is None for p in rows[-1]["cells"])
-    args.out.write_text(json.dumps(done, indent=1))
-    print(f"scale {scale} (first form {done['scale_first_form']}); keeps no unfitted point on val: "
-          f"{done['scale_keeps_no_unfitted_point']}")
+            return rows, float(c)
+    return rows, None
+
+
+def keeps_none(rows: list[dict]) -> bool:
+    """Whether the chosen (last) row passed only because it kept no unfitted point in any cell."""
+    return bool(rows) and all(p["median_z"] is None for p in rows[-1]["cells"])
+
+
+def write_option_scale(done: dict, out: Path) -> None:
+    """The option's own scale into its JSON (``rest_sigma``), with the decode its cells were scored on."""
+    from gearscan.inference.model_io import model_fingerprint, read_config, write_config
+
+    weights = ROOT / "inference" / "weights" / "default_rig.safetensors"
+    row = done["scale_by_model"].get("default-rig option")
+    if row is None or row["scale"] is None:
+        raise SystemExit(f"{out}: no scale for the default-rig option's cells; nothing written")
+    meta = read_config(weights)
+    meta["rest_sigma"] = {"scale": row["scale"], "model_fingerprint": model_fingerprint(weights),
+                          "chosen_by": f"benchmarks/rest_sigma_rule.md (rerun 6, the per-model amendment), "
+                                       f"{out.relative_to(ROOT) if out.is_relative_to(ROOT) else out}: the option's "
+                                       "four val cells"}
+    print(f"wrote rest_sigma {row['scale']} to {write_config(weights, meta)}")
 
 
 if __name__ == "__main__":

@@ -602,10 +602,56 @@ def test_a_model_carries_its_own_fringe_support_tests(saved, tmp_path):
         with pytest.raises(ModelFileError, match=match):
             Predictor.load(path)
     # the shipped files: v9 its own val choices (the product's constants, which tests/test_inspect.py ties to the val
-    # runs' jsons), v6 and the option 2 px / 0 px
+    # runs' jsons), v6 2 px / 0 px, the option (fine-tuned from v9 in session 54) v9's, inherited
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX, NETWORK_SUPPORT_PX
 
     shipped = {name: model_network_support(read_config(WEIGHTS_DIR / f"{name}.safetensors"))
                for name in ("default", "v6", "default_rig")}
     assert shipped == {"default": NetworkSupport(NETWORK_SUPPORT_PX, FRAME_FIT_NETWORK_SUPPORT_PX),
-                       "v6": NetworkSupport(2, 0), "default_rig": NetworkSupport(2, 0)}
+                       "v6": NetworkSupport(2, 0), "default_rig": shipped["default"]}
+    assert "inherited from the init model inference/weights/default.safetensors" in read_config(
+        WEIGHTS_DIR / "default_rig.safetensors")["network_support"]["chosen_by"]
+
+
+def test_a_model_carries_its_own_rest_sigma_scale_and_the_frame_fit_reads_it(saved, tmp_path):
+    """``rest_sigma`` in a model's JSON (benchmarks/rest_sigma_rule.md, rerun 6: per model) is what the frame fit
+    multiplies its unfitted points' sigma by; none named: the product's; a bad entry names the key. The shipped option
+    carries the scale its own val cells chose (benchmarks/rest_sigma_val.json), v9 none (the product's is its)."""
+    from gearscan.inference.decoder import Decoder
+    from gearscan.inference.model_io import model_fingerprint, read_config
+    from gearscan.inference.predictor import WEIGHTS_DIR
+    from gearscan.recon.track import REST_SIGMA_SCALE
+
+    model, path = saved
+    assert Predictor.load(path).rest_sigma_scale is None and Decoder(classical=True).rest_sigma_scale is None
+    save_model(model, path, extra={"rest_sigma": {"scale": 2.5}})
+    assert Predictor.load(path).rest_sigma_scale == 2.5 and Decoder(path, workers=1).rest_sigma_scale == 2.5
+    for bad in ({"scale": 0.5}, {"scale": float("nan")}, {"scale": True}, {}, 2.0):
+        save_model(model, path, extra={"rest_sigma": bad})
+        with pytest.raises(ModelFileError, match="rest_sigma: expected"):
+            Predictor.load(path)
+    # the frame fit of a fused replay takes the model's own, else the product's
+    from gearscan.replay import make_refiner
+
+    class _Reader:
+        path = "rec"
+
+        def __len__(self):
+            return 3
+
+        def frame(self, i):
+            return type("F", (), {"image": np.zeros((8, 8), np.uint8)})()
+
+    from gearscan.core.rig import default_rig
+
+    rig = default_rig()
+    assert make_refiner(_Reader(), rig, 40.0, object()).rest_sigma_scale == REST_SIGMA_SCALE
+    assert make_refiner(_Reader(), rig, 40.0, object(), rest_sigma_scale=2.0).rest_sigma_scale == 2.0
+    # the shipped files
+    option = WEIGHTS_DIR / "default_rig.safetensors"
+    rest = json.loads((WEIGHTS_DIR.parents[1] / "benchmarks" / "rest_sigma_val.json").read_text())
+    meta = read_config(option)["rest_sigma"]
+    assert meta["scale"] == rest["scale_by_model"]["default-rig option"]["scale"] == 2.0
+    assert meta["model_fingerprint"] == model_fingerprint(option)
+    assert rest["scale"] == rest["scale_by_model"]["v9 (shipped)"]["scale"] == REST_SIGMA_SCALE
+    assert "rest_sigma" not in read_config(WEIGHTS_DIR / "default.safetensors")
