@@ -16,6 +16,7 @@ from gearscan.twin.families import FAMILIES, SEED_BLOCK, draw_gear, family_seed
 from gearscan.twin.randomize import aim_point, view_rig
 from gearscan.twin.splits import (
     CANDIDATE_V10,
+    DEFAULT_RIG_V6_FINETUNE,
     SHIPPED,
     SHIPPED_DEFAULT_RIG,
     SHIPPED_V5,
@@ -49,8 +50,9 @@ def test_splits_are_disjoint_by_gear_rig_and_seed() -> None:
         split_of_seed(seed)  # exactly one owner, or it raises
 
 
-@pytest.mark.parametrize("shipped", [SHIPPED_V5, SHIPPED_V6, SHIPPED_V9, SHIPPED_DEFAULT_RIG, CANDIDATE_V10],
-                         ids=["v5", "v6", "v9", "default-rig", "v10-candidate"])
+@pytest.mark.parametrize("shipped", [SHIPPED_V5, SHIPPED_V6, SHIPPED_V9, SHIPPED_DEFAULT_RIG, DEFAULT_RIG_V6_FINETUNE,
+                                     CANDIDATE_V10],
+                         ids=["v5", "v6", "v9", "default-rig", "default-rig-until-s54", "v10-candidate"])
 def test_shipped_models_saw_only_train_and_val(shipped) -> None:
     assert shipped.train_teeth <= SPLITS["train"].teeth
     assert shipped.val_teeth <= SPLITS["val"].teeth
@@ -79,17 +81,28 @@ def test_v9_record_matches_the_lease_run_that_made_it() -> None:
 
 
 def test_default_rig_record_matches_the_run_that_made_it() -> None:
-    """The default-rig option's record (what its reports say it saw) is its run's own, gears and seeds."""
+    """The default-rig option's record (what its reports say it saw) is its run's own, gears and seeds: since
+    session 54 v9's and the GPU run's (benchmarks/default_rig/gpu/run.json)."""
     import json
     from pathlib import Path
 
     raw = Path(__file__).resolve().parents[1] / "benchmarks/default_rig"
+    gpu = json.loads((raw / "gpu/run.json").read_text())
+    assert "--init inference/weights/default.safetensors" in gpu["command"] and "--seed 3301 " in gpu["command"]
+    assert "--val-seed 10005 " in gpu["command"] and set(gpu["val_teeth"]) <= SHIPPED_DEFAULT_RIG.val_teeth
+    assert set(gpu["train_teeth"]) <= SHIPPED_DEFAULT_RIG.train_teeth
+    assert set(SHIPPED_DEFAULT_RIG.train_dataset_seeds) - set(SHIPPED_V9.train_dataset_seeds) == set(
+        range(3301, 3301 + len(gpu["train_teeth"])))
+    assert read_config(DEFAULT_MODEL.with_name("default_rig.safetensors"))["training"]["init"] == \
+        "inference/weights/default.safetensors"
+    # its predecessor (v6 fine-tuned, sessions 26-28): the runs below
+    previous = DEFAULT_RIG_V6_FINETUNE  # the record the runs below are read against
     run = json.loads((raw / "run.json").read_text())
     cont = json.loads((raw / "continue/run.json").read_text())  # the second run continued the first on its data
     assert (cont["train_teeth"], cont["val_teeth"], cont["train_dirs"]) == (run["train_teeth"], run["val_teeth"], run["train_dirs"])
     assert "--init inference/weights/default_rig.safetensors" in cont["command"] and "--seed 3201 " in cont["command"]
-    assert set(run["train_teeth"]) <= SHIPPED_DEFAULT_RIG.train_teeth and set(run["val_teeth"]) <= SHIPPED_DEFAULT_RIG.val_teeth
-    seeds = set(SHIPPED_DEFAULT_RIG.train_dataset_seeds) - set(SHIPPED_V6.train_dataset_seeds)
+    assert set(run["train_teeth"]) <= previous.train_teeth and set(run["val_teeth"]) <= previous.val_teeth
+    seeds = set(previous.train_dataset_seeds) - set(SHIPPED_V6.train_dataset_seeds)
     assert "--seed 3201 " in run["command"] and "--val-seed 10005 " in run["command"]
     assert all(split_of_teeth(z) == "train" for z in run["train_teeth"])
     assert all(split_of_teeth(z) == "val" for z in run["val_teeth"])
@@ -97,7 +110,7 @@ def test_default_rig_record_matches_the_run_that_made_it() -> None:
     third = json.loads((raw / "anneal/run.json").read_text())
     assert "--init inference/weights/default_rig.safetensors" in third["command"] and "--seed 3301 " in third["command"]
     assert third["val_teeth"] == run["val_teeth"] and "--val-seed 10005 " in third["command"]
-    assert set(third["train_teeth"]) <= SHIPPED_DEFAULT_RIG.train_teeth
+    assert set(third["train_teeth"]) <= previous.train_teeth
     assert seeds == set(range(3201, 3201 + len(run["train_teeth"]))) | set(range(3301, 3301 + len(third["train_teeth"])))
     assert all(split_of_teeth(z) == "train" for z in third["train_teeth"])
     fourth = json.loads((raw / "cycle2/run.json").read_text())  # a second cycle on the third run's data

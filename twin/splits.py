@@ -286,8 +286,8 @@ CANDIDATE_V10 = replace(
 _DEFAULT_RIG_TRAIN = (11, 15, 20, 24, 28, 33, 36, 40, 44, 48, 56, 60, 64, 68, 72, 76)  # its first two runs, seeds 3201-
 # its third and fourth runs (session 28: the rate annealed, twice), seeds 3301-
 _DEFAULT_RIG_TRAIN_3 = (11, 13, 15, 17, 19, 21, 24, 26, 28, 30, 31, 34, 36, 38, 40, 44, 48, 52, 56, 60, 64, 68, 72, 76)
-SHIPPED_DEFAULT_RIG = ShippedData(
-    model="default-rig model (inference/weights/default_rig.*, an option: v6 fine-tuned on the product's rig)",
+DEFAULT_RIG_V6_FINETUNE = ShippedData(
+    model="default-rig model until session 54 (default_rig.* then, an option: v6 fine-tuned on the product's rig)",
     train_teeth=frozenset({*SHIPPED_V6.train_teeth, *_DEFAULT_RIG_TRAIN, *_DEFAULT_RIG_TRAIN_3}),
     train_dataset_seeds=(*SHIPPED_V6.train_dataset_seeds, *range(3201, 3201 + len(_DEFAULT_RIG_TRAIN)),
                          *range(3301, 3301 + len(_DEFAULT_RIG_TRAIN_3))),
@@ -303,4 +303,22 @@ SHIPPED_DEFAULT_RIG = ShippedData(
                  "by each continuation (benchmarks/default_rig/choice_rule.md, choice_rule_continue.md, "
                  "choice_rule_anneal.md, choice_rule_cycle2.md), the ablation's read-out (ablation_rule.md) "
                  "and its sigma calibration",
+)
+# the option since session 54: v9 fine-tuned on the default rig on a lent GPU (scripts/default_rig_model.py through
+# scripts/lease_train.sh, LEASE_TASK=default-rig): the third run's gears and seeds (3301-3324) at 16 start angles each
+SHIPPED_DEFAULT_RIG = ShippedData(
+    model="default-rig model (inference/weights/default_rig.*, an option: v9 fine-tuned on the product's rig, session 54)",
+    train_teeth=frozenset({*SHIPPED_V9.train_teeth, *_DEFAULT_RIG_TRAIN_3}),
+    train_dataset_seeds=(*SHIPPED_V9.train_dataset_seeds, *range(3301, 3301 + len(_DEFAULT_RIG_TRAIN_3))),
+    train_rig="v9's rigs, then the product's default rig (a test rig family: per-rig adaptation, its gears and "
+              "seeds from the train split; scripts/default_rig_model.py) with teeth "
+              + ", ".join(map(str, _DEFAULT_RIG_TRAIN_3)) + " at module 2",
+    train_module_mm=(0.5, 5.0),
+    train_camera_period_px=(5.0, 60.0),
+    val_teeth=SHIPPED_V9.val_teeth,
+    val_dataset_seeds=SHIPPED_V9.val_dataset_seeds,
+    val_rigs="v9's (the default rig with teeth 25, 32, 46, 62, seeds 10005-10008 among them)",
+    val_used_for="v9's uses, then its weights (best on 48 of the default rig's val items), the choice to replace "
+                 "its predecessor (benchmarks/default_rig/choice_rule_gpu.md), its sigma maps, still-burst gate "
+                 "(none), MC phase, depth-sigma and rest-sigma scales",
 )
