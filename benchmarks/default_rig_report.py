@@ -1,4 +1,5 @@
-"""The default-rig model (v6 fine-tuned on the product's rig): its val choice and its test numbers, beside v6.
+"""The default-rig model until session 54 (v6 fine-tuned on the product's rig): its val choice and its test numbers,
+beside v6. Its successor (v9 fine-tuned on a GPU): ``default_rig/choice_rule_gpu.md``, ``generalization_default_rig.md``.
 
     .venv/bin/python benchmarks/default_rig_report.py
 
@@ -13,6 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import subprocess
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -24,6 +26,20 @@ FOLDERS = ("z25", "z32", "z46", "z62")
 
 def _load(path: Path) -> dict:
     return json.loads(path.read_text())
+
+
+# the test reports this report reads, at the revisions that held them (git history)
+PREDECESSOR_TEST = ("602813a", "benchmarks/generalization_default_rig.json")  # the predecessor's, run at d1d2abc
+V6_TEST = ("fdbf23c", "benchmarks/generalization_report.json")  # v6's, run at 6dc91a7
+
+
+def _load_at(rev: str, path: str) -> dict | None:
+    """``path`` as it was at ``rev`` (git show); None, said, where git or the revision is not at hand."""
+    run = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=HERE.parent, capture_output=True, text=True)
+    if run.returncode:
+        print(f"{path} at {rev}: not readable through git ({run.stderr.strip()}); the test section is left out")
+        return None
+    return json.loads(run.stdout)
 
 
 def _pool(values: list[float]) -> float:
@@ -116,7 +132,11 @@ def main() -> None:
     val = {f: _load(RAW / f"val_{f}.json") for f in FOLDERS}
     rows = list(csv.DictReader((RAW / "training_metrics.csv").open()))
     lines = [
-        "# The default-rig model: v6 fine-tuned on the product's own rig",
+        "# The default-rig model until session 54: v6 fine-tuned on the product's own rig",
+        "",
+        "Replaced in session 54 by v9 fine-tuned on the same rig on a lent GPU (`default_rig/choice_rule_gpu.md`, "
+        "`generalization_default_rig.md`, `inference/weights/DEFAULT_RIG_MODEL_CARD.md`); this report is its "
+        "predecessor's, its test section read from the revisions that held those reports.",
         "",
         f"`{run['command']}`; {run['steps']} steps of 8 (128^2 crops), {run['cpu_min']:.1f} CPU min "
         f"({run['train_wall_s'] / 60:.0f} min wall on this host's 2 cores; the render {run['render_s']:.0f} s). "
@@ -170,9 +190,10 @@ def main() -> None:
             lines += continuation_section(RAW / raw, cand, rule, title, names)
     if (RAW / "ablation" / "run.json").is_file():
         lines += ablation_section(RAW / "ablation")
-    gen_path = HERE / "generalization_default_rig.json"
-    if gen_path.is_file():
-        new, v6 = _load(gen_path), _load(HERE / "generalization_report.json")
+    # the test reports as they were when this report was written: the files now hold the session-54 option's and
+    # v9's, so the revisions that held the predecessor's and v6's are read through git
+    new, v6 = (_load_at(rev, path) for rev, path in (PREDECESSOR_TEST, V6_TEST))
+    if new is not None and v6 is not None:
 
         def cell(rep: dict, fam: str, group: str) -> dict:
             return next(c for c in rep["cells"] if c["family"] == fam and c["group"] == group)

@@ -84,8 +84,8 @@ max_sigma_rad = 0.7          # report no point whose total phase uncertainty exc
                              # the fringe orders are found on the pixels within it)
 # network_support_px = 2     # a network's pixel needs fringes in its own frames on every pixel within this
                              # many px (-1: no such test). Unset: the model's own, from its JSON
-                             # (network_support.per_burst_px: none for the shipped v9, 2 for v6, which invents
-                             # phase at shadow borders, and for the default-rig option; none there: v9's)
+                             # (network_support.per_burst_px: none for the shipped v9 and the default-rig
+                             # option, 2 for v6, which invents phase at shadow borders; none there: v9's)
 unwrap = "cad"               # fringe orders from the gear's CAD ("cad") or its envelope only ("envelope",
                              # CAD-free: needs fringes wider than the tooth depth, see --check), or
                              # around the last coarse burst ("coarse", CAD-free at any period: needs

@@ -183,7 +183,7 @@ def predict(
             min=0.0, max=3.0,
             help="decode the burst by three-step PS when the network's median departure from it over the burst's "
             "interior is below this (rad): a still gear without angles. Default: the model's (chosen on val; "
-            "0.03 in v9 and v6, 0.025 in the default-rig option); 0: off",
+            "0.03 in v9 and v6, none in the default-rig option); 0: off",
         ),
     ] = None,
     still_burst_motion: Annotated[

@@ -36,7 +36,8 @@ _CHUNK = 200_000  # points per vectorised block (bounds the temporary arrays to 
 # benchmarks/rest_sigma_rule.md; scripts/calibrate_rest_sigma.py -> benchmarks/rest_sigma_val.json): 3.5 from session
 # 34 to 49; 1.5 since session 50, whose reruns scaled the bursts' sigma by edge band (recon.depth_sigma, the
 # default-rig option by its own scales) and amended the rule to judge the tail too
-# (benchmarks/rest_sigma_val_before_depth_sigma.json is the run that chose 3.5); session 51's reruns with the depth
+# (benchmarks/rest_sigma_val_before_depth_sigma.json is the run that chose 3.5); since session 54 (rerun 6) per model:
+# this is the shipped model's, a model's own (its JSON's rest_sigma) replaces it; session 51's reruns with the depth
 # sigma per motion class: 2.0 with the depth rule's third amendment (rest_sigma_val_amend3_depth_scales.json), 1.5
 # again with its fifth, which ships (rest_sigma_val.json; session 50's run: rest_sigma_val_pooled_depth_scales.json)
 REST_SIGMA_SCALE = 1.5
@@ -184,8 +185,8 @@ class TrackRefiner:
         sigma 2.1-2.3 on the inspection revolution in either pattern order). Without the credit it
         still flattered the points the bound kept (up to 5.3 on val stretches), hence the scale
         (``benchmarks/rest_sigma_rule.md``; since the bursts' sigma is scaled by edge band, 1.5, the rule then
-        judging the tail too); at the shipped scale no such point of the default-rig option's val stretches passes
-        the bound. Two kinds of them are dropped and counted: those off the
+        judging the tail too; a model may carry its own, ``Predictor.rest_sigma_scale``: the default-rig option's
+        2.0, at which no such point of its val stretches passes the bound). Two kinds of them are dropped and counted: those off the
         surface their fitted neighbours measured (:func:`off_surface`, ``stats["off_surface"]``),
         and those whose sigma exceeds ``max_sigma_mm``, the bound a fit must meet too
         (``stats["uncertain"]``): one bound for every point of the refined cloud, so what it
