@@ -169,6 +169,7 @@ def main() -> None:
     started, rows = host(), []
     decoder = Decoder(args.model)
     depth_scales = check_scales(decoder.depth_sigma_scales or DEPTH_SIGMA_SCALES)  # what the reconstructor reads
+    rest_scale = decoder.rest_sigma_scale or REST_SIGMA_SCALE  # what the frame fit's unfitted points carry (replay's rule)
     support = network_support_option(args.network_support_px, frame_fit=True, model=decoder.network_support)
     whose = "the model's own" if decoder.network_support is not None else "the product's"
     support_text = (f"{whose} fringe-support test for network pixels on the frame-fit path, "
@@ -224,7 +225,7 @@ def main() -> None:
         "claims more than it measured. The last column is what these reports gave before session 49: the distance "
         "normal to the surface over the same sigma, smaller by the cosine between ray and normal, so it reads too low "
         "(a sigma that looked cautious). The rest (points the fit could not take) carry their bursts' sigma without "
-        f"credit for averaging, times {REST_SIGMA_SCALE:g} (`TrackRefiner.refine_fused`, `REST_SIGMA_SCALE`, calibrated on "
+        f"credit for averaging, times {rest_scale:g} (`TrackRefiner.refine_fused`; the model's own `rest_sigma`, else `REST_SIGMA_SCALE`; calibrated on "
         f"val: `rest_sigma_rule.md`); those above the {point_um:g} µm bound are dropped and counted. The unsettled fits "
         "(`frame_fit_settle_rule.md`) and those the modulation test refused are among those points: each either stays with that sigma or is counted "
         "in one of the two drop columns, so the columns overlap.",
@@ -239,7 +240,7 @@ def main() -> None:
                                                           "support_px_run": support,  # what ran (None: no test)
                                                           "support_test": support_text, "max_sigma_rad": bound,
                                                           "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE, "point_sigma_um": point_um,
-                                                          "rest_sigma_scale": REST_SIGMA_SCALE,
+                                                          "rest_sigma_scale": rest_scale,
                                                           "depth_sigma_scales": depth_scales.as_dict(),
                                                           "modulation_ratio": MODULATION_RATIO}, indent=2))
     print("\n".join(lines))

@@ -82,7 +82,7 @@ def main() -> None:
     from gearscan.inspect import chip_verdict, run_inspection
     from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales
     from gearscan.recon.measure import keep_bound_option, network_support_option
-    from gearscan.recon.track import FIT_SIGMA_SCALE, MODULATION_RATIO, REST_SIGMA_SCALE, SETTLE_RAD
+    from gearscan.recon.track import FIT_SIGMA_SCALE, MODULATION_RATIO, SETTLE_RAD
     from gearscan.twin.defects import GearDefects, true_mesh
 
     started = host()
@@ -106,7 +106,6 @@ def main() -> None:
     truth = reader.meta["truth"]
     decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
     depth_scales = check_scales(decoder.depth_sigma_scales or DEPTH_SIGMA_SCALES)  # what the reconstructor reads (the model's own)
-    rest_scale = decoder.rest_sigma_scale or REST_SIGMA_SCALE  # what the frame fit's unfitted points carry (the model's own)
     # the frame-fit path's test (the model's own for inspect, else the product's) and keep bound on both runs: the
     # fused-only run is the same fused cloud before the fit, voxel for voxel (the 'before' figures below rely on it)
     support = network_support_option(args.network_support_px, frame_fit=True, model=decoder.network_support)
@@ -131,6 +130,7 @@ def main() -> None:
                             network_support_px=support, max_sigma=bound)
     seconds = time.perf_counter() - t
     insp, fused = report.inspection, report.fused
+    rest_scale = report.rest_sigma_scale  # what the frame fit's unfitted points carried (the model's own, else the product's)
     dist = distance(fused.points)
     # coverage: share of the true surface (sampled uniformly) with a fused point within 2 voxels
     o3d.utility.random.seed(0)

@@ -395,10 +395,16 @@ def replay_cmd(
             web.close()
     for k, v in result.summary().items():
         typer.echo(f"{k}: {v:.4f}" if isinstance(v, float) else f"{k}: {v}")
-    from gearscan.recon.depth_sigma import UNMEASURED_NOTES, turning_three_step_note
+    from gearscan.recon.depth_sigma import (
+        REST_STALE_NOTE,
+        UNMEASURED_NOTES,
+        turning_three_step_note,
+    )
 
     if note := UNMEASURED_NOTES.get((result.recon or {}).get("depth_sigma_source")):
         typer.secho(f"sigma: {note}", fg=typer.colors.YELLOW)
+    if (result.recon or {}).get("rest_sigma_source") == "stale":
+        typer.secho(f"sigma: {REST_STALE_NOTE}", fg=typer.colors.YELLOW)
     if turning := (result.decoder or {}).get("turning_three_step", 0):
         typer.secho(f"sigma: {turning_three_step_note(turning)}", fg=typer.colors.YELLOW)
     if uncalibrated := (result.recon or {}).get("bursts_sigma_uncalibrated", 0):

@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 
 from gearscan.core.recording import RecordingError, RecordingReader
-from gearscan.recon.depth_sigma import UNMEASURED_NOTES, turning_three_step_note
+from gearscan.recon.depth_sigma import REST_STALE_NOTE, UNMEASURED_NOTES, turning_three_step_note
 from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
 from gearscan.recon.inspect import (
     Inspection,
@@ -57,6 +57,8 @@ class InspectionReport:
     refine: dict | None = None  # the frame fit's counts (recon.track.TrackRefiner.refine_fused), if it ran
     depth_sigma_source: str | None = None  # whose depth-sigma scales the unfitted points carry (recon.depth_sigma)
     turning_three_step: int = 0  # bursts that turned and were decoded by three-step PS (--classical): sigma unmeasured
+    rest_sigma_scale: float | None = None  # what the frame fit multiplied its unfitted points' sigma by, if it ran
+    rest_sigma_source: str | None = None  # whose that scale is: model, stale (the model's, another decode) or product
 
 
 def partial(insp: Inspection, key: str) -> str:
@@ -100,8 +102,9 @@ def unmeasured_sigma_note(report: InspectionReport) -> str | None:
     """What to say where the points the frame fit did not take carry depth-sigma scales not measured for this decode
     (``recon.depth_sigma.depth_sigma_source``; a fitted point carries the fit's own sigma); None where none do."""
     unfitted = _unfitted(report)
-    note = UNMEASURED_NOTES.get(report.depth_sigma_source)
-    return f"sigma of the {unfitted:,} point(s) the frame fit did not take: {note}" if unfitted and note else None
+    notes = [n for n in (UNMEASURED_NOTES.get(report.depth_sigma_source),
+                         REST_STALE_NOTE if report.rest_sigma_source == "stale" else None) if n]
+    return f"sigma of the {unfitted:,} point(s) the frame fit did not take: {'; '.join(notes)}" if unfitted and notes else None
 
 
 def spec_note(report: InspectionReport) -> str | None:
@@ -253,7 +256,8 @@ def run_inspection(
     files.update(write_plots(insp, out, tolerances))
     report = InspectionReport(insp, fused, grade, tolerances, classes, span, files, truth, metrics.refine or None,
                               (metrics.recon or {}).get("depth_sigma_source"),
-                              (metrics.decoder or {}).get("turning_three_step", 0))
+                              (metrics.decoder or {}).get("turning_three_step", 0),
+                              (metrics.recon or {}).get("rest_sigma_scale"), (metrics.recon or {}).get("rest_sigma_source"))
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
@@ -283,6 +287,8 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                   "implausible_fits": (report.refine or {}).get("implausible"),
                   # whose depth-sigma scales an unfitted point's sigma carries: model, product or unmeasured
                   "depth_sigma_source": report.depth_sigma_source,
+                  # the scale an unfitted point's sigma carried (the decoding model's own, else the product's) and whose
+                  "rest_sigma_scale": report.rest_sigma_scale, "rest_sigma_source": report.rest_sigma_source,
                   # bursts that turned, decoded by three-step PS (--classical): their unfitted points' sigma unmeasured
                   "turning_three_step_bursts": report.turning_three_step},
         "summary_um": insp.to_json()["profile_um"] | {k: _num(v) for k, v in summary.items()},

@@ -25,7 +25,7 @@ from gearscan.core.types import Burst, Cloud, Measurement
 from gearscan.inference.decoder import Decoder
 from gearscan.pipeline import Pipeline, PipelineReport, StageSpec
 from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
-from gearscan.recon.depth_sigma import decoder_depth_sigma
+from gearscan.recon.depth_sigma import decoder_depth_sigma, decoder_rest_sigma
 from gearscan.recon.deviation import CadScorer, SurfaceDistance
 from gearscan.recon.fuse import CloudFuser, FusedCloud
 from gearscan.recon.measure import (
@@ -212,9 +212,10 @@ REFINE_MAX_BYTES = 8 << 30
 
 def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: CloudFuser | None, factory=None,
                  rest_sigma_scale: float | None = None):
-    """The frame fit of a fused replay (``factory(rig, period_px)``, default
-    :class:`~gearscan.recon.track.TrackRefiner` with the product's settings, the unfitted points' sigma scale the
-    decoding model's own where it names one), refused up front (not after the replay) when it cannot run."""
+    """The frame fit of a fused replay (``factory(rig, period_px, rest_sigma_scale=c)``, default
+    :class:`~gearscan.recon.track.TrackRefiner` with the product's settings), its unfitted points' sigma scale ``c``
+    the decoding model's own where it names one, else the product's; refused up front (not after the replay) when it
+    cannot run."""
     from gearscan.recon.track import REST_SIGMA_SCALE, TrackRefiner
 
     if fuse is None:
@@ -225,9 +226,8 @@ def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: Clou
         raise RecordingError(f"{reader.path}: refining keeps every frame in memory, {need / 2**30:.1f} GiB for "
                              f"{len(reader)} frames (limit {REFINE_MAX_BYTES / 2**30:.0f} GiB); replay a shorter "
                              "stretch (one revolution) or leave refinement off (--no-refine)")
-    if factory is not None:
-        return factory(rig, period_px)
-    return TrackRefiner(rig, period_px, rest_sigma_scale=REST_SIGMA_SCALE if rest_sigma_scale is None else rest_sigma_scale)
+    return (factory or TrackRefiner)(rig, period_px,
+                                     rest_sigma_scale=REST_SIGMA_SCALE if rest_sigma_scale is None else rest_sigma_scale)
 
 
 def replay(
@@ -338,10 +338,11 @@ def replay(
                          "frame_fit": bool(refine and fuse is not None)}
     refiner = None
     if refine:
-        refiner = make_refiner(reader, rig, period, fuse, refiner_factory,
-                               rest_sigma_scale=getattr(decoder, "rest_sigma_scale", None))
-        if metrics.recon is not None:  # the scale the unfitted points' sigma carries (the model's own or the product's)
+        rest_scale, rest_source = decoder_rest_sigma(decoder)
+        refiner = make_refiner(reader, rig, period, fuse, refiner_factory, rest_sigma_scale=rest_scale)
+        if metrics.recon is not None:  # the scale the unfitted points' sigma carried (the model's own or the product's)
             metrics.recon["rest_sigma_scale"] = getattr(refiner, "rest_sigma_scale", None)
+            metrics.recon["rest_sigma_source"] = rest_source
     assembler = BurstAssembler(groups=1 if coarse_period is None else 2)
     camera = ReplayCamera(reader, realtime=speed is not None, speed=speed or 1.0)
 

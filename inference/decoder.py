@@ -140,6 +140,11 @@ class Decoder:
         return None if self.predictor is None else self.predictor.rest_sigma_scale
 
     @property
+    def rest_sigma_chosen_for(self) -> str | None:
+        """The decode (model fingerprint) the network's own rest-sigma scale was chosen for, where its JSON names it."""
+        return None if self.predictor is None else self.predictor.rest_sigma_chosen_for
+
+    @property
     def model_fingerprint(self) -> str | None:
         """The network decode's :func:`~gearscan.inference.model_io.model_fingerprint` (weights, sigma maps, gates);
         None for three-step PS."""

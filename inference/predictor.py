@@ -303,6 +303,7 @@ class Predictor:
         # the decode its own scales were chosen for (model_fingerprint), where the JSON names it
         self.depth_sigma_chosen_for = (self.meta.get(DEPTH_SIGMA_KEY) or {}).get("model_fingerprint")
         self.rest_sigma_scale = model_rest_sigma_scale(self.meta)
+        self.rest_sigma_chosen_for = (self.meta.get(REST_SIGMA_KEY) or {}).get("model_fingerprint")
         self.fingerprint: str | None = None  # the decode's model_fingerprint, known when loaded from files
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())

@@ -110,8 +110,8 @@ def main() -> None:
             rec = render_stretch(args.recordings, s, alternate, args.bursts)
             kept: list[_KeepingRefiner] = []
 
-            def factory(rig, period_px, kept=kept):
-                kept.append(_KeepingRefiner(rig, period_px, fit_sigma_scale=1.0))  # the product's settings, scale 1
+            def factory(rig, period_px, rest_sigma_scale, kept=kept):  # the product's settings, the fit's scale 1
+                kept.append(_KeepingRefiner(rig, period_px, fit_sigma_scale=1.0, rest_sigma_scale=rest_sigma_scale))
                 return kept[-1]
 
             t = time.perf_counter()

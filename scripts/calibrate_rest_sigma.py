@@ -131,9 +131,7 @@ def main() -> None:
 
     bound = TrackRefiner.__init__.__kwdefaults__["max_sigma_mm"]  # the bound every point of the refined cloud meets
     arrays = [np.load(ROOT / c["arrays"]) for c in cells]  # relative paths in runs before this form: under ROOT
-    done["scan"], done["scale"] = scan(arrays, bound)  # every cell together: the rule's form until rerun 5
-    # said apart: a scale that passes because no unfitted point is left drops them all, it does not calibrate them
-    done["scale_keeps_no_unfitted_point"] = keeps_none(done["scan"])
+    done["scan"], done["scale_all_cells"] = scan(arrays, bound)  # every cell together: the rule's form until rerun 5
     # the per-model amendment (rerun 6): each model's scale on its own cells; the shipped model's is the product's
     done["scale_by_model"] = {}
     for model in dict.fromkeys(c["model"] for c in cells):
@@ -142,7 +140,8 @@ def main() -> None:
         done["scale_by_model"][model] = {"scale": c, "keeps_no_unfitted_point": keeps_none(rows), "scan": rows}
     shipped = next(m for m in done["scale_by_model"] if m.endswith("(shipped)"))
     done["scale"] = done["scale_by_model"][shipped]["scale"]  # the product's (recon.track.REST_SIGMA_SCALE)
-    done["scale_all_cells"] = done["scan"][-1]["scale"] if done["scan"] else None
+    # said apart: a scale that passes because no unfitted point is left drops them all, it does not calibrate them
+    done["scale_keeps_no_unfitted_point"] = done["scale_by_model"][shipped]["keeps_no_unfitted_point"]
     args.out.write_text(json.dumps(done, indent=1))
     for model, row in done["scale_by_model"].items():
         print(f"{model}: scale {row['scale']}; keeps no unfitted point on val: {row['keeps_no_unfitted_point']}")

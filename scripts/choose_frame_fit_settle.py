@@ -57,13 +57,15 @@ def score_cell(rec: Path, decoder, field: str = "settle_rad", candidates=CANDIDA
 
     kept: list[_KeepingRefiner] = []
 
-    def factory(rig, period_px):
+    def factory(rig, period_px, rest_sigma_scale):  # the decoding model's scale, else the product's (replay says)
         # the settle rule's cells ran before the modulation test existed: its default base has neither test
-        kept.append(_KeepingRefiner(rig, period_px, **({"settle_rad": None, "modulation_ratio": None} if base is None else base)))
+        kept.append(_KeepingRefiner(rig, period_px, rest_sigma_scale=rest_sigma_scale,
+                                    **({"settle_rad": None, "modulation_ratio": None} if base is None else base)))
         return kept[-1]
 
     m = replay(rec, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True, refiner_factory=factory)
-    ran = {"support_px_run": m.recon["network_support_px"], "max_sigma_rad_run": m.recon["max_sigma_rad"]}
+    ran = {"support_px_run": m.recon["network_support_px"], "max_sigma_rad_run": m.recon["max_sigma_rad"],
+           "rest_sigma_scale_run": m.recon["rest_sigma_scale"]}
     refiner = kept[0]
     reader = RecordingReader(rec)
     scene = truth_scene(reader)

@@ -7,8 +7,10 @@ pattern orders) that nothing else uses, two models (the shipped one and the defa
 (off, 0, 1, 2 px): each cell is replayed with fusion and the frame fit and scored against the twin's true
 surface exactly as ``benchmarks/frame_fit_heldout.py`` scores its held-out stretches. Cells already in ``--out``
 are kept (a stopped run resumes; not across a change of ``recon.track.REST_SIGMA_SCALE``, which the json records:
-the recorded run, at 24e4fa9, predates that scale and ran at 1). The held-out stretches and the inspection
-revolution only report afterwards.
+the recorded run, at 24e4fa9, predates that scale and ran at 1). Since session 54 a model's own scale (its JSON's
+``rest_sigma``) replaces the product's for its cells, and the recorded option cells are its predecessor's (v6 fine-tuned):
+a rerun for the option starts a new ``--out``. The held-out stretches and the inspection revolution only report
+afterwards.
 """
 
 from __future__ import annotations

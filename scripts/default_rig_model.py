@@ -7,7 +7,7 @@
 The paper's digital-twin workflow (per-rig adaptation, `benchmarks/adaptation.py`) applied to the rig the
 product ships with, over many gears instead of one: the default rig (`twin.families.default_rig_scene`)
 aimed at train-split gears (module 2, random pressure angle and face width as the test family draws them,
-train seeds), the shipped model fine-tuned under a CPU budget (batch 8, 128^2 crops, lr 3e-4 constant,
+train seeds), ``--init`` (v6 by default, as the first option; the option since session 54 from v9) fine-tuned under a CPU budget (batch 8, 128^2 crops, lr 3e-4 constant,
 or annealed to 0 over ``--epochs`` with ``--schedule cosine``, or over the time left with ``cosine-time``; still
 bursts x20, both senses; the weights best on the val folders are kept). On a GPU the same script takes
 ``--device cuda --bank`` and a wall-clock ``--deadline-minutes`` instead of the CPU budget. Val: the same rig with
@@ -109,15 +109,16 @@ def main() -> None:
                     help="constant lr until the budget, cosine from lr to 0 over --epochs, or cosine-time over the "
                          "time left (budget or deadline)")
     ap.add_argument("--epochs", type=int, default=None,
-                    help="epochs of 40 steps (cosine: the schedule's length; the budget still caps the run)")
+                    help="epochs of --steps-per-epoch steps (cosine: the schedule's length; the budget still caps the run)")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--val-items", type=int, default=48)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--precision", default="fp32", choices=["auto", "fp32", "bf16"])
     ap.add_argument("--init", type=Path, default=DEFAULT_MODEL.with_name("v6.safetensors"),
-                    help="the weights fine-tuned (default: v6, which the option was fine-tuned from; the option itself to "
-                         "continue it)")
+                    help="the weights fine-tuned (default: v6, which the option's predecessor was fine-tuned from; the "
+                         "option since session 54 was fine-tuned from v9, inference/weights/default.safetensors; the "
+                         "option itself to continue it)")
     args = ap.parse_args()
     t_start = time.time()
     if args.deadline_minutes is not None:

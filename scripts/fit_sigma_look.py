@@ -52,8 +52,8 @@ def main() -> None:
 
     kept: list[_KeepingRefiner] = []
 
-    def factory(rig, period_px):
-        kept.append(_KeepingRefiner(rig, period_px, fit_sigma_scale=args.fit_sigma_scale))
+    def factory(rig, period_px, rest_sigma_scale):
+        kept.append(_KeepingRefiner(rig, period_px, fit_sigma_scale=args.fit_sigma_scale, rest_sigma_scale=rest_sigma_scale))
         return kept[-1]
 
     replay(args.recording, decoder=Decoder(None), fuse=CloudFuser(0.1, 3), truth=False, refine=True,

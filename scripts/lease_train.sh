@@ -17,7 +17,7 @@
 #
 # LEASE_TASK=default-rig runs the default-rig option's command instead (scripts/default_rig_model.py: v9 fine-tuned on
 # the product's default rig, rendered there with train gears, by the same deadline; no step profile, not compiled):
-# back come lease.log, best.*, metrics.csv, default_rig.json (the run's record) and the step profile if any.
+# back come lease.log, best.*, metrics.csv and default_rig.json (the run's record).
 #
 # Comes back in $OUT (8 files): lease.log (everything printed, written as it goes, so a killed run still
 # reports), best.* (the run's final model: stage 2's best; reproduce.json's stages_run says whether stage 2 ran),

@@ -399,6 +399,7 @@ def test_inspect_says_when_unfitted_points_carry_unmeasured_depth_scales() -> No
     class Report:
         fused: Fused
         depth_sigma_source: str | None
+        rest_sigma_source: str | None = None
 
     some = Fused(np.array([True, False, True, False, False]))
     note = unmeasured_sigma_note(Report(some, "borrowed"))
@@ -406,6 +407,14 @@ def test_inspect_says_when_unfitted_points_carry_unmeasured_depth_scales() -> No
     assert "5 point(s)" in unmeasured_sigma_note(Report(Fused(None), "mc"))  # no fit ran: every point
     assert unmeasured_sigma_note(Report(Fused(np.ones(5, bool)), "borrowed")) is None  # all fitted
     assert unmeasured_sigma_note(Report(some, "product")) is None and unmeasured_sigma_note(Report(some, None)) is None
+    # a model's own rest-sigma scale chosen for another decode of it is said too, beside or without the depth note
+    from gearscan.recon.depth_sigma import REST_STALE_NOTE
+
+    stale = unmeasured_sigma_note(Report(some, "model", "stale"))
+    assert stale.startswith("sigma of the 3 point(s)") and REST_STALE_NOTE in stale
+    both = unmeasured_sigma_note(Report(some, "borrowed", "stale"))
+    assert UNMEASURED_NOTES["borrowed"] in both and REST_STALE_NOTE in both
+    assert unmeasured_sigma_note(Report(some, "model", "model")) is None
 
 
 def test_inspect_says_when_three_step_decoded_turning_bursts(inspected) -> None:

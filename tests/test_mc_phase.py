@@ -107,7 +107,7 @@ def test_the_shipped_v9_chose_the_deterministic_phase_by_the_two_sided_rule(movi
                                                      (DEFAULT_MODEL.with_name("default_rig.safetensors"), 3, "two-sided")],
                          ids=["v6", "default-rig option"])
 def test_the_val_choice_is_recorded_and_bad_entries_are_named(model, rows, rule, moving_burst):
-    """v6 (one-sided rule, session 38) and the default-rig option (two-sided rule, session 41) chose the deterministic
+    """v6 (one-sided rule, session 38) and the default-rig option (two-sided rule, rerun for the GPU fine-tune in session 54) chose the deterministic
     phase on val (the rule replayed on their tables), load with it, and carry the MC sigma map refitted for it; a bad
     entry is named."""
     from gearscan.inference.mc_phase_choice import verdict, verdict_two_sided

@@ -445,3 +445,42 @@ def test_modulation_test_refuses_fits_with_an_impossible_fringe(off_cad_turn):
     for ratio in (0.0, -1.0, float("inf"), float("nan")):
         with pytest.raises(ValueError, match="modulation_ratio"):
             TrackRefiner(reader.rig, 40.0, modulation_ratio=ratio)
+
+
+def test_replay_fits_with_the_decoding_models_rest_sigma_scale(off_cad_turn):
+    """A model's own rest-sigma scale (its JSON's ``rest_sigma``, read by the Decoder) is what the frame fit of a fused
+    replay multiplies its unfitted points' sigma by, with or without a point-sigma bound and through a rule script's
+    factory; replay's metrics record it and whose it is (``model`` when chosen for this decode, ``stale`` when chosen
+    for another, ``product`` when the model names none); the unfitted points' sigma scales with it."""
+    from functools import partial
+
+    from gearscan.recon.track import REST_SIGMA_SCALE
+    from gearscan.replay import replay
+
+    reader, _, _, _, _, _ = off_cad_turn
+
+    class Own(Decoder):  # three-step PS's decode, with a model's own scale and the decode it was chosen for
+        def __init__(self, scale, chosen_for):
+            super().__init__(classical=True)
+            self._scale, self._for = scale, chosen_for
+
+        rest_sigma_scale = property(lambda self: self._scale)
+        rest_sigma_chosen_for = property(lambda self: self._for)
+        model_fingerprint = property(lambda self: "abc")
+
+    def run(decoder, **kw):
+        return replay(reader.path, decoder=decoder, fuse=CloudFuser(0.1, 3), truth=False, refine=True, **kw)
+
+    product, own = run(Own(None, None)), run(Own(2.5, "abc"))
+    assert (product.recon["rest_sigma_scale"], product.recon["rest_sigma_source"]) == (REST_SIGMA_SCALE, "product")
+    assert (own.recon["rest_sigma_scale"], own.recon["rest_sigma_source"]) == (2.5, "model")
+    assert run(Own(2.5, "other")).recon["rest_sigma_source"] == "stale"
+    assert run(Own(2.5, "abc"), point_sigma_mm=0.05).recon["rest_sigma_scale"] == 2.5
+    assert run(Own(2.5, "abc"), refiner_factory=partial(TrackRefiner, settle_rad=None)).recon["rest_sigma_scale"] == 2.5
+    # the unfitted points carry the model's scale: at 2.5 the fit's sigma bound keeps exactly those whose sigma at the
+    # product's scale times 2.5 / 1.5 stays within it, with that sigma
+    bound = TrackRefiner.__init__.__kwdefaults__["max_sigma_mm"]
+    unfitted = {k: np.sort(m.fused.sigma[~m.fused.refined]) for k, m in (("product", product), ("own", own))}
+    assert unfitted["product"].size > 0
+    scaled = unfitted["product"] * 2.5 / REST_SIGMA_SCALE
+    np.testing.assert_allclose(unfitted["own"], scaled[scaled <= bound], rtol=1e-5)
