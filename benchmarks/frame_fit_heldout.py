@@ -156,7 +156,7 @@ def main() -> None:
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     from gearscan.inference.decoder import Decoder
-    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales
+    from gearscan.recon.depth_sigma import DEPTH_SIGMA_SCALES, check_scales, decoder_rest_sigma
     from gearscan.recon.measure import keep_bound_option, network_support_option
     from gearscan.recon.track import (
         FIT_SIGMA_SCALE,
@@ -169,7 +169,8 @@ def main() -> None:
     started, rows = host(), []
     decoder = Decoder(args.model)
     depth_scales = check_scales(decoder.depth_sigma_scales or DEPTH_SIGMA_SCALES)  # what the reconstructor reads
-    rest_scale = decoder.rest_sigma_scale or REST_SIGMA_SCALE  # what the frame fit's unfitted points carry (replay's rule)
+    rest_scale, rest_source = decoder_rest_sigma(decoder)  # what the frame fit's unfitted points carry, as replay reads it
+    rest_scale = rest_scale or REST_SIGMA_SCALE
     support = network_support_option(args.network_support_px, frame_fit=True, model=decoder.network_support)
     whose = "the model's own" if decoder.network_support is not None else "the product's"
     support_text = (f"{whose} fringe-support test for network pixels on the frame-fit path, "
@@ -240,7 +241,7 @@ def main() -> None:
                                                           "support_px_run": support,  # what ran (None: no test)
                                                           "support_test": support_text, "max_sigma_rad": bound,
                                                           "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE, "point_sigma_um": point_um,
-                                                          "rest_sigma_scale": rest_scale,
+                                                          "rest_sigma_scale": rest_scale, "rest_sigma_source": rest_source,
                                                           "depth_sigma_scales": depth_scales.as_dict(),
                                                           "modulation_ratio": MODULATION_RATIO}, indent=2))
     print("\n".join(lines))

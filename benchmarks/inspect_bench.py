@@ -335,7 +335,7 @@ def main() -> None:
         "uncertain": uncertain,
         "unsettled": unsettled,
         "settle_rad": SETTLE_RAD, "fit_sigma_scale": FIT_SIGMA_SCALE,
-        "rest_sigma_scale": rest_scale, "depth_sigma_scales": depth_scales.as_dict(),
+        "rest_sigma_scale": rest_scale, "rest_sigma_source": report.rest_sigma_source, "depth_sigma_scales": depth_scales.as_dict(),
         "implausible": implausible,
         "modulation_ratio": MODULATION_RATIO,
         "strata": strata, "rows": rows, "fp_max_error_um": fp_err, "fused_only_fp_max_error_um": plain_fp_err,

@@ -226,6 +226,9 @@ def make_refiner(reader: RecordingReader, rig: Rig, period_px: float, fuse: Clou
         raise RecordingError(f"{reader.path}: refining keeps every frame in memory, {need / 2**30:.1f} GiB for "
                              f"{len(reader)} frames (limit {REFINE_MAX_BYTES / 2**30:.0f} GiB); replay a shorter "
                              "stretch (one revolution) or leave refinement off (--no-refine)")
+    if isinstance(factory, partial) and "rest_sigma_scale" in factory.keywords:  # it would be overridden silently
+        raise ValueError("refiner_factory: the unfitted points' sigma scale is the decoding model's (its JSON's "
+                         "rest_sigma) or the product's; a factory may not set rest_sigma_scale")
     return (factory or TrackRefiner)(rig, period_px,
                                      rest_sigma_scale=REST_SIGMA_SCALE if rest_sigma_scale is None else rest_sigma_scale)
 
@@ -249,7 +252,7 @@ def replay(
     refine: bool = False,
     network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
     max_sigma: float | None = None,
-    refiner_factory: Callable[[Rig, float], object] | None = None,
+    refiner_factory: Callable[..., object] | None = None,
     point_sigma_mm: float | None = None,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
@@ -273,7 +276,7 @@ def replay(
     fused model with its signed deviation from the CAD, also logged to the viewer. ``refine``
     (with ``fuse``): the fused points are then fitted to every raw frame that saw them
     (:class:`~gearscan.recon.track.TrackRefiner`; keeps the recording's frames in memory).
-    ``refiner_factory(rig, period_px)``: that fit with other settings than the product's (the rule scripts'
+    ``refiner_factory(rig, period_px, rest_sigma_scale=c)``: that fit with other settings than the product's (the rule scripts'
     candidates), e.g. ``functools.partial(TrackRefiner, settle_rad=0.1)``. ``point_sigma_mm``: the fitted cloud's bound
     on every point's sigma, mm (None: the fit's own, :data:`~gearscan.recon.track.MAX_POINT_SIGMA_MM`); needs the fit.
 

@@ -106,20 +106,22 @@ def decoder_depth_sigma(decoder: object) -> tuple[DepthSigmaScales | None, str]:
 def decoder_rest_sigma(decoder: object) -> tuple[float | None, str]:
     """The scale the frame fit multiplies its unfitted points' sigma by for an app decoder's run (``rest_sigma_scale``
     and ``rest_sigma_chosen_for`` of ``inference.decoder.Decoder``; None: the product's, ``recon.track.REST_SIGMA_SCALE``)
-    and its source: ``model`` (chosen for this decode), ``stale`` (the model's own, chosen for another decode of it:
-    still applied, said so) or ``product``."""
+    and its source: ``model`` (chosen for this decode, or naming none: as for depth-sigma scales), ``stale`` (the
+    model's own, chosen for another decode of it: still applied, said so), ``mc`` (the model's own, chosen on its
+    deterministic decode, in Monte Carlo mode) or ``product``."""
     own = getattr(decoder, "rest_sigma_scale", None)
     if own is None:
         return None, "product"
     chosen_for = getattr(decoder, "rest_sigma_chosen_for", None)
-    decode = getattr(decoder, "model_fingerprint", None)
-    return own, ("model" if chosen_for is not None and chosen_for == decode else "stale")
+    if chosen_for is not None and chosen_for != getattr(decoder, "model_fingerprint", None):
+        return own, "stale"
+    return own, ("mc" if getattr(decoder, "mc", 0) else "model")
 
 
 REST_STALE_NOTE = ("the model's own scale for the frame fit's unfitted points (rest_sigma) was chosen for another decode "
                    "of it (its weights, sigma maps or still gates changed since), so those points' sigma is not a "
-                   "measured k = 2 bound: rerun `python scripts/calibrate_rest_sigma.py --write` (benchmarks/"
-                   "rest_sigma_rule.md)")
+                   "measured k = 2 bound: choose it anew on the model's own val stretches (benchmarks/rest_sigma_rule.md; "
+                   "for the default-rig option `python scripts/calibrate_rest_sigma.py --write`)")
 
 
 def turning_three_step_note(bursts: int) -> str:

@@ -18,7 +18,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "scripts"))
-from choose_frame_fit_settle import run_rule  # noqa: E402  (the settle rule's cells, scoring and decision)
+from choose_frame_fit_settle import rest_scales, run_rule  # noqa: E402  (the settle rule's cells, scoring and decision)
 
 FIELD = "modulation_ratio"
 CANDIDATES: tuple[float | None, ...] = (None, 1.0)  # None: no test; 1.0: the physical bound B <= A
@@ -35,7 +35,8 @@ def main() -> None:
     from gearscan.recon.track import REST_SIGMA_SCALE, SETTLE_RAD
 
     settings = {"max_sigma_rad": FRAME_FIT_MAX_SIGMA_RAD, "rest_sigma_scale": REST_SIGMA_SCALE,
-                "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX, "settle_rad": SETTLE_RAD}
+                "rest_sigma_scale_by_model": rest_scales(), "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX,
+                "settle_rad": SETTLE_RAD}
     done = run_rule(args.out, args.recordings, args.bursts, "benchmarks/frame_fit_modulation_rule.md", FIELD,
                     CANDIDATES, {FIELD: None}, settings, "implausible")
     print(json.dumps(done["choice"], indent=1))

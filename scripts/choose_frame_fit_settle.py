@@ -21,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "scripts"))
-from choose_fused_support import MODELS, VAL_STRETCHES, load_or_start  # noqa: E402  (the same val stretches and models)
+from choose_fused_support import MODELS, VAL_STRETCHES, load_or_start, rest_scales  # noqa: E402  (the same val stretches and models)
 from frame_fit_heldout import render_stretch, score_fused, truth_scene  # noqa: E402  (the held-out bench's own scoring)
 
 from gearscan.recon.track import TrackRefiner  # noqa: E402
@@ -165,7 +165,7 @@ def main() -> None:
     from gearscan.recon.track import REST_SIGMA_SCALE
 
     settings = {"max_sigma_rad": FRAME_FIT_MAX_SIGMA_RAD, "rest_sigma_scale": REST_SIGMA_SCALE,
-                "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX}
+                "rest_sigma_scale_by_model": rest_scales(), "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX}
     done = run_rule(args.out, args.recordings, args.bursts, "benchmarks/frame_fit_settle_rule.md", "settle_rad",
                     CANDIDATES, None, settings, "unsettled")
     print(json.dumps(done["choice"], indent=1))

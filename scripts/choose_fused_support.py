@@ -41,6 +41,16 @@ def shipped_label() -> str:
 
 
 MODELS = {shipped_label(): None, "default-rig option": ROOT / "inference" / "weights" / "default_rig.safetensors"}
+
+
+def rest_scales() -> dict[str, float]:
+    """The unfitted points' sigma scale each model's cells run at (its JSON's ``rest_sigma``, else the product's,
+    ``recon.track.REST_SIGMA_SCALE``): recorded by the rule scripts, whose resumes are refused where it changed."""
+    from gearscan.inference.model_io import read_config
+    from gearscan.inference.predictor import DEFAULT_MODEL, model_rest_sigma_scale
+    from gearscan.recon.track import REST_SIGMA_SCALE
+
+    return {m: model_rest_sigma_scale(read_config(w or DEFAULT_MODEL)) or REST_SIGMA_SCALE for m, w in MODELS.items()}
 CANDIDATES: tuple[int | None, ...] = (None, 0, 1, 2)  # None: no test
 # a change from the incumbent needs a MARGIN lower score. The incumbent: 2 px in the rule's first run (24e4fa9) and in
 # its v9 rerun (session 39, the rule's text read literally); since the rule's amendment, what ships when a run starts
@@ -123,11 +133,14 @@ def main() -> None:
     from gearscan.recon.measure import FRAME_FIT_NETWORK_SUPPORT_PX
     from gearscan.recon.track import REST_SIGMA_SCALE
 
-    done = load_or_start(args.out, rest_sigma_scale=REST_SIGMA_SCALE)
+    scales = rest_scales()
+    done = load_or_start(args.out, rest_sigma_scale=REST_SIGMA_SCALE, rest_sigma_scale_by_model=scales)
     ran_at = done.setdefault("rest_sigma_scale", 1.0)  # a json without the key was written before the scale existed
-    if done["cells"] and ran_at != REST_SIGMA_SCALE:
-        raise SystemExit(f"{args.out}: its cells were scored with the unfitted points' sigma scale {ran_at}, this code "
-                         f"runs {REST_SIGMA_SCALE}; write to another --out")
+    # before session 54 every model's cells ran at the product's scale
+    ran_by_model = done.setdefault("rest_sigma_scale_by_model", dict.fromkeys(MODELS, ran_at))
+    if done["cells"] and (ran_at != REST_SIGMA_SCALE or ran_by_model != scales):
+        raise SystemExit(f"{args.out}: its cells were scored with the unfitted points' sigma scales {ran_by_model}, "
+                         f"this code runs {scales}; write to another --out")
     # what shipped when the run began; a json scored before the key existed ran with the first incumbent
     incumbent = done.setdefault("incumbent_px", FIRST_INCUMBENT if done["cells"] else FRAME_FIT_NETWORK_SUPPORT_PX)
     cells = done["cells"]

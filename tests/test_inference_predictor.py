@@ -630,6 +630,22 @@ def test_a_model_carries_its_own_rest_sigma_scale_and_the_frame_fit_reads_it(sav
         save_model(model, path, extra={"rest_sigma": bad})
         with pytest.raises(ModelFileError, match="rest_sigma: expected"):
             Predictor.load(path)
+    # whose scale a run's frame fit reads (recon.depth_sigma.decoder_rest_sigma): the model's own, chosen for this
+    # decode or naming none; stale where chosen for another; mc in Monte Carlo mode; else the product's
+    from gearscan.recon.depth_sigma import decoder_rest_sigma
+
+    class Run:
+        rest_sigma_scale, rest_sigma_chosen_for, model_fingerprint, mc = 2.0, "abc", "abc", 0
+
+    assert decoder_rest_sigma(Run()) == (2.0, "model")
+    Run.rest_sigma_chosen_for = None
+    assert decoder_rest_sigma(Run()) == (2.0, "model")
+    Run.mc = 20
+    assert decoder_rest_sigma(Run()) == (2.0, "mc")
+    Run.rest_sigma_chosen_for = "other"
+    assert decoder_rest_sigma(Run()) == (2.0, "stale")
+    Run.rest_sigma_scale = None
+    assert decoder_rest_sigma(Run()) == (None, "product")
     # the frame fit of a fused replay takes the model's own, else the product's
     from gearscan.replay import make_refiner
 

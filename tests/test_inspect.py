@@ -428,6 +428,10 @@ def test_inspect_says_when_three_step_decoded_turning_bursts(inspected) -> None:
 
     report, _, out, output = inspected
     assert report["fused"]["turning_three_step_bursts"] == 0 and "turned" not in output
+    # the frame fit's scale for unfitted points, as it ran: three-step PS names none, so the product's
+    from gearscan.recon.track import REST_SIGMA_SCALE
+
+    assert (report["fused"]["rest_sigma_scale"], report["fused"]["rest_sigma_source"]) == (REST_SIGMA_SCALE, "product")
 
     @dataclass
     class Fused:
