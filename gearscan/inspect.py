@@ -59,6 +59,8 @@ class InspectionReport:
     turning_three_step: int = 0  # bursts that turned and were decoded by three-step PS (--classical): sigma unmeasured
     rest_sigma_scale: float | None = None  # what the frame fit multiplied its unfitted points' sigma by, if it ran
     rest_sigma_source: str | None = None  # whose that scale is: model, stale (the model's, another decode) or product
+    model: str | None = None  # the network's weights that decoded the bursts (None: three-step PS)
+    model_fingerprint: str | None = None  # that decode's fingerprint (weights, sigma maps, gates)
 
 
 def partial(insp: Inspection, key: str) -> str:
@@ -257,7 +259,8 @@ def run_inspection(
     report = InspectionReport(insp, fused, grade, tolerances, classes, span, files, truth, metrics.refine or None,
                               (metrics.recon or {}).get("depth_sigma_source"),
                               (metrics.decoder or {}).get("turning_three_step", 0),
-                              (metrics.recon or {}).get("rest_sigma_scale"), (metrics.recon or {}).get("rest_sigma_source"))
+                              (metrics.recon or {}).get("rest_sigma_scale"), (metrics.recon or {}).get("rest_sigma_source"),
+                              (metrics.decoder or {}).get("model"), (metrics.decoder or {}).get("model_fingerprint"))
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
@@ -271,6 +274,8 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
     summary = insp.summary()
     return {
         "recording": str(recording),
+        # what decoded the bursts: the network's weights and its decode's fingerprint (None: three-step PS)
+        "model": {"path": report.model, "fingerprint": report.model_fingerprint},
         "revolution_deg": report.revolution_deg,
         "fused": {"points": len(report.fused), "bursts": report.fused.bursts_added, "voxel_mm": report.fused.voxel_mm,
                   "median_sigma_um": 1e3 * float(np.median(report.fused.sigma)),
@@ -321,6 +326,9 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
     summary = insp.summary()
     lines = [
         f"# Gear inspection: {recording.name}",
+        "",
+        ("Decoded by three-step PS." if report.model is None else
+         f"Decoded by the network `{report.model}` (decode fingerprint {report.model_fingerprint})."),
         "",
         f"Gear: z = {insp.teeth}, m = {insp.module:g} mm, pitch diameter {insp.pitch_diameter_mm:.2f} mm. "
         f"Fused model: {len(report.fused):,} points from {report.fused.bursts_added} bursts over "

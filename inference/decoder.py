@@ -159,8 +159,11 @@ class Decoder:
     def summary(self) -> dict:
         """What decoded the run: mode, bursts sent to three-step PS as still (and, in three-step mode, the bursts it
         decoded that turned: a baseline whose sigma has no motion term), the fringe orientation asked for and the
-        rig's as adopted (None: voted per burst throughout) with where it came from."""
-        return {"mode": self.mode, "still_bursts": self.still_bursts, "turning_three_step": self.turning_three_step,
+        rig's as adopted (None: voted per burst throughout) with where it came from, and which network (its weights'
+        path and the decode's fingerprint; None for three-step PS), so that a result names the model that made it."""
+        return {"mode": self.mode, "model": None if self.predictor is None or self.predictor.path is None
+                else str(self.predictor.path), "model_fingerprint": self.model_fingerprint,
+                "still_bursts": self.still_bursts, "turning_three_step": self.turning_three_step,
                 "orientation": self.orientation,
                 "rig_orientation": self.rig_orientation, "orientation_source": self.orientation_source,
                 "orientation_votes": dict(self._votes)}

@@ -305,6 +305,7 @@ class Predictor:
         self.rest_sigma_scale = model_rest_sigma_scale(self.meta)
         self.rest_sigma_chosen_for = (self.meta.get(REST_SIGMA_KEY) or {}).get("model_fingerprint")
         self.fingerprint: str | None = None  # the decode's model_fingerprint, known when loaded from files
+        self.path: Path | None = None  # the weights it was loaded from, where loaded from files
         # a private copy with BatchNorm folded into the convs: exact, and a pass less per block
         self.model = fold_batchnorm(copy.deepcopy(model).to(self.device).eval())
         if self.channels_last:
@@ -367,6 +368,7 @@ class Predictor:
         # the decode its files define (weights, both sigma maps, gates; not the overrides above): what a val choice
         # made for one decode (depth-sigma scales) is checked against
         predictor.fingerprint = model_fingerprint(path)
+        predictor.path = path
         return predictor
 
     def replica(self) -> Predictor:

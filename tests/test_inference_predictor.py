@@ -624,6 +624,10 @@ def test_a_model_carries_its_own_rest_sigma_scale_and_the_frame_fit_reads_it(sav
 
     model, path = saved
     assert Predictor.load(path).rest_sigma_scale is None and Decoder(classical=True).rest_sigma_scale is None
+    # a run's decoder summary (replay's metrics, inspect's report) names the network that decoded it
+    named = {"model": str(path), "model_fingerprint": model_fingerprint(path)}
+    assert named.items() <= Decoder(path, workers=1).summary().items()
+    assert (Decoder(classical=True).summary()["model"], Decoder(classical=True).summary()["model_fingerprint"]) == (None, None)
     save_model(model, path, extra={"rest_sigma": {"scale": 2.5}})
     assert Predictor.load(path).rest_sigma_scale == 2.5 and Decoder(path, workers=1).rest_sigma_scale == 2.5
     for bad in ({"scale": 0.5}, {"scale": float("nan")}, {"scale": True}, {}, 2.0):

@@ -432,6 +432,9 @@ def test_inspect_says_when_three_step_decoded_turning_bursts(inspected) -> None:
     from gearscan.recon.track import REST_SIGMA_SCALE
 
     assert (report["fused"]["rest_sigma_scale"], report["fused"]["rest_sigma_source"]) == (REST_SIGMA_SCALE, "product")
+    # and what decoded it: no network (--classical), said in both reports
+    assert report["model"] == {"path": None, "fingerprint": None}
+    assert "Decoded by three-step PS." in (out / "report.md").read_text()
 
     @dataclass
     class Fused:
