@@ -265,16 +265,25 @@ def predict(
         except ValueError as exc:
             raise typer.BadParameter(f"--angles-deg: expected three numbers 'A,B,C', got {angles_deg!r}") from exc
     fringes = "not used (three-step PS)"
+    # which way the burst went: the encoder's still rule, else the network behind its still-burst gate
+    whose_gate = "set" if still_burst_rad is not None else "the model's"
+    gate = (f"still-burst gate {predictor.still_burst_rad:g} rad ({whose_gate})" if predictor.still_burst_rad > 0
+            else f"no still-burst gate ({whose_gate})")
     try:
         if angles is not None and turned_less_than(angles, still_span_deg):  # the pipeline's still rule
             result = still_three_step_result(frames, resolve_full_scale(frames, full_scale))
+            route = f"the encoder's angles turned less than {still_span_deg:g} deg: three-step PS"
         else:
             # the orientation decided here, so that the output can say which one decoded the burst
             mirror = (fringe_phase_decreases_along_columns(frames_to_tensor(frames, full_scale))
                       if orientation == "auto" else orientation == "mirrored")
             result = predictor.predict(frames, mc=mc, full_scale=full_scale, angles=angles, mirror=mirror)
-            how = " (voted on this burst)" if orientation == "auto" else " (rig calibration)" if from_rig else " (set)"
-            fringes = ("mirrored" if mirror else "normal") + how
+            if result.mode == "three-step":  # the still-burst gate took it: no orientation decoded it
+                route = f"{gate} took it as still: three-step PS"
+            else:
+                how = " (voted on this burst)" if orientation == "auto" else " (rig calibration)" if from_rig else " (set)"
+                fringes = ("mirrored" if mirror else "normal") + how
+                route = f"the network, {gate}"
     except ValueError as exc:  # a motion-input model without angles, or bad angles
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -294,7 +303,8 @@ def predict(
     sigma_text = (f"median sigma_total {float(np.median(result.sigma_total[lit])):.4f} rad over the {100 * lit.mean():.0f} % "
                   "of pixels with fringes (modulation >= 0.05)" if lit.any() else "no pixel with fringes (modulation >= 0.05)")
     typer.echo(
-        f"{output}: {frames.shape[2]}x{frames.shape[1]} phase, mode {result.mode}, fringes {fringes}, {sigma_text}"
+        f"{output}: {frames.shape[2]}x{frames.shape[1]} phase, mode {result.mode}, fringes {fringes}, {sigma_text}; "
+        f"route: {route}"
     )
     if fringes.endswith("(voted on this burst)"):
         typer.secho("note: the fringe orientation was voted on this burst (--orientation auto); the vote "

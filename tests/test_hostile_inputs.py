@@ -94,18 +94,20 @@ def test_orientation_is_checked_and_mirrored_flips_the_decode(tmp_path):
     res = runner.invoke(app, ["predict", str(path), "--orientation", "sideways", "-o", str(tmp_path / "x.npz")])
     assert res.exit_code == 2 and "--orientation" in res.output and "sideways" in res.output, res.output
     assert not (tmp_path / "x.npz").exists()
-    for o in ("normal", "mirrored"):
-        res = runner.invoke(app, ["predict", str(path), "--orientation", o, "-o", str(tmp_path / f"{o}.npz")])
+    for o in ("normal", "mirrored"):  # the network's decode (no still-burst gate: this burst is still)
+        res = runner.invoke(app, ["predict", str(path), "--orientation", o, "--still-burst-rad", "0",
+                                  "-o", str(tmp_path / f"{o}.npz")])
         assert res.exit_code == 0, res.output
     (tmp_path / "m").mkdir()
     mirrored_in = _frames(tmp_path / "m", np.ascontiguousarray(frames[:, :, ::-1]))
-    res = runner.invoke(app, ["predict", str(mirrored_in), "--orientation", "mirrored", "-o", str(tmp_path / "mm.npz")])
+    res = runner.invoke(app, ["predict", str(mirrored_in), "--orientation", "mirrored", "--still-burst-rad", "0",
+                              "-o", str(tmp_path / "mm.npz")])
     assert res.exit_code == 0, res.output
     with np.load(tmp_path / "normal.npz") as a, np.load(tmp_path / "mm.npz") as b:
         np.testing.assert_allclose(b["phase"][:, ::-1], a["phase"], atol=1e-5)
         assert str(a["fringes"]) == "normal (set)" and str(b["fringes"]) == "mirrored (set)"  # what decoded it
     # auto votes on the burst, says what it chose, and warns that the vote can misread fast bursts
-    res = runner.invoke(app, ["predict", str(mirrored_in), "-o", str(tmp_path / "auto.npz")])
+    res = runner.invoke(app, ["predict", str(mirrored_in), "--still-burst-rad", "0", "-o", str(tmp_path / "auto.npz")])
     assert res.exit_code == 0 and "fringes mirrored (voted on this burst)" in res.output, res.output
     assert "pass --rig rig.json or set --orientation normal|mirrored" in res.output
     with np.load(tmp_path / "auto.npz") as c, np.load(tmp_path / "mm.npz") as b:
@@ -113,6 +115,7 @@ def test_orientation_is_checked_and_mirrored_flips_the_decode(tmp_path):
     # a burst the encoder saw standing still goes to three-step PS: no orientation, no note
     res = runner.invoke(app, ["predict", str(path), "--angles-deg", "0,0,0", "-o", str(tmp_path / "s.npz")])
     assert res.exit_code == 0 and "fringes not used (three-step PS)" in res.output and "note:" not in res.output
+    assert "route: the encoder's angles turned less than" in res.output
 
 
 def test_predict_takes_the_fringe_orientation_from_a_rig_calibration(tmp_path):
@@ -142,7 +145,13 @@ def test_predict_takes_the_fringe_orientation_from_a_rig_calibration(tmp_path):
     assert res.exit_code == 0 and "--orientation mirrored, but --rig" in res.output and "fringes mirrored (set)" in res.output
     res = runner.invoke(app, ["predict", str(path), "--rig", str(normal_rig), "--orientation", "normal",
                               "-o", str(tmp_path / "n.npz")])
+    # this still burst in its own orientation: the shipped still-burst gate takes it, and then no orientation decoded it
+    assert res.exit_code == 0 and "fringes not used (three-step PS)" in res.output and "warning" not in res.output, res.output
+    assert "route: still-burst gate 0.03 rad (the model's) took it as still: three-step PS" in res.output
+    res = runner.invoke(app, ["predict", str(path), "--rig", str(normal_rig), "--orientation", "normal",
+                              "--still-burst-rad", "0", "-o", str(tmp_path / "n0.npz")])
     assert res.exit_code == 0 and "fringes normal (set)" in res.output and "warning" not in res.output, res.output
+    assert "route: the network, no still-burst gate (set)" in res.output
     not_rig = tmp_path / "x.json"
     not_rig.write_text("{}")
     res = runner.invoke(app, ["predict", str(path), "--rig", str(not_rig), "-o", str(tmp_path / "x.npz")])
