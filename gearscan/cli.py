@@ -287,7 +287,7 @@ def _serve(bind: str, grpc_port: int, web_port: int):
 @app.command("replay")
 def replay_cmd(
     recording: Annotated[Path, typer.Argument(help="recording folder")],
-    save: Annotated[Path | None, typer.Option(help="write the rerun stream to this .rrd file")] = None,
+    save: Annotated[Path | None, typer.Option(help="write the rerun stream to this .rrd file (default without --connect or --serve: out/<recording>.rrd)")] = None,
     connect: Annotated[str | None, typer.Option(help="stream to a rerun viewer at this gRPC URL")] = None,
     serve: Annotated[bool, typer.Option(help="serve the web viewer (gRPC + web) from this machine")] = False,
     bind: Annotated[str, typer.Option(help="address --serve binds to")] = "127.0.0.1",

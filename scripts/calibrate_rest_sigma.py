@@ -11,6 +11,9 @@ smallest c in steps of 0.5 from 1 for which, in every cell, the points that c * 
 a median |error| / (c * sigma) of at most 0.6745. Each cell's arrays are kept in ``--recordings`` (``rest_*.npz``).
 Since rerun 6 (the rule's per-model amendment) the scale is chosen per model on its own cells: the shipped model's is
 the product's (``recon.track.REST_SIGMA_SCALE``), the option's goes into its JSON (``rest_sigma``) with ``--write``.
+Each cell records the decode it ran (``model_fingerprint``): a resume with another decode of a model is refused, and
+``--write`` stamps the option's scale with the decode its cells ran, refusing cells of another (or of none recorded,
+as before session 55: rerun them into a new ``--out``).
 """
 
 from __future__ import annotations
@@ -116,12 +119,17 @@ def main() -> None:
     done |= scales  # the product's, which its v9 cells read, and the option's own (before any cell is written)
     cells = done["cells"]
     for model, decoder, seed, order, rec in val_cells(args.recordings, args.bursts):
+        fingerprint = decoder.model_fingerprint  # the decode this cell is scored with (None: none recorded before)
+        stale = [c for c in cells if c["model"] == model and c.get("model_fingerprint", fingerprint) != fingerprint]
+        if stale:
+            raise SystemExit(f"{args.out}: the {model}'s cells were scored with another decode "
+                             f"({stale[0]['model_fingerprint']}, now {fingerprint}); write to another --out")
         if any((c["model"], c["seed"], c["order"]) == (model, seed, order) for c in cells):
             continue
         short = model.split()[0] if model.endswith("(shipped)") else "default_rig"  # v6 / v9 / the option
         keep = args.recordings / f"rest_{short}_{seed}_{order}.npz"
-        cells.append({"model": model, "seed": seed, "order": order, "arrays": str(keep.resolve()),
-                      **rest_z(rec, decoder, keep)})
+        cells.append({"model": model, "model_fingerprint": fingerprint, "seed": seed, "order": order,
+                      "arrays": str(keep.resolve()), **rest_z(rec, decoder, keep)})
         print({k: cells[-1][k] for k in ("model", "seed", "order", "rest", "rest_rms_um", "median_z")}, flush=True)
         args.out.write_text(json.dumps(done, indent=1))
     medians = [c["median_z"] for c in cells if c["median_z"] is not None]  # a cell with no unfitted point has none
@@ -175,8 +183,13 @@ def write_option_scale(done: dict, out: Path) -> None:
     row = done["scale_by_model"].get("default-rig option")
     if row is None or row["scale"] is None:
         raise SystemExit(f"{out}: no scale for the default-rig option's cells; nothing written")
+    now = model_fingerprint(weights)
+    scored = {c.get("model_fingerprint") for c in done["cells"] if c["model"] == "default-rig option"}
+    if scored != {now}:  # the scale is stamped with the decode its cells ran, never with whatever is there at write time
+        raise SystemExit(f"{out}: the default-rig option's cells were scored with decode(s) {sorted(map(str, scored))}, "
+                         f"the option is now {now}; rerun its cells (another --out) before --write; nothing written")
     meta = read_config(weights)
-    meta["rest_sigma"] = {"scale": row["scale"], "model_fingerprint": model_fingerprint(weights),
+    meta["rest_sigma"] = {"scale": row["scale"], "model_fingerprint": now,
                           "chosen_by": f"benchmarks/rest_sigma_rule.md (rerun 6, the per-model amendment), "
                                        f"{out.relative_to(ROOT) if out.is_relative_to(ROOT) else out}: the option's "
                                        "four val cells"}
