@@ -8,6 +8,10 @@ fused cloud is scored against the TRUE (as-built) mesh,
 not the CAD. Writes ``benchmarks/inspect_report.md`` (+ ``.json``) with host and commit.
 
     python benchmarks/inspect_bench.py [--recording DIR] [--classical] [--fixed-order] [--compare]
+    python benchmarks/inspect_bench.py --deg-per-frame 1.2 --report benchmarks/inspect_fast_report   # a faster turn
+
+``--deg-per-frame`` renders the same gear and defects turning faster (one revolution: round(120 / speed) bursts)
+into its own recording; the speed and burst count in the report are read from the recording.
 
 The revolution is recorded with every other burst in the order 0, 2, 1 (projector.alternate_order)
 unless ``--fixed-order``; ``--compare`` also fits the same revolution recorded the other way.
@@ -52,6 +56,12 @@ def commit() -> str:
     return f"{head} + uncommitted edits" if code_edits(HERE.parent) else head
 
 
+def motion_text(motion: str) -> str:
+    """``uniform:0.6`` as the report says it (0.6°/frame); any other motion spelled as the twin's option."""
+    kind, _, value = motion.partition(":")
+    return f"{value}°/frame" if kind == "uniform" and value else motion
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--recording", type=Path, default=None,
@@ -70,9 +80,14 @@ def main() -> None:
                          "calibration since session 43; normal: the twin rig's, set)")
     ap.add_argument("--network-support-px", type=int, default=None,
                     help="the reconstructor's fringe-support test for network pixels (-1: none; default: the model's own, else the product's)")
+    ap.add_argument("--deg-per-frame", type=float, default=0.6,
+                    help="turntable speed of the rendered revolution, deg per frame (default 0.6: the benchmark's; "
+                         "another speed renders its own recording of one revolution, round(120 / speed) bursts)")
     ap.add_argument("--voxel-mm", type=float, default=0.1)
     ap.add_argument("--min-bursts", type=int, default=3)
     args = ap.parse_args()
+    if not 0 < args.deg_per_frame <= 6:
+        ap.error(f"--deg-per-frame: expected a speed in (0, 6] deg per frame, got {args.deg_per_frame}")
     commit()  # before this run writes its report: a tree dirty with it is not an edit
 
     import open3d as o3d
@@ -89,21 +104,24 @@ def main() -> None:
     alternate = not args.fixed_order
 
     def recording(alt: bool) -> Path:
+        speed = "" if args.deg_per_frame == 0.6 else f"_{args.deg_per_frame:g}deg"
         path = args.recording if args.recording is not None and alt == alternate else \
-            Path(f"out/inspect_bench/rec_{'alternate' if alt else 'fixed'}")
+            Path(f"out/inspect_bench/rec_{'alternate' if alt else 'fixed'}{speed}")
         if not (path / "recording.json").exists():
             from gearscan.twin.recordings import render_recording
 
             t = time.perf_counter()
             render_recording(path, defects=GearDefects.from_options(
                 eccentricity_um=DEFECTS["eccentricity_um"], pitch_errors=DEFECTS["pitch_errors"], chips=DEFECTS["chips"]),
-                motion="uniform:0.6", bursts=200, alternate_order=alt)
+                motion=f"uniform:{args.deg_per_frame:g}", bursts=round(120 / args.deg_per_frame), alternate_order=alt)
             print(f"rendered {path} in {time.perf_counter() - t:.0f} s")
         return path
 
     args.recording = recording(alternate)
     reader = RecordingReader(args.recording)
     truth = reader.meta["truth"]
+    motion = reader.meta.get("twin", {}).get("motion", "unknown motion")  # what the recording was rendered with
+    bursts = reader.meta["frame_count"] // 3
     decoder = Decoder(args.model, classical=args.classical, orientation=args.orientation)
     depth_scales = check_scales(decoder.depth_sigma_scales or DEPTH_SIGMA_SCALES)  # what the reconstructor reads (the model's own)
     # the frame-fit path's test (the model's own for inspect, else the product's) and keep bound on both runs: the
@@ -225,11 +243,11 @@ def main() -> None:
         f"{'' if args.network_support_px is None else f' --network-support-px {args.network_support_px}'}`"
         f" — commit {commit()}, host: {started}.",
         "",
-        f"Twin: default rig 512x512, z = 20, m = 2 mm, 0.6°/frame, 200 bursts ({report.revolution_deg:.0f}° of encoder "
+        f"Twin: default rig 512x512, z = 20, m = 2 mm, {motion_text(motion)}, {bursts} bursts ({report.revolution_deg:.0f}° of encoder "
         f"angle), eccentricity 50 µm, tooth 3 +30 µm pitch error, tooth 7 tip chipped 0.3 mm; pattern order "
         f"{order_name}. Decoder: {decoder}. "
         f"Replay + fusion + inspection: {seconds:.0f} s (the recording rendered beforehand by this script's "
-        "render step, or `gearscan twin render REC --bursts 200 --motion uniform:0.6 --eccentricity-um 50 "
+        f"render step, or `gearscan twin render REC --bursts {bursts} --motion {motion} --eccentricity-um 50 "
         f"--pitch-error 3:30 --chip 7:0.3{' --alternate-order' if alternate else ''}`).",
         "",
         "## Inspection vs the twin's truth (acceptance: within 5 µm + 5 %)",
@@ -327,7 +345,7 @@ def main() -> None:
     ]
     args.report.with_suffix(".md").write_text("\n".join(lines))
     args.report.with_suffix(".json").write_text(json.dumps({
-        "commit": commit(), "host": started, "seconds": seconds, "decoder": decoder, "max_sigma_rad": bound,
+        "commit": commit(), "host": started, "motion": motion, "bursts": bursts, "seconds": seconds, "decoder": decoder, "max_sigma_rad": bound,
         "fused_rms_mm": rms, "fused_p95_mm": float(np.percentile(dist, 95)), "coverage": coverage,
         "fused_only_rms_mm": plain_rms, "refined_fraction": float(refined.mean()), "refined_rms_mm": rms_refined,
         "refined_before_rms_mm": before_refined, "kept_rms_mm": rms_kept, "plain_seconds": plain_seconds,
