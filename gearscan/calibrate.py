@@ -122,20 +122,15 @@ def calibrate(
 
 def depth_range_line(rig, period_px: float) -> str:
     """How far along the camera rays one fringe order reaches, at the turntable axis's depth:
-    the depth a surface may stray from its prior (CAD or coarse burst) and keep its fringe order."""
+    the depth a surface may stray from its prior (CAD or coarse burst) and keep its fringe order
+    (the projector's lens distortion included)."""
     import numpy as np
 
-    from gearscan.recon.reconstruct import SingleFrequencyReconstructor
+    from gearscan.recon.unwrap import unambiguous_depth_window
 
-    if np.any(rig.projector.dist != 0):
-        return "unambiguous depth range: not stated for a distorted projector (see `gearscan live --check` with a gear)"
     z_axis = float((rig.camera.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
-    sf = SingleFrequencyReconstructor(rig, period_px, threads=1)
-    try:
-        depth = np.full((rig.camera.height, rig.camera.width), z_axis, np.float32)
-        lo, hi = sf.depth_window(depth)
-    finally:
-        sf.close()
+    depth = np.full((rig.camera.height, rig.camera.width), z_axis)
+    lo, hi = unambiguous_depth_window(rig, period_px, depth)
     ok = np.isfinite(lo) & np.isfinite(hi)
     if not ok.any():
         return f"unambiguous depth range: not stated (no projector fringe reaches the image at the axis depth {z_axis:.0f} mm)"

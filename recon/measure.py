@@ -249,14 +249,16 @@ class Reconstructor:
     def depth_range_mm(self, angle: float = 0.0) -> dict[str, float]:
         """The rig's unambiguous depth range (camera z, mm) on the gear's CAD surface at ``angle``:
         how far a surface may deviate from its prior and still get the right fringe order."""
-        from gearscan.recon.reconstruct import SingleFrequencyReconstructor
+        from gearscan.recon.unwrap import unambiguous_depth_window
 
         cad = self.cad
         if cad is None:
             raise ValueError("depth_range_mm needs the gear's CAD (unwrap='cad')")
         depth = cad.depth(angle)
-        sf = self.fused or SingleFrequencyReconstructor(self.rig, self.period_px, margin=self.margin, threads=1)
-        lo, hi = sf.depth_window(depth)
+        if self.fused is not None:  # the fused path's own closed form (an undistorted projector)
+            lo, hi = self.fused.depth_window(depth)
+        else:  # a distorted projector: along each ray, with its distortion
+            lo, hi = unambiguous_depth_window(self.rig, self.period_px, depth, margin=self.margin)
         ok = np.isfinite(lo) & np.isfinite(hi)
         if not ok.any():
             raise ValueError("the camera does not see the gear: no unambiguous range to state")

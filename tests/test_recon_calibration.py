@@ -157,6 +157,13 @@ def test_calibrate_states_the_unambiguous_depth_range():
     fine, coarse = numbers(depth_range_line(default_rig(), 40.0)), numbers(depth_range_line(default_rig(), 160.0))
     assert all(1.3 < v < 1.9 for v in fine)
     assert all(3.5 < c / f < 4.5 for c, f in zip(coarse, fine, strict=True))
+    # a calibrated projector always has some lens distortion (OpenCV fits k1, k2, p1, p2): the range is still stated
+    import dataclasses
+
+    rig = default_rig()
+    lens = dataclasses.replace(rig.projector, dist=np.array([-0.05, 0.01, 1e-4, -1e-4, 0.0]))
+    distorted = numbers(depth_range_line(dataclasses.replace(rig, projector=lens), 40.0))
+    assert all(abs(d - f) < 0.05 for d, f in zip(distorted, fine, strict=True))
 
 
 def test_calibration_refuses_encoder_angles_the_board_contradicts(twin_set):

@@ -20,6 +20,7 @@ from gearscan.recon.unwrap import (
     min_unambiguous_period,
     phase_bounds,
     temporal_unwrap,
+    unambiguous_depth_window,
 )
 from gearscan.twin.render import Optics, TwinRenderer
 
@@ -272,3 +273,50 @@ def test_grow_orders_follows_continuous_phase_and_flags_where_two_surfaces_meet(
     grown, _ = grow_orders(np.angle(np.exp(1j * step)), np.where(np.arange(40) < 5, step, np.nan),
                            np.ones(truth.shape, bool), steps=40, max_step=1.2)
     assert np.isnan(grown[:, 20:]).all() and np.isfinite(grown[:, :20]).all()
+
+
+def _distorted(rig, k1: float):
+    import dataclasses
+
+    dist = np.zeros(5)
+    dist[0] = k1
+    return dataclasses.replace(rig, projector=dataclasses.replace(rig.projector, dist=dist))
+
+
+def test_unambiguous_window_is_the_closed_form_without_distortion():
+    """The search along the rays against the fused path's closed form (an undistorted projector): the same window,
+    about +-1.6 mm at the axis depth with 40 px fringes (two compute paths: within 1 um)."""
+    from gearscan.recon.reconstruct import SingleFrequencyReconstructor
+
+    rig = default_rig(128, 128)
+    z_axis = float((rig.camera.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
+    depth = np.full((128, 128), z_axis)
+    depth[:4] = np.nan  # no prior: no window
+    lo, hi = unambiguous_depth_window(rig, 40.0, depth, margin=0.2)
+    sf = SingleFrequencyReconstructor(rig, 40.0, margin=0.2, threads=1)
+    try:
+        lo_c, hi_c = sf.depth_window(depth.astype(np.float32))
+    finally:
+        sf.close()
+    assert np.isnan(lo[:4]).all() and np.isnan(hi[:4]).all() and np.isfinite(lo[4:]).all()
+    np.testing.assert_allclose(lo[4:], lo_c[4:], atol=1e-3)
+    np.testing.assert_allclose(hi[4:], hi_c[4:], atol=1e-3)
+    assert 1.3 < np.median(z_axis - lo[4:]) < 1.9 and 1.3 < np.median(hi[4:] - z_axis) < 1.9
+
+
+def test_unambiguous_window_follows_the_projector_distortion():
+    """A projector with barrel distortion: at both ends of each ray's window the phase, projected through the
+    distorted lens by phase_bounds (world coordinates, another path), is pi - margin from the phase at the prior; the
+    window is not the undistorted one (the distortion moves it by about 25 um at the image edge)."""
+    rig = _distorted(default_rig(96, 96), k1=-0.3)
+    z_axis = float((rig.camera.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
+    depth = np.full((96, 96), z_axis)
+    lo, hi = unambiguous_depth_window(rig, 40.0, depth, margin=0.2)
+    assert np.isfinite(lo).all() and np.isfinite(hi).all() and (lo < depth).all() and (hi > depth).all()
+    centre, _ = phase_bounds(rig, DepthBounds(depth, depth), 40.0)
+    at_lo, _ = phase_bounds(rig, DepthBounds(lo, lo), 40.0)
+    at_hi, _ = phase_bounds(rig, DepthBounds(hi, hi), 40.0)
+    np.testing.assert_allclose(np.abs(at_lo - centre), math.pi - 0.2, atol=1e-5)
+    np.testing.assert_allclose(np.abs(at_hi - centre), math.pi - 0.2, atol=1e-5)
+    plain_lo, _ = unambiguous_depth_window(_distorted(rig, 0.0), 40.0, depth, margin=0.2)
+    assert np.max(np.abs(lo - plain_lo)) > 0.015
