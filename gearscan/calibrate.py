@@ -101,20 +101,28 @@ def calibrate(
         f"stereo RMS {rep['stereo_rms_px']:.3f} px, baseline {rep['baseline_mm']:.3f} mm, "
         f"{len(rep['views_used'])} views used, {len(rep['views_skipped'])} skipped"
     )
+    lens = rep.get("lens_model", {})
+    if lens:
+        console.print("lens models (chosen on held-out views): " + ", ".join(
+            f"{dev} {m['chosen']}" + (f" ({m['why']})" if m["chosen"] != "given" and "heldout_rms_px" not in m else "")
+            for dev, m in lens.items()))
     if "angle_error_deg_rms" in rep.get("turntable_axis", {}):
         console.print(f"turntable: the board's rotations agree with the encoder angles within "
                       f"{rep['turntable_axis']['angle_error_deg_rms']:.3f} deg RMS")
     if len(rep["views_used"]) < FEW_VIEWS:
         console.print(f"[yellow]warning:[/yellow] only {len(rep['views_used'])} usable views: the RMS above says "
                       "nothing about what so few leave unconstrained (on the twin, two choices of 3 views put the "
-                      f"turntable axis 0.33 and 1.58 deg off where 16 put it 0.06 deg); use {FEW_VIEWS} or more, "
+                      f"turntable axis 0.33 and 1.58 deg off where 16 put it 0.02-0.08 deg); use {FEW_VIEWS} or more, "
                       "spread over the image and "
                       "the turntable")
     if truth is not None:
         cmp = compare_rigs(result.rig, truth)
+        cyl = cylinder_check(result.rig, truth)
         console.print(
             f"vs twin truth: baseline error {cmp['baseline_rel_error'] * 100:.4f} %, "
-            f"axis error {cmp['axis_error_deg']:.4f} deg"
+            f"axis error {cmp['axis_error_deg']:.4f} deg; a 20 mm cylinder about the axis, seen by the true rig and "
+            f"triangulated with this one: {cyl['rms_um']:.1f} um RMS, radius {cyl['radius_bias_um']:+.1f} um "
+            f"(spread {cyl['radius_spread_um']:.1f} um)"
         )
     console.print(depth_range_line(result.rig, period))
     console.print(f"wrote {output}, {plot_path}, {unity_path}")
@@ -138,6 +146,40 @@ def depth_range_line(rig, period_px: float) -> str:
     return (f"unambiguous depth range at {period_px:g} px fringes, {z_axis:.0f} mm from the camera (the turntable axis): "
             f"-{np.median(minus):.2f}/+{np.median(plus):.2f} mm (median over the image; at least "
             f"-{minus.min():.2f}/+{plus.min():.2f} mm); wider fringes widen it in proportion")
+
+
+def cylinder_check(estimate, truth, *, radius_mm: float = 20.0, half_height_mm: float = 10.0, points: int = 4000,
+                   seed: int = 0) -> dict[str, float]:
+    """What a calibration's error does to a measurement (twin checks): points of a cylinder about the true turntable
+    axis, on the side facing the camera, are seen by the TRUE rig (camera pixel, projector column) and triangulated
+    with the ESTIMATED one. Returns the points' 3D RMS error and the bias and spread of their radius about the
+    estimated axis (um), and how many were triangulated."""
+    import cv2
+    import numpy as np
+
+    from gearscan.recon.unwrap import ray_depth_at_phase
+
+    rng = np.random.default_rng(seed)
+    c = truth.camera.center_world
+    theta = np.arctan2(c[1], c[0]) + rng.uniform(-0.6, 0.6, points)  # +-34 deg around the camera's side
+    true = np.stack([radius_mm * np.cos(theta), radius_mm * np.sin(theta),
+                     rng.uniform(-half_height_mm, half_height_mm, points)], axis=1)
+    pix = truth.camera.project(true)
+    column = truth.projector.project(true)[:, 0]
+    w, h = truth.camera.width, truth.camera.height
+    seen = (pix[:, 0] >= 0) & (pix[:, 0] <= w - 1) & (pix[:, 1] >= 0) & (pix[:, 1] <= h - 1)
+    cam = estimate.camera
+    xy = cv2.undistortPoints(pix[seen].reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    z_axis = float((cam.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
+    z = ray_depth_at_phase(estimate, 1.0, rays, 2 * np.pi * column[seen], np.full(len(rays), z_axis))
+    ok = np.isfinite(z)
+    p_cam = rays[ok] * z[ok, None]
+    p_world = p_cam @ cam.T_world_from[:3, :3].T + cam.T_world_from[:3, 3]
+    err = np.linalg.norm(p_world - true[seen][ok], axis=1)
+    radius = np.hypot(p_world[:, 0], p_world[:, 1]) - radius_mm
+    return {"points": int(ok.sum()), "rms_um": float(1e3 * np.sqrt(np.mean(err**2))),
+            "radius_bias_um": float(1e3 * radius.mean()), "radius_spread_um": float(1e3 * radius.std())}
 
 
 def compare_rigs(estimate, truth) -> dict[str, float]:

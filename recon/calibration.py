@@ -8,6 +8,10 @@ Steps (:func:`calibrate_rig`):
    vertical (``v_p``) fringes, temporally unwrapped; a modulation-weighted local quadratic fit
    around the corner evaluates the phase at the sub-pixel corner. The projector is then
    calibrated as an inverse camera from the same board points.
+   Each device's lens model (none, k1, k1 k2, k1 k2 p1 p2) is chosen by the views' evidence: the
+   simplest whose reprojection RMS on views held out of its fit is within 1 % of the best
+   (:func:`choose_lens_model`); a narrow board footprint otherwise fits wild coefficients that
+   nothing in the views pins (the twin's undistorted projector came out k2 = 7.4).
 3. Stereo extrinsics ``T_proj_from_cam`` (``stereoCalibrateExtended`` with both intrinsics
    fixed), per-view reprojection errors of both devices.
 4. The turntable axis from the views of a board fixed on the turntable at known encoder
@@ -241,9 +245,67 @@ def _rt_to_t(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
 # tens of degrees (the twin's calibration agrees within a few hundredths)
 MAX_ANGLE_ERROR_DEG = 1.0
 # fewer usable views than this calibrate, with a warning: the fit's RMS says nothing about what so few views leave
-# unconstrained (the twin's 16 views put its axis 0.06 deg from the truth; three of them 0.33 deg (its first three
+# unconstrained (the twin's 16 views put its axis 0.02-0.08 deg from the truth over three render seeds; three of them 0.33 deg (its first three
 # turntable views) or 1.58 deg (another three, session 53's audit))
 FEW_VIEWS = 8
+
+
+# lens models a device is fitted with, simplest first (OpenCV flags: what each leaves free); k3 is never fitted
+LENS_MODELS = ("none", "k1", "k1k2", "k1k2p1p2")
+# a richer lens model is taken only where it lowers the held-out reprojection RMS by more than this share: on the
+# twin's undistorted devices every model held out within 0.4 % of the others, while the free k2 came out 4.4-7.4
+# (an extrapolation hazard outside the board's footprint); a real lens's distortion lowers it by far more
+LENS_PARSIMONY = 0.01
+
+
+def lens_flags(model: str) -> int:
+    """OpenCV calibration flags that fit exactly the coefficients of a :data:`LENS_MODELS` entry."""
+    import cv2
+
+    fixed = {"none": cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_ZERO_TANGENT_DIST,
+             "k1": cv2.CALIB_FIX_K2 | cv2.CALIB_ZERO_TANGENT_DIST,
+             "k1k2": cv2.CALIB_ZERO_TANGENT_DIST, "k1k2p1p2": 0}
+    if model not in fixed:
+        raise ValueError(f"lens model: expected one of {', '.join(LENS_MODELS)}, got {model!r}")
+    return fixed[model] | cv2.CALIB_FIX_K3
+
+
+def choose_lens_model(objs: list, imgs: list, size: tuple[int, int], criteria) -> tuple[int, dict]:
+    """The lens model the views support: each model's reprojection RMS on views it was not fitted to (up to 5 folds;
+    a held-out view's pose re-solved with the fold's intrinsics), the simplest within :data:`LENS_PARSIMONY` of the
+    best. Returns its flags and what chose it (with fewer than 4 views: the richest model, said)."""
+    import cv2
+
+    n = len(objs)
+    if n < 4:
+        return lens_flags("k1k2p1p2"), {"chosen": "k1k2p1p2", "why": f"not chosen: {n} views are too few to hold "
+                                        "any out (4 needed); the richest model fitted"}
+    folds = min(n, 5)
+    heldout: dict[str, float] = {}
+    for model in LENS_MODELS:
+        sq, count = 0.0, 0
+        try:
+            for f in range(folds):
+                fit = [i for i in range(n) if i % folds != f]
+                _, k, d, *_ = cv2.calibrateCamera([objs[i] for i in fit], [imgs[i] for i in fit], size, None, None,
+                                                  flags=lens_flags(model), criteria=criteria)
+                for i in range(f, n, folds):
+                    ok, rv, tv = cv2.solvePnP(objs[i], imgs[i], k, d)
+                    if not ok:
+                        raise cv2.error(f"no pose for held-out view {i}")
+                    proj, _ = cv2.projectPoints(objs[i], rv, tv, k, d)
+                    sq += float(np.sum((proj.reshape(-1, 2) - imgs[i].reshape(-1, 2)) ** 2))
+                    count += len(objs[i])
+        except cv2.error:  # this model cannot be fitted on the folds: not a candidate
+            continue
+        heldout[model] = math.sqrt(sq / count)
+    if not heldout:
+        return lens_flags("k1k2p1p2"), {"chosen": "k1k2p1p2", "why": "not chosen: no model fitted on the folds; the "
+                                        "richest model fitted"}
+    best = min(heldout.values())
+    chosen = next(m for m in LENS_MODELS if m in heldout and heldout[m] <= best * (1 + LENS_PARSIMONY))
+    return lens_flags(chosen), {"chosen": chosen, "heldout_rms_px": heldout, "folds": folds,
+                                "why": f"the simplest model within {100 * LENS_PARSIMONY:g} % of the best held-out RMS"}
 
 
 def fit_turntable_axis(t_cam_from_board: Sequence[np.ndarray], angles: Sequence[float]) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -334,7 +396,8 @@ def calibrate_rig(
 ) -> CalibrationResult:
     """Full calibration from decoded board views (see module docstring).
 
-    ``camera_size``/``projector_size`` are ``(width, height)``. Views where the board is not
+    ``camera_size``/``projector_size`` are ``(width, height)``. Each device's lens model is chosen on held-out
+    views (:func:`choose_lens_model`) unless its OpenCV ``*_flags`` are given. Views where the board is not
     found are skipped and listed in the report; at least 3 are needed, 3 of them on the
     turntable (``turntable_angle`` set) for the axis.
     """
@@ -360,8 +423,16 @@ def calibrate_rig(
         raise CalibrationError(f"only {len(used)} usable board views (need >= 3); skipped: {skipped}")
     objs = [obj.reshape(-1, 1, 3)] * len(used)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    cflags = cv2.CALIB_FIX_K3 if camera_flags is None else camera_flags
-    pflags = cv2.CALIB_FIX_K3 if projector_flags is None else projector_flags
+    lens = {}
+    if camera_flags is None:
+        camera_flags, lens["camera"] = choose_lens_model(objs, img_c, camera_size, crit)
+    else:
+        lens["camera"] = {"chosen": "given", "flags": int(camera_flags)}
+    if projector_flags is None:
+        projector_flags, lens["projector"] = choose_lens_model(objs, img_p, projector_size, crit)
+    else:
+        lens["projector"] = {"chosen": "given", "flags": int(projector_flags)}
+    cflags, pflags = camera_flags, projector_flags
     rms_c, k_c, d_c, rv_c, tv_c, *_, err_c = cv2.calibrateCameraExtended(objs, img_c, camera_size, None, None, flags=cflags, criteria=crit)
     rms_p, k_p, d_p, rv_p, tv_p, *_, err_p = cv2.calibrateCameraExtended(objs, img_p, projector_size, None, None, flags=pflags, criteria=crit)
     stereo = cv2.stereoCalibrateExtended(
@@ -411,6 +482,7 @@ def calibrate_rig(
         "projector_view_rms_px": np.asarray(err_p).ravel().tolist(),
         "stereo_view_rms_px": np.asarray(err_s).reshape(len(used), -1).tolist(),
         "baseline_mm": rig.baseline_mm,
+        "lens_model": lens,
         "turntable_axis": {
             "direction_cam": direction.tolist(),
             "point_cam_mm": point.tolist(),

@@ -337,42 +337,52 @@ def phase_bounds(rig: Rig, bounds: DepthBounds, period_px: float) -> tuple[np.nd
     return lo, hi
 
 
-def unambiguous_depth_window(
-    rig: Rig, period_px: float, depth: np.ndarray, *, margin: float = 0.2, iterations: int = 30
-) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest and farthest camera z-depth (mm) along each pixel's ray whose projector phase stays within
-    ``pi - margin`` of the phase at ``depth``: how far a surface may stray from that prior and keep its fringe
-    order, for any projector (its lens distortion included). ``(H, W)`` each; NaN where ``depth`` is NaN or the
-    search along the ray does not converge (a ray that leaves the projector's field behind the camera)."""
-    depth = np.asarray(depth, np.float64)
-    cam = rig.camera
-    if depth.shape != (cam.height, cam.width):
-        raise ValueError(f"depth: expected shape {(cam.height, cam.width)} (camera H, W), got {depth.shape}")
-    if not period_px > 0:
-        raise ValueError(f"period_px: expected > 0, got {period_px}")
-    rays = cam.pixel_rays()
-    rays = (rays / rays[..., 2:3])[np.isfinite(depth)]  # (x, y, 1) of the pixels with a prior
+def ray_depth_at_phase(
+    rig: Rig, period_px: float, rays: np.ndarray, target: np.ndarray, z0: np.ndarray, *, iterations: int = 30
+) -> np.ndarray:
+    """Camera z-depth along each ray where the projector's absolute phase is ``target``, for any projector (its lens
+    distortion included): Newton from ``z0``. ``rays``: ``(N, 3)`` camera-frame directions scaled to z = 1; NaN where
+    the search does not converge (a ray that leaves the projector's field, or a depth behind the camera)."""
     t = rig.T_proj_from_cam
     r_proj, t_proj = rays @ t[:3, :3].T, t[:3, 3]
 
     def phase(z: np.ndarray) -> np.ndarray:  # absolute projector phase at camera depth z along each ray
         return TWO_PI * rig.projector.project_device(r_proj * z[:, None] + t_proj)[:, 0] / period_px
 
-    z0 = depth[np.isfinite(depth)]
-    centre, half, step = phase(z0), math.pi - margin, 1e-3  # mm: the derivative's step (~2e-3 rad on 40 px fringes)
+    z, step = np.asarray(z0, np.float64).copy(), 1e-3  # mm: the derivative's step (~2e-3 rad on 40 px fringes)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for _ in range(iterations):
+            miss = target - phase(z)
+            if not np.any(np.abs(miss) >= 1e-6):  # NaN counts as converged: it stays NaN
+                break
+            z = z + miss / ((phase(z + step) - phase(z - step)) / (2 * step))
+        ok = (np.abs(phase(z) - target) < 1e-6) & (z > 0)
+    return np.where(ok, z, np.nan)
+
+
+def unambiguous_depth_window(
+    rig: Rig, period_px: float, depth: np.ndarray, *, margin: float = 0.2
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest and farthest camera z-depth (mm) along each pixel's ray whose projector phase stays within
+    ``pi - margin`` of the phase at ``depth``: how far a surface may stray from that prior and keep its fringe
+    order, for any projector (its lens distortion included). ``(H, W)`` each; NaN where ``depth`` is NaN or the
+    search along the ray does not converge (:func:`ray_depth_at_phase`)."""
+    depth = np.asarray(depth, np.float64)
+    cam = rig.camera
+    if depth.shape != (cam.height, cam.width):
+        raise ValueError(f"depth: expected shape {(cam.height, cam.width)} (camera H, W), got {depth.shape}")
+    if not period_px > 0:
+        raise ValueError(f"period_px: expected > 0, got {period_px}")
+    prior = np.isfinite(depth)
+    rays = cam.pixel_rays()
+    rays = (rays / rays[..., 2:3])[prior]  # (x, y, 1) of the pixels with a prior
+    z0 = depth[prior]
+    t = rig.T_proj_from_cam
+    at_prior = rig.projector.project_device((rays * z0[:, None]) @ t[:3, :3].T + t[:3, 3])[:, 0]
+    centre, half = TWO_PI * at_prior / period_px, math.pi - margin
+    ends = [ray_depth_at_phase(rig, period_px, rays, target, z0) for target in (centre - half, centre + half)]
     lo, hi = np.full(depth.shape, np.nan), np.full(depth.shape, np.nan)
-    ends = []
-    for target in (centre - half, centre + half):  # Newton along each ray from the prior's depth
-        z = z0.copy()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            for _ in range(iterations):
-                miss = target - phase(z)
-                if not np.any(np.abs(miss) >= 1e-6):  # NaN counts as converged: it stays NaN
-                    break
-                z = z + miss / ((phase(z + step) - phase(z - step)) / (2 * step))
-            ok = np.abs(phase(z) - target) < 1e-6
-        ends.append(np.where(ok & (z > 0), z, np.nan))
-    lo[np.isfinite(depth)], hi[np.isfinite(depth)] = np.fmin(*ends), np.fmax(*ends)
+    lo[prior], hi[prior] = np.fmin(*ends), np.fmax(*ends)
     return lo, hi
 
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from gearscan.calibrate import calibrate, compare_rigs
+from gearscan.calibrate import calibrate, compare_rigs, cylinder_check
 from gearscan.core.rig import Rig, default_rig, rot_z
 from gearscan.recon.board_io import load_captures, save_captures
 from gearscan.recon.calibration import (
@@ -61,12 +61,55 @@ def test_calibration_recovers_the_default_rig(twin_set, tmp_path):
     assert rep["projector_rms_px"] < 0.2
     assert len(rep["camera_view_rms_px"]) == len(views)
     cmp = compare_rigs(res.rig, rig)
-    assert cmp["baseline_rel_error"] < 1e-3, cmp
-    assert cmp["axis_error_deg"] < 0.05, cmp
+    assert cmp["baseline_rel_error"] < 2e-3, cmp  # 0.09 %: the narrow field trades it against the focal lengths
+    # the axis from 16 noisy board poses: 0.02-0.08 deg over render seeds (benchmarks/calibration_accuracy_report.md)
+    assert cmp["axis_error_deg"] < 0.1, cmp
     # the recovered world frame is the rig's: centres within a fraction of a mm
     assert cmp["camera_center_error_mm"] < 1.0, cmp
     assert cmp["projector_center_error_mm"] < 1.5, cmp
-    np.testing.assert_allclose(res.rig.camera.K, rig.camera.K, rtol=3e-3, atol=3.0)
+    # focal lengths within 0.3 %; the principal point within 5 px (a 9 deg field pins it loosely: the board poses
+    # trade it against the pose, and a measurement does not see it; the cylinder below does)
+    np.testing.assert_allclose(np.diag(res.rig.camera.K), np.diag(rig.camera.K), rtol=3e-3)
+    np.testing.assert_allclose(res.rig.camera.K[:2, 2], rig.camera.K[:2, 2], atol=5.0)
+    # what a measurement sees: a 20 mm cylinder about the axis, seen by the true rig, triangulated with this one
+    # (this seed: 6.2 um RMS, radius +3.3 um; before the twin's n-rooks board sampling 45.6 um and -42.5 um)
+    cyl = cylinder_check(res.rig, rig)
+    assert cyl["points"] == 4000 and cyl["rms_um"] < 12 and abs(cyl["radius_bias_um"]) < 10, cyl
+    # the twin's projector has no distortion and the held-out views say so: no coefficient is fitted
+    assert rep["lens_model"]["projector"]["chosen"] == "none" and not res.rig.projector.dist.any()
+    assert set(rep["lens_model"]["camera"]["heldout_rms_px"]) == {"none", "k1", "k1k2", "k1k2p1p2"}
+
+
+def test_lens_model_follows_the_evidence(twin_set):
+    """The twin's board poses seen through a lens with barrel distortion (k1 = -5: 8 px at the image corner of this long
+    focal length, 0.05 px noise): a model with k1 is chosen, the distortion-free model's held-out RMS is many times the
+    noise; the same poses through the undistorted lens choose none."""
+    import cv2
+
+    from gearscan.recon.calibration import choose_lens_model, lens_flags
+
+    rig, board, _, views = twin_set
+    obj = board.object_points().reshape(-1, 1, 3).astype(np.float32)
+    imgs = [detect_corners(v.white, board).astype(np.float32).reshape(-1, 1, 2) for v in views]
+    objs = [obj] * len(imgs)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    _, k, _, rvs, tvs = cv2.calibrateCamera(objs, imgs, (512, 512), None, None, flags=lens_flags("none"), criteria=crit)
+    rng = np.random.default_rng(3)
+
+    def seen(dist):
+        return [(cv2.projectPoints(obj, rv, tv, k, dist)[0] + rng.normal(0, 0.05, (len(obj), 1, 2))).astype(np.float32)
+                for rv, tv in zip(rvs, tvs, strict=True)]
+
+    _, lens = choose_lens_model(objs, seen(np.array([-5.0, 0.0, 0.0, 0.0, 0.0])), (512, 512), crit)
+    assert lens["chosen"] in ("k1", "k1k2") and lens["folds"] == 5
+    assert lens["heldout_rms_px"]["none"] > 4 * lens["heldout_rms_px"][lens["chosen"]]
+    _, plain = choose_lens_model(objs, seen(np.zeros(5)), (512, 512), crit)
+    assert plain["chosen"] == "none"
+    assert plain["heldout_rms_px"]["none"] < 0.08  # the noise (0.05 px per axis: 0.071 px in 2D), nothing fitted
+    flags, few = choose_lens_model(objs[:3], imgs[:3], (512, 512), crit)
+    assert few["chosen"] == "k1k2p1p2" and "too few" in few["why"] and flags == lens_flags("k1k2p1p2")
+    with pytest.raises(ValueError, match="lens model: expected one of"):
+        lens_flags("fisheye")
 
 
 def test_fit_turntable_axis_exact_poses():
