@@ -120,9 +120,9 @@ def calibrate(
         cyl = cylinder_check(result.rig, truth)
         console.print(
             f"vs twin truth: baseline error {cmp['baseline_rel_error'] * 100:.4f} %, "
-            f"axis error {cmp['axis_error_deg']:.4f} deg; a 20 mm cylinder about the axis, seen by the true rig and "
-            f"triangulated with this one: {cyl['rms_um']:.1f} um RMS, radius {cyl['radius_bias_um']:+.1f} um "
-            f"(spread {cyl['radius_spread_um']:.1f} um)"
+            f"axis error {cmp['axis_error_deg']:.4f} deg; a 20 mm cylinder turned once round, seen by the true rig and "
+            f"measured with this one: radius {cyl['radius_bias_um']:+.1f} um (spread {cyl['radius_spread_um']:.1f} um), "
+            f"shape {cyl['shape_rms_um']:.1f} um RMS after a rigid fit (p95 {cyl['shape_p95_um']:.1f} um)"
         )
     console.print(depth_range_line(result.rig, period))
     console.print(f"wrote {output}, {plot_path}, {unity_path}")
@@ -150,22 +150,27 @@ def depth_range_line(rig, period_px: float) -> str:
 
 def cylinder_check(estimate, truth, *, radius_mm: float = 20.0, half_height_mm: float = 10.0, points: int = 4000,
                    seed: int = 0) -> dict[str, float]:
-    """What a calibration's error does to a measurement (twin checks): points of a cylinder about the true turntable
-    axis, on the side facing the camera, are seen by the TRUE rig (camera pixel, projector column) and triangulated
-    with the ESTIMATED one. Returns the points' 3D RMS error and the bias and spread of their radius about the
-    estimated axis (um), and how many were triangulated."""
+    """What a calibration's error does to a measured revolution (twin checks): points all round a cylinder about the
+    true turntable axis, each seen at an encoder angle that turns it towards the camera (+-34 deg), by the TRUE rig
+    (camera pixel, projector column), are triangulated with the ESTIMATED rig and turned back about its axis, as a
+    fused revolution is. Returns the radius's error about the estimated axis (bias and spread, um: what a size
+    reading inherits) and the fused points' distance from the true ones after a rigid fit (RMS and 95th percentile,
+    um: the smear and wobble a wrong axis puts into a revolution, size included)."""
     import cv2
     import numpy as np
 
     from gearscan.recon.unwrap import ray_depth_at_phase
 
     rng = np.random.default_rng(seed)
-    c = truth.camera.center_world
-    theta = np.arctan2(c[1], c[0]) + rng.uniform(-0.6, 0.6, points)  # +-34 deg around the camera's side
-    true = np.stack([radius_mm * np.cos(theta), radius_mm * np.sin(theta),
+    theta = rng.uniform(0.0, 2 * np.pi, points)  # around the gear
+    gear = np.stack([radius_mm * np.cos(theta), radius_mm * np.sin(theta),
                      rng.uniform(-half_height_mm, half_height_mm, points)], axis=1)
-    pix = truth.camera.project(true)
-    column = truth.projector.project(true)[:, 0]
+    c = truth.camera.center_world
+    angle = np.arctan2(c[1], c[0]) - theta + rng.uniform(-0.6, 0.6, points)  # the encoder angle it is seen at
+    cos, sin = np.cos(angle), np.sin(angle)
+    world = np.stack([cos * gear[:, 0] - sin * gear[:, 1], sin * gear[:, 0] + cos * gear[:, 1], gear[:, 2]], axis=1)
+    pix = truth.camera.project(world)
+    column = truth.projector.project(world)[:, 0]
     w, h = truth.camera.width, truth.camera.height
     seen = (pix[:, 0] >= 0) & (pix[:, 0] <= w - 1) & (pix[:, 1] >= 0) & (pix[:, 1] <= h - 1)
     cam = estimate.camera
@@ -174,12 +179,21 @@ def cylinder_check(estimate, truth, *, radius_mm: float = 20.0, half_height_mm: 
     z_axis = float((cam.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
     z = ray_depth_at_phase(estimate, 1.0, rays, 2 * np.pi * column[seen], np.full(len(rays), z_axis))
     ok = np.isfinite(z)
-    p_cam = rays[ok] * z[ok, None]
-    p_world = p_cam @ cam.T_world_from[:3, :3].T + cam.T_world_from[:3, 3]
-    err = np.linalg.norm(p_world - true[seen][ok], axis=1)
-    radius = np.hypot(p_world[:, 0], p_world[:, 1]) - radius_mm
-    return {"points": int(ok.sum()), "rms_um": float(1e3 * np.sqrt(np.mean(err**2))),
-            "radius_bias_um": float(1e3 * radius.mean()), "radius_spread_um": float(1e3 * radius.std())}
+    p_world = (rays[ok] * z[ok, None]) @ cam.T_world_from[:3, :3].T + cam.T_world_from[:3, 3]  # the estimated frame
+    back = -angle[seen][ok]  # turned back about the estimated axis by each point's encoder angle: the fused gear
+    fused = np.stack([np.cos(back) * p_world[:, 0] - np.sin(back) * p_world[:, 1],
+                      np.sin(back) * p_world[:, 0] + np.cos(back) * p_world[:, 1], p_world[:, 2]], axis=1)
+    radius = 1e3 * (np.hypot(fused[:, 0], fused[:, 1]) - radius_mm)
+    # its shape: the fused gear rigidly fitted to the true one (where each frame puts angle zero and its origin is a
+    # convention); what is left is what the calibration does to a fused revolution, size included
+    true = gear[seen][ok]
+    a, b = fused - fused.mean(axis=0), true - true.mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    rot = (u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt).T
+    shape = 1e3 * np.linalg.norm(a @ rot.T - b, axis=1)
+    return {"points": int(ok.sum()), "of": points, "radius_bias_um": float(radius.mean()),
+            "radius_spread_um": float(radius.std()), "shape_rms_um": float(np.sqrt(np.mean(shape**2))),
+            "shape_p95_um": float(np.percentile(shape, 95))}
 
 
 def compare_rigs(estimate, truth) -> dict[str, float]:
