@@ -277,7 +277,7 @@ def _extrapolation(r: dict) -> str:
     floors = (f" Floors on this scene: the 18-step training label is {r['label_floor']:.4f} rad from the truth "
               f"(val start points), three-step PS on still bursts {r['three_step'][STILL]:.4f} rad."
               if r.get("label_floor") else "")
-    if b >= 0:
+    if b >= -1e-6:  # flat (every mark kept the same weights: b is 0 up to rounding) or rising
         return (f"- {r['scene']}: rmse = {a:.3f} t^{b:.3f}: no longer falling with CPU time; more of the same will "
                 f"not reach it.{floors}")
     need = (TARGET_RAD / a) ** (1 / b)
