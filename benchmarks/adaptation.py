@@ -280,9 +280,12 @@ def _extrapolation(r: dict) -> str:
     if b >= -1e-6:  # flat (every mark kept the same weights: b is 0 up to rounding) or rising
         return (f"- {r['scene']}: rmse = {a:.3f} t^{b:.3f}: no longer falling with CPU time; more of the same will "
                 f"not reach it.{floors}")
-    need = (TARGET_RAD / a) ** (1 / b)
-    verdict = ("out of reach of more CPU time with this network and data" if need > 100 * cpu
+    log_need = math.log(TARGET_RAD / a) / b  # in logs: a nearly flat curve needs more minutes than a float holds
+    verdict = ("out of reach of more CPU time with this network and data" if log_need > math.log(100 * cpu)
                else "if the trend held")
+    if log_need > math.log(1e9):
+        return f"- {r['scene']}: rmse = {a:.3f} t^{b:.3f}; {TARGET_RAD} rad beyond 1e9 CPU min: {verdict}.{floors}"
+    need = math.exp(log_need)
     return (f"- {r['scene']}: rmse = {a:.3f} t^{b:.3f}; {TARGET_RAD} rad at about {need:.3g} CPU min "
             f"(~{need * 60 / step_cpu_s:.3g} steps of batch {r['training']['batch']} at {step_cpu_s:.2f} CPU s per step "
             f"on this host, {r['training'].get('autocast', r['training']['precision'])}): {verdict}.{floors}")

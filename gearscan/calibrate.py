@@ -112,7 +112,7 @@ def calibrate(
     if len(rep["views_used"]) < FEW_VIEWS:
         console.print(f"[yellow]warning:[/yellow] only {len(rep['views_used'])} usable views: the RMS above says "
                       "nothing about what so few leave unconstrained (on the twin, two choices of 3 views put the "
-                      f"turntable axis 0.33 and 1.58 deg off where 16 put it 0.02-0.08 deg); use {FEW_VIEWS} or more, "
+                      f"turntable axis 0.33 and 1.58 deg off where 16 put it 0.035-0.077 deg); use {FEW_VIEWS} or more, "
                       "spread over the image and "
                       "the turntable")
     if truth is not None:
@@ -156,7 +156,6 @@ def cylinder_check(estimate, truth, *, radius_mm: float = 20.0, half_height_mm: 
     fused revolution is. Returns the radius's error about the estimated axis (bias and spread, um: what a size
     reading inherits) and the fused points' distance from the true ones after a rigid fit (RMS and 95th percentile,
     um: the smear and wobble a wrong axis puts into a revolution, size included)."""
-    import cv2
     import numpy as np
 
     from gearscan.recon.unwrap import ray_depth_at_phase
@@ -169,12 +168,15 @@ def cylinder_check(estimate, truth, *, radius_mm: float = 20.0, half_height_mm: 
     angle = np.arctan2(c[1], c[0]) - theta + rng.uniform(-0.6, 0.6, points)  # the encoder angle it is seen at
     cos, sin = np.cos(angle), np.sin(angle)
     world = np.stack([cos * gear[:, 0] - sin * gear[:, 1], sin * gear[:, 0] + cos * gear[:, 1], gear[:, 2]], axis=1)
-    pix = truth.camera.project(world)
-    column = truth.projector.project(world)[:, 0]
-    w, h = truth.camera.width, truth.camera.height
-    seen = (pix[:, 0] >= 0) & (pix[:, 0] <= w - 1) & (pix[:, 1] >= 0) & (pix[:, 1] <= h - 1)
+    pix, lit = truth.camera.project(world), truth.projector.project(world)
+    column = lit[:, 0]
+
+    def inside(uv, dev):
+        return (uv[:, 0] >= -0.5) & (uv[:, 0] <= dev.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= dev.height - 0.5)
+
+    seen = inside(pix, truth.camera) & inside(lit, truth.projector)  # in both frames (a user's rig may cut some)
     cam = estimate.camera
-    xy = cv2.undistortPoints(pix[seen].reshape(-1, 1, 2), cam.K, cam.dist).reshape(-1, 2)
+    xy = cam.normalized(pix[seen])
     rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
     z_axis = float((cam.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
     z = ray_depth_at_phase(estimate, 1.0, rays, 2 * np.pi * column[seen], np.full(len(rays), z_axis))

@@ -255,10 +255,9 @@ class Reconstructor:
         if cad is None:
             raise ValueError("depth_range_mm needs the gear's CAD (unwrap='cad')")
         depth = cad.depth(angle)
-        if self.fused is not None:  # the fused path's own closed form (an undistorted projector)
-            lo, hi = self.fused.depth_window(depth)
-        else:  # a distorted projector: along each ray, with its distortion
-            lo, hi = unambiguous_depth_window(self.rig, self.period_px, depth, margin=self.margin)
+        # along each ray, through the projector's lens, where it lights the surface (the fused path's closed form
+        # equals it within 1 um where the projector has no distortion, but counts pixels it does not light)
+        lo, hi = unambiguous_depth_window(self.rig, self.period_px, depth, margin=self.margin)
         ok = np.isfinite(lo) & np.isfinite(hi)
         if not ok.any():
             raise ValueError("the camera does not see the gear: no unambiguous range to state")

@@ -342,7 +342,8 @@ def ray_depth_at_phase(
 ) -> np.ndarray:
     """Camera z-depth along each ray where the projector's absolute phase is ``target``, for any projector (its lens
     distortion included): Newton from ``z0``. ``rays``: ``(N, 3)`` camera-frame directions scaled to z = 1; NaN where
-    the search does not converge (a ray that leaves the projector's field, or a depth behind the camera)."""
+    the search does not converge or ends behind the camera. The projector's frame is not checked here (its lens model
+    is followed beyond it): callers keep the rays it lights."""
     t = rig.T_proj_from_cam
     r_proj, t_proj = rays @ t[:3, :3].T, t[:3, 3]
 
@@ -365,8 +366,9 @@ def unambiguous_depth_window(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Nearest and farthest camera z-depth (mm) along each pixel's ray whose projector phase stays within
     ``pi - margin`` of the phase at ``depth``: how far a surface may stray from that prior and keep its fringe
-    order, for any projector (its lens distortion included). ``(H, W)`` each; NaN where ``depth`` is NaN or the
-    search along the ray does not converge (:func:`ray_depth_at_phase`)."""
+    order, for any projector (its lens distortion included). ``(H, W)`` each; NaN where ``depth`` is NaN, where the
+    projector does not light the prior's point (outside its frame), or where the search along the ray does not
+    converge (:func:`ray_depth_at_phase`)."""
     depth = np.asarray(depth, np.float64)
     cam = rig.camera
     if depth.shape != (cam.height, cam.width):
@@ -378,8 +380,10 @@ def unambiguous_depth_window(
     rays = (rays / rays[..., 2:3])[prior]  # (x, y, 1) of the pixels with a prior
     z0 = depth[prior]
     t = rig.T_proj_from_cam
-    at_prior = rig.projector.project_device((rays * z0[:, None]) @ t[:3, :3].T + t[:3, 3])[:, 0]
-    centre, half = TWO_PI * at_prior / period_px, math.pi - margin
+    uv = rig.projector.project_device((rays * z0[:, None]) @ t[:3, :3].T + t[:3, 3])
+    lit = (uv[:, 0] >= -0.5) & (uv[:, 0] <= rig.projector.width - 0.5) & (uv[:, 1] >= -0.5) & \
+        (uv[:, 1] <= rig.projector.height - 0.5)
+    centre, half = np.where(lit, TWO_PI * uv[:, 0] / period_px, np.nan), math.pi - margin
     ends = [ray_depth_at_phase(rig, period_px, rays, target, z0) for target in (centre - half, centre + half)]
     lo, hi = np.full(depth.shape, np.nan), np.full(depth.shape, np.nan)
     lo[prior], hi[prior] = np.fmin(*ends), np.fmax(*ends)

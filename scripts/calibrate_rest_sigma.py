@@ -11,7 +11,8 @@ smallest c in steps of 0.5 from 1 for which, in every cell, the points that c * 
 a median |error| / (c * sigma) of at most 0.6745. Each cell's arrays are kept in ``--recordings`` (``rest_*.npz``).
 Since rerun 6 (the rule's per-model amendment) the scale is chosen per model on its own cells: the shipped model's is
 the product's (``recon.track.REST_SIGMA_SCALE``), the option's goes into its JSON (``rest_sigma``) with ``--write``.
-Each cell records the decode it ran (``model_fingerprint``): a resume with another decode of a model is refused, and
+Each cell records the decode it ran (``model_fingerprint``): a resume with another decode of a model (or with cells
+that recorded none) is refused, and
 ``--write`` stamps the option's scale with the decode its cells ran, refusing cells of another (or of none recorded,
 as before session 55: rerun them into a new ``--out``).
 """
@@ -120,10 +121,11 @@ def main() -> None:
     cells = done["cells"]
     for model, decoder, seed, order, rec in val_cells(args.recordings, args.bursts):
         fingerprint = decoder.model_fingerprint  # the decode this cell is scored with (None: none recorded before)
-        stale = [c for c in cells if c["model"] == model and c.get("model_fingerprint", fingerprint) != fingerprint]
-        if stale:
+        stale = [c for c in cells if c["model"] == model and c.get("model_fingerprint") != fingerprint]
+        if stale:  # another decode, or none recorded (cells from before session 55): not resumed into
             raise SystemExit(f"{args.out}: the {model}'s cells were scored with another decode "
-                             f"({stale[0]['model_fingerprint']}, now {fingerprint}); write to another --out")
+                             f"({stale[0].get('model_fingerprint', 'not recorded')}, now {fingerprint}); write to another "
+                             "--out")
         if any((c["model"], c["seed"], c["order"]) == (model, seed, order) for c in cells):
             continue
         short = model.split()[0] if model.endswith("(shipped)") else "default_rig"  # v6 / v9 / the option

@@ -219,7 +219,7 @@ def test_live_check_states_the_unambiguous_range(rig256, gear):
     assert line.startswith("unambiguous depth range at 40 px fringes: -1.") and "mm around the CAD" in line
     free = unambiguous_range_line(rig256, PERIOD, gear, "envelope")
     assert "CAD-free unwrapping resolves every pixel from" in free and "counted, not guessed" in free
-    # a calibrated rig's projector has lens distortion: stated too (it once said "not stated"), about the same range
+    # a projector calibrated with lens distortion: stated too (it once said "not stated"), about the same range
     import dataclasses
 
     lens = dataclasses.replace(rig256.projector, dist=np.array([-0.05, 0.01, 1e-4, -1e-4, 0.0]))

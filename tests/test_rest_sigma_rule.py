@@ -48,9 +48,10 @@ def test_sigma_stated_too_small_gets_the_smallest_honest_step(rule):
 
 
 def test_a_scale_that_keeps_nothing_is_said(rule):
-    """Sigma 12 um and errors 10x it: no scale calibrates them; 3.0 passes only because 36 um is over the 30 um bound."""
-    rows, c = rule.scan([cell(10.0, sigma_mm=0.012)], bound=0.030)
-    assert c == 3.0 and rule.keeps_none(rows)
+    """Sigma 12.5 um and errors 10x it: no scale calibrates them; 2.5 passes only because 31 um is over the 30 um
+    bound (2.0: 25 um, all kept and dishonest)."""
+    rows, c = rule.scan([cell(10.0, sigma_mm=0.0125)], bound=0.030)
+    assert c == 2.5 and rule.keeps_none(rows)
     assert rows[-1]["cells"][0]["kept"] == 0 and rows[-2]["cells"][0]["kept"] == 20000
 
 

@@ -45,7 +45,8 @@ def _subsample_rays(cam: PinholeDevice, s: int) -> np.ndarray:
     # rows: every corner of a row at one sub-pixel phase) came out up to 1/(2s) px off, together (0.06 px at s = 4,
     # which biased a calibration's focal length; session 55)
     i, j = np.meshgrid(np.arange(s), np.arange(s))  # the sample's column and row within its pixel
-    ox, oy = (i + (j + 0.5) / s) / s - 0.5, (j + (i + 0.5) / s) / s - 0.5  # multiples of 1/32 px for s = 4
+    # multiples of 1/32 px for s = 4, kept exactly by remap's 1/32 px grid; from s = 6 on some samples share a position
+    ox, oy = (i + (j + 0.5) / s) / s - 0.5, (j + (i + 0.5) / s) / s - 0.5
     shape = (cam.height, s, cam.width, s)
     mx = np.broadcast_to(np.arange(cam.width)[None, None, :, None] + ox[None, :, None, :] + 1, shape)
     my = np.broadcast_to(np.arange(cam.height)[:, None, None, None] + oy[None, :, None, :] + 1, shape)

@@ -138,22 +138,25 @@ class PinholeDevice:
         k[1, 2] = (self.K[1, 2] + 0.5) * sy - 0.5
         return replace(self, width=width, height=height, K=k)
 
-    def pixel_rays(self) -> np.ndarray:
-        """Unit ray directions ``(H, W, 3)`` in the device frame for every pixel centre."""
+    def normalized(self, pixels: np.ndarray) -> np.ndarray:
+        """Undistorted normalised coordinates ``(N, 2)`` (x/z, y/z in the device frame) of pixel positions ``(N, 2)``."""
         import cv2
 
-        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
-        pts = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
+        pts = np.asarray(pixels, np.float64).reshape(-1, 1, 2)
         if np.any(self.dist != 0):
             crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
             if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
                 norm = cv2.undistortPointsIter(pts, self.K, self.dist, np.eye(3), np.eye(3), crit)
             else:  # OpenCV 5 folded the iterative variant into undistortPoints
                 norm = cv2.undistortPoints(pts, self.K, self.dist, criteria=crit)
-            norm = norm.reshape(-1, 2)
-        else:
-            kinv = np.linalg.inv(self.K)
-            norm = (pts.reshape(-1, 2) - self.K[:2, 2]) @ np.diag([kinv[0, 0], kinv[1, 1]])
+            return norm.reshape(-1, 2)
+        kinv = np.linalg.inv(self.K)
+        return (pts.reshape(-1, 2) - self.K[:2, 2]) @ np.diag([kinv[0, 0], kinv[1, 1]])
+
+    def pixel_rays(self) -> np.ndarray:
+        """Unit ray directions ``(H, W, 3)`` in the device frame for every pixel centre."""
+        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
+        norm = self.normalized(np.stack([u.ravel(), v.ravel()], axis=1))
         d = np.concatenate([norm, np.ones((norm.shape[0], 1))], axis=1)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return d.reshape(self.height, self.width, 3)
