@@ -96,9 +96,12 @@ def calibrate(
     unity_path = output.with_suffix(".unity.json")
     unity_path.write_text(json.dumps(unity_parameters(result.rig, camera_pixel_um / 1000, projector_pixel_um / 1000), indent=2))
     rep = result.report
+    joint = rep.get("joint_adjustment", {})
+    how = ("adjusted jointly" if joint.get("run") and "why" not in joint
+           else f"staged fit: {joint.get('why', 'no joint adjustment')}")
     console.print(
-        f"camera RMS {rep['camera_rms_px']:.3f} px, projector RMS {rep['projector_rms_px']:.3f} px, "
-        f"stereo RMS {rep['stereo_rms_px']:.3f} px, baseline {rep['baseline_mm']:.3f} mm, "
+        f"camera RMS {rep['camera_rms_px']:.3f} px, projector RMS {rep['projector_rms_px']:.3f} px ({how}; staged "
+        f"stereo RMS {rep['staged']['stereo_rms_px']:.3f} px), baseline {rep['baseline_mm']:.3f} mm, "
         f"{len(rep['views_used'])} views used, {len(rep['views_skipped'])} skipped"
     )
     lens = rep.get("lens_model", {})

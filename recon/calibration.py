@@ -255,9 +255,8 @@ FEW_VIEWS = 8
 LENS_MODELS = ("none", "k1", "k1k2", "k1k2p1p2")
 # a richer lens model is taken only where it lowers the held-out reprojection RMS by more than this share. On the
 # twin's undistorted projector every model held out within 0.4 % of the others while a free k2 came out 4.4-7.4 (an
-# extrapolation hazard outside the board's footprint): none is chosen. The twin's undistorted camera gets a k1 on
-# every seed (1.8 % lower held out: it absorbs a residual of the corner detection, 0.3 px at the image corner), which
-# measured no worse than the richest fit (benchmarks/calibration_accuracy_report.md); a real lens lowers it by more
+# extrapolation hazard outside the board's footprint): none is chosen. The twin's camera lens (k1 -0.08, k2 0.12,
+# p1 5e-4, p2 -3e-4: 0.13 px at the image corner, nearly all of it k1) gets k1 on every seed (1.8 % lower held out)
 LENS_PARSIMONY = 0.01
 
 
@@ -397,11 +396,13 @@ def calibrate_rig(
     camera_flags: int | None = None,
     projector_flags: int | None = None,
     name: str = "calibrated",
+    joint: bool = True,
 ) -> CalibrationResult:
     """Full calibration from decoded board views (see module docstring).
 
     ``camera_size``/``projector_size`` are ``(width, height)``. Each device's lens model is chosen on held-out
-    views (:func:`choose_lens_model`) unless its OpenCV ``*_flags`` are given. Views where the board is not
+    views (:func:`choose_lens_model`) unless its OpenCV ``*_flags`` are given; the staged fit is then adjusted jointly
+    (:mod:`gearscan.recon.bundle`) unless ``joint`` is False (benchmarks). Views where the board is not
     found are skipped and listed in the report; at least 3 are needed, 3 of them on the
     turntable (``turntable_angle`` set) for the axis.
     """
@@ -465,26 +466,47 @@ def calibrate_rig(
         raise CalibrationError(
             f"only {len(turn)} usable views with a turntable angle (need >= 3 to fit the axis)"
         )
+    staged = {"camera_rms_px": float(rms_c), "projector_rms_px": float(rms_p), "stereo_rms_px": float(rms_s)}
+    joint = _joint(obj, img_c, img_p, [v.turntable_angle for v in used], lens, (k_c, d_c, k_p, d_p),
+                   t_proj_from_cam, t_cam_from_world, poses, (float(rms_c), float(rms_p))) if joint else \
+        {"run": False, "why": "not asked (joint=False)", "fit": None}
+    fit = None if joint is None else joint.pop("fit")
+    if fit is not None:  # the product: everything refined at once (recon.bundle); the world frame as above
+        k_c, d_c, k_p, d_p, t_proj_from_cam = fit.k_camera, fit.dist_camera, fit.k_projector, fit.dist_projector, \
+            fit.t_proj_from_cam
+        level = (fit.poses[turn[0]] @ np.append(board.centre, 1.0))[:3]
+        direction, point = fit.t_cam_from_turntable[:3, 2], fit.t_cam_from_turntable[:3, 3]
+        t_cam_from_world = world_from_axis(direction, point, level)
+        poses = fit.poses
     cam_dev = PinholeDevice(camera_size[0], camera_size[1], k_c, np.asarray(d_c).ravel()[:5], t_cam_from_world)
     proj_dev = PinholeDevice(projector_size[0], projector_size[1], k_p, np.asarray(d_p).ravel()[:5], t_proj_from_cam @ t_cam_from_world)
     rig = Rig(camera=cam_dev, projector=proj_dev, name=name)
 
-    res_c, res_p = [], []
+    res_c, res_p = [], []  # of the rig written: each view's corners through its final pose
     for i in range(len(used)):
-        pc, _ = cv2.projectPoints(obj, rv_c[i], tv_c[i], k_c, d_c)
+        r, t = cv2.Rodrigues(poses[i][:3, :3])[0], poses[i][:3, 3]
+        pc, _ = cv2.projectPoints(obj, r, t, k_c, d_c)
         res_c.append(pc.reshape(-1, 2) - img_c[i].reshape(-1, 2))
-        pp, _ = cv2.projectPoints(obj, rv_p[i], tv_p[i], k_p, d_p)
+        tp = t_proj_from_cam @ poses[i]
+        pp, _ = cv2.projectPoints(obj, cv2.Rodrigues(tp[:3, :3])[0], tp[:3, 3], k_p, d_p)
         res_p.append(pp.reshape(-1, 2) - img_p[i].reshape(-1, 2))
+
+    def rms(res: list[np.ndarray]) -> float:
+        return float(np.sqrt(np.mean(np.sum(np.concatenate(res) ** 2, axis=1))))
+
     report = {
         "board": board.to_json(),
         "views_used": [v.name for v in used],
         "views_skipped": skipped,
-        "camera_rms_px": float(rms_c),
-        "projector_rms_px": float(rms_p),
-        "stereo_rms_px": float(rms_s),
-        "camera_view_rms_px": np.asarray(err_c).ravel().tolist(),
-        "projector_view_rms_px": np.asarray(err_p).ravel().tolist(),
-        "stereo_view_rms_px": np.asarray(err_s).reshape(len(used), -1).tolist(),
+        "camera_rms_px": rms(res_c),
+        "projector_rms_px": rms(res_p),
+        "camera_view_rms_px": [float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for r in res_c],
+        "projector_view_rms_px": [float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for r in res_p],
+        "staged": {**staged, "camera_view_rms_px": np.asarray(err_c).ravel().tolist(),
+                   "projector_view_rms_px": np.asarray(err_p).ravel().tolist(),
+                   "stereo_view_rms_px": np.asarray(err_s).reshape(len(used), -1).tolist()},
+        "joint_adjustment": joint if joint is not None else {"run": False, "why": "custom lens flags: their free "
+                                                                 "coefficients are not one of LENS_MODELS"},
         "baseline_mm": rig.baseline_mm,
         "lens_model": lens,
         "turntable_axis": {
@@ -495,6 +517,32 @@ def calibrate_rig(
         },
     }
     return CalibrationResult(rig=rig, report=report, residuals_camera=res_c, residuals_projector=res_p, view_names=[v.name for v in used])
+
+
+def _joint(obj, img_c, img_p, angles, lens: dict, staged: tuple, t_proj_from_cam, t_cam_from_world, poses,
+           sigma: tuple[float, float]) -> dict | None:
+    """The joint adjustment of the staged fit (:func:`gearscan.recon.bundle.adjust_jointly`) as a report entry with
+    its ``fit``; None where a device's lens flags were given and match no :data:`LENS_MODELS` entry."""
+    from gearscan.recon.bundle import adjust_jointly
+
+    models = []
+    for device in ("camera", "projector"):
+        entry = lens[device]
+        if entry["chosen"] != "given":
+            models.append(entry["chosen"])
+            continue
+        match = [m for m in LENS_MODELS if lens_flags(m) == entry["flags"]]
+        if not match:
+            return None
+        models.append(match[0])
+    k_c, d_c, k_p, d_p = staged
+    fit = adjust_jointly(obj, img_c, img_p, angles, (models[0], models[1]), k_c, d_c, k_p, d_p, t_proj_from_cam,
+                         t_cam_from_world, poses, sigma)
+    entry = {"run": True, "models": models, "rms_before": fit.rms_before, "rms_after": fit.rms_after,
+             "evaluations": fit.evaluations, "fit": fit}
+    if not fit.rms_after <= fit.rms_before:  # never worse than the stages it started from (NaN included)
+        entry |= {"fit": None, "why": "the adjustment did not lower the residuals: the staged fit is kept"}
+    return entry
 
 
 def save_calibration(result: CalibrationResult, path) -> None:
