@@ -110,12 +110,14 @@ def calibrate(
             f"{dev} {m['chosen']}" + (f" ({m['why']})" if m["chosen"] != "given" and "heldout_rms_px" not in m else "")
             for dev, m in lens.items()))
     if "angle_error_deg_rms" in rep.get("turntable_axis", {}):
+        scale = joint.get("encoder_scale")
         console.print(f"turntable: the board's rotations agree with the encoder angles within "
-                      f"{rep['turntable_axis']['angle_error_deg_rms']:.3f} deg RMS")
+                      f"{rep['turntable_axis']['angle_error_deg_rms']:.3f} deg RMS (staged fit)"
+                      + ("" if scale is None else f"; their scale, fitted jointly: {scale:.5f}"))
     if len(rep["views_used"]) < FEW_VIEWS:
         console.print(f"[yellow]warning:[/yellow] only {len(rep['views_used'])} usable views: the RMS above says "
                       "nothing about what so few leave unconstrained (on the twin, two choices of 3 views put the "
-                      f"turntable axis 0.33 and 1.58 deg off where 16 put it 0.035-0.077 deg); use {FEW_VIEWS} or more, "
+                      f"turntable axis 0.33 and 1.58 deg off in a staged fit where 16 put it 0.034-0.057 deg); use {FEW_VIEWS} or more, "
                       "spread over the image and "
                       "the turntable")
     if truth is not None:

@@ -19,6 +19,10 @@ Steps (:func:`calibrate_rig`):
    on it are fitted in least squares. The world (turntable) frame has z along that axis,
    its origin on the axis level with the first turntable view's board centre, x towards the
    camera.
+5. A joint bundle adjustment of all of it (:mod:`gearscan.recon.bundle`): every corner in both
+   devices, the turntable views as one board pose turned by the encoder's angles; the same fit
+   with the angles' scale free checks the encoder first (:data:`ENCODER_SCALE_TOLERANCE`). The
+   world frame as in step 4.
 
 References
 ----------
@@ -244,10 +248,14 @@ def _rt_to_t(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
 # the board's measured rotation between turntable views against the encoder's: a wrong counts_per_rev or unit is
 # tens of degrees (the twin's calibration agrees within a few hundredths)
 MAX_ANGLE_ERROR_DEG = 1.0
+# the joint adjustment trusts the encoder's angles; their scale, fitted as a check, must be within this share of 1 (the
+# twin's exact encoder: 1.0006-1.0008; a 1 % error puts a 20 mm radius about 90 um off, so 0.5 % is refused, not
+# absorbed)
+ENCODER_SCALE_TOLERANCE = 0.005
 # fewer usable views than this calibrate, with a warning: the fit's RMS says nothing about what so few views leave
-# unconstrained (the twin's 16 views put its axis 0.035-0.077 deg from the truth over five render seeds,
-# benchmarks/calibration_accuracy_report.md; three of them 0.33 deg (its first three
-# turntable views) or 1.58 deg (another three, session 53's audit))
+# unconstrained (the twin's 16 views put its axis 0.034-0.057 deg from the truth over ten render seeds, jointly
+# adjusted, benchmarks/calibration_accuracy_report.md; three of them 0.33 deg (its first three turntable views) or
+# 1.58 deg (another three), from the staged fit in session 53's audit)
 FEW_VIEWS = 8
 
 
@@ -466,7 +474,8 @@ def calibrate_rig(
         raise CalibrationError(
             f"only {len(turn)} usable views with a turntable angle (need >= 3 to fit the axis)"
         )
-    staged = {"camera_rms_px": float(rms_c), "projector_rms_px": float(rms_p), "stereo_rms_px": float(rms_s)}
+    staged = {"camera_rms_px": float(rms_c), "projector_rms_px": float(rms_p), "stereo_rms_px": float(rms_s),
+              "turntable_axis": {"direction_cam": direction.tolist(), "point_cam_mm": point.tolist(), **axis_stats}}
     joint = _joint(obj, img_c, img_p, [v.turntable_angle for v in used], lens, (k_c, d_c, k_p, d_p),
                    t_proj_from_cam, t_cam_from_world, poses, (float(rms_c), float(rms_p))) if joint else \
         {"run": False, "why": "not asked (joint=False)", "fit": None}
@@ -509,7 +518,7 @@ def calibrate_rig(
                                                                  "coefficients are not one of LENS_MODELS"},
         "baseline_mm": rig.baseline_mm,
         "lens_model": lens,
-        "turntable_axis": {
+        "turntable_axis": {  # of the rig written; the fit statistics are the staged fit's (its check of the encoder)
             "direction_cam": direction.tolist(),
             "point_cam_mm": point.tolist(),
             "views": [used[i].name for i in turn],
@@ -536,10 +545,21 @@ def _joint(obj, img_c, img_p, angles, lens: dict, staged: tuple, t_proj_from_cam
             return None
         models.append(match[0])
     k_c, d_c, k_p, d_p = staged
-    fit = adjust_jointly(obj, img_c, img_p, angles, (models[0], models[1]), k_c, d_c, k_p, d_p, t_proj_from_cam,
-                         t_cam_from_world, poses, sigma)
+    args = (obj, img_c, img_p, angles, (models[0], models[1]), k_c, d_c, k_p, d_p, t_proj_from_cam, t_cam_from_world,
+            poses, (sigma[0] / math.sqrt(2), sigma[1] / math.sqrt(2)))  # OpenCV's RMS is per corner: per coordinate
+    try:
+        check = adjust_jointly(*args, fit_scale=True)  # the encoder's scale, which the rig's fit then trusts
+        fit = adjust_jointly(*args)
+    except (ValueError, np.linalg.LinAlgError) as exc:  # a staged RMS of 0, a non-finite start: the stages stand
+        return {"run": False, "models": models, "why": f"the adjustment failed ({exc}): the staged fit is kept",
+                "fit": None}
+    if not abs(check.encoder_scale - 1) <= ENCODER_SCALE_TOLERANCE:
+        raise CalibrationError(
+            f"the board's turns are {check.encoder_scale:.4f} times the encoder's angles (expected within "
+            f"{100 * ENCODER_SCALE_TOLERANCE:g} % of 1): the encoder's counts_per_rev or a gear ratio is off. No rig "
+            "written")
     entry = {"run": True, "models": models, "rms_before": fit.rms_before, "rms_after": fit.rms_after,
-             "evaluations": fit.evaluations, "fit": fit}
+             "encoder_scale": check.encoder_scale, "evaluations": fit.evaluations, "fit": fit}
     if not fit.rms_after <= fit.rms_before:  # never worse than the stages it started from (NaN included)
         entry |= {"fit": None, "why": "the adjustment did not lower the residuals: the staged fit is kept"}
     return entry
