@@ -83,6 +83,9 @@ def main() -> None:
     ap.add_argument("--deg-per-frame", type=float, default=0.6,
                     help="turntable speed of the rendered revolution, deg per frame (default 0.6: the benchmark's; "
                          "another speed renders its own recording of one revolution, round(120 / speed) bursts)")
+    ap.add_argument("--rig", type=Path, default=None,
+                    help="measure with this rig calibration (e.g. from `gearscan calibrate --twin default`) instead of "
+                         "the twin's true rig the recording holds: what a user's own calibration leaves")
     ap.add_argument("--voxel-mm", type=float, default=0.1)
     ap.add_argument("--min-bursts", type=int, default=3)
     args = ap.parse_args()
@@ -139,13 +142,13 @@ def main() -> None:
     t = time.perf_counter()
     plain = run_inspection(args.recording, args.out / "plain", decoder=decoder, grade=8, voxel_mm=args.voxel_mm,
                            min_bursts=args.min_bursts, refine=False, progress=print, network_support_px=support,
-                           max_sigma=bound)
+                           max_sigma=bound, rig=args.rig)
     plain_seconds = time.perf_counter() - t
     plain_dist = distance(plain.fused.points)
     t = time.perf_counter()
     report = run_inspection(args.recording, args.out, decoder=decoder, grade=8,
                             voxel_mm=args.voxel_mm, min_bursts=args.min_bursts, refine=True, progress=print,
-                            network_support_px=support, max_sigma=bound)
+                            network_support_px=support, max_sigma=bound, rig=args.rig)
     seconds = time.perf_counter() - t
     insp, fused = report.inspection, report.fused
     rest_scale = report.rest_sigma_scale  # what the frame fit's unfitted points carried (the model's own, else the product's)
@@ -209,7 +212,8 @@ def main() -> None:
         other = recording(not alternate)
         t = time.perf_counter()
         rep2 = run_inspection(other, args.out / "other_order", decoder=decoder, grade=8, voxel_mm=args.voxel_mm,
-                              min_bursts=args.min_bursts, refine=True, progress=print, network_support_px=support)
+                              min_bursts=args.min_bursts, refine=True, progress=print, network_support_px=support,
+                              rig=args.rig)
         print(f"other order: {time.perf_counter() - t:.0f} s")
         orders.append(order_row("fixed (0, 1, 2)" if alternate else "alternating (0, 1, 2 / 0, 2, 1)", rep2,
                                 distance(rep2.fused.points), coverage_of(rep2.fused.points)))
@@ -240,12 +244,17 @@ def main() -> None:
         "",
         f"`python benchmarks/inspect_bench.py{'' if args.orientation == 'auto' else ' --orientation ' + args.orientation}"
         f"{f' --model {args.model}' if args.model else ''}"
-        f"{'' if args.network_support_px is None else f' --network-support-px {args.network_support_px}'}`"
+        f"{'' if args.network_support_px is None else f' --network-support-px {args.network_support_px}'}"
+        f"{'' if args.deg_per_frame == 0.6 else f' --deg-per-frame {args.deg_per_frame:g}'}"
+        f"{'' if args.rig is None else f' --rig {args.rig}'}`"
         f" — commit {commit()}, host: {started}.",
         "",
         f"Twin: default rig 512x512, z = 20, m = 2 mm, {motion_text(motion)}, {bursts} bursts ({report.revolution_deg:.0f}° of encoder "
         f"angle), eccentricity 50 µm, tooth 3 +30 µm pitch error, tooth 7 tip chipped 0.3 mm; pattern order "
         f"{order_name}. Decoder: {decoder}. "
+        + ("Measured with the twin's true rig (the recording's). " if args.rig is None else
+           f"Measured with the rig calibration `{args.rig}` instead of the twin's true rig (the recording's): what a "
+           "user's own calibration leaves. ") +
         f"Replay + fusion + inspection: {seconds:.0f} s (the recording rendered beforehand by this script's "
         f"render step, or `gearscan twin render REC --bursts {bursts} --motion {motion} --eccentricity-um 50 "
         f"--pitch-error 3:30 --chip 7:0.3{' --alternate-order' if alternate else ''}`).",
@@ -345,7 +354,8 @@ def main() -> None:
     ]
     args.report.with_suffix(".md").write_text("\n".join(lines))
     args.report.with_suffix(".json").write_text(json.dumps({
-        "commit": commit(), "host": started, "motion": motion, "bursts": bursts, "seconds": seconds, "decoder": decoder, "max_sigma_rad": bound,
+        "commit": commit(), "host": started, "motion": motion, "bursts": bursts,
+        "rig": None if args.rig is None else str(args.rig), "seconds": seconds, "decoder": decoder, "max_sigma_rad": bound,
         "fused_rms_mm": rms, "fused_p95_mm": float(np.percentile(dist, 95)), "coverage": coverage,
         "fused_only_rms_mm": plain_rms, "refined_fraction": float(refined.mean()), "refined_rms_mm": rms_refined,
         "refined_before_rms_mm": before_refined, "kept_rms_mm": rms_kept, "plain_seconds": plain_seconds,

@@ -713,6 +713,7 @@ def inspect_cmd(
     refine: Annotated[bool, typer.Option(help="fit each fused point to every raw frame that saw it (keeps the recording's frames in memory)")] = True,
     network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: with the frame fit none for the shipped v9 (since session 48) and the default-rig option (v9's, inherited), 0 px for v6; with --no-refine none for v9 and the option, 2 px for v6; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
     max_point_sigma_um: Annotated[float | None, typer.Option(min=0.1, help="report no point of the fitted cloud whose sigma exceeds this, µm: a fit must meet it to replace its fused point, an unfitted point above it is dropped and counted (default 30, recon.track.MAX_POINT_SIGMA_MM; needs the frame fit; not with --no-refine)")] = None,
+    rig: Annotated[Path | None, typer.Option(help="rig calibration JSON to measure with (the file `gearscan calibrate` wrote; replaces the recording's own)")] = None,
 ) -> None:
     """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
     from gearscan.core.recording import RecordingError
@@ -732,7 +733,7 @@ def inspect_cmd(
                                 unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"),
                                 network_support_px=network_support_option(network_support_px, frame_fit=refine,
                                                                           model=decoder.network_support),
-                                point_sigma_mm=point_sigma_mm)
+                                point_sigma_mm=point_sigma_mm, rig=rig)
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
     from gearscan.inspect import chip_verdict, quantity_line

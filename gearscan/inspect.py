@@ -21,6 +21,7 @@ from typing import Literal
 import numpy as np
 
 from gearscan.core.recording import RecordingError, RecordingReader
+from gearscan.core.rig import Rig
 from gearscan.recon.depth_sigma import REST_STALE_NOTE, UNMEASURED_NOTES, turning_three_step_note
 from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
 from gearscan.recon.inspect import (
@@ -206,6 +207,7 @@ def run_inspection(
     network_support_px: int | None | Literal["product"] = PRODUCT_SUPPORT,
     max_sigma: float | None = None,
     point_sigma_mm: float | None = None,
+    rig: str | Path | Rig | None = None,
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
@@ -216,7 +218,8 @@ def run_inspection(
     fringe-support test for a network's pixels (None: none; ``"product"``: the decoding model's own for the path,
     else the product's, as :func:`~gearscan.replay.replay` resolves it with ``refine``); ``max_sigma``: the keep bound,
     rad (None: the product's for the path, as :func:`~gearscan.replay.replay` resolves it); ``point_sigma_mm``: the
-    fitted cloud's bound on every point's sigma, mm (None: the fit's own; needs ``refine``). ``inspect_options`` go to
+    fitted cloud's bound on every point's sigma, mm (None: the fit's own; needs ``refine``); ``rig``: the calibration
+    to measure with (a file or a Rig; None: the recording's own). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import replay
@@ -238,7 +241,7 @@ def run_inspection(
     say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
     fuser = CloudFuser(voxel_mm, min_bursts)
     metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine,
-                     network_support_px=network_support_px, max_sigma=max_sigma, point_sigma_mm=point_sigma_mm)
+                     network_support_px=network_support_px, max_sigma=max_sigma, point_sigma_mm=point_sigma_mm, rig=rig)
     if metrics.fused is None or not len(metrics.fused):
         raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
     fused = metrics.fused

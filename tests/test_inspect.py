@@ -209,6 +209,28 @@ def test_the_point_sigma_bound_reaches_the_replay(tmp_path, replay_spy):
     assert len(replay_spy.calls) == 2  # refused before the replay
 
 
+def test_the_rig_to_measure_with_reaches_the_replay(tmp_path, replay_spy, monkeypatch):
+    """``gearscan inspect --rig rig.json`` measures with that calibration (the replay gets it); without it the
+    recording's own (None); a rig of another frame size is refused by the replay's own check, named."""
+    from gearscan.cli import app
+    from gearscan.core.recording import RecordingError
+    from gearscan.core.rig import default_rig
+    from gearscan.inspect import run_inspection
+    from gearscan.twin.recordings import render_recording
+
+    rec = tmp_path / "rec"
+    render_recording(rec, rig=default_rig(64, 64), motion="static", bursts=1)
+    default_rig(64, 64).save(tmp_path / "rig.json")
+    for option, expected in ((["--rig", str(tmp_path / "rig.json")], tmp_path / "rig.json"), ([], None)):
+        with pytest.raises(replay_spy.Called):
+            CliRunner().invoke(app, ["inspect", str(rec), "-o", str(tmp_path / "out"), *option], catch_exceptions=False)
+        assert replay_spy.calls[-1]["rig"] == expected, option
+    monkeypatch.undo()  # the real replay: its rig check
+    default_rig(96, 96).save(tmp_path / "big.json")
+    with pytest.raises(RecordingError, match="--rig"):
+        run_inspection(rec, tmp_path / "out3", rig=tmp_path / "big.json")
+
+
 def test_the_shipped_support_tests_are_the_val_choices():
     """Both fringe-support settings are what their rules chose on val for the shipped model (the JSONs the choice
     scripts write), not numbers typed in: in the shipped model's JSON (``network_support``, what the app uses) and as
