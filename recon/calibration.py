@@ -476,10 +476,10 @@ def calibrate_rig(
         )
     staged = {"camera_rms_px": float(rms_c), "projector_rms_px": float(rms_p), "stereo_rms_px": float(rms_s),
               "turntable_axis": {"direction_cam": direction.tolist(), "point_cam_mm": point.tolist(), **axis_stats}}
-    joint = _joint(obj, img_c, img_p, [v.turntable_angle for v in used], lens, (k_c, d_c, k_p, d_p),
-                   t_proj_from_cam, t_cam_from_world, poses, (float(rms_c), float(rms_p))) if joint else \
+    adjustment = _joint(obj, img_c, img_p, [v.turntable_angle for v in used], lens, (k_c, d_c, k_p, d_p),
+                        t_proj_from_cam, t_cam_from_world, poses, (float(rms_c), float(rms_p))) if joint else \
         {"run": False, "why": "not asked (joint=False)", "fit": None}
-    fit = None if joint is None else joint.pop("fit")
+    fit = None if adjustment is None else adjustment.pop("fit")
     if fit is not None:  # the product: everything refined at once (recon.bundle); the world frame as above
         k_c, d_c, k_p, d_p, t_proj_from_cam = fit.k_camera, fit.dist_camera, fit.k_projector, fit.dist_projector, \
             fit.t_proj_from_cam
@@ -514,7 +514,7 @@ def calibrate_rig(
         "staged": {**staged, "camera_view_rms_px": np.asarray(err_c).ravel().tolist(),
                    "projector_view_rms_px": np.asarray(err_p).ravel().tolist(),
                    "stereo_view_rms_px": np.asarray(err_s).reshape(len(used), -1).tolist()},
-        "joint_adjustment": joint if joint is not None else {"run": False, "why": "custom lens flags: their free "
+        "joint_adjustment": adjustment if adjustment is not None else {"run": False, "why": "custom lens flags: their free "
                                                                  "coefficients are not one of LENS_MODELS"},
         "baseline_mm": rig.baseline_mm,
         "lens_model": lens,
