@@ -51,6 +51,7 @@ def one_seed(seed: int) -> list[dict]:
         rows.append({
             "seed": seed, "fit": fit, "render_s": render_s, "views": len(rep["views_used"]),
             "lens": {d: m["chosen"] if model is None else model for d, m in rep["lens_model"].items()},
+            "encoder_scale": rep["joint_adjustment"].get("encoder_scale"),
             "camera_rms_px": rep["camera_rms_px"], "projector_rms_px": rep["projector_rms_px"],
             "camera_focal_error_pct": 100 * (est.camera.K[0, 0] / rig.camera.K[0, 0] - 1),
             "projector_focal_error_pct": 100 * (est.projector.K[0, 0] / rig.projector.K[0, 0] - 1),

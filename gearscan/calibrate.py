@@ -114,10 +114,12 @@ def calibrate(
         console.print(f"turntable: the board's rotations agree with the encoder angles within "
                       f"{rep['turntable_axis']['angle_error_deg_rms']:.3f} deg RMS (staged fit)"
                       + ("" if scale is None else f"; their scale, fitted jointly: {scale:.5f}"))
+    if joint.get("encoder_warning"):
+        console.print(f"[yellow]warning:[/yellow] {joint['encoder_warning']}")
     if len(rep["views_used"]) < FEW_VIEWS:
         console.print(f"[yellow]warning:[/yellow] only {len(rep['views_used'])} usable views: the RMS above says "
-                      "nothing about what so few leave unconstrained (on the twin, two choices of 3 views put the "
-                      f"turntable axis 0.33 and 1.58 deg off in a staged fit where 16 put it 0.034-0.057 deg); use {FEW_VIEWS} or more, "
+                      "nothing about what so few leave unconstrained (on the twin, OpenCV's staged fit put the turntable "
+                      f"axis 0.33 and 1.58 deg off with two choices of 3 views where 16 put it 0.035-0.077 deg); use {FEW_VIEWS} or more, "
                       "spread over the image and "
                       "the turntable")
     if truth is not None:

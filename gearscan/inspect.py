@@ -62,6 +62,7 @@ class InspectionReport:
     rest_sigma_source: str | None = None  # whose that scale is: model, stale (the model's, another decode) or product
     model: str | None = None  # the network's weights that decoded the bursts (None: three-step PS)
     model_fingerprint: str | None = None  # that decode's fingerprint (weights, sigma maps, gates)
+    rig: str | None = None  # the rig calibration it was measured with, where not the recording's own (--rig)
 
 
 def partial(insp: Inspection, key: str) -> str:
@@ -263,7 +264,8 @@ def run_inspection(
                               (metrics.recon or {}).get("depth_sigma_source"),
                               (metrics.decoder or {}).get("turning_three_step", 0),
                               (metrics.recon or {}).get("rest_sigma_scale"), (metrics.recon or {}).get("rest_sigma_source"),
-                              (metrics.decoder or {}).get("model"), (metrics.decoder or {}).get("model_fingerprint"))
+                              (metrics.decoder or {}).get("model"), (metrics.decoder or {}).get("model_fingerprint"),
+                              None if rig is None else str(rig if not isinstance(rig, Rig) else f"Rig {rig.name!r}"))
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
@@ -279,6 +281,7 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         "recording": str(recording),
         # what decoded the bursts: the network's weights and its decode's fingerprint (None: three-step PS)
         "model": {"path": report.model, "fingerprint": report.model_fingerprint},
+        "rig": report.rig,  # the calibration measured with, where not the recording's own (null: the recording's)
         "revolution_deg": report.revolution_deg,
         "fused": {"points": len(report.fused), "bursts": report.fused.bursts_added, "voxel_mm": report.fused.voxel_mm,
                   "median_sigma_um": 1e3 * float(np.median(report.fused.sigma)),
@@ -332,6 +335,8 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         "",
         ("Decoded by three-step PS." if report.model is None else
          f"Decoded by the network `{report.model}` (decode fingerprint {report.model_fingerprint})."),
+        ("Measured with the recording's own rig calibration." if report.rig is None else
+         f"Measured with the rig calibration `{report.rig}` (not the recording's own)."),
         "",
         f"Gear: z = {insp.teeth}, m = {insp.module:g} mm, pitch diameter {insp.pitch_diameter_mm:.2f} mm. "
         f"Fused model: {len(report.fused):,} points from {report.fused.bursts_added} bursts over "

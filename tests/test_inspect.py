@@ -135,6 +135,7 @@ def test_report_files_and_grade(inspected):
     assert report["grade"] == 8 and report["tolerances_um"] == iso1328_tolerances(2.0, 40.0, 8)
     md = (out / "report.md").read_text()
     assert "tolerance class 8" in md and "CHIPPED" in md and "Twin truth" in md
+    assert report["rig"] is None and "Measured with the recording's own rig calibration." in md
     assert "chipped teeth: 7" in output
     assert report["fused"]["median_bursts_per_point"] >= 3
     # each point's sigma runs along its camera ray; the deviation's is its share along the CAD's normal, and both are said

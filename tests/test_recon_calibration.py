@@ -103,18 +103,35 @@ def test_joint_adjustment_skips_fallbacks_and_refuses_a_wrong_encoder(twin_set, 
     custom = calibrate_rig(views, board, (512, 512), PROJ, camera_flags=cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K2)
     assert not custom.report["joint_adjustment"]["run"] and "custom lens flags" in custom.report["joint_adjustment"]["why"]
 
-    def broken(*args, **kwargs):
+    real = bundle.adjust_jointly
+
+    def broken(*args, fit_scale=False, **kwargs):  # the encoder check runs, the rig's fit fails
+        if fit_scale:
+            return real(*args, fit_scale=True, **kwargs)
         raise ValueError("x0 is infeasible")
 
     monkeypatch.setattr(bundle, "adjust_jointly", broken)
     failed = calibrate_rig(views, board, (512, 512), PROJ)
-    assert "the adjustment failed (x0 is infeasible)" in failed.report["joint_adjustment"]["why"]
+    entry = failed.report["joint_adjustment"]
+    assert "the adjustment failed (x0 is infeasible)" in entry["why"] and abs(entry["encoder_scale"] - 1) < 2e-3
     np.testing.assert_allclose(failed.rig.camera.K, staged.rig.camera.K)  # the stages stand
+    def no_start(*args, **kwargs):  # the encoder check itself fails
+        raise ValueError("no start")
+
+    monkeypatch.setattr(bundle, "adjust_jointly", no_start)
+    assert "the encoder check failed (no start)" in calibrate_rig(views, board, (512, 512), PROJ).report[
+        "joint_adjustment"]["why"]
     monkeypatch.undo()
-    told = [dataclasses.replace(v, turntable_angle=None if v.turntable_angle is None else v.turntable_angle / 1.01)
-            for v in views]
+    def told(scale):
+        return [dataclasses.replace(v, turntable_angle=None if v.turntable_angle is None else v.turntable_angle / scale)
+                for v in views]
+
     with pytest.raises(CalibrationError, match=r"board's turns are 1\.0.* times the encoder's angles"):
-        calibrate_rig(told, board, (512, 512), PROJ)
+        calibrate_rig(told(1.01), board, (512, 512), PROJ)
+    # 0.3 %: inside the refusal, beyond the warning (this seed's exact encoder reads 1.0008: no warning)
+    warned = calibrate_rig(told(1.003), board, (512, 512), PROJ).report["joint_adjustment"]
+    assert abs(warned["encoder_scale"] - 1.0038) < 5e-4 and "counts_per_rev" in warned["encoder_warning"]
+    assert "encoder_warning" not in calibrate_rig(views, board, (512, 512), PROJ).report["joint_adjustment"]
 
 
 def test_lens_model_follows_the_evidence(twin_set):
