@@ -250,8 +250,8 @@ def _rt_to_t(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
 MAX_ANGLE_ERROR_DEG = 1.0
 # the joint adjustment trusts the encoder's angles; their scale, fitted as a check, must be within this share of 1. An
 # error in the angles' scale reads a 20 mm radius about 9 um off per 0.1 % (a review's tests: 1 % 89 um, 0.4 % 35 um);
-# the twin's exact encoder reads 1.0006-1.0008 (a residual of its corners). Beyond 0.5 %: refused, no rig; beyond
-# 0.15 %: written, with a warning in the report (ENCODER_SCALE_WARN)
+# the twin's exact encoder reads 1.0004-1.0008 over ten render seeds (a residual of its corners). Beyond 0.5 %:
+# refused, no rig; beyond 0.15 %: written, with a warning in the report (ENCODER_SCALE_WARN)
 ENCODER_SCALE_TOLERANCE = 0.005
 ENCODER_SCALE_WARN = 0.0015
 # fewer usable views than this calibrate, with a warning: the fit's RMS says nothing about what so few views leave
