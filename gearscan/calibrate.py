@@ -177,11 +177,7 @@ def cylinder_check(estimate, truth, *, radius_mm: float = 20.0, half_height_mm: 
     world = np.stack([cos * gear[:, 0] - sin * gear[:, 1], sin * gear[:, 0] + cos * gear[:, 1], gear[:, 2]], axis=1)
     pix, lit = truth.camera.project(world), truth.projector.project(world)
     column = lit[:, 0]
-
-    def inside(uv, dev):
-        return (uv[:, 0] >= -0.5) & (uv[:, 0] <= dev.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= dev.height - 0.5)
-
-    seen = inside(pix, truth.camera) & inside(lit, truth.projector)  # in both frames (a user's rig may cut some)
+    seen = truth.camera.in_frame(pix) & truth.projector.in_frame(lit)  # in both frames (a user's rig may cut some)
     cam = estimate.camera
     xy = cam.normalized(pix[seen])
     rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)

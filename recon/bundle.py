@@ -45,18 +45,20 @@ class JointFit:
     evaluations: int
 
 
-def _rt(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pose_vectors(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's rotation vector and translation of a 4x4 pose."""
     import cv2
 
     return cv2.Rodrigues(t[:3, :3])[0].ravel(), t[:3, 3].copy()
 
 
-def _transform(r: np.ndarray, t: np.ndarray) -> np.ndarray:
+def pose_matrix(r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The 4x4 pose of OpenCV's rotation vector and translation."""
     import cv2
 
     out = np.eye(4)
     out[:3, :3] = cv2.Rodrigues(np.asarray(r, np.float64))[0]
-    out[:3, 3] = t
+    out[:3, 3] = np.asarray(t, np.float64).ravel()
     return out
 
 
@@ -118,9 +120,9 @@ def adjust_jointly(
         return [k[0, 0], k[1, 1], k[0, 2], k[1, 2], *(float(np.ravel(d)[j]) for j in free_idx)]
 
     x0 = np.array([*intrinsics(k_camera, dist_camera, free_c), *intrinsics(k_projector, dist_projector, free_p),
-                   *np.concatenate(_rt(t_proj_from_cam)), *np.concatenate(_rt(frame0)), a0, b0, offset[0], offset[1],
+                   *np.concatenate(pose_vectors(t_proj_from_cam)), *np.concatenate(pose_vectors(frame0)), a0, b0, offset[0], offset[1],
                    *([1.0] if fit_scale else []),
-                   *(v for i in free for v in np.concatenate(_rt(poses[i])))])
+                   *(v for i in free for v in np.concatenate(pose_vectors(poses[i])))])
     nc, npj = 4 + len(free_c), 4 + len(free_p)
 
     def device(x: np.ndarray, free_idx: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -133,7 +135,7 @@ def adjust_jointly(
         kc, dc = device(x[:nc], free_c)
         kp, dp = device(x[nc:nc + npj], free_p)
         o = nc + npj
-        t_pc, frame = _transform(x[o:o + 3], x[o + 3:o + 6]), _transform(x[o + 6:o + 9], x[o + 9:o + 12])
+        t_pc, frame = pose_matrix(x[o:o + 3], x[o + 3:o + 6]), pose_matrix(x[o + 6:o + 9], x[o + 9:o + 12])
         a, b, tx, ty = x[o + 12:o + 16]
         scale = x[o + 16] if fit_scale else 1.0
         on_table = np.eye(4)
@@ -142,7 +144,7 @@ def adjust_jointly(
         views = {i: frame @ rot_z(scale * angles[i]) @ on_table for i in turn}
         o += 17 if fit_scale else 16
         for i in free:
-            views[i] = _transform(x[o:o + 3], x[o + 3:o + 6])
+            views[i] = pose_matrix(x[o:o + 3], x[o + 3:o + 6])
             o += 6
         return kc, dc, kp, dp, t_pc, frame, [views[i] for i in range(len(obs))]
 
@@ -150,8 +152,8 @@ def adjust_jointly(
         kc, dc, kp, dp, t_pc, _, views = unpack(x)
         out = []
         for (c, p), pose in zip(obs, views, strict=True):
-            pc, _ = cv2.projectPoints(obj, *_rt(pose), kc, dc)
-            pp, _ = cv2.projectPoints(obj, *_rt(t_pc @ pose), kp, dp)
+            pc, _ = cv2.projectPoints(obj, *pose_vectors(pose), kc, dc)
+            pp, _ = cv2.projectPoints(obj, *pose_vectors(t_pc @ pose), kp, dp)
             out += [((pc.reshape(-1, 2) - c) / sigma[0]).ravel(), ((pp.reshape(-1, 2) - p) / sigma[1]).ravel()]
         return np.concatenate(out)
 

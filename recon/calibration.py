@@ -40,6 +40,7 @@ import numpy as np
 
 from gearscan.core.phase import decode_phase
 from gearscan.core.rig import PinholeDevice, Rig
+from gearscan.recon.bundle import pose_matrix, pose_vectors
 from gearscan.recon.unwrap import temporal_unwrap
 
 
@@ -234,15 +235,6 @@ class CalibrationResult:
     residuals_camera: list[np.ndarray] = field(default_factory=list)  # per view (N, 2) px
     residuals_projector: list[np.ndarray] = field(default_factory=list)
     view_names: list[str] = field(default_factory=list)
-
-
-def _rt_to_t(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    import cv2
-
-    t = np.eye(4)
-    t[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0]
-    t[:3, 3] = np.asarray(tvec, dtype=np.float64).ravel()
-    return t
 
 
 # the board's measured rotation between turntable views against the encoder's: a wrong counts_per_rev or unit is
@@ -460,7 +452,7 @@ def calibrate_rig(
 
     # board poses refined by both devices: the projector's 24-degree baseline pins the board
     # tilt far better than the narrow-field camera alone (the axis fit hinges on it)
-    poses = [_rt_to_t(r, t) for r, t in zip(rv_s, tv_s, strict=True)]
+    poses = [pose_matrix(r, t) for r, t in zip(rv_s, tv_s, strict=True)]
     turn = [i for i, v in enumerate(used) if v.turntable_angle is not None]
     axis_stats: dict = {}
     if len(turn) >= 3:
@@ -495,11 +487,9 @@ def calibrate_rig(
 
     res_c, res_p = [], []  # of the rig written: each view's corners through its final pose
     for i in range(len(used)):
-        r, t = cv2.Rodrigues(poses[i][:3, :3])[0], poses[i][:3, 3]
-        pc, _ = cv2.projectPoints(obj, r, t, k_c, d_c)
+        pc, _ = cv2.projectPoints(obj, *pose_vectors(poses[i]), k_c, d_c)
         res_c.append(pc.reshape(-1, 2) - img_c[i].reshape(-1, 2))
-        tp = t_proj_from_cam @ poses[i]
-        pp, _ = cv2.projectPoints(obj, cv2.Rodrigues(tp[:3, :3])[0], tp[:3, 3], k_p, d_p)
+        pp, _ = cv2.projectPoints(obj, *pose_vectors(t_proj_from_cam @ poses[i]), k_p, d_p)
         res_p.append(pp.reshape(-1, 2) - img_p[i].reshape(-1, 2))
 
     def rms(res: list[np.ndarray]) -> float:

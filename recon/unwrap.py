@@ -381,8 +381,7 @@ def unambiguous_depth_window(
     z0 = depth[prior]
     t = rig.T_proj_from_cam
     uv = rig.projector.project_device((rays * z0[:, None]) @ t[:3, :3].T + t[:3, 3])
-    lit = (uv[:, 0] >= -0.5) & (uv[:, 0] <= rig.projector.width - 0.5) & (uv[:, 1] >= -0.5) & \
-        (uv[:, 1] <= rig.projector.height - 0.5)
+    lit = rig.projector.in_frame(uv)
     centre, half = np.where(lit, TWO_PI * uv[:, 0] / period_px, np.nan), math.pi - margin
     ends = [ray_depth_at_phase(rig, period_px, rays, target, z0) for target in (centre - half, centre + half)]
     lo, hi = np.full(depth.shape, np.nan), np.full(depth.shape, np.nan)

@@ -144,8 +144,7 @@ class BoardRenderer:
         pts, _, hit = self._plane_hits(self._rays_center, t)
         normal, origin = t[:3, 2], t[:3, 3]
         uv = self.rig.projector.project(pts)
-        pw, ph = self.rig.projector.width, self.rig.projector.height
-        inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= pw - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= ph - 0.5)
+        inside = self.rig.projector.in_frame(uv)
         to_pt = pts - self._proj_center
         dp = np.linalg.norm(to_pt, axis=1)
         cos_inc = np.abs(to_pt @ normal) / dp

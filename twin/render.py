@@ -226,8 +226,7 @@ class TwinRenderer:
             pts_p[c] += np.multiply(pts_g[2], t_pg[c, 2], out=row)
             pts_p[c] += t_pg[c, 3]
         uv = self.rig.projector.project_device(pts_p.T)
-        pw, ph = self.rig.projector.width, self.rig.projector.height
-        inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= pw - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= ph - 0.5)
+        inside = self.rig.projector.in_frame(uv)
         cand = np.flatnonzero(inside & (cos_inc > 0))  # NaN (no hit) compares False
         rays_p = rays[: len(cand)]  # the camera's rays are spent
         rays_p[:, :3] = proj_g

@@ -153,6 +153,12 @@ class PinholeDevice:
         kinv = np.linalg.inv(self.K)
         return (pts.reshape(-1, 2) - self.K[:2, 2]) @ np.diag([kinv[0, 0], kinv[1, 1]])
 
+    def in_frame(self, uv: np.ndarray) -> np.ndarray:
+        """Which pixel positions ``(..., 2)`` fall on the device's frame (its outer pixels' edges at -0.5 and
+        size - 0.5); NaN is outside."""
+        u, v = uv[..., 0], uv[..., 1]
+        return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
+
     def pixel_rays(self) -> np.ndarray:
         """Unit ray directions ``(H, W, 3)`` in the device frame for every pixel centre."""
         u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
