@@ -6,7 +6,7 @@ camera field, a 20 mm cylinder measured with the staged rig read its radius up t
 Here one least-squares fit moves everything at once: both devices' intrinsics and chosen lens coefficients, the
 projector's pose, the free views' board poses, and the turntable views as ONE board pose turned about one axis by
 the encoder's angles (the constraint the turntable gives). The angles are trusted: a wrong counts-per-revolution
-would bend the rig (1 % put a 20 mm cylinder's radius 89 um off in a review's test), so ``fit_scale`` fits their
+would bend the rig (on the twin, angles 1 % short moved a 20 mm cylinder's radius 86 um), so ``fit_scale`` fits their
 scale as well, for the caller's check of the encoder; the rig comes from the fit that trusts them (on the twin,
 whose encoder is exact, a free scale came out 1.0004-1.0008 over ten seeds and read the radius 1.7-7.0 um worse on
 seeds 1-3). Residuals are the corners' reprojections in both devices, per coordinate, each divided by that device's
