@@ -255,8 +255,7 @@ class Reconstructor:
         if cad is None:
             raise ValueError("depth_range_mm needs the gear's CAD (unwrap='cad')")
         depth = cad.depth(angle)
-        # along each ray, through the projector's lens, where it lights the surface (the fused path's closed form
-        # equals it within 1 um where the projector has no distortion, but counts pixels it does not light)
+        # along each ray, through the projector's lens, where it lights the surface
         lo, hi = unambiguous_depth_window(self.rig, self.period_px, depth, margin=self.margin)
         ok = np.isfinite(lo) & np.isfinite(hi)
         if not ok.any():

@@ -192,17 +192,6 @@ class SingleFrequencyReconstructor:
             raise ValueError(f"depth: expected shape {self.shape}, got {depth.shape}")
         return self._phase_at(depth, slice(None))
 
-    def depth_window(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest and farthest camera z-depth (mm) that a whole-fringe window around ``depth``
-        admits, less the noise ``margin`` on both ends: the rig's unambiguous depth range per
-        pixel for this fringe period. ``(H, W)`` each; NaN where ``depth`` is NaN."""
-        pc = self.phase_of_depth(depth)
-        half = np.float32(math.pi - self.margin)
-        ends = []
-        for phi in (pc - half, pc + half):
-            ends.append((self._alpha * phi + self._beta) / (self._g - self._d * phi))
-        return np.fmin(*ends), np.fmax(*ends)
-
     def allocate(self) -> tuple[Triangulation, np.ndarray]:
         """Output buffers for ``out=``: reusing them saves ~100 MB of page faults per call."""
         h, w = self.shape

@@ -283,21 +283,27 @@ def _distorted(rig, k1: float):
     return dataclasses.replace(rig, projector=dataclasses.replace(rig.projector, dist=dist))
 
 
-def test_unambiguous_window_is_the_closed_form_without_distortion():
-    """The search along the rays against the fused path's closed form (an undistorted projector): the same window,
-    about +-1.6 mm at the axis depth with 40 px fringes (two compute paths: within 1 um)."""
-    from gearscan.recon.reconstruct import SingleFrequencyReconstructor
-
-    rig = default_rig(128, 128)
+def test_unambiguous_window_is_where_the_phase_leaves_the_fringe():
+    """The search along the rays against a brute-force scan (the phase projected through phase_bounds, another path,
+    every 10 um of depth, interpolated): the same window, about +-1.6 mm at the axis depth with 40 px fringes."""
+    rig = default_rig(96, 96)
     z_axis = float((rig.camera.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
-    depth = np.full((128, 128), z_axis)
+    depth = np.full((96, 96), z_axis)
     depth[:4] = np.nan  # no prior: no window
     lo, hi = unambiguous_depth_window(rig, 40.0, depth, margin=0.2)
-    sf = SingleFrequencyReconstructor(rig, 40.0, margin=0.2, threads=1)
-    try:
-        lo_c, hi_c = sf.depth_window(depth.astype(np.float32))
-    finally:
-        sf.close()
+    zs = z_axis + np.arange(-3.0, 3.0 + 1e-9, 0.01)
+    scan = np.stack([phase_bounds(rig, DepthBounds(np.full((96, 96), z), np.full((96, 96), z)), 40.0)[0] for z in zs])
+    away = np.abs(scan - scan[len(zs) // 2])  # phase distance from the prior's, per depth and pixel
+    half = math.pi - 0.2
+
+    def crossing(k0, k1):  # depth where `away` reaches `half` between samples k0 and k1, per pixel
+        a0, a1 = np.take_along_axis(away, k0[None], 0)[0], np.take_along_axis(away, k1[None], 0)[0]
+        return zs[k0] + (zs[k1] - zs[k0]) * (half - a0) / (a1 - a0)
+
+    mid = len(zs) // 2
+    first_far = mid + np.argmax(away[mid:] >= half, axis=0)
+    first_near = mid - np.argmax(away[mid::-1] >= half, axis=0)
+    lo_c, hi_c = crossing(first_near, first_near + 1), crossing(first_far - 1, first_far)
     # the pixels the projector lights at that depth (its frame is 800 rows: the image's top and bottom rows miss it)
     rays = rig.camera.pixel_rays()
     pts = rays / rays[..., 2:3] * z_axis
@@ -306,8 +312,8 @@ def test_unambiguous_window_is_the_closed_form_without_distortion():
     lit[:4] = False
     assert 0.5 < lit.mean() < 1.0
     assert (np.isfinite(lo) == lit).all() and (np.isfinite(hi) == lit).all()
-    np.testing.assert_allclose(lo[lit], lo_c[lit], atol=1e-3)
-    np.testing.assert_allclose(hi[lit], hi_c[lit], atol=1e-3)
+    np.testing.assert_allclose(lo[lit], lo_c[lit], atol=1e-4)
+    np.testing.assert_allclose(hi[lit], hi_c[lit], atol=1e-4)
     assert 1.3 < np.median(z_axis - lo[lit]) < 1.9 and 1.3 < np.median(hi[lit] - z_axis) < 1.9
 
 
