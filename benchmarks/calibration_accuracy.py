@@ -1,6 +1,8 @@
 """How well `gearscan calibrate` recovers a rig, and what its error does to a measurement (twin, several seeds).
 
     .venv/bin/python benchmarks/calibration_accuracy.py [--seeds 1,2,3,4,5,6,7,8,9,10]      # ~30 s per seed
+    .venv/bin/python benchmarks/calibration_accuracy.py --fits product --seeds 11-30 [--jitter-poses] \
+        --report benchmarks/calibration_uncertainty_report                                  # ~12 s per seed
 
 Per render seed (sensor noise; the board poses are the twin's calibration set, `twin.board.calibration_poses`),
 the default rig's board views are rendered and calibrated three ways (:data:`FITS`): the product (each device's lens
@@ -9,7 +11,11 @@ model chosen on held-out views, `recon.calibration.choose_lens_model`, then the 
 (k1 k2 p1 p2: the product's fit before session 55). Each calibrated rig is compared with the truth (`gearscan.calibrate`:
 focal lengths, baseline, turntable axis) and by what a user sees: a 20 mm cylinder turned once round, seen by the
 true rig and measured with the calibrated one (`cylinder_check`: the radius's bias and spread; the fused shape's
-error after a rigid fit). Nothing is chosen here. Writes ``benchmarks/calibration_accuracy_report.{md,json}``.
+error after a rigid fit). The product also states its own uncertainty (`recon.rig_check.calibration_uncertainty`:
+rigs drawn from the joint adjustment's covariance measuring the same cylinder); the report sets it against the true
+errors (`benchmarks/calibration_uncertainty_rule.md`). ``--jitter-poses``: each seed places the board as a hand does,
+a few degrees and millimetres off the shipped poses (:func:`jittered_poses`). Nothing is chosen here. Writes
+``benchmarks/calibration_accuracy_report.{md,json}`` (or ``--report``).
 """
 
 from __future__ import annotations
@@ -21,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from gearscan.calibrate import compare_rigs, cylinder_check
 from gearscan.core.rig import default_rig
 from gearscan.provenance import run_stamp
 from gearscan.recon.calibration import Checkerboard, calibrate_rig, decode_capture, lens_flags
-from gearscan.twin.board import render_calibration_set
+from gearscan.recon.rig_check import compare_rigs, cylinder_check
+from gearscan.twin.board import calibration_poses, render_calibration_set
 from gearscan.twin.render import Optics
 
 HERE = Path(__file__).resolve().parent
@@ -34,17 +40,36 @@ CHOOSING_SEEDS = frozenset({1, 2, 3, 4, 5})
 # how each row calibrates: (lens model for both devices, None = chosen on held-out views; joint adjustment)
 FITS = {"product: chosen lens, joint adjustment": (None, True), "chosen lens, staged only": (None, False),
         "richest lens, staged only (before session 55)": ("k1k2p1p2", False)}
+FIT_KEYS = {"product": "product: chosen lens, joint adjustment", "staged": "chosen lens, staged only",
+            "richest": "richest lens, staged only (before session 55)"}
+PRODUCT = FIT_KEYS["product"]
 
 
-def one_seed(seed: int) -> list[dict]:
-    """Render the default rig's calibration set with ``seed`` and calibrate it both ways (:data:`FITS`)."""
+def jittered_poses(rig, board, seed: int) -> list:
+    """The twin's calibration poses as a hand places them (seeded): each free view's tilts +-3 deg and shifts +-1 mm,
+    its distance +-2 mm; the turntable views' angles shifted together by +-6 deg (the rule's amendment)."""
+    rng = np.random.default_rng([seed, 56])
+    shipped = calibration_poses.__kwdefaults__
+    free = [(tx + rng.uniform(-3, 3), ty + rng.uniform(-3, 3), sx + rng.uniform(-1, 1), sy + rng.uniform(-1, 1))
+            for tx, ty, sx, sy in shipped["free_views"]]
+    turn = np.asarray(shipped["turntable_angles_deg"]) + rng.uniform(-6, 6)
+    distance = float(np.linalg.norm(rig.camera.center_world[:2]) - 21.0 + rng.uniform(-2, 2))
+    return calibration_poses(rig, board, free_views=free, turntable_angles_deg=tuple(turn), free_distance_mm=distance)
+
+
+def one_seed(seed: int, fits: list[str], jitter: bool) -> list[dict]:
+    """Render the default rig's calibration set with ``seed`` (its poses jittered by the seed with ``jitter``) and
+    calibrate it each way of ``fits`` (:data:`FITS`)."""
     rig, board = default_rig(), Checkerboard()
     proj = (rig.projector.width, rig.projector.height)
     t = time.perf_counter()
-    views = [decode_capture(c, proj) for c in render_calibration_set(rig, board, Optics(), steps=12, seed=seed)]
+    poses = jittered_poses(rig, board, seed) if jitter else None
+    views = [decode_capture(c, proj) for c in render_calibration_set(rig, board, Optics(), steps=12, seed=seed,
+                                                                      poses=poses)]
     render_s = time.perf_counter() - t
     rows = []
-    for fit, (model, joint) in FITS.items():
+    for fit in fits:
+        model, joint = FITS[fit]
         flags = {} if model is None else {"camera_flags": lens_flags(model), "projector_flags": lens_flags(model)}
         res = calibrate_rig(views, board, (rig.camera.width, rig.camera.height), proj, joint=joint, **flags)
         rep, est = res.report, res.rig
@@ -55,22 +80,28 @@ def one_seed(seed: int) -> list[dict]:
             "camera_rms_px": rep["camera_rms_px"], "projector_rms_px": rep["projector_rms_px"],
             "camera_focal_error_pct": 100 * (est.camera.K[0, 0] / rig.camera.K[0, 0] - 1),
             "projector_focal_error_pct": 100 * (est.projector.K[0, 0] / rig.projector.K[0, 0] - 1),
-            **compare_rigs(est, rig), "cylinder": cylinder_check(est, rig)})
+            **compare_rigs(est, rig), "cylinder": cylinder_check(est, rig), "uncertainty": rep["uncertainty"]})
         r = rows[-1]
+        u = r["uncertainty"]
         print(f"seed {seed} {fit}: lens {r['lens']}, radius {r['cylinder']['radius_bias_um']:+.1f} um, shape "
-              f"{r['cylinder']['shape_rms_um']:.1f} um RMS", flush=True)
+              f"{r['cylinder']['shape_rms_um']:.1f} um RMS" + (f"; stated radius u {u['radius_um']:.2f} um, shape p95 "
+                                                                f"{u['shape_rms_um_p95']:.1f} um" if u["stated"] else ""),
+              flush=True)
     return rows
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=lambda s: [int(v) for v in s.split(",")], default=list(range(1, 11)))
+    ap.add_argument("--seeds", type=seed_list, default=list(range(1, 11)), help="e.g. 1,2,3 or 11-30")
+    ap.add_argument("--fits", type=lambda s: [FIT_KEYS[v] for v in s.split(",")], default=list(FITS),
+                    help=f"comma-separated, of {', '.join(FIT_KEYS)} (default: all)")
+    ap.add_argument("--jitter-poses", action="store_true", help="each seed places the board as a hand does")
     ap.add_argument("--report", type=Path, default=HERE / "calibration_accuracy_report")
     args = ap.parse_args()
     stamp = run_stamp()
-    rows = [r for seed in args.seeds for r in one_seed(seed)]
+    rows = [r for seed in args.seeds for r in one_seed(seed, args.fits, args.jitter_poses)]
     summary = []
-    for fit, chose in ((f, c) for f in FITS for c in (True, False)):
+    for fit, chose in ((f, c) for f in args.fits for c in (True, False)):
         own = [r for r in rows if r["fit"] == fit and (r["seed"] in CHOOSING_SEEDS) == chose]
         if not own:
             continue
@@ -83,11 +114,15 @@ def main() -> None:
     lines = [
         "# Calibration accuracy: the twin's default rig calibrated from its board views",
         "",
-        f"`python benchmarks/calibration_accuracy.py --seeds {','.join(map(str, args.seeds))}` — commit "
-        f"{stamp['commit']}{edits}, host: {stamp['host']}.",
+        f"`python benchmarks/calibration_accuracy.py --seeds {','.join(map(str, args.seeds))}"
+        f"{' --fits ' + ','.join(k for k, v in FIT_KEYS.items() if v in args.fits) if args.fits != list(FITS) else ''}"
+        f"{' --jitter-poses' if args.jitter_poses else ''}` — commit {stamp['commit']}{edits}, host: {stamp['host']}.",
         "",
-        "Per render seed (sensor noise; the same 16 board poses: 11 free-hand, 5 on the turntable): the rig calibrated "
-        "three ways: the product (each device's lens model chosen on held-out views, then one bundle adjustment of "
+        "Per render seed (sensor noise; "
+        + ("16 board poses, 11 free-hand and 5 on the turntable, each seed's jittered as a hand places them: free "
+           "views' tilts +-3 deg, shifts +-1 mm, distance +-2 mm, turntable angles shifted together by +-6 deg"
+           if args.jitter_poses else "the same 16 board poses: 11 free-hand, 5 on the turntable")
+        + f"): the rig calibrated {len(args.fits)} way(s) of these three: the product (each device's lens model chosen on held-out views, then one bundle adjustment of "
         "everything with the turntable views held to one board pose turned by the encoder's angles, `recon/bundle.py`), "
         "the same lens models from OpenCV's stages alone, and the richest model everywhere from the stages alone "
         "(k1 k2 p1 p2, the fit before session 55). **Cylinder**: 4,000 points all round a 20 mm cylinder about the true "
@@ -116,11 +151,67 @@ def main() -> None:
           f"{s['shape_rms_um_median']:.1f} / {s['shape_rms_um_max']:.1f} | {s['radius_bias_um_rms']:.1f} | "
           f"{s['axis_error_deg_max']:.3f} |" for s in summary],
         "",
+        *uncertainty_lines([r for r in rows if r["fit"] == PRODUCT]),
     ]
     args.report.with_suffix(".md").write_text("\n".join(lines))
-    args.report.with_suffix(".json").write_text(json.dumps({**stamp, "seeds": args.seeds, "rows": rows,
-                                                            "summary": summary}, indent=1))
+    args.report.with_suffix(".json").write_text(json.dumps({**stamp, "seeds": args.seeds, "jitter_poses": args.jitter_poses,
+                                                            "rows": rows, "summary": summary,
+                                                            "uncertainty_test": uncertainty_test(
+                                                                [r for r in rows if r["fit"] == PRODUCT])}, indent=1))
     print("\n".join(lines))
+
+
+def seed_list(text: str) -> list[int]:
+    """``1,2,3`` or ``11-30`` (inclusive) or a mix."""
+    out = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi) + 1)) if hi else [int(lo)]
+    return out
+
+
+def uncertainty_test(rows: list[dict]) -> dict | None:
+    """The rule's three criteria (`calibration_uncertainty_rule.md`) over the product's rows that stated one."""
+    rows = [r for r in rows if r["uncertainty"]["stated"]]
+    if not rows:
+        return None
+    z = np.array([r["cylinder"]["radius_bias_um"] / r["uncertainty"]["radius_um"] for r in rows])
+    within = int(np.sum(np.abs(z) <= 2))
+    shape_in = int(sum(r["cylinder"]["shape_rms_um"] <= r["uncertainty"]["shape_rms_um_p95"] for r in rows))
+    rms_z = float(np.sqrt(np.mean(z**2)))
+    n = len(rows)
+    need = int(np.ceil(0.9 * n))
+    return {"seeds": n, "radius_within_2u": within, "rms_z": rms_z, "shape_within_p95": shape_in, "need": need,
+            "criteria": {"1: |bias| <= 2u": within >= need, "2: RMS z in [0.6, 1.5]": 0.6 <= rms_z <= 1.5,
+                         "3: shape <= p95": shape_in >= need}}
+
+
+def uncertainty_lines(rows: list[dict]) -> list[str]:
+    """The report's section on the product's stated uncertainty against its true errors."""
+    test = uncertainty_test(rows)
+    if test is None:
+        return []
+    verdict = "; ".join(f"{k}: {'pass' if v else 'FAIL'}" for k, v in test["criteria"].items())
+    return [
+        "## The calibration's stated uncertainty against its true errors (product fit)",
+        "",
+        "Stated from the captures alone (`recon.rig_check.calibration_uncertainty`: 64 calibrations drawn from the joint "
+        "adjustment's covariance, each measuring the cylinder as the calibrated rig sees it): `u`, the draws' radius "
+        "standard deviation (k = 1), and the 95th percentile of their shape RMS. True: `cylinder_check` against the "
+        "twin's rig. `z` = bias / u. Rule: `benchmarks/calibration_uncertainty_rule.md`.",
+        "",
+        "| seed | radius bias (um) | stated u (um) | z | shape RMS (um) | stated shape p95 (um) | variance factor |",
+        "|---|---|---|---|---|---|---|",
+        *[f"| {r['seed']} | {r['cylinder']['radius_bias_um']:+.2f} | {r['uncertainty']['radius_um']:.2f} | "
+          f"{r['cylinder']['radius_bias_um'] / r['uncertainty']['radius_um']:+.2f} | {r['cylinder']['shape_rms_um']:.2f} | "
+          f"{r['uncertainty']['shape_rms_um_p95']:.2f} | {r['uncertainty']['variance_factor']:.3f} |"
+          for r in rows if r["uncertainty"]["stated"]],
+        "",
+        f"**{test['radius_within_2u']} of {test['seeds']}** seeds within 2u (need {test['need']}); **RMS z "
+        f"{test['rms_z']:.2f}** (band 0.6-1.5); true shape within the stated p95 on **{test['shape_within_p95']} of "
+        f"{test['seeds']}**. {verdict}.",
+        "",
+    ]
 
 
 if __name__ == "__main__":

@@ -50,6 +50,7 @@ def calibrate(
         plot_residuals,
         save_calibration,
     )
+    from gearscan.recon.rig_check import compare_rigs, cylinder_check
     from gearscan.recon.unity import unity_parameters
 
     console = Console()
@@ -153,67 +154,3 @@ def depth_range_line(rig, period_px: float) -> str:
     return (f"unambiguous depth range at {period_px:g} px fringes, {z_axis:.0f} mm from the camera (the turntable axis): "
             f"-{np.median(minus):.2f}/+{np.median(plus):.2f} mm (median over the image; at least "
             f"-{minus.min():.2f}/+{plus.min():.2f} mm); wider fringes widen it in proportion")
-
-
-def cylinder_check(estimate, truth, *, radius_mm: float = 20.0, half_height_mm: float = 10.0, points: int = 4000,
-                   seed: int = 0) -> dict[str, float]:
-    """What a calibration's error does to a measured revolution (twin checks): points all round a cylinder about the
-    true turntable axis, each seen at an encoder angle that turns it towards the camera (+-34 deg), by the TRUE rig
-    (camera pixel, projector column), are triangulated with the ESTIMATED rig and turned back about its axis, as a
-    fused revolution is. Returns the radius's error about the estimated axis (bias and spread, um: what a size
-    reading inherits) and the fused points' distance from the true ones after a rigid fit (RMS and 95th percentile,
-    um: the smear and wobble a wrong axis puts into a revolution, size included)."""
-    import numpy as np
-
-    from gearscan.recon.unwrap import ray_depth_at_phase
-
-    rng = np.random.default_rng(seed)
-    theta = rng.uniform(0.0, 2 * np.pi, points)  # around the gear
-    gear = np.stack([radius_mm * np.cos(theta), radius_mm * np.sin(theta),
-                     rng.uniform(-half_height_mm, half_height_mm, points)], axis=1)
-    c = truth.camera.center_world
-    angle = np.arctan2(c[1], c[0]) - theta + rng.uniform(-0.6, 0.6, points)  # the encoder angle it is seen at
-    cos, sin = np.cos(angle), np.sin(angle)
-    world = np.stack([cos * gear[:, 0] - sin * gear[:, 1], sin * gear[:, 0] + cos * gear[:, 1], gear[:, 2]], axis=1)
-    pix, lit = truth.camera.project(world), truth.projector.project(world)
-    column = lit[:, 0]
-    seen = truth.camera.in_frame(pix) & truth.projector.in_frame(lit)  # in both frames (a user's rig may cut some)
-    cam = estimate.camera
-    xy = cam.normalized(pix[seen])
-    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
-    z_axis = float((cam.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
-    z = ray_depth_at_phase(estimate, 1.0, rays, 2 * np.pi * column[seen], np.full(len(rays), z_axis))
-    ok = np.isfinite(z)
-    p_world = (rays[ok] * z[ok, None]) @ cam.T_world_from[:3, :3].T + cam.T_world_from[:3, 3]  # the estimated frame
-    back = -angle[seen][ok]  # turned back about the estimated axis by each point's encoder angle: the fused gear
-    fused = np.stack([np.cos(back) * p_world[:, 0] - np.sin(back) * p_world[:, 1],
-                      np.sin(back) * p_world[:, 0] + np.cos(back) * p_world[:, 1], p_world[:, 2]], axis=1)
-    radius = 1e3 * (np.hypot(fused[:, 0], fused[:, 1]) - radius_mm)
-    # its shape: the fused gear rigidly fitted to the true one (where each frame puts angle zero and its origin is a
-    # convention); what is left is what the calibration does to a fused revolution, size included
-    true = gear[seen][ok]
-    a, b = fused - fused.mean(axis=0), true - true.mean(axis=0)
-    u, _, vt = np.linalg.svd(a.T @ b)
-    rot = (u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt).T
-    shape = 1e3 * np.linalg.norm(a @ rot.T - b, axis=1)
-    return {"points": int(ok.sum()), "of": points, "radius_bias_um": float(radius.mean()),
-            "radius_spread_um": float(radius.std()), "shape_rms_um": float(np.sqrt(np.mean(shape**2))),
-            "shape_p95_um": float(np.percentile(shape, 95))}
-
-
-def compare_rigs(estimate, truth) -> dict[str, float]:
-    """Differences between a calibrated rig and the true one (twin checks).
-
-    Axis error compares the turntable z axis seen from the camera (world z in camera frame).
-    """
-    import numpy as np
-
-    za = estimate.camera.T_from_world[:3, :3] @ np.array([0.0, 0.0, 1.0])
-    zb = truth.camera.T_from_world[:3, :3] @ np.array([0.0, 0.0, 1.0])
-    axis = float(np.degrees(np.arccos(np.clip(za @ zb, -1.0, 1.0))))
-    return {
-        "baseline_rel_error": abs(estimate.baseline_mm - truth.baseline_mm) / truth.baseline_mm,
-        "axis_error_deg": axis,
-        "camera_center_error_mm": float(np.linalg.norm(estimate.camera.center_world - truth.camera.center_world)),
-        "projector_center_error_mm": float(np.linalg.norm(estimate.projector.center_world - truth.projector.center_world)),
-    }

@@ -10,7 +10,9 @@ would bend the rig (on the twin, angles 1 % short moved a 20 mm cylinder's radiu
 scale as well, for the caller's check of the encoder; the rig comes from the fit that trusts them (on the twin,
 whose encoder is exact, a free scale came out 1.0004-1.0008 over ten seeds and read the radius 1.7-7.0 um worse on
 seeds 1-3). Residuals are the corners' reprojections in both devices, per coordinate, each divided by that device's
-noise per coordinate.
+noise per coordinate. Being a least-squares fit, it also states its own uncertainty: calibrations drawn from its
+parameter covariance (``draws``), for the caller to carry into what a measurement inherits
+(:func:`gearscan.recon.rig_check.calibration_uncertainty`).
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ class JointFit:
     rms_before: float  # normalised residual RMS per coordinate (1: residuals at the given noise)
     rms_after: float
     evaluations: int
+    variance_factor: float = float("nan")  # residual sum of squares over its degrees of freedom (1: noise as given)
+    draws: tuple[JointFit, ...] = ()  # calibrations drawn from the fit's covariance (adjust_jointly's ``draws``)
 
 
 def pose_vectors(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -88,13 +92,17 @@ def adjust_jointly(
     sigma: tuple[float, float],
     *,
     fit_scale: bool = False,
+    draws: int = 0,
+    seed: int = 0,
 ) -> JointFit:
     """Refine the staged calibration jointly (module docstring). ``obj``: the board's corners ``(N, 3)``;
     ``img_*``: each view's observed corners ``(N, 2)``; ``angles``: each view's encoder angle (rad), None for a
     free view; ``models``: the camera's and the projector's lens model; the staged estimates as starting point
     (``t_cam_from_world``: its turntable frame, z along the axis; ``poses``: T_cam_from_board per view);
     ``sigma``: each device's noise per coordinate (px), the residuals' units; ``fit_scale``: also fit one scale of
-    the encoder's angles (a check of the encoder; the module docstring says why a rig should not come from it)."""
+    the encoder's angles (a check of the encoder; the module docstring says why a rig should not come from it);
+    ``draws``: how many calibrations to draw (``seed``) from the parameter covariance ``s^2 (J^T J)^-1`` at the
+    solution, ``s^2`` the :attr:`JointFit.variance_factor`."""
     import cv2
     from scipy.optimize import least_squares
 
@@ -159,7 +167,32 @@ def adjust_jointly(
 
     before = float(np.sqrt(np.mean(residuals(x0) ** 2)))
     sol = least_squares(residuals, x0, method="lm", x_scale="jac")
-    kc, dc, kp, dp, t_pc, frame, views = unpack(sol.x)
-    scale = float(sol.x[nc + npj + 16]) if fit_scale else 1.0
-    return JointFit(kc, dc, kp, dp, t_pc, frame, views, scale, before, float(np.sqrt(np.mean(sol.fun**2))),
-                    int(sol.nfev))
+    m, n = sol.fun.size, sol.x.size
+    factor = float(np.sum(sol.fun**2) / (m - n)) if m > n else float("nan")
+    after = float(np.sqrt(np.mean(sol.fun**2)))
+
+    def fit_of(x: np.ndarray, **extra) -> JointFit:
+        kc, dc, kp, dp, t_pc, frame, views = unpack(x)
+        scale = float(x[nc + npj + 16]) if fit_scale else 1.0
+        return JointFit(kc, dc, kp, dp, t_pc, frame, views, scale, before, after, int(sol.nfev), factor, **extra)
+
+    drawn = ()
+    if draws > 0:
+        steps = covariance_steps(sol.jac, factor, draws, seed)
+        drawn = tuple(fit_of(sol.x + step) for step in steps)
+    return fit_of(sol.x, draws=drawn)
+
+
+def covariance_steps(jac: np.ndarray, factor: float, n: int, seed: int) -> np.ndarray:
+    """``n`` draws ``(n, p)`` from N(0, factor (J^T J)^-1), through the SVD of the column-scaled Jacobian (the
+    parameters span focal lengths in px to lens coefficients near 0.1); directions the corners do not constrain
+    (singular values below 1e-10 of the largest) are left out, not drawn as infinite."""
+    if not math.isfinite(factor):
+        raise ValueError("no degrees of freedom left: as many parameters as residuals, no covariance")
+    jac = np.asarray(jac, np.float64)
+    norm = np.linalg.norm(jac, axis=0)
+    norm[norm == 0] = 1.0
+    _, sv, vt = np.linalg.svd(jac / norm, full_matrices=False)
+    keep = sv > 1e-10 * sv[0]
+    z = np.random.default_rng(seed).standard_normal((n, int(keep.sum())))
+    return math.sqrt(factor) * (z / sv[keep]) @ vt[keep] / norm

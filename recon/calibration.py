@@ -261,6 +261,10 @@ LENS_MODELS = ("none", "k1", "k1k2", "k1k2p1p2")
 # extrapolation hazard outside the board's footprint): none is chosen. The twin's camera lens (k1 -0.08, k2 0.12,
 # p1 5e-4, p2 -3e-4: 0.13 px at the image corner, nearly all of it k1) gets k1 on every seed (1.8 % lower held out)
 LENS_PARSIMONY = 0.01
+# calibrations drawn from the joint adjustment's covariance to state the calibration's own uncertainty
+# (recon.rig_check.calibration_uncertainty; 64 state a standard deviation within about 9 %), and their seed
+UNCERTAINTY_DRAWS = 64
+UNCERTAINTY_SEED = 0
 
 
 def lens_flags(model: str) -> int:
@@ -475,16 +479,19 @@ def calibrate_rig(
                         t_proj_from_cam, t_cam_from_world, poses, (float(rms_c), float(rms_p))) if joint else \
         {"run": False, "why": "not asked (joint=False)", "fit": None}
     fit = None if adjustment is None else adjustment.pop("fit")
+    uncertainty = {"stated": False, "why": "the staged fit: only the joint adjustment states its covariance"}
     if fit is not None:  # the product: everything refined at once (recon.bundle); the world frame as above
+        rig = _rig_of(fit, board, turn[0], camera_size, projector_size, name)
         k_c, d_c, k_p, d_p, t_proj_from_cam = fit.k_camera, fit.dist_camera, fit.k_projector, fit.dist_projector, \
             fit.t_proj_from_cam
-        level = (fit.poses[turn[0]] @ np.append(board.centre, 1.0))[:3]
         direction, point = fit.t_cam_from_turntable[:3, 2], fit.t_cam_from_turntable[:3, 3]
-        t_cam_from_world = world_from_axis(direction, point, level)
         poses = fit.poses
-    cam_dev = PinholeDevice(camera_size[0], camera_size[1], k_c, np.asarray(d_c).ravel()[:5], t_cam_from_world)
-    proj_dev = PinholeDevice(projector_size[0], projector_size[1], k_p, np.asarray(d_p).ravel()[:5], t_proj_from_cam @ t_cam_from_world)
-    rig = Rig(camera=cam_dev, projector=proj_dev, name=name)
+        uncertainty = _uncertainty(rig, fit, board, turn[0], camera_size, projector_size)
+    else:
+        cam_dev = PinholeDevice(camera_size[0], camera_size[1], k_c, np.asarray(d_c).ravel()[:5], t_cam_from_world)
+        proj_dev = PinholeDevice(projector_size[0], projector_size[1], k_p, np.asarray(d_p).ravel()[:5],
+                                 t_proj_from_cam @ t_cam_from_world)
+        rig = Rig(camera=cam_dev, projector=proj_dev, name=name)
 
     res_c, res_p = [], []  # of the rig written: each view's corners through its final pose
     for i in range(len(used)):
@@ -510,6 +517,7 @@ def calibrate_rig(
         "joint_adjustment": adjustment if adjustment is not None else {"run": False, "why": "custom lens flags: their free "
                                                                  "coefficients are not one of LENS_MODELS"},
         "baseline_mm": rig.baseline_mm,
+        "uncertainty": uncertainty,
         "lens_model": lens,
         "turntable_axis": {  # of the rig written; the fit statistics are the staged fit's (its check of the encoder)
             "direction_cam": direction.tolist(),
@@ -519,6 +527,34 @@ def calibrate_rig(
         },
     }
     return CalibrationResult(rig=rig, report=report, residuals_camera=res_c, residuals_projector=res_p, view_names=[v.name for v in used])
+
+
+def _rig_of(fit, board: Checkerboard, first_turn: int, camera_size: tuple[int, int], projector_size: tuple[int, int],
+            name: str) -> Rig:
+    """The rig of a joint fit (:class:`gearscan.recon.bundle.JointFit`): world z along its turntable axis, the origin
+    at the height of the first turntable view's board centre, x towards the camera (:func:`world_from_axis`)."""
+    level = (fit.poses[first_turn] @ np.append(board.centre, 1.0))[:3]
+    t_cam_from_world = world_from_axis(fit.t_cam_from_turntable[:3, 2], fit.t_cam_from_turntable[:3, 3], level)
+    cam_dev = PinholeDevice(camera_size[0], camera_size[1], fit.k_camera, np.asarray(fit.dist_camera).ravel()[:5],
+                            t_cam_from_world)
+    proj_dev = PinholeDevice(projector_size[0], projector_size[1], fit.k_projector,
+                             np.asarray(fit.dist_projector).ravel()[:5], fit.t_proj_from_cam @ t_cam_from_world)
+    return Rig(camera=cam_dev, projector=proj_dev, name=name)
+
+
+def _uncertainty(rig: Rig, fit, board: Checkerboard, first_turn: int, camera_size: tuple[int, int],
+                 projector_size: tuple[int, int]) -> dict:
+    """The report's ``uncertainty``: the calibration's own contribution to a measurement, from the rigs of the
+    joint fit's draws (:func:`gearscan.recon.rig_check.calibration_uncertainty`), or why it is not stated."""
+    from gearscan.recon.rig_check import calibration_uncertainty
+
+    if len(fit.draws) < 2:
+        return {"stated": False, "why": "the adjustment drew no calibrations from its covariance"}
+    draws = [_rig_of(d, board, first_turn, camera_size, projector_size, rig.name) for d in fit.draws]
+    try:
+        return {"stated": True, **calibration_uncertainty(rig, draws, fit.variance_factor)}
+    except (ValueError, np.linalg.LinAlgError) as exc:  # a draw whose rig cannot see the cylinder at all
+        return {"stated": False, "why": f"the drawn calibrations could not be evaluated ({exc})"}
 
 
 def _joint(obj, img_c, img_p, angles, lens: dict, staged: tuple, t_proj_from_cam, t_cam_from_world, poses,
@@ -560,7 +596,7 @@ def _joint(obj, img_c, img_p, angles, lens: dict, staged: tuple, t_proj_from_cam
             f"{100 * ENCODER_SCALE_WARN:g} % a size reading is off by about 9 um per 0.1 % at a 20 mm radius; check the "
             "encoder's counts_per_rev and any gear ratio")
     try:
-        fit = adjust_jointly(*args)
+        fit = adjust_jointly(*args, draws=UNCERTAINTY_DRAWS, seed=UNCERTAINTY_SEED)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return {"run": False, "models": models, **scale, "fit": None,
                 "why": f"the adjustment failed ({exc}): the staged fit is kept"}

@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-from gearscan.calibrate import cylinder_check
 from gearscan.core.rig import PinholeDevice, Rig, default_rig
 from gearscan.recon.bundle import adjust_jointly
 from gearscan.recon.calibration import Checkerboard, world_from_axis
+from gearscan.recon.rig_check import cylinder_check
 from gearscan.twin.board import calibration_poses
 
 

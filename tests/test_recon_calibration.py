@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from gearscan.calibrate import calibrate, compare_rigs, cylinder_check
+from gearscan.calibrate import calibrate
 from gearscan.core.rig import Rig, default_rig, rot_z
 from gearscan.recon.board_io import load_captures, save_captures
 from gearscan.recon.calibration import (
@@ -19,6 +19,7 @@ from gearscan.recon.calibration import (
     fit_turntable_axis,
     sample_projector_coords,
 )
+from gearscan.recon.rig_check import compare_rigs, cylinder_check
 from gearscan.recon.unity import compose_zxy, euler_zxy, unity_parameters
 from gearscan.twin.board import BoardRenderer, calibration_poses, render_calibration_set
 from gearscan.twin.render import Optics
