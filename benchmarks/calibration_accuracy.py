@@ -143,8 +143,8 @@ def main() -> None:
           f"{r['cylinder']['shape_rms_um']:.1f} / {r['cylinder']['shape_p95_um']:.1f} |"
           for r in rows],
         "",
-        "Seeds 1-5 are the ones whose scratch runs chose to adopt the joint adjustment; the others chose nothing.",
-        "",
+        *(["Seeds 1-5 are the ones whose scratch runs chose to adopt the joint adjustment; the others chose nothing.", ""]
+          if CHOOSING_SEEDS & set(args.seeds) else []),
         "| fit | seeds | shape RMS, median / worst seed (um) | radius bias, RMS over seeds (um) | worst axis error (deg) |",
         "|---|---|---|---|---|",
         *[f"| {s['fit']} | {', '.join(map(str, s['seeds']))} ({'chose' if s['chose'] else 'chose nothing'}) | "

@@ -110,6 +110,7 @@ def calibrate(
         console.print("lens models (chosen on held-out views): " + ", ".join(
             f"{dev} {m['chosen']}" + (f" ({m['why']})" if m["chosen"] != "given" and "heldout_rms_px" not in m else "")
             for dev, m in lens.items()))
+    console.print(uncertainty_line(rep["uncertainty"]))
     if "angle_error_deg_rms" in rep.get("turntable_axis", {}):
         scale = joint.get("encoder_scale")
         console.print(f"turntable: the board's rotations agree with the encoder angles within "
@@ -154,3 +155,14 @@ def depth_range_line(rig, period_px: float) -> str:
     return (f"unambiguous depth range at {period_px:g} px fringes, {z_axis:.0f} mm from the camera (the turntable axis): "
             f"-{np.median(minus):.2f}/+{np.median(plus):.2f} mm (median over the image; at least "
             f"-{minus.min():.2f}/+{plus.min():.2f} mm); wider fringes widen it in proportion")
+
+
+def uncertainty_line(unc: dict) -> str:
+    """The calibration's own uncertainty (the report's ``uncertainty``, :func:`gearscan.recon.rig_check.
+    calibration_uncertainty`) as one console line, or why it is not stated."""
+    if not unc.get("stated"):
+        return f"calibration uncertainty: not stated ({unc.get('why', 'unknown')})"
+    return (f"calibration uncertainty (corner noise through the joint adjustment, {unc['draws']} drawn calibrations): a "
+            f"20 mm radius +-{2 * unc['radius_um']:.1f} um (k = 2), fused shape up to {unc['shape_rms_um_p95']:.1f} um "
+            f"RMS (95 %), baseline +-{2e3 * unc['baseline_mm']:.1f} um (k = 2), axis direction "
+            f"{unc['axis_deg_rms']:.3f} deg RMS; lens-model errors and the encoder's not included")

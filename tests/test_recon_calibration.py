@@ -209,7 +209,7 @@ def test_unity_export_of_default_rig():
     assert np.allclose(euler_zxy(r), (0.3, -0.7, 1.2))
 
 
-def test_captures_folder_roundtrip_and_command(twin_set, tmp_path):
+def test_captures_folder_roundtrip_and_command(twin_set, tmp_path, capsys):
     rig, board, captures, _ = twin_set
     folder = save_captures(tmp_path / "caps", captures, board, PROJ)
     back, board2, cam_size, proj_size = load_captures(folder)
@@ -223,9 +223,23 @@ def test_captures_folder_roundtrip_and_command(twin_set, tmp_path):
     data = json.loads(out.read_text())
     assert data["calibration_report"]["camera_rms_px"] < 0.1
     assert compare_rigs(loaded, rig)["baseline_rel_error"] < 1e-3
+    # the calibration's own uncertainty, stated from its corners (the twin's: about 3 um on a 20 mm radius, k = 1)
+    unc = data["calibration_report"]["uncertainty"]
+    assert unc["stated"] and unc["draws"] == 64 and 0.5 < unc["radius_um"] < 15 and unc["shape_rms_um_p95"] > 0
+    assert "a 20 mm radius +-" in capsys.readouterr().out
     assert out.with_suffix(".residuals.png").stat().st_size > 10_000
     unity = json.loads(out.with_suffix(".unity.json").read_text())
     assert set(unity) >= {"camera", "projector"}
+
+
+def test_uncertainty_is_stated_only_by_the_joint_adjustment(twin_set):
+    """The staged fit states no covariance: the report says so, and so does the console line."""
+    from gearscan.calibrate import uncertainty_line
+
+    rig, board, captures, views = twin_set
+    res = calibrate_rig(views, board, (512, 512), PROJ, joint=False)
+    assert res.report["uncertainty"]["stated"] is False
+    assert "not stated (the staged fit" in uncertainty_line(res.report["uncertainty"])
 
 
 def test_load_captures_reports_bad_folder(tmp_path):
