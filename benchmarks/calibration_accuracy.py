@@ -43,27 +43,35 @@ FITS = {"product: chosen lens, joint adjustment": (None, True), "chosen lens, st
 FIT_KEYS = {"product": "product: chosen lens, joint adjustment", "staged": "chosen lens, staged only",
             "richest": "richest lens, staged only (before session 55)"}
 PRODUCT = FIT_KEYS["product"]
+# turntable angles (deg) of the candidate calibration sets (`calibration_views_rule.md`); the free views as shipped
+VIEW_SETS = {"shipped": (-24.0, -12.0, 0.0, 12.0, 24.0), "wide": (-45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0),
+             "wide-dense": tuple(float(a) for a in np.arange(-45.0, 45.1, 7.5))}
 
 
-def jittered_poses(rig, board, seed: int) -> list:
-    """The twin's calibration poses as a hand places them (seeded): each free view's tilts +-3 deg and shifts +-1 mm,
-    its distance +-2 mm; the turntable views' angles shifted together by +-6 deg (the rule's amendment)."""
+def jittered_poses(rig, board, seed: int, turntable_deg: tuple[float, ...] = VIEW_SETS["shipped"]) -> list:
+    """The twin's calibration poses (turntable views at ``turntable_deg``) as a hand places them (seeded): each free
+    view's tilts +-3 deg and shifts +-1 mm, its distance +-2 mm; the turntable views' angles shifted together by
+    +-6 deg (the rule's amendment)."""
     rng = np.random.default_rng([seed, 56])
     shipped = calibration_poses.__kwdefaults__
     free = [(tx + rng.uniform(-3, 3), ty + rng.uniform(-3, 3), sx + rng.uniform(-1, 1), sy + rng.uniform(-1, 1))
             for tx, ty, sx, sy in shipped["free_views"]]
-    turn = np.asarray(shipped["turntable_angles_deg"]) + rng.uniform(-6, 6)
+    turn = np.asarray(turntable_deg) + rng.uniform(-6, 6)
     distance = float(np.linalg.norm(rig.camera.center_world[:2]) - 21.0 + rng.uniform(-2, 2))
     return calibration_poses(rig, board, free_views=free, turntable_angles_deg=tuple(turn), free_distance_mm=distance)
 
 
-def one_seed(seed: int, fits: list[str], jitter: bool) -> list[dict]:
-    """Render the default rig's calibration set with ``seed`` (its poses jittered by the seed with ``jitter``) and
-    calibrate it each way of ``fits`` (:data:`FITS`)."""
+def one_seed(seed: int, fits: list[str], jitter: bool, views: str = "shipped") -> list[dict]:
+    """Render the default rig's calibration set (turntable views :data:`VIEW_SETS` ``views``) with ``seed`` (its poses
+    jittered by the seed with ``jitter``) and calibrate it each way of ``fits`` (:data:`FITS`)."""
     rig, board = default_rig(), Checkerboard()
     proj = (rig.projector.width, rig.projector.height)
     t = time.perf_counter()
-    poses = jittered_poses(rig, board, seed) if jitter else None
+    angles = VIEW_SETS[views]
+    if jitter:
+        poses = jittered_poses(rig, board, seed, angles)
+    else:
+        poses = calibration_poses(rig, board, turntable_angles_deg=angles)
     views = [decode_capture(c, proj) for c in render_calibration_set(rig, board, Optics(), steps=12, seed=seed,
                                                                       poses=poses)]
     render_s = time.perf_counter() - t
@@ -74,7 +82,8 @@ def one_seed(seed: int, fits: list[str], jitter: bool) -> list[dict]:
         res = calibrate_rig(views, board, (rig.camera.width, rig.camera.height), proj, joint=joint, **flags)
         rep, est = res.report, res.rig
         rows.append({
-            "seed": seed, "fit": fit, "render_s": render_s, "views": len(rep["views_used"]),
+            "seed": seed, "fit": fit, "render_s": render_s, "views": len(rep["views_used"]), "view_set": views,
+            "views_skipped": len(rep["views_skipped"]),
             "lens": {d: m["chosen"] if model is None else model for d, m in rep["lens_model"].items()},
             "encoder_scale": rep["joint_adjustment"].get("encoder_scale"),
             "camera_rms_px": rep["camera_rms_px"], "projector_rms_px": rep["projector_rms_px"],
@@ -96,10 +105,11 @@ def main() -> None:
     ap.add_argument("--fits", type=lambda s: [FIT_KEYS[v] for v in s.split(",")], default=list(FITS),
                     help=f"comma-separated, of {', '.join(FIT_KEYS)} (default: all)")
     ap.add_argument("--jitter-poses", action="store_true", help="each seed places the board as a hand does")
+    ap.add_argument("--views", choices=list(VIEW_SETS), default="shipped", help="the calibration set's turntable views")
     ap.add_argument("--report", type=Path, default=HERE / "calibration_accuracy_report")
     args = ap.parse_args()
     stamp = run_stamp()
-    rows = [r for seed in args.seeds for r in one_seed(seed, args.fits, args.jitter_poses)]
+    rows = [r for seed in args.seeds for r in one_seed(seed, args.fits, args.jitter_poses, args.views)]
     summary = []
     for fit, chose in ((f, c) for f in args.fits for c in (True, False)):
         own = [r for r in rows if r["fit"] == fit and (r["seed"] in CHOOSING_SEEDS) == chose]
@@ -116,12 +126,16 @@ def main() -> None:
         "",
         f"`python benchmarks/calibration_accuracy.py --seeds {','.join(map(str, args.seeds))}"
         f"{' --fits ' + ','.join(k for k, v in FIT_KEYS.items() if v in args.fits) if args.fits != list(FITS) else ''}"
-        f"{' --jitter-poses' if args.jitter_poses else ''}` — commit {stamp['commit']}{edits}, host: {stamp['host']}.",
+        f"{' --jitter-poses' if args.jitter_poses else ''}{' --views ' + args.views if args.views != 'shipped' else ''}`"
+        f" — commit {stamp['commit']}{edits}, host: {stamp['host']}.",
         "",
         "Per render seed (sensor noise; "
-        + ("16 board poses, 11 free-hand and 5 on the turntable, each seed's jittered as a hand places them: free "
+        + (f"{11 + len(VIEW_SETS[args.views])} board poses, 11 free-hand and {len(VIEW_SETS[args.views])} on the "
+           f"turntable at {', '.join(f'{a:g}' for a in VIEW_SETS[args.views])} deg, each seed's jittered as a hand "
+           "places them: free "
            "views' tilts +-3 deg, shifts +-1 mm, distance +-2 mm, turntable angles shifted together by +-6 deg"
-           if args.jitter_poses else "the same 16 board poses: 11 free-hand, 5 on the turntable")
+           if args.jitter_poses else f"the same {11 + len(VIEW_SETS[args.views])} board poses: 11 free-hand, "
+           f"{len(VIEW_SETS[args.views])} on the turntable at {', '.join(f'{a:g}' for a in VIEW_SETS[args.views])} deg")
         + f"): the rig calibrated {len(args.fits)} way(s) of these three: the product (each device's lens model chosen on held-out views, then one bundle adjustment of "
         "everything with the turntable views held to one board pose turned by the encoder's angles, `recon/bundle.py`), "
         "the same lens models from OpenCV's stages alone, and the richest model everywhere from the stages alone "
@@ -133,10 +147,10 @@ def main() -> None:
         "gives 7.7 um RMS). Twin truth: the camera's lens k1 -0.08, k2 0.12, p1 5e-4, p2 -3e-4 (0.13 px at the image "
         "corner, nearly all of it k1), the projector's none.",
         "",
-        "| seed | fit | lens (camera / projector) | camera / projector RMS (px) | focal error camera / projector | "
+        "| seed | fit | views used | lens (camera / projector) | camera / projector RMS (px) | focal error camera / projector | "
         "baseline error | axis error (deg) | radius bias (um) | radius spread (um) | shape RMS / p95 (um) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-        *[f"| {r['seed']} | {r['fit']} | {r['lens']['camera']} / {r['lens']['projector']} | "
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+        *[f"| {r['seed']} | {r['fit']} | {r['views']} | {r['lens']['camera']} / {r['lens']['projector']} | "
           f"{r['camera_rms_px']:.3f} / {r['projector_rms_px']:.3f} | {r['camera_focal_error_pct']:+.2f} % / "
           f"{r['projector_focal_error_pct']:+.2f} % | {100 * r['baseline_rel_error']:.3f} % | {r['axis_error_deg']:.3f} | "
           f"{r['cylinder']['radius_bias_um']:+.1f} | {r['cylinder']['radius_spread_um']:.1f} | "
