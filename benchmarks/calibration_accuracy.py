@@ -61,13 +61,13 @@ def jittered_poses(rig, board, seed: int, turntable_deg: tuple[float, ...] = VIE
     return calibration_poses(rig, board, free_views=free, turntable_angles_deg=tuple(turn), free_distance_mm=distance)
 
 
-def one_seed(seed: int, fits: list[str], jitter: bool, views: str = "shipped") -> list[dict]:
-    """Render the default rig's calibration set (turntable views :data:`VIEW_SETS` ``views``) with ``seed`` (its poses
+def one_seed(seed: int, fits: list[str], jitter: bool, view_set: str = "shipped") -> list[dict]:
+    """Render the default rig's calibration set (turntable views :data:`VIEW_SETS` ``view_set``) with ``seed`` (its poses
     jittered by the seed with ``jitter``) and calibrate it each way of ``fits`` (:data:`FITS`)."""
     rig, board = default_rig(), Checkerboard()
     proj = (rig.projector.width, rig.projector.height)
     t = time.perf_counter()
-    angles = VIEW_SETS[views]
+    angles = VIEW_SETS[view_set]
     if jitter:
         poses = jittered_poses(rig, board, seed, angles)
     else:
@@ -82,7 +82,7 @@ def one_seed(seed: int, fits: list[str], jitter: bool, views: str = "shipped") -
         res = calibrate_rig(views, board, (rig.camera.width, rig.camera.height), proj, joint=joint, **flags)
         rep, est = res.report, res.rig
         rows.append({
-            "seed": seed, "fit": fit, "render_s": render_s, "views": len(rep["views_used"]), "view_set": views,
+            "seed": seed, "fit": fit, "render_s": render_s, "views": len(rep["views_used"]), "view_set": view_set,
             "views_skipped": len(rep["views_skipped"]),
             "lens": {d: m["chosen"] if model is None else model for d, m in rep["lens_model"].items()},
             "encoder_scale": rep["joint_adjustment"].get("encoder_scale"),
