@@ -43,12 +43,15 @@ FITS = {"product: chosen lens, joint adjustment": (None, True), "chosen lens, st
 FIT_KEYS = {"product": "product: chosen lens, joint adjustment", "staged": "chosen lens, staged only",
             "richest": "richest lens, staged only (before session 55)"}
 PRODUCT = FIT_KEYS["product"]
-# turntable angles (deg) of the candidate calibration sets (`calibration_views_rule.md`); the free views as shipped
-VIEW_SETS = {"shipped": (-24.0, -12.0, 0.0, 12.0, 24.0), "wide": (-45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0),
+# turntable angles (deg) of the candidate calibration sets (`calibration_views_rule.md`, where "narrow" is named
+# "shipped": the set shipped until session 56); the free views as shipped. wide-dense ships since session 56
+VIEW_SETS = {"narrow": (-24.0, -12.0, 0.0, 12.0, 24.0), "wide": (-45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0),
              "wide-dense": tuple(float(a) for a in np.arange(-45.0, 45.1, 7.5))}
+SHIPPED_VIEWS = next(k for k, v in VIEW_SETS.items()
+                     if v == tuple(calibration_poses.__kwdefaults__["turntable_angles_deg"]))
 
 
-def jittered_poses(rig, board, seed: int, turntable_deg: tuple[float, ...] = VIEW_SETS["shipped"]) -> list:
+def jittered_poses(rig, board, seed: int, turntable_deg: tuple[float, ...] = VIEW_SETS[SHIPPED_VIEWS]) -> list:
     """The twin's calibration poses (turntable views at ``turntable_deg``) as a hand places them (seeded): each free
     view's tilts +-3 deg and shifts +-1 mm, its distance +-2 mm; the turntable views' angles shifted together by
     +-6 deg (the rule's amendment)."""
@@ -61,7 +64,7 @@ def jittered_poses(rig, board, seed: int, turntable_deg: tuple[float, ...] = VIE
     return calibration_poses(rig, board, free_views=free, turntable_angles_deg=tuple(turn), free_distance_mm=distance)
 
 
-def one_seed(seed: int, fits: list[str], jitter: bool, view_set: str = "shipped") -> list[dict]:
+def one_seed(seed: int, fits: list[str], jitter: bool, view_set: str = SHIPPED_VIEWS) -> list[dict]:
     """Render the default rig's calibration set (turntable views :data:`VIEW_SETS` ``view_set``) with ``seed`` (its poses
     jittered by the seed with ``jitter``) and calibrate it each way of ``fits`` (:data:`FITS`)."""
     rig, board = default_rig(), Checkerboard()
@@ -105,7 +108,8 @@ def main() -> None:
     ap.add_argument("--fits", type=lambda s: [FIT_KEYS[v] for v in s.split(",")], default=list(FITS),
                     help=f"comma-separated, of {', '.join(FIT_KEYS)} (default: all)")
     ap.add_argument("--jitter-poses", action="store_true", help="each seed places the board as a hand does")
-    ap.add_argument("--views", choices=list(VIEW_SETS), default="shipped", help="the calibration set's turntable views")
+    ap.add_argument("--views", choices=list(VIEW_SETS), default=SHIPPED_VIEWS,
+                    help=f"the calibration set's turntable views (default: the twin's, {SHIPPED_VIEWS})")
     ap.add_argument("--report", type=Path, default=HERE / "calibration_accuracy_report")
     args = ap.parse_args()
     stamp = run_stamp()
@@ -126,7 +130,7 @@ def main() -> None:
         "",
         f"`python benchmarks/calibration_accuracy.py --seeds {','.join(map(str, args.seeds))}"
         f"{' --fits ' + ','.join(k for k, v in FIT_KEYS.items() if v in args.fits) if args.fits != list(FITS) else ''}"
-        f"{' --jitter-poses' if args.jitter_poses else ''}{' --views ' + args.views if args.views != 'shipped' else ''}`"
+        f"{' --jitter-poses' if args.jitter_poses else ''}{' --views ' + args.views}`"
         f" — commit {stamp['commit']}{edits}, host: {stamp['host']}.",
         "",
         "Per render seed (sensor noise; "

@@ -46,7 +46,11 @@ class JointFit:
     rms_after: float
     evaluations: int
     variance_factor: float = float("nan")  # residual sum of squares over its degrees of freedom (1: noise as given)
-    draws: tuple[JointFit, ...] = ()  # calibrations drawn from the fit's covariance (adjust_jointly's ``draws``)
+    # calibrations drawn from the fit's covariance (adjust_jointly's ``draws``; their rms and evaluation fields are the
+    # solution's), or why none could be drawn
+    draws: tuple[JointFit, ...] = ()
+    draws_why: str = ""
+    encoder_scale_sigma: float = float("nan")  # the fitted scale's standard error (fit_scale; NaN: not fitted or unknown)
 
 
 def pose_vectors(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -176,23 +180,54 @@ def adjust_jointly(
         scale = float(x[nc + npj + 16]) if fit_scale else 1.0
         return JointFit(kc, dc, kp, dp, t_pc, frame, views, scale, before, after, int(sol.nfev), factor, **extra)
 
-    drawn = ()
-    if draws > 0:
+    extra = {}
+    if fit_scale:  # the check's own precision: few or narrow turntable views leave the scale loose
+        try:
+            extra["encoder_scale_sigma"] = parameter_sigma(sol.jac, factor, nc + npj + 16)
+        except (ValueError, np.linalg.LinAlgError):
+            pass
+    if draws <= 0:
+        return fit_of(sol.x, **extra)
+    try:  # the fit stands whether or not its uncertainty can be stated
         steps = covariance_steps(sol.jac, factor, draws, seed)
-        drawn = tuple(fit_of(sol.x + step) for step in steps)
-    return fit_of(sol.x, draws=drawn)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return fit_of(sol.x, draws_why=str(exc), **extra)
+    return fit_of(sol.x, draws=tuple(fit_of(sol.x + step) for step in steps), **extra)
 
 
-def covariance_steps(jac: np.ndarray, factor: float, n: int, seed: int) -> np.ndarray:
-    """``n`` draws ``(n, p)`` from N(0, factor (J^T J)^-1), through the SVD of the column-scaled Jacobian (the
-    parameters span focal lengths in px to lens coefficients near 0.1); directions the corners do not constrain
-    (singular values below 1e-10 of the largest) are left out, not drawn as infinite."""
+# a direction of the column-scaled Jacobian with a singular value below this share of the largest is taken as one the
+# corners do not constrain: far above the finite-difference Jacobian's own noise (about 1e-8), far below the twin's
+# weakest constrained direction (about 1e-4 on its 16-view set)
+UNCONSTRAINED = 1e-6
+
+
+def _scaled_svd(jac: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The SVD ``(sv, vt, norm)`` of the column-scaled Jacobian, refused (ValueError) with no degrees of freedom or a
+    direction the residuals leave unconstrained (:data:`UNCONSTRAINED`)."""
     if not math.isfinite(factor):
         raise ValueError("no degrees of freedom left: as many parameters as residuals, no covariance")
     jac = np.asarray(jac, np.float64)
     norm = np.linalg.norm(jac, axis=0)
     norm[norm == 0] = 1.0
     _, sv, vt = np.linalg.svd(jac / norm, full_matrices=False)
-    keep = sv > 1e-10 * sv[0]
-    z = np.random.default_rng(seed).standard_normal((n, int(keep.sum())))
-    return math.sqrt(factor) * (z / sv[keep]) @ vt[keep] / norm
+    weak = int(np.sum(sv <= UNCONSTRAINED * sv[0]))
+    if weak:
+        raise ValueError(f"the corners leave {weak} direction(s) of the calibration unconstrained (singular value "
+                         f"below {UNCONSTRAINED:g} of the largest): no covariance to draw from; add views")
+    return sv, vt, norm
+
+
+def parameter_sigma(jac: np.ndarray, factor: float, index: int) -> float:
+    """One parameter's standard error, ``sqrt(factor (J^T J)^-1)`` at ``index`` (:func:`covariance_steps`' terms)."""
+    sv, vt, norm = _scaled_svd(jac, factor)
+    return float(math.sqrt(factor * np.sum((vt[:, index] / sv) ** 2)) / norm[index])
+
+
+def covariance_steps(jac: np.ndarray, factor: float, n: int, seed: int) -> np.ndarray:
+    """``n`` draws ``(n, p)`` from N(0, factor (J^T J)^-1), through the SVD of the column-scaled Jacobian (the
+    parameters span focal lengths in px to lens coefficients near 0.1). Refused (ValueError) with no degrees of
+    freedom or where the corners leave a direction unconstrained (:data:`UNCONSTRAINED`): its variance would be
+    infinite, and leaving it out would understate the rest."""
+    sv, vt, norm = _scaled_svd(jac, factor)
+    z = np.random.default_rng(seed).standard_normal((n, sv.size))
+    return math.sqrt(factor) * (z / sv) @ vt / norm

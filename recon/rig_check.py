@@ -1,8 +1,9 @@
 """What a calibration's error does to a measurement: a rig against another (the twin's truth, or a rig drawn from the
 calibration's own uncertainty), read on a 20 mm cylinder turned once round as a fused revolution is.
 
-``gearscan calibrate --twin`` compares the calibrated rig with the truth; every calibration states its own uncertainty
-by the same cylinder measured with rigs drawn from the joint adjustment's covariance (:func:`calibration_uncertainty`).
+``gearscan calibrate --twin`` compares the calibrated rig with the truth; a jointly adjusted calibration states its own
+uncertainty by the same cylinder measured with rigs drawn from its covariance (:func:`calibration_uncertainty`; the
+staged fit states none).
 """
 
 from __future__ import annotations
@@ -40,6 +41,9 @@ def cylinder_check(estimate: Rig, truth: Rig, *, radius_mm: float = 20.0, half_h
     z_axis = float((cam.T_from_world @ np.array([0.0, 0.0, 0.0, 1.0]))[2])
     z = ray_depth_at_phase(estimate, 1.0, rays, 2 * np.pi * column[seen], np.full(len(rays), z_axis))
     ok = np.isfinite(z)
+    if not ok.any():
+        raise ValueError(f"cylinder_check: the estimated rig triangulates none of the {int(seen.sum())} cylinder points "
+                         "the true rig sees")
     p_world = (rays[ok] * z[ok, None]) @ cam.T_world_from[:3, :3].T + cam.T_world_from[:3, 3]  # the estimated frame
     back = -angle[seen][ok]  # turned back about the estimated axis by each point's encoder angle: the fused gear
     fused = np.stack([np.cos(back) * p_world[:, 0] - np.sin(back) * p_world[:, 1],
@@ -78,11 +82,19 @@ def calibration_uncertainty(rig: Rig, draws: Sequence[Rig], variance_factor: flo
     measures the 20 mm cylinder of :func:`cylinder_check` as ``rig`` sees it. ``radius_um``: the draws' radius
     readings' standard deviation (k = 1); ``shape_rms_um_p95``: the 95th percentile of their fused-shape RMS; the
     spread of the baseline, focal lengths and axis direction beside. ``factor`` multiplies every spread (1: the
-    covariance as fitted; its origin belongs in the caller's report). Corner noise only: the encoder's angles are
-    trusted and the lens model taken as right (``benchmarks/calibration_uncertainty_rule.md`` tests it)."""
+    covariance as fitted; its origin belongs in the caller's report); ``variance_factor`` (already in the draws) is
+    recorded. Corner noise only, each corner's independent of the others': the encoder's angles are trusted, the lens
+    model taken as right, and the projector's corners, sampled at the camera's, share the camera's detection error
+    (``benchmarks/calibration_uncertainty_rule.md`` tests the statement as a whole). Refused (ValueError) where a
+    draw triangulates under 90 % of the points ``rig`` does: a covariance that wide is beyond its linearisation."""
     if len(draws) < 2:
         raise ValueError(f"calibration_uncertainty: {len(draws)} drawn rigs; expected at least 2")
+    own = cylinder_check(rig, rig)["points"]
     cyl = [cylinder_check(d, rig) for d in draws]
+    lost = min(c["points"] for c in cyl)
+    if lost < 0.9 * own:
+        raise ValueError(f"a drawn calibration triangulates {lost} of the {own} cylinder points the calibration does: "
+                         "its covariance is too wide to state (add views)")
     radius = np.array([c["radius_bias_um"] for c in cyl])
     shape = np.array([c["shape_rms_um"] for c in cyl])
     z = np.array([0.0, 0.0, 1.0])

@@ -12,20 +12,24 @@ import cv2
 import numpy as np
 import pytest
 
-from gearscan.core.rig import PinholeDevice, Rig, default_rig
+from gearscan.core.rig import Rig, default_rig
 from gearscan.recon.bundle import adjust_jointly, covariance_steps
-from gearscan.recon.calibration import Checkerboard, world_from_axis
+from gearscan.recon.calibration import Checkerboard
+from gearscan.recon.calibration import _rig_of as rig_of_fit
 from gearscan.recon.rig_check import calibration_uncertainty, cylinder_check
 from gearscan.twin.board import calibration_poses
 
 
-def _observe(rig: Rig, board: Checkerboard, noise_px: float = 0.0, seed: int = 0):
+def _observe(rig: Rig, board: Checkerboard, noise_px: float = 0.0, seed: int = 0,
+             turntable_deg: tuple[float, ...] | None = None):
     """Every calibration pose's corners in both devices (exact, or with Gaussian noise of ``noise_px`` in the camera
-    and 5/3 of it in the projector, as the twin's renders measure: 0.028 and 0.051 px), the poses and angles."""
+    and 5/3 of it in the projector, as the twin's renders measure: 0.028 and 0.051 px), the poses and angles; the
+    turntable views at ``turntable_deg`` (None: the twin's set)."""
     rng = np.random.default_rng(seed)
     obj = board.object_points().astype(np.float64)
     cam_c, cam_p, poses, angles = [], [], [], []
-    for _, t_world_from_board, angle in calibration_poses(rig, board):
+    turn = {} if turntable_deg is None else {"turntable_angles_deg": turntable_deg}
+    for _, t_world_from_board, angle in calibration_poses(rig, board, **turn):
         world = obj @ t_world_from_board[:3, :3].T + t_world_from_board[:3, 3]
         cam_c.append(rig.camera.project(world) + rng.normal(0, noise_px, (len(obj), 2)))
         cam_p.append(rig.projector.project(world) + rng.normal(0, noise_px * 5 / 3, (len(obj), 2)))
@@ -35,12 +39,9 @@ def _observe(rig: Rig, board: Checkerboard, noise_px: float = 0.0, seed: int = 0
 
 
 def _rig_of(fit, angles, board: Checkerboard) -> Rig:
-    """The rig of a joint fit, its world frame as the calibration builds it."""
-    level = (fit.poses[angles.index(0.0)] @ np.append(board.centre, 1.0))[:3]
-    t_cam_from_world = world_from_axis(fit.t_cam_from_turntable[:3, 2], fit.t_cam_from_turntable[:3, 3], level)
-    return Rig(camera=PinholeDevice(512, 512, fit.k_camera, fit.dist_camera, t_cam_from_world),
-               projector=PinholeDevice(1280, 800, fit.k_projector, fit.dist_projector,
-                                       fit.t_proj_from_cam @ t_cam_from_world))
+    """The rig of a joint fit, built as the calibration builds its own (world origin at the first turntable view)."""
+    first_turn = next(i for i, a in enumerate(angles) if a is not None)
+    return rig_of_fit(fit, board, first_turn, (512, 512), (1280, 800), "calibrated")
 
 
 def _nudged(t: np.ndarray, rot_deg: float, shift_mm: float) -> np.ndarray:
@@ -89,20 +90,26 @@ def test_joint_adjustment_returns_the_true_rig(noise_px, camera_lens):
     assert abs(cyl["radius_bias_um"]) < (0.01 if noise_px == 0 else 10.0)
 
 
-def test_the_encoder_scale_is_measured_not_absorbed():
+@pytest.mark.parametrize("turntable_deg", [(-24.0, -12.0, 0.0, 12.0, 24.0), None])
+def test_the_encoder_scale_is_measured_not_absorbed(turntable_deg):
     """Exact corners of a turntable that turned 1.01 times what the encoder says: the fit with the scale free reads
-    1.01 and fits them exactly; the fit that trusts the angles bends the rig to them (the focal length 0.9 % off)
-    with residuals under the noise, which is why the caller checks the scale and refuses such an encoder."""
+    1.01 and fits them exactly. With turntable views over +-24 deg (the set before session 56) the fit that trusts
+    the angles bends the rig to them (the focal length 0.9 % off) with residuals under the noise, which is why the
+    caller checks the scale and refuses such an encoder; over +-45 deg (the twin's set now) the bend no longer fits
+    and the residuals show it (2.8 x the noise)."""
     rig, board = default_rig(), Checkerboard()
-    obj, img_c, img_p, poses, angles = _observe(rig, board)
+    obj, img_c, img_p, poses, angles = _observe(rig, board, turntable_deg=turntable_deg)
     told = [None if a is None else a / 1.01 for a in angles]
     args = (obj, img_c, img_p, told, ("k1k2p1p2", "none"), rig.camera.K, rig.camera.dist, rig.projector.K, np.zeros(5),
             rig.T_proj_from_cam, rig.camera.T_from_world, poses, (0.03, 0.05))
     check = adjust_jointly(*args, fit_scale=True)
     assert abs(check.encoder_scale - 1.01) < 1e-5 and check.rms_after < 1e-3
     trusting = adjust_jointly(*args)
-    assert trusting.encoder_scale == 1.0 and trusting.rms_after < 1.0
-    assert abs(trusting.k_camera[0, 0] / rig.camera.K[0, 0] - 1) > 0.005
+    assert trusting.encoder_scale == 1.0
+    if turntable_deg is not None:  # absorbed: under the noise, the rig bent
+        assert trusting.rms_after < 1.0 and abs(trusting.k_camera[0, 0] / rig.camera.K[0, 0] - 1) > 0.005
+    else:  # seen
+        assert trusting.rms_after > 2.0
 
 
 def test_a_lens_coefficient_is_fitted_when_its_model_frees_it():
@@ -132,6 +139,9 @@ def test_covariance_draws_follow_the_least_squares_covariance():
     np.testing.assert_allclose(corr, want / np.sqrt(np.outer(np.diag(want), np.diag(want))), atol=0.05)
     with pytest.raises(ValueError, match="degrees of freedom"):
         covariance_steps(jac, float("nan"), 2, seed=0)
+    # a parameter the residuals do not feel (a column repeated): refused, not drawn as infinite or left out
+    with pytest.raises(ValueError, match="unconstrained"):
+        covariance_steps(np.concatenate([jac, jac[:, :1]], axis=1), 1.0, 2, seed=0)
 
 
 def test_the_stated_uncertainty_matches_repeated_calibrations():
@@ -157,3 +167,36 @@ def test_the_stated_uncertainty_matches_repeated_calibrations():
             u_focal.append(stated["camera_focal_pct"] / 100 * est.camera.K[0, 0])
     assert 0.6 < np.std(radius, ddof=1) / np.median(u_radius) < 1.5
     assert 0.6 < np.std(focal, ddof=1) / np.median(u_focal) < 1.5
+
+
+def test_the_stated_uncertainty_comes_from_the_residuals_not_the_noise_told():
+    """The fit told twice the corners' noise weighs its residuals at a quarter of the variance factor: the stated
+    radius uncertainty is the same (the a-posteriori factor carries the noise the corners show)."""
+    rig, board = default_rig(), Checkerboard()
+    obj, img_c, img_p, poses, angles = _observe(rig, board, 0.03, seed=7)
+    stated = []
+    for sigma in ((0.03, 0.05), (0.06, 0.10)):
+        fit = adjust_jointly(obj, img_c, img_p, angles, ("k1", "none"), rig.camera.K, rig.camera.dist, rig.projector.K,
+                             np.zeros(5), rig.T_proj_from_cam, rig.camera.T_from_world, poses, sigma, draws=16, seed=1)
+        est = _rig_of(fit, angles, board)
+        stated.append((fit.variance_factor, calibration_uncertainty(
+            est, [_rig_of(d, angles, board) for d in fit.draws], fit.variance_factor)["radius_um"]))
+    assert stated[1][0] == pytest.approx(stated[0][0] / 4, rel=1e-3)
+    assert stated[1][1] == pytest.approx(stated[0][1], rel=1e-3)
+
+
+def test_draws_too_wide_to_read_the_cylinder_are_refused():
+    """A drawn calibration that triangulates far fewer cylinder points than the calibration itself (here: its projector
+    150 mm further back, 1,610 of 4,000) is beyond the covariance's linearisation, and one that triangulates none
+    (300 mm) cannot be read at all: each refused with a reason, never a number."""
+    rig = default_rig()
+
+    def moved(dz_mm: float) -> Rig:
+        t = rig.projector.T_from_world.copy()
+        t[2, 3] += dz_mm
+        return dataclasses.replace(rig, projector=dataclasses.replace(rig.projector, T_from_world=t))
+
+    with pytest.raises(ValueError, match="too wide"):
+        calibration_uncertainty(rig, [rig, moved(-150.0)], 1.0)
+    with pytest.raises(ValueError, match="triangulates none"):
+        calibration_uncertainty(rig, [rig, moved(-300.0)], 1.0)
