@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from gearscan.core.rig import Rig, default_rig
-from gearscan.recon.bundle import adjust_jointly, covariance_steps
+from gearscan.recon.bundle import adjust_jointly, covariance_steps, parameter_sigma
 from gearscan.recon.calibration import Checkerboard
 from gearscan.recon.calibration import _rig_of as rig_of_fit
 from gearscan.recon.rig_check import calibration_uncertainty, cylinder_check
@@ -139,6 +139,9 @@ def test_covariance_draws_follow_the_least_squares_covariance():
     np.testing.assert_allclose(corr, want / np.sqrt(np.outer(np.diag(want), np.diag(want))), atol=0.05)
     with pytest.raises(ValueError, match="degrees of freedom"):
         covariance_steps(jac, float("nan"), 2, seed=0)
+    # one parameter's standard error, exactly (the encoder check's)
+    for i in range(4):
+        assert parameter_sigma(jac, 2.5, i) == pytest.approx(math.sqrt(want[i, i]), rel=1e-9)
     # a parameter the residuals do not feel (a column repeated): refused, not drawn as infinite or left out
     with pytest.raises(ValueError, match="unconstrained"):
         covariance_steps(np.concatenate([jac, jac[:, :1]], axis=1), 1.0, 2, seed=0)
