@@ -29,7 +29,13 @@ import numpy as np
 
 from gearscan.core.rig import default_rig
 from gearscan.provenance import run_stamp
-from gearscan.recon.calibration import Checkerboard, calibrate_rig, decode_capture, lens_flags
+from gearscan.recon.calibration import (
+    Checkerboard,
+    calibrate_rig,
+    decode_capture,
+    lens_flags,
+    save_calibration,
+)
 from gearscan.recon.rig_check import compare_rigs, cylinder_check
 from gearscan.twin.board import calibration_poses, render_calibration_set
 from gearscan.twin.render import Optics
@@ -62,6 +68,20 @@ def jittered_poses(rig, board, seed: int, turntable_deg: tuple[float, ...] = VIE
     turn = np.asarray(turntable_deg) + rng.uniform(-6, 6)
     distance = float(np.linalg.norm(rig.camera.center_world[:2]) - 21.0 + rng.uniform(-2, 2))
     return calibration_poses(rig, board, free_views=free, turntable_angles_deg=tuple(turn), free_distance_mm=distance)
+
+
+def write_hand_placed_rig(seed: int, out: Path) -> dict:
+    """The product calibration of the twin's default rig from its shipped views placed by hand (``seed``: the poses'
+    jitter and the render's noise), written to ``out`` as `gearscan calibrate` writes a rig; its cylinder check against
+    the truth and its stated radius uncertainty (None where it states none)."""
+    rig, board = default_rig(), Checkerboard()
+    proj = (rig.projector.width, rig.projector.height)
+    views = [decode_capture(c, proj) for c in render_calibration_set(rig, board, Optics(), steps=12, seed=seed,
+                                                                      poses=jittered_poses(rig, board, seed))]
+    res = calibrate_rig(views, board, (rig.camera.width, rig.camera.height), proj)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_calibration(res, out)
+    return {"cylinder": cylinder_check(res.rig, rig), "stated_radius_um": res.report["uncertainty"].get("radius_um")}
 
 
 def one_seed(seed: int, fits: list[str], jitter: bool, view_set: str = SHIPPED_VIEWS) -> list[dict]:

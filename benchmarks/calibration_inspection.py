@@ -19,29 +19,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from calibration_accuracy import jittered_poses, seed_list
+from calibration_accuracy import seed_list, write_hand_placed_rig
 
-from gearscan.core.rig import default_rig
 from gearscan.provenance import run_stamp
-from gearscan.recon.calibration import Checkerboard, calibrate_rig, decode_capture, save_calibration
-from gearscan.recon.rig_check import cylinder_check
-from gearscan.twin.board import render_calibration_set
-from gearscan.twin.render import Optics
 
 HERE = Path(__file__).resolve().parent
 QUANTITIES = ("eccentricity", "fp", "Fp", "Fr", "F_alpha", "ff_alpha", "fH_alpha")  # um
-
-
-def calibrate_seed(seed: int, out: Path) -> dict:
-    """The product calibration of the twin's default rig from hand-placed board views (``seed``), written to ``out``."""
-    rig, board = default_rig(), Checkerboard()
-    proj = (rig.projector.width, rig.projector.height)
-    views = [decode_capture(c, proj) for c in render_calibration_set(rig, board, Optics(), steps=12, seed=seed,
-                                                                      poses=jittered_poses(rig, board, seed))]
-    res = calibrate_rig(views, board, (rig.camera.width, rig.camera.height), proj)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    save_calibration(res, out)
-    return {"cylinder": cylinder_check(res.rig, rig), "stated_radius_um": res.report["uncertainty"].get("radius_um")}
 
 
 def inspect_with(rig_path: Path | None, work: Path) -> dict:
@@ -54,7 +37,8 @@ def inspect_with(rig_path: Path | None, work: Path) -> dict:
     subprocess.run(cmd, check=True, cwd=HERE.parent, stdout=subprocess.DEVNULL)
     rep = json.loads((work / "inspection" / "report.json").read_text())
     bench = json.loads((work / "bench.json").read_text())
-    return {**{q: float(rep["summary_um"][q]) for q in QUANTITIES if q != "eccentricity"},
+    return {**{q: float("nan") if rep["summary_um"].get(q) is None else float(rep["summary_um"][q])
+               for q in QUANTITIES if q != "eccentricity"},
             "eccentricity": float(rep["inspection"]["eccentricity_um"]), "cloud_rms_um": 1e3 * bench["fused_rms_mm"],
             "coverage": bench["coverage"], "chipped": bench["chipped"]}
 
@@ -65,15 +49,17 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("out/calibration_inspection"))
     ap.add_argument("--report", type=Path, default=HERE / "calibration_inspection_report")
     args = ap.parse_args()
+    work = args.work.resolve()  # the inspections run from the repository root
     stamp = run_stamp()
-    truth = inspect_with(None, args.work / "truth")
+    truth = inspect_with(None, work / "truth")
     print("true rig:", truth, flush=True)
     runs = []
     for seed in args.seeds:
-        path = args.work / f"rig_{seed}.json"
-        cal = calibrate_seed(seed, path)
-        runs.append({"seed": seed, **cal, "inspection": inspect_with(path, args.work / f"seed_{seed}")})
+        path = work / f"rig_{seed}.json"
+        cal = write_hand_placed_rig(seed, path)
+        runs.append({"seed": seed, **cal, "inspection": inspect_with(path, work / f"seed_{seed}")})
         print(f"seed {seed}:", runs[-1], flush=True)
+        (work / "progress.json").write_text(json.dumps({**stamp, "truth": truth, "runs": runs}, indent=1))
     keys = (*QUANTITIES, "cloud_rms_um")
 
     def cells(values: dict) -> str:
@@ -98,7 +84,7 @@ def main() -> None:
         f"| true rig | - | - | {cells(truth)} | {100 * truth['coverage']:.1f} % | "
         f"{truth['chipped']} |",
         *[f"| seed {r['seed']} | {r['cylinder']['radius_bias_um']:+.1f} / {r['cylinder']['shape_rms_um']:.1f} | "
-          f"{r['stated_radius_um']:.2f} | {cells(r['inspection'])} | "
+          f"{r['stated_radius_um'] or float('nan'):.2f} | {cells(r['inspection'])} | "
           f"{100 * r['inspection']['coverage']:.1f} % | {r['inspection']['chipped']} |" for r in runs],
         f"| largest difference from the true rig | | | {cells({q: np.abs(d).max() for q, d in delta.items()})} | | |",
         f"| RMS difference | | | {cells({q: np.sqrt(np.mean(d**2)) for q, d in delta.items()})} | | |",

@@ -55,7 +55,6 @@ def calibrate(
         plot_residuals,
         save_calibration,
     )
-    from gearscan.recon.rig_check import compare_rigs, cylinder_check
     from gearscan.recon.unity import unity_parameters
 
     console = Console()
@@ -125,19 +124,12 @@ def calibrate(
         console.print(f"[yellow]warning:[/yellow] {joint['encoder_warning']}")
     if len(rep["views_used"]) < FEW_VIEWS:
         console.print(f"[yellow]warning:[/yellow] only {len(rep['views_used'])} usable views: the RMS above says "
-                      "nothing about what so few leave unconstrained (on the twin, OpenCV's staged fit put the turntable "
-                      f"axis 0.33 and 1.58 deg off with two choices of 3 views where 16 put it 0.035-0.077 deg); use {FEW_VIEWS} or more, "
-                      "spread over the image and "
-                      "the turntable")
+                      "nothing about what so few leave unconstrained, the uncertainty above does (on the twin, OpenCV's "
+                      "staged fit put the turntable axis 0.33 and 1.58 deg off with two choices of 3 views where 16 put "
+                      f"it 0.035-0.077 deg); use {FEW_VIEWS} or more, spread over the image and the turntable (the twin's "
+                      "set: 11 free-hand, 13 on the turntable over +-45 deg)")
     if truth is not None:
-        cmp = compare_rigs(result.rig, truth)
-        cyl = cylinder_check(result.rig, truth)
-        console.print(
-            f"vs twin truth: baseline error {cmp['baseline_rel_error'] * 100:.4f} %, "
-            f"axis error {cmp['axis_error_deg']:.4f} deg; a 20 mm cylinder turned once round, seen by the true rig and "
-            f"measured with this one: radius {cyl['radius_bias_um']:+.1f} um (spread {cyl['radius_spread_um']:.1f} um), "
-            f"shape {cyl['shape_rms_um']:.1f} um RMS after a rigid fit (p95 {cyl['shape_p95_um']:.1f} um)"
-        )
+        console.print(truth_line(result.rig, truth))
     console.print(depth_range_line(result.rig, period))
     console.print(f"wrote {output}, {plot_path}, {unity_path}")
 
@@ -171,3 +163,19 @@ def uncertainty_line(unc: dict) -> str:
             f"20 mm radius +-{2 * unc['radius_um']:.1f} um (k = 2), fused shape up to {unc['shape_rms_um_p95']:.1f} um "
             f"RMS (95 %), baseline +-{2e3 * unc['baseline_mm']:.1f} um (k = 2), axis direction "
             f"{unc['axis_deg_rms']:.3f} deg RMS; lens-model errors and the encoder's not included")
+
+
+def truth_line(rig, truth) -> str:
+    """``calibrate --twin``: the calibrated rig against the twin's truth, by the rigs' differences and by a 20 mm
+    cylinder turned once round (:func:`gearscan.recon.rig_check.cylinder_check`), as one console line."""
+    from gearscan.recon.rig_check import compare_rigs, cylinder_check
+
+    cmp = compare_rigs(rig, truth)
+    head = f"vs twin truth: baseline error {cmp['baseline_rel_error'] * 100:.4f} %, axis error {cmp['axis_error_deg']:.4f} deg"
+    try:
+        cyl = cylinder_check(rig, truth)
+    except ValueError as exc:  # a rig so far off it triangulates none of the cylinder: said, the files stand
+        return f"{head}; {exc}"
+    return (f"{head}; a 20 mm cylinder turned once round, seen by the true rig and measured with this one: radius "
+            f"{cyl['radius_bias_um']:+.1f} um (spread {cyl['radius_spread_um']:.1f} um), shape {cyl['shape_rms_um']:.1f} "
+            f"um RMS after a rigid fit (p95 {cyl['shape_p95_um']:.1f} um)")

@@ -203,3 +203,39 @@ def test_draws_too_wide_to_read_the_cylinder_are_refused():
         calibration_uncertainty(rig, [rig, moved(-150.0)], 1.0)
     with pytest.raises(ValueError, match="triangulates none"):
         calibration_uncertainty(rig, [rig, moved(-300.0)], 1.0)
+
+
+def test_the_encoder_scale_sigma_matches_repeated_checks():
+    """Twenty encoder checks (the scale free) on corners with independent Gaussian noise: the scales scatter about 1
+    as their own standard errors say (a wrong parameter index or variance factor would be off by orders of
+    magnitude); the product multiplies it by 5 for the twin's renders, whose errors are not independent
+    (recon.calibration.ENCODER_SIGMA_FACTOR)."""
+    rig, board = default_rig(), Checkerboard()
+    scales, sigmas = [], []
+    for seed in range(20):
+        obj, img_c, img_p, poses, angles = _observe(rig, board, 0.03, seed=300 + seed)
+        fit = adjust_jointly(obj, img_c, img_p, angles, ("k1", "none"), rig.camera.K, rig.camera.dist, rig.projector.K,
+                             np.zeros(5), rig.T_proj_from_cam, rig.camera.T_from_world, poses, (0.03, 0.05),
+                             fit_scale=True)
+        scales.append(fit.encoder_scale)
+        sigmas.append(fit.encoder_scale_sigma)
+    assert 0.6 < np.sqrt(np.mean((np.array(scales) - 1) ** 2)) / np.median(sigmas) < 1.5
+
+
+def test_a_covariance_that_cannot_be_drawn_keeps_the_fit(monkeypatch):
+    """Draws refused (here: forced) leave the adjusted calibration as it is, with the reason, and no draws."""
+    import gearscan.recon.bundle as bundle
+
+    rig, board = default_rig(), Checkerboard()
+    obj, img_c, img_p, poses, angles = _observe(rig, board, 0.03, seed=5)
+    args = (obj, img_c, img_p, angles, ("k1", "none"), rig.camera.K, rig.camera.dist, rig.projector.K, np.zeros(5),
+            rig.T_proj_from_cam, rig.camera.T_from_world, poses, (0.03, 0.05))
+    plain = adjust_jointly(*args)
+
+    def refuse(*a, **k):
+        raise ValueError("the corners leave 1 direction(s) of the calibration unconstrained")
+
+    monkeypatch.setattr(bundle, "covariance_steps", refuse)
+    fit = adjust_jointly(*args, draws=8)
+    assert fit.draws == () and "unconstrained" in fit.draws_why
+    np.testing.assert_allclose(fit.k_camera, plain.k_camera)
