@@ -604,7 +604,10 @@ def _live_check(cfg, rig, source: Path) -> None:
             raise _fail(f"encoder.counts_per_rev: {enc.counts_per_rev} in the config, but the encoder on {enc.port} "
                         f"reports {found.banner.counts_per_rev}")
         lines.append(f"encoder: {enc.port} answered: {found.describe()}")
-    lines.append(f"rig: {rig.camera.width}x{rig.camera.height} px camera; gear z={cfg.gear.teeth}, m={cfg.gear.module:g}")
+    lines.append(f"rig: {rig.camera.width}x{rig.camera.height} px camera; gear z={cfg.gear.teeth}, m={cfg.gear.module:g}; "
+                 + (rig.calibration.line() if rig.calibration is not None else
+                    "its calibration states no uncertainty of its own (not from `gearscan calibrate`'s joint "
+                    "adjustment: calibrate again to have one)"))
     typer.echo(f"{source}: OK\n  " + "\n  ".join(lines))
     typer.echo(unambiguous_range_line(rig, cfg.projector.period_px, cfg.gear, cfg.recon.unwrap))
 

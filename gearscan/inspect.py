@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 
 from gearscan.core.recording import RecordingError, RecordingReader
-from gearscan.core.rig import Rig
+from gearscan.core.rig import CalibrationStatement, Rig
 from gearscan.recon.depth_sigma import REST_STALE_NOTE, UNMEASURED_NOTES, turning_three_step_note
 from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
 from gearscan.recon.inspect import (
@@ -63,6 +63,7 @@ class InspectionReport:
     model: str | None = None  # the network's weights that decoded the bursts (None: three-step PS)
     model_fingerprint: str | None = None  # that decode's fingerprint (weights, sigma maps, gates)
     rig: str | None = None  # the rig calibration it was measured with, where not the recording's own (--rig)
+    calibration: CalibrationStatement | None = None  # that rig's calibration's stated uncertainty, where it states one
 
 
 def partial(insp: Inspection, key: str) -> str:
@@ -223,7 +224,7 @@ def run_inspection(
     to measure with (a file or a Rig; None: the recording's own). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
-    from gearscan.replay import replay
+    from gearscan.replay import recording_rig, replay
 
     say = progress or (lambda s: None)
     reader = RecordingReader(recording)
@@ -265,7 +266,8 @@ def run_inspection(
                               (metrics.decoder or {}).get("turning_three_step", 0),
                               (metrics.recon or {}).get("rest_sigma_scale"), (metrics.recon or {}).get("rest_sigma_source"),
                               (metrics.decoder or {}).get("model"), (metrics.decoder or {}).get("model_fingerprint"),
-                              None if rig is None else str(rig if not isinstance(rig, Rig) else f"Rig {rig.name!r}"))
+                              None if rig is None else str(rig if not isinstance(rig, Rig) else f"Rig {rig.name!r}"),
+                              recording_rig(reader, rig).calibration)
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
@@ -282,6 +284,8 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         # what decoded the bursts: the network's weights and its decode's fingerprint (None: three-step PS)
         "model": {"path": report.model, "fingerprint": report.model_fingerprint},
         "rig": report.rig,  # the calibration measured with, where not the recording's own (null: the recording's)
+        # that calibration's own stated uncertainty (gearscan calibrate's joint adjustment; null: it states none)
+        "rig_calibration": None if report.calibration is None else report.calibration.to_json(),
         "revolution_deg": report.revolution_deg,
         "fused": {"points": len(report.fused), "bursts": report.fused.bursts_added, "voxel_mm": report.fused.voxel_mm,
                   "median_sigma_um": 1e3 * float(np.median(report.fused.sigma)),
@@ -335,8 +339,10 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         "",
         ("Decoded by three-step PS." if report.model is None else
          f"Decoded by the network `{report.model}` (decode fingerprint {report.model_fingerprint})."),
-        ("Measured with the recording's own rig calibration." if report.rig is None else
-         f"Measured with the rig calibration `{report.rig}` (not the recording's own)."),
+        ("Measured with the recording's own rig calibration" if report.rig is None else
+         f"Measured with the rig calibration `{report.rig}` (not the recording's own)")
+        + (": " + report.calibration.line() + ". The values below do not include it." if report.calibration is not None else
+           ", which states no uncertainty of its own (not from `gearscan calibrate`'s joint adjustment)."),
         "",
         f"Gear: z = {insp.teeth}, m = {insp.module:g} mm, pitch diameter {insp.pitch_diameter_mm:.2f} mm. "
         f"Fused model: {len(report.fused):,} points from {report.fused.bursts_added} bursts over "

@@ -34,12 +34,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from gearscan.core.phase import decode_phase
-from gearscan.core.rig import PinholeDevice, Rig
+from gearscan.core.rig import CalibrationStatement, PinholeDevice, Rig
 from gearscan.recon.bundle import pose_matrix, pose_vectors
 from gearscan.recon.unwrap import temporal_unwrap
 
@@ -494,6 +494,9 @@ def calibrate_rig(
         direction, point = fit.t_cam_from_turntable[:3, 2], fit.t_cam_from_turntable[:3, 3]
         poses = fit.poses
         uncertainty = _uncertainty(rig, fit, board, turn[0], camera_size, projector_size)
+        if uncertainty["stated"]:  # the rig carries it: a recording holds the rig, and inspect reads it there
+            rig = replace(rig, calibration=CalibrationStatement(uncertainty["radius_um"],
+                                                                uncertainty["shape_rms_um_p95"], uncertainty["draws"]))
     else:
         cam_dev = PinholeDevice(camera_size[0], camera_size[1], k_c, np.asarray(d_c).ravel()[:5], t_cam_from_world)
         proj_dev = PinholeDevice(projector_size[0], projector_size[1], k_p, np.asarray(d_p).ravel()[:5],

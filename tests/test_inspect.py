@@ -22,9 +22,12 @@ def tol(truth: float) -> float:
 
 @pytest.fixture(scope="module")
 def inspected(tmp_path_factory):
-    """A whole revolution of still bursts 9 deg apart (256 px, three-step PS), inspected by the CLI."""
+    """A whole revolution of still bursts 9 deg apart (256 px, three-step PS), inspected by the CLI; its rig carries a
+    calibration's stated uncertainty, as one from `gearscan calibrate` does."""
+    import dataclasses
+
     from gearscan.cli import app
-    from gearscan.core.rig import default_rig
+    from gearscan.core.rig import CalibrationStatement, default_rig
     from gearscan.twin.defects import GearDefects
     from gearscan.twin.recordings import render_recording
 
@@ -32,7 +35,8 @@ def inspected(tmp_path_factory):
     rec = base / "rec"
     defects = GearDefects.from_options(eccentricity_um=50, pitch_errors=["3:30"], chips=["7:0.3"])
     defects = defects.model_copy(update={"profile_slope_um": SLOPE_UM})
-    render_recording(rec, rig=default_rig(256, 256), defects=defects, motion="nonuniform:0,0,9", bursts=40)
+    rig = dataclasses.replace(default_rig(256, 256), calibration=CalibrationStatement(1.6, 3.4, 64))
+    render_recording(rec, rig=rig, defects=defects, motion="nonuniform:0,0,9", bursts=40)
     out = base / "report"
     res = CliRunner().invoke(app, ["inspect", str(rec), "-o", str(out), "--classical", "--grade", "8"])
     assert res.exit_code == 0, res.output
@@ -135,7 +139,10 @@ def test_report_files_and_grade(inspected):
     assert report["grade"] == 8 and report["tolerances_um"] == iso1328_tolerances(2.0, 40.0, 8)
     md = (out / "report.md").read_text()
     assert "tolerance class 8" in md and "CHIPPED" in md and "Twin truth" in md
-    assert report["rig"] is None and "Measured with the recording's own rig calibration." in md
+    assert report["rig"] is None and "Measured with the recording's own rig calibration: its calibration states" in md
+    # the recording's rig carried its calibration's stated uncertainty to the report
+    assert report["rig_calibration"] == {"radius_um": 1.6, "shape_rms_um_p95": 3.4, "draws": 64}
+    assert "+-3.2 um (k = 2) on a 20 mm radius" in md and "The values below do not include it." in md
     assert "chipped teeth: 7" in output
     assert report["fused"]["median_bursts_per_point"] >= 3
     # each point's sigma runs along its camera ray; the deviation's is its share along the CAD's normal, and both are said

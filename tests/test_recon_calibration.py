@@ -229,6 +229,7 @@ def test_captures_folder_roundtrip_and_command(twin_set, tmp_path, capsys):
     unc = data["calibration_report"]["uncertainty"]
     assert unc["stated"] and unc["draws"] == 64 and 0.5 < unc["radius_um"] < 15 and unc["shape_rms_um_p95"] > 0
     assert "a 20 mm radius +-" in capsys.readouterr().out
+    assert loaded.calibration is not None and loaded.calibration.radius_um == pytest.approx(unc["radius_um"])
     assert out.with_suffix(".residuals.png").stat().st_size > 10_000
     unity = json.loads(out.with_suffix(".unity.json").read_text())
     assert set(unity) >= {"camera", "projector"}

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
-from gearscan.core.rig import Rig, RigError, default_rig
+from gearscan.core.rig import CalibrationStatement, Rig, RigError, default_rig
 
 
 def test_rays_and_projection_are_inverse():
@@ -49,6 +50,12 @@ def test_json_round_trip(tmp_path):
     rig.save(path)
     back = Rig.load(path)
     assert back.camera.width == 300 and back.camera.height == 200
+    assert back.calibration is None and "calibration" not in json.loads(path.read_text())
+    # a calibration's stated uncertainty travels with the rig (gearscan calibrate writes it; a recording holds it)
+    stated = dataclasses.replace(rig, calibration=CalibrationStatement(1.6, 3.4, 64))
+    stated.save(path)
+    assert Rig.load(path).calibration == CalibrationStatement(1.6, 3.4, 64)
+    assert "+-3.2 um (k = 2) on a 20 mm radius" in stated.calibration.line()
     for a, b in ((rig.camera, back.camera), (rig.projector, back.projector)):
         assert np.array_equal(a.K, b.K) and np.array_equal(a.dist, b.dist)
         assert np.array_equal(a.T_from_world, b.T_from_world)
@@ -68,6 +75,14 @@ def test_json_round_trip(tmp_path):
         (lambda d: d["camera"]["K"].__setitem__(2, [0, 0, 0]), "K: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]"),
         (lambda d: d["projector"]["K"][0].__setitem__(1, 0.5), "K: expected [[fx, 0, cx]"),  # skew: no OpenCV model
         (lambda d: d["camera"]["K"][1].__setitem__(0, 0.5), "K: expected [[fx, 0, cx]"),
+        # the calibration's statement: an object with finite, non-negative numbers
+        (lambda d: d.update(calibration="1.6 um"), '"calibration" must be an object'),
+        (lambda d: d.update(calibration={"radius_um": -1.0, "shape_rms_um_p95": 3.0, "draws": 64}),
+         "calibration.radius_um: expected a finite number >= 0"),
+        (lambda d: d.update(calibration={"radius_um": 1.6, "shape_rms_um_p95": float("nan"), "draws": 64}),
+         "calibration.shape_rms_um_p95"),
+        (lambda d: d.update(calibration={"radius_um": 1.6, "shape_rms_um_p95": 3.0, "draws": 1}),
+         "calibration.draws: expected an integer >= 2"),
     ],
 )
 def test_bad_calibration_file_names_the_key(tmp_path, mutate, needle):

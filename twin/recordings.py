@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +76,7 @@ def render_recording(
     dt_ns = int(round(frame_interval_ms * 1e6))
     # angular velocity per frame (rad/s) for exposure blur: the step to the next frame / interval
     steps = np.diff(np.append(angles, angles[-1] + (angles[-1] - angles[-2] if len(angles) > 1 else 0)))
-    rig = rig if rig.counts_per_rev else Rig(rig.camera, rig.projector, ENCODER_COUNTS_PER_REV, rig.name)
+    rig = rig if rig.counts_per_rev else replace(rig, counts_per_rev=ENCODER_COUNTS_PER_REV)
     meta = {
         "source": "twin",
         "rig": rig.to_json(),

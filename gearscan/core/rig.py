@@ -8,12 +8,15 @@ writes and the twin and pipeline read)::
       "camera":    {"width": W, "height": H, "K": [[fx,0,cx],[0,fy,cy],[0,0,1]],
                     "dist": [k1,k2,p1,p2,k3], "T_from_world": 4x4},
       "projector": {... same keys ...},
-      "turntable": {"counts_per_rev": 0 or N}
+      "turntable": {"counts_per_rev": 0 or N},
+      "calibration": {"radius_um": u, "shape_rms_um_p95": s, "draws": n}   (optional)
     }
 
 ``T_from_world`` maps turntable-frame points (origin on the rotation axis, z along the
 axis, mm) into the device's OpenCV frame (x right, y down, z forward). The projector is
-an inverse camera; its fringe phase varies along its columns (u).
+an inverse camera; its fringe phase varies along its columns (u). ``calibration``, where ``gearscan calibrate``'s joint
+adjustment wrote the rig, is the calibration's own stated uncertainty (:class:`CalibrationStatement`), so a recording
+that holds the rig carries it to ``inspect``.
 """
 
 from __future__ import annotations
@@ -217,6 +220,44 @@ class PinholeDevice:
 
 
 @dataclass(frozen=True)
+class CalibrationStatement:
+    """What a rig's calibration says of its own uncertainty (``recon.rig_check.calibration_uncertainty``): the
+    standard deviation of a 20 mm radius read through it (um, k = 1) and the 95th percentile of a fused revolution's
+    shape RMS (um), from ``draws`` calibrations drawn from its adjustment's covariance. Corner noise only."""
+
+    radius_um: float
+    shape_rms_um_p95: float
+    draws: int
+
+    def __post_init__(self) -> None:
+        for key in ("radius_um", "shape_rms_um_p95"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise RigError(f"calibration.{key}: expected a finite number >= 0 (um), got {value!r}")
+        if not (isinstance(self.draws, int) and self.draws >= 2):
+            raise RigError(f"calibration.draws: expected an integer >= 2, got {self.draws!r}")
+
+    def to_json(self) -> dict:
+        return {"radius_um": self.radius_um, "shape_rms_um_p95": self.shape_rms_um_p95, "draws": self.draws}
+
+    @classmethod
+    def from_json(cls, data: object, source: str) -> CalibrationStatement:
+        if not isinstance(data, dict) or not {"radius_um", "shape_rms_um_p95", "draws"} <= set(data):
+            raise RigError(f"{source}: \"calibration\" must be an object with radius_um, shape_rms_um_p95 and draws, "
+                           f"got {data!r}")
+        try:
+            return cls(data["radius_um"], data["shape_rms_um_p95"], data["draws"])
+        except RigError as exc:
+            raise RigError(f"{source}: {exc}") from exc
+
+    def line(self) -> str:
+        """One sentence for reports."""
+        return (f"its calibration states +-{2 * self.radius_um:.1f} um (k = 2) on a 20 mm radius and a fused shape up to "
+                f"{self.shape_rms_um_p95:.1f} um RMS (95 %) of its own (corner noise through its adjustment, "
+                f"{self.draws} drawn calibrations; the lens model and the encoder not included)")
+
+
+@dataclass(frozen=True)
 class Rig:
     """Camera + projector + turntable: everything needed to render or triangulate."""
 
@@ -224,6 +265,7 @@ class Rig:
     projector: PinholeDevice
     counts_per_rev: int = 0
     name: str = "rig"
+    calibration: CalibrationStatement | None = None  # the calibration's stated uncertainty, where it stated one
 
     @property
     def T_proj_from_cam(self) -> np.ndarray:
@@ -245,6 +287,7 @@ class Rig:
             "camera": self.camera.to_json(),
             "projector": self.projector.to_json(),
             "turntable": {"counts_per_rev": self.counts_per_rev},
+            **({} if self.calibration is None else {"calibration": self.calibration.to_json()}),
         }
 
     @classmethod
@@ -271,6 +314,8 @@ class Rig:
             projector=PinholeDevice.from_json(data["projector"], f"{source}: projector"),
             counts_per_rev=counts,
             name=str(data.get("name", "rig")),
+            calibration=None if data.get("calibration") is None else CalibrationStatement.from_json(
+                data["calibration"], source),
         )
 
     def save(self, path: str | Path) -> None:
