@@ -116,6 +116,39 @@ def test_a_chip_check_too_noisy_to_tell_flags_nothing_and_says_so(noise_mm):
         assert insp.chip_noise_um < 50 / 1.5  # the old margin would have called it conclusive
 
 
+@pytest.mark.parametrize("min_points", [None, 1], ids=["shipped", "one point a bin"])
+def test_a_lone_point_at_a_flanks_end_does_not_make_its_profile(monkeypatch, min_points):
+    """A flank whose first roll-length bin holds one point 30 um off the involute (the rest of that bin not seen): as
+    shipped the bin is left out and the flank's F_alpha stays at the exact gear's (0); with a single point allowed to
+    make a bin (the rule before session 56) that point sets F_alpha to 30 um."""
+    import open3d as o3d
+
+    import gearscan.recon.inspect as inspect_mod
+    from gearscan.core.gear import GearSpec
+
+    if min_points is not None:
+        monkeypatch.setattr(inspect_mod, "MIN_BIN_POINTS", min_points)
+    gear = GearSpec(teeth=20, module=2.0)
+    o3d.utility.random.seed(3)
+    pts = np.asarray(gear.mesh().sample_points_uniformly(400_000).points)
+    pts = pts[np.abs(pts[:, 2]) < gear.face_width / 2 - 0.2]
+    k, s, f, roll = inspect_mod._flank_deviation(pts, np.zeros(3), gear)
+    rb, ra = gear.base_radius, gear.tip_radius
+    l_start, l_tip = math.sqrt(max(max(rb, gear.root_radius) ** 2 - rb**2, 0.0)), math.sqrt(ra**2 - rb**2)
+    l_a = l_start + 0.1 * (l_tip - l_start)
+    first = (k == 5) & (s < 0) & (np.abs(f) < 0.5) & (roll >= l_a) & (roll < l_a + 0.85 * (l_tip - l_start) / 20)
+    lone = pts[np.flatnonzero(first & (np.abs(pts[:, 2]) < 1.0))[0]].copy()  # within the mid-face band
+    turn = 0.030 / rb  # turned about the axis: 30 um along the involute's normal (f = s r_b (theta - ...))
+    lone[:2] = [math.cos(turn) * lone[0] - math.sin(turn) * lone[1], math.sin(turn) * lone[0] + math.cos(turn) * lone[1]]
+    pts = np.vstack([pts[~first], lone])
+    insp = inspect_mod.inspect_gear(pts, np.full(len(pts), 0.004), gear)
+    flank = next(fl for fl in insp.flanks if fl.tooth == 5 and fl.side == "right")
+    if min_points is None:
+        assert flank.measured and flank.F_alpha_um < 3.0, flank.F_alpha_um
+    else:
+        assert flank.F_alpha_um > 15.0, flank.F_alpha_um
+
+
 def test_profile_slope_is_read_on_every_flank(inspected):
     """The flank offset grows as SLOPE_UM * xi: over the evaluation range xi 0.1-0.95 the mean
     profile line rises 0.85 * SLOPE_UM; no form error was injected (chip aside)."""
