@@ -240,10 +240,12 @@ def run_inspection(
     if point_sigma_mm is not None and not refine:
         raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine)")
     span = revolution_deg(reader)
+    used = recording_rig(reader, rig)  # once: the replay measures with it and the report states its calibration
     say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
     fuser = CloudFuser(voxel_mm, min_bursts)
     metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine,
-                     network_support_px=network_support_px, max_sigma=max_sigma, point_sigma_mm=point_sigma_mm, rig=rig)
+                     network_support_px=network_support_px, max_sigma=max_sigma, point_sigma_mm=point_sigma_mm,
+                     rig=None if rig is None else used)
     if metrics.fused is None or not len(metrics.fused):
         raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
     fused = metrics.fused
@@ -267,12 +269,35 @@ def run_inspection(
                               (metrics.recon or {}).get("rest_sigma_scale"), (metrics.recon or {}).get("rest_sigma_source"),
                               (metrics.decoder or {}).get("model"), (metrics.decoder or {}).get("model_fingerprint"),
                               None if rig is None else str(rig if not isinstance(rig, Rig) else f"Rig {rig.name!r}"),
-                              recording_rig(reader, rig).calibration)
+                              used.calibration)
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
     files["markdown"].write_text(report_markdown(report, reader.path))
     return report
+
+
+def profile_bins_note(insp: Inspection) -> str:
+    """What the profile traces left out: bins with too few points or too loose a mean to count, which shorten the roll
+    length a flank's Fα and ffα span (mostly at the root end, where bins hold the fewest points)."""
+    n = insp.profile_bins_left_out
+    if not n:
+        return ""
+    total = 2 * insp.teeth * int(insp.settings.get("bins", 20))
+    return (f" {n} of {total} profile bins held points too few (under {insp.settings.get('min_bin_points', 3)}) or too "
+            f"loose (a mean's standard error over {insp.settings.get('bin_se_max_um', 3):g} µm) to count; their flanks' "
+            "Fα and ffα span a shorter roll length (`gearscan.recon.inspect.MIN_BIN_POINTS`).")
+
+
+def calibration_sentence(rig: str | None, calibration: CalibrationStatement | None) -> str:
+    """The report's line on the rig measured with (``rig``: its label where not the recording's own) and its
+    calibration's stated uncertainty."""
+    head = ("Measured with the recording's own rig calibration" if rig is None else
+            f"Measured with the rig calibration `{rig}` (not the recording's own)")
+    if calibration is None:
+        return (head + ", which states no uncertainty of its own (written before gearscan stated one, or not by "
+                "`gearscan calibrate`'s joint adjustment).")
+    return f"{head}: {calibration.line()}. The values below do not include it."
 
 
 def report_json(report: InspectionReport, recording: Path) -> dict:
@@ -286,6 +311,7 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         "rig": report.rig,  # the calibration measured with, where not the recording's own (null: the recording's)
         # that calibration's own stated uncertainty (gearscan calibrate's joint adjustment; null: it states none)
         "rig_calibration": None if report.calibration is None else report.calibration.to_json(),
+        "profile_bins_left_out": insp.profile_bins_left_out,
         "revolution_deg": report.revolution_deg,
         "fused": {"points": len(report.fused), "bursts": report.fused.bursts_added, "voxel_mm": report.fused.voxel_mm,
                   "median_sigma_um": 1e3 * float(np.median(report.fused.sigma)),
@@ -339,10 +365,7 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         "",
         ("Decoded by three-step PS." if report.model is None else
          f"Decoded by the network `{report.model}` (decode fingerprint {report.model_fingerprint})."),
-        ("Measured with the recording's own rig calibration" if report.rig is None else
-         f"Measured with the rig calibration `{report.rig}` (not the recording's own)")
-        + (": " + report.calibration.line() + ". The values below do not include it." if report.calibration is not None else
-           ", which states no uncertainty of its own (not from `gearscan calibrate`'s joint adjustment)."),
+        calibration_sentence(report.rig, report.calibration),
         "",
         f"Gear: z = {insp.teeth}, m = {insp.module:g} mm, pitch diameter {insp.pitch_diameter_mm:.2f} mm. "
         f"Fused model: {len(report.fused):,} points from {report.fused.bursts_added} bursts over "
@@ -406,7 +429,7 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
               "Definitions: `gearscan.recon.inspect` (fp, Fp about the fitted gear axis on the pitch circle; Fr ball "
               "probe; Fα, ffα, fHα over the evaluation range "
               f"{insp.settings['evaluation_roll_mm'][0]:.2f}-{insp.settings['evaluation_roll_mm'][1]:.2f} mm of roll "
-              "length); tolerances ISO 1328-1:2013 eq. 5-9, F_rT = 0.9 F_pT.", ""]
+              "length); tolerances ISO 1328-1:2013 eq. 5-9, F_rT = 0.9 F_pT." + profile_bins_note(insp), ""]
     return "\n".join(lines)
 
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from gearscan.core.phase import decode_phase
-from gearscan.core.rig import CalibrationStatement, PinholeDevice, Rig
+from gearscan.core.rig import CalibrationStatement, PinholeDevice, Rig, RigError
 from gearscan.recon.bundle import pose_matrix, pose_vectors
 from gearscan.recon.unwrap import temporal_unwrap
 
@@ -495,8 +495,11 @@ def calibrate_rig(
         poses = fit.poses
         uncertainty = _uncertainty(rig, fit, board, turn[0], camera_size, projector_size)
         if uncertainty["stated"]:  # the rig carries it: a recording holds the rig, and inspect reads it there
-            rig = replace(rig, calibration=CalibrationStatement(uncertainty["radius_um"],
-                                                                uncertainty["shape_rms_um_p95"], uncertainty["draws"]))
+            try:
+                rig = replace(rig, calibration=CalibrationStatement(
+                    uncertainty["radius_um"], uncertainty["shape_rms_um_p95"], uncertainty["draws"]))
+            except RigError as exc:  # a non-finite spread: not a statement
+                uncertainty = {"stated": False, "why": f"the drawn calibrations gave no finite spread ({exc})"}
     else:
         cam_dev = PinholeDevice(camera_size[0], camera_size[1], k_c, np.asarray(d_c).ravel()[:5], t_cam_from_world)
         proj_dev = PinholeDevice(projector_size[0], projector_size[1], k_p, np.asarray(d_p).ravel()[:5],

@@ -21,7 +21,8 @@ Steps and definitions (all in the transverse section band around mid-face):
    roll length from the involute start to ``xi_end``, default 0.1 to 0.95; ISO's start of
    active profile depends on the mating gear, which a measurement does not know): the trace
    is the sigma-weighted mean of ``f`` in ``bins`` roll-length bins (a bin with fewer than
-   :data:`MIN_BIN_POINTS` points is left out, as one never seen); the mean profile line is
+   :data:`MIN_BIN_POINTS` points or a standard error above :data:`BIN_SE_MAX_MM` is left out, as one
+   never seen, and counted: ``profile_bins_left_out``); the mean profile line is
    its least-squares line. ``F_alpha`` = range of the trace (two design profiles enclosing
    it), ``ff_alpha`` = range of the trace minus the mean line, ``fH_alpha`` = the mean line's
    rise over ``L_alpha`` (+: more material towards the tip).
@@ -66,12 +67,17 @@ GRADES = range(1, 12)  # ISO 1328-1:2013 flank tolerance classes 1 (finest) to 1
 # revolution decoded by v9 without the frame fit the spread was 29.3 um (x 1.5 = 44 < 50) and two intact teeth had
 # 1.4 and 3.0 mm2 of cells 50 um below the median tooth (the chip: 6.4); at 2 that cloud is inconclusive
 CHIP_NOISE_MARGIN = 2.0
-# a profile trace's roll-length bin counts only with at least this many points. A fused point errs by about 4 um RMS
-# with tails past 15 um; ten bring a bin's mean to about 1.3 um. Until session 56 one point made a bin: on the
-# inspection revolution measured with a hand-placed calibration (benchmarks/calibration_inspection_report.md, seed 53)
-# a single point at the root end of tooth 18's right flank, 22.6 um off, set that flank's F_alpha to 26.7 um and the
-# gear's with it (10.0 with the true rig and the four other calibrations). A rule by argument, not tuned
-MIN_BIN_POINTS = 10
+# a profile trace's roll-length bin counts only with at least MIN_BIN_POINTS points AND a weighted mean known within
+# BIN_SE_MAX_MM (its standard error from the points' sigma). Until session 56 one point made a bin: on the inspection
+# revolution measured with a hand-placed calibration (benchmarks/calibration_inspection_before_min_bin_report.md,
+# seed 53) a single point at the root end of tooth 18's right flank, 22.6 um off, set that flank's F_alpha to 26.7 um
+# and the gear's with it (9.7-10.0 with the true rig and the four other calibrations). Bins hold ten times fewer points
+# at the root end than at the tip (the involute's arc per bin grows with the roll length), so a count of ten left out
+# 15-19 of 800 bins on those clouds, all near the root, shortening the range F_alpha spans; three points and 3 um leave
+# out 2-8 (the same F_alpha). Chosen by argument on that one revolution (a lone point is no profile; 3 um is under a
+# tenth of the class-8 F_alpha tolerance of the benchmark gear), not tuned; the report counts what was left out
+MIN_BIN_POINTS = 3
+BIN_SE_MAX_MM = 0.003
 
 
 # --- ISO 1328-1:2013 tolerances ------------------------------------------------------------
@@ -178,6 +184,8 @@ class Inspection:
     chip_noise_um: float = math.nan  # 95th percentile of the tip cells' |deviation from the median tooth|
     chip_check_conclusive: bool = True  # False: the cells are too noisy to tell a chip (none flagged)
     settings: dict[str, float] = field(default_factory=dict)
+    # profile bins whose few points or loose mean did not count (MIN_BIN_POINTS, BIN_SE_MAX_MM), of teeth x 2 x bins
+    profile_bins_left_out: int = 0
 
     def summary(self) -> dict[str, float]:
         """The headline values per quantity (worst over the flanks/sides measured; NaN: none was), µm, for grading."""
@@ -349,12 +357,14 @@ def inspect_gear(
     sel = order[near[order]]
     groups = np.split(sel, np.flatnonzero(np.diff(flank_id[sel])) + 1) if len(sel) else []
     by_id = {int(flank_id[g[0]]): g for g in groups if len(g)}
+    left_out = {"right": 0, "left": 0}  # bins with points that did not count (MIN_BIN_POINTS, BIN_SE_MAX_MM)
     for tooth in range(z):
         for side, name in ((-1, "right"), (1, "left")):
             g = by_id.get(tooth * 2 + (side > 0), np.empty(0, int))
             b = np.clip(np.searchsorted(edges, roll[g]) - 1, 0, bins - 1)
             sw = np.bincount(b, w[g], minlength=bins)
-            seen = np.bincount(b, minlength=bins) >= MIN_BIN_POINTS
+            seen = (np.bincount(b, minlength=bins) >= MIN_BIN_POINTS) & (sw >= BIN_SE_MAX_MM**-2)
+            left_out[name] += int(np.count_nonzero((sw > 0) & ~seen))
             trace = np.bincount(b, w[g] * f[g], minlength=bins) / np.where(seen, sw, np.nan)
             if seen.mean() < min_coverage:
                 flanks.append(Flank(tooth, name, len(g), False))
@@ -405,7 +415,9 @@ def inspect_gear(
         chip_noise_um=1e3 * chip_noise, chip_check_conclusive=chip_conclusive,
         settings={"section_fraction": section_fraction, "xi_start": xi_start, "xi_end": xi_end, "bins": bins,
                   "chip_mm": chip_mm, "chip_area_mm2": chip_area_mm2, "voxel_mm": voxel_mm,
-                  "evaluation_roll_mm": (l_a, l_b)},
+                  "evaluation_roll_mm": (l_a, l_b), "min_bin_points": MIN_BIN_POINTS,
+                  "bin_se_max_um": 1e3 * BIN_SE_MAX_MM},
+        profile_bins_left_out=sum(left_out.values()),
     )
 
 

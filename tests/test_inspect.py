@@ -118,9 +118,10 @@ def test_a_chip_check_too_noisy_to_tell_flags_nothing_and_says_so(noise_mm):
 
 @pytest.mark.parametrize("min_points", [None, 1], ids=["shipped", "one point a bin"])
 def test_a_lone_point_at_a_flanks_end_does_not_make_its_profile(monkeypatch, min_points):
-    """A flank whose first roll-length bin holds one point 30 um off the involute (the rest of that bin not seen): as
-    shipped the bin is left out and the flank's F_alpha stays at the exact gear's (0); with a single point allowed to
-    make a bin (the rule before session 56) that point sets F_alpha to 30 um."""
+    """A flank whose first roll-length bin holds one point 30 um off the involute (the rest of that bin not seen), every
+    point's sigma 2 um (so the bin's standard error alone would pass): as shipped the bin is left out, counted, and the
+    flank's F_alpha stays at the exact gear's (0); with a single point allowed to make a bin (the rule before session
+    56) that point sets F_alpha to 30 um."""
     import open3d as o3d
 
     import gearscan.recon.inspect as inspect_mod
@@ -128,6 +129,7 @@ def test_a_lone_point_at_a_flanks_end_does_not_make_its_profile(monkeypatch, min
 
     if min_points is not None:
         monkeypatch.setattr(inspect_mod, "MIN_BIN_POINTS", min_points)
+        monkeypatch.setattr(inspect_mod, "BIN_SE_MAX_MM", math.inf)
     gear = GearSpec(teeth=20, module=2.0)
     o3d.utility.random.seed(3)
     pts = np.asarray(gear.mesh().sample_points_uniformly(400_000).points)
@@ -141,10 +143,11 @@ def test_a_lone_point_at_a_flanks_end_does_not_make_its_profile(monkeypatch, min
     turn = 0.030 / rb  # turned about the axis: 30 um along the involute's normal (f = s r_b (theta - ...))
     lone[:2] = [math.cos(turn) * lone[0] - math.sin(turn) * lone[1], math.sin(turn) * lone[0] + math.cos(turn) * lone[1]]
     pts = np.vstack([pts[~first], lone])
-    insp = inspect_mod.inspect_gear(pts, np.full(len(pts), 0.004), gear)
+    insp = inspect_mod.inspect_gear(pts, np.full(len(pts), 0.002), gear)
     flank = next(fl for fl in insp.flanks if fl.tooth == 5 and fl.side == "right")
     if min_points is None:
         assert flank.measured and flank.F_alpha_um < 3.0, flank.F_alpha_um
+        assert insp.profile_bins_left_out >= 1
     else:
         assert flank.F_alpha_um > 15.0, flank.F_alpha_um
 
@@ -176,6 +179,7 @@ def test_report_files_and_grade(inspected):
     # the recording's rig carried its calibration's stated uncertainty to the report
     assert report["rig_calibration"] == {"radius_um": 1.6, "shape_rms_um_p95": 3.4, "draws": 64}
     assert "+-3.2 um (k = 2) on a 20 mm radius" in md and "The values below do not include it." in md
+    assert isinstance(report["profile_bins_left_out"], int)
     assert "chipped teeth: 7" in output
     assert report["fused"]["median_bursts_per_point"] >= 3
     # each point's sigma runs along its camera ray; the deviation's is its share along the CAD's normal, and both are said
@@ -255,7 +259,7 @@ def test_the_rig_to_measure_with_reaches_the_replay(tmp_path, replay_spy, monkey
     recording's own (None); a rig of another frame size is refused by the replay's own check, named."""
     from gearscan.cli import app
     from gearscan.core.recording import RecordingError
-    from gearscan.core.rig import default_rig
+    from gearscan.core.rig import Rig, default_rig
     from gearscan.inspect import run_inspection
     from gearscan.twin.recordings import render_recording
 
@@ -265,7 +269,8 @@ def test_the_rig_to_measure_with_reaches_the_replay(tmp_path, replay_spy, monkey
     for option, expected in ((["--rig", str(tmp_path / "rig.json")], tmp_path / "rig.json"), ([], None)):
         with pytest.raises(replay_spy.Called):
             CliRunner().invoke(app, ["inspect", str(rec), "-o", str(tmp_path / "out"), *option], catch_exceptions=False)
-        assert replay_spy.calls[-1]["rig"] == expected, option
+        got = replay_spy.calls[-1]["rig"]  # resolved once by inspect (the report states its calibration): the Rig
+        assert (got is None) if expected is None else got.to_json() == Rig.load(expected).to_json(), option
     monkeypatch.undo()  # the real replay: its rig check
     default_rig(96, 96).save(tmp_path / "big.json")
     with pytest.raises(RecordingError, match="--rig"):
@@ -635,3 +640,14 @@ def test_the_chip_verdict_of_a_gear_whose_tips_were_barely_seen_names_why():
     noisy = dataclasses.replace(insp, chip_check_conclusive=False, chip_noise_um=48.0, settings={"chip_mm": 0.05})
     assert "stray 48 µm" in chip_verdict(noisy) and "50 µm chip threshold" in chip_verdict(noisy)
 
+
+def test_the_calibration_sentence_names_the_rig_and_what_it_states():
+    """The report's line: the recording's own rig or the one given, with its calibration's statement or the reason it
+    has none."""
+    from gearscan.core.rig import CalibrationStatement
+    from gearscan.inspect import calibration_sentence
+
+    own = calibration_sentence(None, CalibrationStatement(1.6, 3.4, 64))
+    assert own.startswith("Measured with the recording's own rig calibration: its calibration states +-3.2 um")
+    given = calibration_sentence("rig.json", None)
+    assert "`rig.json` (not the recording's own)" in given and "states no uncertainty of its own" in given

@@ -200,6 +200,7 @@ def test_check_verifies_what_it_claims(twin, tmp_path):
     assert f"encoder: {link} answered: gearscan encoder 'mockenc', protocol v1, 10000 counts/rev" in res.output
     assert "camera: replay camera" in res.output and "one 128x128 Mono8 frame grabbed" in res.output
     assert "pattern sequence: 0, 1, 2 (shown by software" in res.output
+    assert "its calibration states no uncertainty of its own" in " ".join(res.output.split())
     with MockEncoderProcess(link, rate=500, cpr=4096, duration=60, linger=0):
         res = runner.invoke(app, ["live", "--config", str(_config(tmp_path, rec, rig_path, link)), "--check"])
     assert res.exit_code == 2 and "encoder.counts_per_rev: 10000 in the config, but the encoder" in res.output

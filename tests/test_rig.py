@@ -56,6 +56,14 @@ def test_json_round_trip(tmp_path):
     stated.save(path)
     assert Rig.load(path).calibration == CalibrationStatement(1.6, 3.4, 64)
     assert "+-3.2 um (k = 2) on a 20 mm radius" in stated.calibration.line()
+    # a rig file gearscan calibrate wrote before the key existed: the statement read from its calibration report
+    data = rig.to_json() | {"calibration_report": {"uncertainty": {"stated": True, "radius_um": 1.6,
+                                                                     "shape_rms_um_p95": 3.4, "draws": 64}}}
+    path.write_text(json.dumps(data))
+    assert Rig.load(path).calibration == CalibrationStatement(1.6, 3.4, 64)
+    data["calibration_report"]["uncertainty"] = {"stated": False, "why": "the staged fit"}
+    path.write_text(json.dumps(data))
+    assert Rig.load(path).calibration is None
     for a, b in ((rig.camera, back.camera), (rig.projector, back.projector)):
         assert np.array_equal(a.K, b.K) and np.array_equal(a.dist, b.dist)
         assert np.array_equal(a.T_from_world, b.T_from_world)
@@ -83,6 +91,8 @@ def test_json_round_trip(tmp_path):
          "calibration.shape_rms_um_p95"),
         (lambda d: d.update(calibration={"radius_um": 1.6, "shape_rms_um_p95": 3.0, "draws": 1}),
          "calibration.draws: expected an integer >= 2"),
+        (lambda d: d.update(calibration={"radius_um": True, "shape_rms_um_p95": 3.0, "draws": 64}),
+         "calibration.radius_um"),
     ],
 )
 def test_bad_calibration_file_names_the_key(tmp_path, mutate, needle):

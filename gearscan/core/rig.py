@@ -232,9 +232,9 @@ class CalibrationStatement:
     def __post_init__(self) -> None:
         for key in ("radius_um", "shape_rms_um_p95"):
             value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise RigError(f"calibration.{key}: expected a finite number >= 0 (um), got {value!r}")
-        if not (isinstance(self.draws, int) and self.draws >= 2):
+        if isinstance(self.draws, bool) or not (isinstance(self.draws, int) and self.draws >= 2):
             raise RigError(f"calibration.draws: expected an integer >= 2, got {self.draws!r}")
 
     def to_json(self) -> dict:
@@ -255,6 +255,18 @@ class CalibrationStatement:
         return (f"its calibration states +-{2 * self.radius_um:.1f} um (k = 2) on a 20 mm radius and a fused shape up to "
                 f"{self.shape_rms_um_p95:.1f} um RMS (95 %) of its own (corner noise through its adjustment, "
                 f"{self.draws} drawn calibrations; the lens model and the encoder not included)")
+
+
+def _calibration_of(data: dict, source: str) -> CalibrationStatement | None:
+    """A rig file's ``calibration``; a file ``gearscan calibrate`` wrote before the key existed (session 56) holds the
+    same statement in its ``calibration_report``'s ``uncertainty``."""
+    if data.get("calibration") is not None:
+        return CalibrationStatement.from_json(data["calibration"], source)
+    unc = (data.get("calibration_report") or {}).get("uncertainty") if isinstance(data.get("calibration_report"), dict) \
+        else None
+    if isinstance(unc, dict) and unc.get("stated"):
+        return CalibrationStatement.from_json(unc, f"{source}: calibration_report.uncertainty")
+    return None
 
 
 @dataclass(frozen=True)
@@ -314,8 +326,7 @@ class Rig:
             projector=PinholeDevice.from_json(data["projector"], f"{source}: projector"),
             counts_per_rev=counts,
             name=str(data.get("name", "rig")),
-            calibration=None if data.get("calibration") is None else CalibrationStatement.from_json(
-                data["calibration"], source),
+            calibration=_calibration_of(data, source),
         )
 
     def save(self, path: str | Path) -> None:
