@@ -74,8 +74,8 @@ CHIP_NOISE_MARGIN = 2.0
 # and the gear's with it (9.7-10.0 with the true rig and the four other calibrations). Bins hold ten times fewer points
 # at the root end than at the tip (the involute's arc per bin grows with the roll length), so a count of ten left out
 # 15-19 of 800 bins on those clouds, all near the root, shortening the range F_alpha spans; three points and 3 um leave
-# out 2-8 (the same F_alpha). Chosen by argument on that one revolution (a lone point is no profile; 3 um is under a
-# tenth of the class-8 F_alpha tolerance of the benchmark gear), not tuned; the report counts what was left out
+# out 2-8 (the same F_alpha). Chosen by argument on that one revolution (a lone point is no profile; 3 um is a
+# seventh of the class-8 F_alpha tolerance, 22 um, of the benchmark gear), not tuned; the report counts what was left out
 MIN_BIN_POINTS = 3
 BIN_SE_MAX_MM = 0.003
 
