@@ -501,10 +501,7 @@ def calibrate_rig(
             except RigError as exc:  # a non-finite spread: not a statement
                 uncertainty = {"stated": False, "why": f"the drawn calibrations gave no finite spread ({exc})"}
     else:
-        cam_dev = PinholeDevice(camera_size[0], camera_size[1], k_c, np.asarray(d_c).ravel()[:5], t_cam_from_world)
-        proj_dev = PinholeDevice(projector_size[0], projector_size[1], k_p, np.asarray(d_p).ravel()[:5],
-                                 t_proj_from_cam @ t_cam_from_world)
-        rig = Rig(camera=cam_dev, projector=proj_dev, name=name)
+        rig = _rig(k_c, d_c, k_p, d_p, t_proj_from_cam, t_cam_from_world, camera_size, projector_size, name)
 
     res_c, res_p = [], []  # of the rig written: each view's corners through its final pose
     for i in range(len(used)):
@@ -548,10 +545,17 @@ def _rig_of(fit, board: Checkerboard, first_turn: int, camera_size: tuple[int, i
     at the height of the first turntable view's board centre, x towards the camera (:func:`world_from_axis`)."""
     level = (fit.poses[first_turn] @ np.append(board.centre, 1.0))[:3]
     t_cam_from_world = world_from_axis(fit.t_cam_from_turntable[:3, 2], fit.t_cam_from_turntable[:3, 3], level)
-    cam_dev = PinholeDevice(camera_size[0], camera_size[1], fit.k_camera, np.asarray(fit.dist_camera).ravel()[:5],
-                            t_cam_from_world)
-    proj_dev = PinholeDevice(projector_size[0], projector_size[1], fit.k_projector,
-                             np.asarray(fit.dist_projector).ravel()[:5], fit.t_proj_from_cam @ t_cam_from_world)
+    return _rig(fit.k_camera, fit.dist_camera, fit.k_projector, fit.dist_projector, fit.t_proj_from_cam,
+                t_cam_from_world, camera_size, projector_size, name)
+
+
+def _rig(k_c, d_c, k_p, d_p, t_proj_from_cam: np.ndarray, t_cam_from_world: np.ndarray, camera_size: tuple[int, int],
+         projector_size: tuple[int, int], name: str) -> Rig:
+    """The rig of intrinsics, lens vectors (OpenCV's first five), the projector's pose from the camera and the
+    camera's pose in the turntable frame: the one place a calibration becomes a Rig."""
+    cam_dev = PinholeDevice(camera_size[0], camera_size[1], k_c, np.asarray(d_c).ravel()[:5], t_cam_from_world)
+    proj_dev = PinholeDevice(projector_size[0], projector_size[1], k_p, np.asarray(d_p).ravel()[:5],
+                             t_proj_from_cam @ t_cam_from_world)
     return Rig(camera=cam_dev, projector=proj_dev, name=name)
 
 
