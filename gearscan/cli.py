@@ -168,6 +168,25 @@ def twin_render(
     typer.echo(f"wrote {frames} frames to {out}")
 
 
+@twin_app.command("certificate")
+def twin_certificate_cmd(
+    recording: Annotated[Path, typer.Argument(help="a twin recording rendered with defects (its truth is the certificate)")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="certificate JSON to write")] = Path("certificate.json"),
+) -> None:
+    """Write the certificate of a twin recording's gear (its exact ISO 1328-1 values, U 0) for `gearscan verify`."""
+    from gearscan.core.recording import RecordingError, RecordingReader
+    from gearscan.verify import VerifyError, twin_certificate
+
+    _require_recording(recording)
+    _writable(out, "--out")
+    try:
+        cert = twin_certificate(RecordingReader(recording).meta)
+    except (RecordingError, VerifyError) as exc:
+        raise _fail(f"{recording}: {exc}") from exc
+    out.write_text(cert.model_dump_json(indent=2))
+    typer.echo("; ".join(f"{k} {q.value:.2f}" for k, q in cert.quantities_um.items()) + f" µm -> {out}")
+
+
 @twin_app.command("dataset")
 def twin_dataset(
     out: Annotated[Path, typer.Argument(help="dataset folder (resumes if it exists)")],
@@ -702,6 +721,49 @@ def _point_sigma_mm(um: float | None, *, fitted: bool, needs: str) -> float | No
     return um / 1e3
 
 
+def _u_w(values: list[str] | None) -> dict[str, float]:
+    """``--u-w KEY=UM`` pairs: what a user's gear adds beyond the master, per quantity (standard uncertainty, µm)."""
+    from gearscan.recon.substitution import QUANTITIES as BUDGETED
+
+    out: dict[str, float] = {}
+    for v in values or []:
+        key, _, num = v.partition("=")
+        try:
+            um = float(num)
+        except ValueError:
+            um = math.nan
+        if key not in BUDGETED or not math.isfinite(um) or um < 0:
+            raise _fail(f"--u-w {v!r}: expected KEY=UM with KEY one of {', '.join(BUDGETED)} and UM >= 0")
+        out[key] = um
+    return out
+
+
+@app.command("verify")
+def verify_cmd(
+    certificate: Annotated[Path, typer.Argument(help="the master gear's certificate (JSON; `gearscan twin certificate` writes one for a twin gear)")],
+    reports: Annotated[list[Path], typer.Argument(help="`gearscan inspect` report folders of the master, each a fresh mounting (at least 3; ISO 15530-3 asks for 20)")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="the statement to write (JSON, and Markdown beside it)")] = Path("uncertainty.json"),
+    u_w: Annotated[list[str] | None, typer.Option("--u-w", help="KEY=UM: what a user's gear adds beyond the master (form, temperature), standard uncertainty per quantity (repeat)")] = None,
+) -> None:
+    """Measurement uncertainty of each ISO 1328-1 quantity from a master gear measured repeatedly (substitution method)."""
+    from gearscan.verify import VerifyError, verify, write_statement
+
+    extra = _u_w(u_w)
+    _writable(out, "--out")
+    try:
+        st = verify(certificate, reports, extra)
+    except VerifyError as exc:
+        raise _fail(str(exc)) from exc
+    for key, q in st.quantities.items():
+        typer.echo(f"{key}: U = {q.U:.2f} µm (bias {q.bias:+.2f}, repeatability {q.u_p:.2f}, k {q.k:.2f} at {q.dof:.0f} "
+                   f"dof; certified {q.certified:.2f} ± {q.U_cal:.2f}, mean reading {q.mean:.2f})")
+    if len(reports) < 20:
+        typer.secho(f"{len(reports)} readings: fewer than the 20 ISO 15530-3 asks for (k widens U for it)",
+                    fg=typer.colors.YELLOW)
+    json_path, md = write_statement(st, out)
+    typer.echo(f"statement: {json_path} ({md})")
+
+
 @app.command("inspect")
 def inspect_cmd(
     recording: Annotated[Path, typer.Argument(help="recording folder of one revolution (or more) of the gear")],
@@ -717,6 +779,7 @@ def inspect_cmd(
     network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: with the frame fit none for the shipped v9 (since session 48) and the default-rig option (v9's, inherited), 0 px for v6; with --no-refine none for v9 and the option, 2 px for v6; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
     max_point_sigma_um: Annotated[float | None, typer.Option(min=0.1, help="report no point of the fitted cloud whose sigma exceeds this, µm: a fit must meet it to replace its fused point, an unfitted point above it is dropped and counted (default 30, recon.track.MAX_POINT_SIGMA_MM; needs the frame fit; not with --no-refine)")] = None,
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON to measure with (the file `gearscan calibrate` wrote; replaces the recording's own)")] = None,
+    uncertainty: Annotated[Path | None, typer.Option(help="measurement uncertainty statement of this gear type (`gearscan verify` wrote it from a master gear): each reading gets its U and, with --grade, an ISO 14253-1 decision")] = None,
 ) -> None:
     """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
     from gearscan.core.recording import RecordingError
@@ -736,10 +799,10 @@ def inspect_cmd(
                                 unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"),
                                 network_support_px=network_support_option(network_support_px, frame_fit=refine,
                                                                           model=decoder.network_support),
-                                point_sigma_mm=point_sigma_mm, rig=rig)
+                                point_sigma_mm=point_sigma_mm, rig=rig, uncertainty=uncertainty)
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
-    from gearscan.inspect import chip_verdict, quantity_line
+    from gearscan.inspect import chip_verdict, quantity_line, uncertainty_lines
 
     summary = report.inspection.summary()
     for key in QUANTITIES:
@@ -747,6 +810,8 @@ def inspect_cmd(
         typer.echo(quantity_line(report.inspection, key, summary[key], tol))
 
     typer.echo(f"chipped teeth: {chip_verdict(report.inspection)}")
+    for line in uncertainty_lines(report.uncertainty):
+        typer.secho(line, fg=typer.colors.YELLOW if line.startswith("warning") else None)
     from gearscan.inspect import spec_note, turning_note, unmeasured_sigma_note
 
     if note := unmeasured_sigma_note(report):

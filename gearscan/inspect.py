@@ -64,6 +64,8 @@ class InspectionReport:
     model_fingerprint: str | None = None  # that decode's fingerprint (weights, sigma maps, gates)
     rig: str | None = None  # the rig calibration it was measured with, where not the recording's own (--rig)
     calibration: CalibrationStatement | None = None  # that rig's calibration's stated uncertainty, where it states one
+    # each reading with the U of a `gearscan verify` statement and its ISO 14253-1 decision (gearscan.verify)
+    uncertainty: dict | None = None
 
 
 def partial(insp: Inspection, key: str) -> str:
@@ -210,6 +212,7 @@ def run_inspection(
     max_sigma: float | None = None,
     point_sigma_mm: float | None = None,
     rig: str | Path | Rig | None = None,
+    uncertainty: str | Path | None = None,
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
@@ -221,7 +224,8 @@ def run_inspection(
     else the product's, as :func:`~gearscan.replay.replay` resolves it with ``refine``); ``max_sigma``: the keep bound,
     rad (None: the product's for the path, as :func:`~gearscan.replay.replay` resolves it); ``point_sigma_mm``: the
     fitted cloud's bound on every point's sigma, mm (None: the fit's own; needs ``refine``); ``rig``: the calibration
-    to measure with (a file or a Rig; None: the recording's own). ``inspect_options`` go to
+    to measure with (a file or a Rig; None: the recording's own); ``uncertainty``: a ``gearscan verify`` statement
+    for this gear type, stated with each reading (:func:`gearscan.verify.applied_uncertainty`). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import recording_rig, replay
@@ -239,6 +243,12 @@ def run_inspection(
                              f"{truth_teeth}: the gear spec does not match the gear that was recorded")
     if point_sigma_mm is not None and not refine:
         raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine)")
+    statement = None
+    if uncertainty is not None:  # refused before the replay: a bad file or another gear type costs no minutes
+        from gearscan.verify import load_statement
+
+        statement = load_statement(uncertainty)
+        statement.require_gear(gear.teeth, gear.module)
     span = revolution_deg(reader)
     used = recording_rig(reader, rig)  # once: the replay measures with it and the report states its calibration
     say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
@@ -259,6 +269,12 @@ def run_inspection(
     except ValueError:  # module or diameter outside ISO 1328-1's range: no class to state
         classes = {}
     truth = truth_comparison(reader.meta, insp)
+    stated = None
+    if statement is not None:
+        from gearscan.verify import applied_uncertainty, inspection_readings
+
+        stated = applied_uncertainty(statement, inspection_readings(insp), insp.teeth, insp.module,
+                                     (metrics.decoder or {}).get("model_fingerprint"), tolerances)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = {"fused": save_fused(fused, out / "fused.ply")}
@@ -269,7 +285,7 @@ def run_inspection(
                               (metrics.recon or {}).get("rest_sigma_scale"), (metrics.recon or {}).get("rest_sigma_source"),
                               (metrics.decoder or {}).get("model"), (metrics.decoder or {}).get("model_fingerprint"),
                               None if rig is None else str(rig if not isinstance(rig, Rig) else f"Rig {rig.name!r}"),
-                              used.calibration)
+                              used.calibration, stated)
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
@@ -342,6 +358,9 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         # per quantity, how many of a whole gear's values were measured: short of all, the value is a lower bound
         "coverage": {k: {"measured": m, "of": n} for k, (m, n) in insp.coverage().items()},
         "spec_warning": spec_note(report),
+        # each reading with the U of the `gearscan verify` statement given (--uncertainty) and, graded, its ISO
+        # 14253-1 decision (null: no statement given)
+        "uncertainty": report.uncertainty,
         "inspection": insp.to_json(),
         "twin_truth": jsonable(report.truth),
         "files": {k: str(v) for k, v in report.files.items()},
@@ -354,6 +373,41 @@ def _num(v: float) -> float | None:
 
 def _fmt(v: float | None, digits: int = 1) -> str:
     return "–" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
+
+
+def uncertainty_lines(stated: dict | None) -> list[str]:
+    """The console's lines on the measurement uncertainty (none without a statement)."""
+    if stated is None:
+        return []
+    lines = [f"{key}: {_fmt(r['value'])} ± {r['U']:.1f} µm (U, k = {stated['k']:g})"
+             + (f", tolerance {r['tolerance']:g}: {r['decision']}" if "decision" in r else "")
+             for key, r in stated["quantities"].items()]
+    return lines + ([f"warning: {stated['warning']}"] if stated.get("warning") else [])
+
+
+def uncertainty_markdown(stated: dict | None) -> list[str]:
+    """The report's lines on the measurement uncertainty: each reading with the statement's U and its decision, or
+    that no statement was given (the readings then carry no uncertainty)."""
+    if stated is None:
+        return ["", "No measurement uncertainty is stated (`--uncertainty`: a `gearscan verify` statement from a master "
+                "gear of this type): the values above are readings, and a decision on them ignores what the instrument "
+                "adds."]
+    from gearscan.recon.substitution import QUANTITIES as BUDGETED
+
+    rows = stated["quantities"]
+    graded = any("decision" in r for r in rows.values())
+    lines = ["", f"## Measurement uncertainty (`{stated['statement']}`, substitution method, k = {stated['k']:g})", "",
+             "| quantity | reading (µm) | U (µm) |" + (" tolerance (µm) | ISO 14253-1 |" if graded else ""),
+             "|---|---|---|" + ("---|---|" if graded else "")]
+    for key, r in rows.items():
+        lines.append(f"| {key}: {BUDGETED[key]} | {_fmt(r['value'])} | {r['U']:.1f} |"
+                     + (f" {r['tolerance']:g} | {r['decision']} |" if "decision" in r else " – | – |" if graded else ""))
+    if graded:
+        lines += ["", "Conforms: |reading| + U within the tolerance; does not conform: |reading| - U beyond it; "
+                  "undecided: in between (ISO 14253-1)."]
+    if stated.get("warning"):
+        lines += ["", f"**Warning:** {stated['warning']}."]
+    return lines
 
 
 def report_markdown(report: InspectionReport, recording: Path) -> str:
@@ -406,6 +460,7 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
     if any(partial(insp, k) for k in QUANTITIES if np.isfinite(summary.get(k, math.nan))):
         lines += ["", "A value measured on fewer pitches, tooth spaces or flanks than the gear has (\"on k of n\") is a "
                   "lower bound: those not measured may deviate more, so its class is the finest the gear can be."]
+    lines += uncertainty_markdown(report.uncertainty)
     lines += ["", f"Runout: {_fmt(insp.runout_from_eccentricity_um)} µm from the eccentricity (≈ 2e), "
               f"{_fmt(insp.runout_about_gear_axis_um)} µm from the tooth spaces about the gear's own axis.", ""]
     lines += [f"**Chipped / damaged teeth:** {chip_verdict(insp)}.", ""]
