@@ -721,45 +721,27 @@ def _point_sigma_mm(um: float | None, *, fitted: bool, needs: str) -> float | No
     return um / 1e3
 
 
-def _u_w(values: list[str] | None) -> dict[str, float]:
-    """``--u-w KEY=UM`` pairs: what a user's gear adds beyond the master, per quantity (standard uncertainty, µm)."""
-    from gearscan.recon.substitution import QUANTITIES as BUDGETED
-
-    out: dict[str, float] = {}
-    for v in values or []:
-        key, _, num = v.partition("=")
-        try:
-            um = float(num)
-        except ValueError:
-            um = math.nan
-        if key not in BUDGETED or not math.isfinite(um) or um < 0:
-            raise _fail(f"--u-w {v!r}: expected KEY=UM with KEY one of {', '.join(BUDGETED)} and UM >= 0")
-        out[key] = um
-    return out
-
-
 @app.command("verify")
 def verify_cmd(
     certificate: Annotated[Path, typer.Argument(help="the master gear's certificate (JSON; `gearscan twin certificate` writes one for a twin gear)")],
-    reports: Annotated[list[Path], typer.Argument(help="`gearscan inspect` report folders of the master, each a fresh mounting (at least 3; ISO 15530-3 asks for 20)")],
+    reports: Annotated[list[Path], typer.Argument(help="`gearscan inspect` report folders of the master, each after a fresh mounting (at least 3; ISO 15530-3 asks for 20)")],
     out: Annotated[Path, typer.Option("--out", "-o", help="the statement to write (JSON, and Markdown beside it)")] = Path("uncertainty.json"),
-    u_w: Annotated[list[str] | None, typer.Option("--u-w", help="KEY=UM: what a user's gear adds beyond the master (form, temperature), standard uncertainty per quantity (repeat)")] = None,
 ) -> None:
-    """Measurement uncertainty of each ISO 1328-1 quantity from a master gear measured repeatedly (substitution method)."""
+    """Measurement uncertainty of each ISO 1328-1 quantity from a master gear measured after several mountings."""
+    from gearscan.recon.substitution import RECOMMENDED_READINGS
     from gearscan.verify import VerifyError, verify, write_statement
 
-    extra = _u_w(u_w)
     _writable(out, "--out")
     try:
-        st = verify(certificate, reports, extra)
+        st = verify(certificate, reports)
     except VerifyError as exc:
         raise _fail(str(exc)) from exc
     for key, q in st.quantities.items():
-        typer.echo(f"{key}: U = {q.U:.2f} µm (bias {q.bias:+.2f}, repeatability {q.u_p:.2f}, k {q.k:.2f} at {q.dof:.0f} "
-                   f"dof; certified {q.certified:.2f} ± {q.U_cal:.2f}, mean reading {q.mean:.2f})")
-    if len(reports) < 20:
-        typer.secho(f"{len(reports)} readings: fewer than the 20 ISO 15530-3 asks for (k widens U for it)",
-                    fg=typer.colors.YELLOW)
+        typer.echo(f"{key}: U = {q.U:.2f} µm (error bound per mounting {q.mean:.2f} ± {q.s:.2f}, k {q.k:.2f}, "
+                   f"certificate {q.U_cal:.2f})")
+    if len(reports) < RECOMMENDED_READINGS:
+        typer.secho(f"{len(reports)} mountings: fewer than the {RECOMMENDED_READINGS} ISO 15530-3 asks for (k widens U "
+                    "for it)", fg=typer.colors.YELLOW)
     json_path, md = write_statement(st, out)
     typer.echo(f"statement: {json_path} ({md})")
 

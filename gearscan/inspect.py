@@ -32,6 +32,8 @@ from gearscan.recon.inspect import (
     jsonable,
 )
 from gearscan.recon.measure import PRODUCT_SUPPORT
+from gearscan.recon.substitution import BUDGETED
+from gearscan.verify import U_MEANING, AppliedUncertainty
 
 QUANTITIES = {  # key in Inspection.summary() -> (symbol, description)
     "fp": ("fp", "single pitch deviation (largest |fp|)"),
@@ -64,8 +66,8 @@ class InspectionReport:
     model_fingerprint: str | None = None  # that decode's fingerprint (weights, sigma maps, gates)
     rig: str | None = None  # the rig calibration it was measured with, where not the recording's own (--rig)
     calibration: CalibrationStatement | None = None  # that rig's calibration's stated uncertainty, where it states one
-    # each reading with the U of a `gearscan verify` statement and its ISO 14253-1 decision (gearscan.verify)
-    uncertainty: dict | None = None
+    # each reading with the U of a `gearscan verify` statement and its ISO 14253-1 decision
+    uncertainty: AppliedUncertainty | None = None
 
 
 def partial(insp: Inspection, key: str) -> str:
@@ -274,7 +276,8 @@ def run_inspection(
         from gearscan.verify import applied_uncertainty, inspection_readings
 
         stated = applied_uncertainty(statement, inspection_readings(insp), insp.teeth, insp.module,
-                                     (metrics.decoder or {}).get("model_fingerprint"), tolerances)
+                                     (metrics.decoder or {}).get("model_fingerprint"), tolerances,
+                                     {k: insp.settings[k] for k in ("xi_start", "xi_end", "bins")})
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = {"fused": save_fused(fused, out / "fused.ply")}
@@ -360,7 +363,7 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         "spec_warning": spec_note(report),
         # each reading with the U of the `gearscan verify` statement given (--uncertainty) and, graded, its ISO
         # 14253-1 decision (null: no statement given)
-        "uncertainty": report.uncertainty,
+        "uncertainty": None if report.uncertainty is None else report.uncertainty.to_json(),
         "inspection": insp.to_json(),
         "twin_truth": jsonable(report.truth),
         "files": {k: str(v) for k, v in report.files.items()},
@@ -375,38 +378,34 @@ def _fmt(v: float | None, digits: int = 1) -> str:
     return "–" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
 
 
-def uncertainty_lines(stated: dict | None) -> list[str]:
+def uncertainty_lines(stated: AppliedUncertainty | None) -> list[str]:
     """The console's lines on the measurement uncertainty (none without a statement)."""
     if stated is None:
         return []
-    lines = [f"{key}: {_fmt(r['value'])} ± {r['U']:.1f} µm (U, k = {stated['k']:g})"
-             + (f", tolerance {r['tolerance']:g}: {r['decision']}" if "decision" in r else "")
-             for key, r in stated["quantities"].items()]
-    return lines + ([f"warning: {stated['warning']}"] if stated.get("warning") else [])
+    lines = [f"{key}: {_fmt(r.value)} ± {r.U:.1f} µm (U)" + (f", tolerance {r.tolerance:g}: {r.decision}" if r.decision else "")
+             for key, r in stated.readings.items()]
+    return [*lines, f"(U: {U_MEANING})", *(f"warning: {w}" for w in stated.warnings)]
 
 
-def uncertainty_markdown(stated: dict | None) -> list[str]:
+def uncertainty_markdown(stated: AppliedUncertainty | None) -> list[str]:
     """The report's lines on the measurement uncertainty: each reading with the statement's U and its decision, or
     that no statement was given (the readings then carry no uncertainty)."""
     if stated is None:
         return ["", "No measurement uncertainty is stated (`--uncertainty`: a `gearscan verify` statement from a master "
                 "gear of this type): the values above are readings, and a decision on them ignores what the instrument "
                 "adds."]
-    from gearscan.recon.substitution import QUANTITIES as BUDGETED
-
-    rows = stated["quantities"]
-    graded = any("decision" in r for r in rows.values())
-    lines = ["", f"## Measurement uncertainty (`{stated['statement']}`, substitution method, k = {stated['k']:g})", "",
+    graded = any(r.decision for r in stated.readings.values())
+    lines = ["", f"## Measurement uncertainty (`{stated.statement}`)", "", f"{U_MEANING}.", "",
              "| quantity | reading (µm) | U (µm) |" + (" tolerance (µm) | ISO 14253-1 |" if graded else ""),
              "|---|---|---|" + ("---|---|" if graded else "")]
-    for key, r in rows.items():
-        lines.append(f"| {key}: {BUDGETED[key]} | {_fmt(r['value'])} | {r['U']:.1f} |"
-                     + (f" {r['tolerance']:g} | {r['decision']} |" if "decision" in r else " – | – |" if graded else ""))
+    for key, r in stated.readings.items():
+        lines.append(f"| {key}: {BUDGETED[key]} | {_fmt(r.value)} | {r.U:.1f} |"
+                     + (f" {r.tolerance:g} | {r.decision} |" if r.decision else " – | – |" if graded else ""))
     if graded:
         lines += ["", "Conforms: |reading| + U within the tolerance; does not conform: |reading| - U beyond it; "
-                  "undecided: in between (ISO 14253-1)."]
-    if stated.get("warning"):
-        lines += ["", f"**Warning:** {stated['warning']}."]
+                  "undecided: in between (ISO 14253-1). Fr_gear_axis (about the axis fitted to the teeth) is not ISO's "
+                  "Fr and is not judged."]
+    lines += [f"\n**Warning:** {w}." for w in stated.warnings]
     return lines
 
 

@@ -1,11 +1,11 @@
 """``gearscan verify``: what the instrument's ISO 1328-1 readings are worth, from a master gear measured repeatedly.
 
 A master gear's certificate (``gearscan twin certificate`` writes one from a twin recording's truth; a calibration
-lab's is typed into the same JSON) and several ``gearscan inspect`` reports of it, each a fresh mounting, give each
-quantity's bias, repeatability and expanded uncertainty U (:mod:`gearscan.recon.substitution`). The statement is
+lab's is typed into the same JSON) and several ``gearscan inspect`` reports of it, each after a fresh mounting, give
+each quantity's expanded uncertainty U by the bound method of :mod:`gearscan.recon.substitution`. The statement is
 written as JSON (``gearscan inspect --uncertainty`` reads it: each reading with its U and, with ``--grade``, the
 ISO 14253-1 decision) and Markdown. It holds for gears of the master's type (teeth, module) measured as the master
-was (rig, model); ``inspect`` refuses another type and warns on another model.
+was (rig, model, evaluation settings): ``inspect`` refuses another type and warns on another model or settings.
 """
 
 from __future__ import annotations
@@ -14,25 +14,34 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from gearscan.recon.substitution import (
-    K_COVERAGE,
-    QUANTITIES,
+    BUDGETED,
+    MIN_READINGS,
     RECOMMENDED_READINGS,
+    TOLERANCE_CONFIDENCE,
+    TOLERANCE_COVERAGE,
     TOLERANCE_KEY,
-    QuantityUncertainty,
+    Evaluation,
+    FlankTrace,
+    QuantityBound,
     SubstitutionError,
+    bound_uncertainty,
     conformity,
+    error_functionals,
     profile_truth,
     runout_about_gear_axis,
-    substitution_uncertainty,
 )
 
 STATEMENT_KIND = "gearscan uncertainty statement"
 CERTIFICATE_KIND = "gearscan master gear certificate"
+SIDES = ("left", "right")
+U_MEANING = (f"U bounds a reading's error on {TOLERANCE_COVERAGE:.0%} of mountings at {TOLERANCE_CONFIDENCE:.0%} "
+             "confidence (bound method, from a master gear)")
 
 
 class VerifyError(ValueError):
@@ -40,183 +49,273 @@ class VerifyError(ValueError):
 
 
 class _Certified(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    value: float = Field(allow_inf_nan=False, description="certified value, µm")
-    U: float = Field(ge=0, allow_inf_nan=False, description="its expanded uncertainty (k = 2), µm")
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    value: float = Field(allow_inf_nan=False, description="certified headline value, µm")
+    U: float = Field(0.0, ge=0, allow_inf_nan=False, description="its expanded uncertainty (k = 2), µm")
 
 
 class _GearType(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", frozen=True)
     teeth: int = Field(ge=6)
     module: float = Field(gt=0, allow_inf_nan=False)
+    pressure_angle_deg: float = Field(20.0, ge=10, le=35)
+
+
+class _Profile(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    slope: float = Field(0.0, allow_inf_nan=False, description="normal offset at the tip growing linearly from 0, µm")
+    crown: float = Field(0.0, allow_inf_nan=False, description="crowning 4 c xi (1 - xi): c mid-flank, µm")
+
+    def offset(self, xi) -> np.ndarray:
+        xi = np.asarray(xi, np.float64)
+        return self.slope * xi + self.crown * 4 * xi * (1 - xi)
 
 
 class Certificate(BaseModel):
-    """A master gear's certificate: the gear type and each certified quantity (:data:`QUANTITIES` keys), µm."""
+    """A master gear's certificate: its type, each flank side's profile (slope and crowning over the roll fraction
+    from the involute's start to the tip), each flank's position on the pitch circle and the headline values, µm."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     kind: str = CERTIFICATE_KIND
     gear: _GearType
+    profile_um: dict[Literal["left", "right"], _Profile]
+    positions_um: dict[Literal["left", "right"], list[float]]
     quantities_um: dict[str, _Certified]
     source: str = Field("", description="who certified it: a lab and its certificate number, or the twin's truth")
-    evaluation: dict[str, float] = Field(default_factory=dict, description="profile evaluation range (xi_start, xi_end)")
+
+    @model_validator(mode="after")
+    def _complete(self) -> Certificate:
+        for name, part in (("profile_um", self.profile_um), ("positions_um", self.positions_um)):
+            if set(part) != set(SIDES):
+                raise ValueError(f"{name}: needs both sides (left, right), got {sorted(part)}")
+        for side, pos in self.positions_um.items():
+            if len(pos) != self.gear.teeth or not all(math.isfinite(v) for v in pos):
+                raise ValueError(f"positions_um.{side}: expected {self.gear.teeth} finite positions (one per tooth)")
+        unknown = sorted(set(self.quantities_um) - set(BUDGETED))
+        if unknown:
+            raise ValueError(f"quantities_um: unknown {unknown}; expected some of {', '.join(BUDGETED)}")
+        return self
 
 
 def load_certificate(path: str | Path) -> Certificate:
     """The certificate at ``path``; :class:`VerifyError` names the file and the field at fault."""
     path = Path(path)
     try:
-        cert = Certificate.model_validate_json(path.read_text())
+        cert = Certificate.model_validate_json(path.read_bytes())
     except OSError as exc:
         raise VerifyError(f"certificate {path}: {exc.strerror or exc}") from exc
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "(top level)"
-        raise VerifyError(f"certificate {path}: {where}: {first['msg']} (a JSON object with 'gear' {{teeth, module}} "
-                          f"and 'quantities_um' {{key: {{value, U}}}}; keys: {', '.join(QUANTITIES)})") from exc
+        raise VerifyError(f"certificate {path}: {where}: {first['msg']} (expected 'gear' {{teeth, module}}, "
+                          "'profile_um' and 'positions_um' per side, 'quantities_um' {key: {value, U}})") from exc
     if cert.kind != CERTIFICATE_KIND:
         raise VerifyError(f"certificate {path}: kind {cert.kind!r}, expected {CERTIFICATE_KIND!r}")
-    unknown = sorted(set(cert.quantities_um) - set(QUANTITIES))
-    if unknown or not cert.quantities_um:
-        raise VerifyError(f"certificate {path}: quantities_um: unknown {unknown or 'none given'}; expected some of "
-                          f"{', '.join(QUANTITIES)}")
     return cert
 
 
 def twin_certificate(meta: dict, xi_start: float = 0.1, xi_end: float = 0.95, bins: int = 20) -> Certificate:
-    """The certificate of a twin recording's gear from its truth (``recording.json``'s ``meta``): exact values, U 0.
+    """The certificate of a twin recording's gear from its truth (``recording.json``'s content): exact, U 0.
 
-    Pitch and runout from the flanks' true positions, the profile quantities from the injected slope, crown and wear
-    evaluated as the inspection does (:func:`~gearscan.recon.substitution.profile_truth`). A gear with a chip, or an
-    as-built module or pressure angle, has no certificate here: those change the profile in ways not modelled.
+    Profiles from the injected slope and crown, positions from the truth's flank positions, headline values as the
+    inspection evaluates them (:func:`~gearscan.recon.substitution.profile_truth`). A master gear has no chip, no wear
+    and its nominal module and pressure angle: a twin gear with any of those gets no certificate.
     """
     truth = meta.get("truth")
     if not truth:
         raise VerifyError("the recording holds no twin truth: only a twin recording rendered with defects has one "
                           "(`gearscan twin render --defects ...`)")
-    d, gear = truth.get("defects") or {}, truth.get("gear") or {}
-    if truth.get("chipped_teeth") or d.get("chips"):
-        raise VerifyError("the twin gear has a chipped tooth: a master gear has none (its profile there is not certified)")
-    for key in ("module", "pressure_angle_deg"):
-        if d.get(key) is not None:
-            raise VerifyError(f"the twin gear has an as-built {key} ({d[key]}): its profile truth is not modelled here")
-    teeth = int(gear["teeth"])
-    slope, crown = float(d.get("profile_slope_um", 0.0)), float(d.get("profile_crown_um", 0.0))
-    wear = d.get("wear") or []
-    profiles = []
-    for tooth in range(teeth):
-        for side in ("right", "left"):
-            depth = sum(float(w["depth_um"]) for w in wear if int(w["tooth"]) == tooth and w.get("side", "left") == side)
-            profiles.append(profile_truth(
-                lambda xi, dep=depth: slope * xi + crown * 4 * xi * (1 - xi) - dep * np.sin(np.pi * xi),
-                xi_start, xi_end, bins))
-    single = {s: np.asarray(truth["single_pitch_um"][s], np.float64) for s in ("left", "right")}
-    values = {
-        "fp": max(float(np.abs(v).max()) for v in single.values()),
-        "Fp": max(float(truth["total_cumulative_pitch_um"][s]) for s in ("left", "right")),
-        "Fr_gear_axis": runout_about_gear_axis(truth["flank_position_um"], math.radians(float(gear["pressure_angle_deg"]))),
-        **{k: max((p[k] for p in profiles), key=abs) for k in ("F_alpha", "ff_alpha", "fH_alpha")},
-    }
-    return Certificate(gear=_GearType(teeth=teeth, module=float(gear["module"])),
-                       quantities_um={k: _Certified(value=v, U=0.0) for k, v in values.items()},
-                       source="the twin's truth (exact: U 0)", evaluation={"xi_start": xi_start, "xi_end": xi_end})
+    try:
+        d, gear = truth.get("defects") or {}, truth["gear"]
+        if truth.get("chipped_teeth") or d.get("chips"):
+            raise VerifyError("the twin gear has a chipped tooth: a master gear has none")
+        if d.get("wear"):
+            raise VerifyError("the twin gear has worn flanks: a master gear has none")
+        for key in ("module", "pressure_angle_deg"):
+            if d.get(key) is not None:
+                raise VerifyError(f"the twin gear has an as-built {key} ({d[key]}): a master's is its nominal one")
+        profile = _Profile(slope=float(d.get("profile_slope_um", 0.0)), crown=float(d.get("profile_crown_um", 0.0)))
+        positions = {s: [float(v) for v in truth["flank_position_um"][s]] for s in SIDES}
+        single = {s: np.asarray(truth["single_pitch_um"][s], np.float64) for s in SIDES}
+        teeth, alpha = int(gear["teeth"]), float(gear["pressure_angle_deg"])
+        values = {
+            "fp": max(float(np.abs(v).max()) for v in single.values()),
+            "Fp": max(float(truth["total_cumulative_pitch_um"][s]) for s in SIDES),
+            "Fr_gear_axis": runout_about_gear_axis(positions, math.radians(alpha)),
+            **profile_truth(profile.offset, xi_start, xi_end, bins),
+        }
+        return Certificate(gear=_GearType(teeth=teeth, module=float(gear["module"]), pressure_angle_deg=alpha),
+                           profile_um={s: profile for s in SIDES}, positions_um=positions,
+                           quantities_um={k: _Certified(value=v) for k, v in values.items()},
+                           source="the twin's truth (exact: U 0)")
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, VerifyError):
+            raise
+        raise VerifyError(f"the recording's twin truth is incomplete or malformed ({exc!r})") from exc
 
 
-def inspection_readings(insp) -> dict[str, float | None]:
-    """An :class:`~gearscan.recon.inspect.Inspection`'s readings of :data:`QUANTITIES` (µm; None: not measured)."""
-    summary = insp.summary()
-    values = {k: summary[k] for k in QUANTITIES if k != "Fr_gear_axis"} | {"Fr_gear_axis": insp.runout_about_gear_axis_um}
-    return {k: (float(v) if v is not None and math.isfinite(v) else None) for k, v in values.items()}
+@dataclass(frozen=True)
+class MasterReading:
+    """What one ``gearscan inspect`` report says that the bound method uses: headline readings (µm; None: not
+    measured), flank traces, flank positions, where the profiles were evaluated, and what measured it."""
+
+    path: str
+    teeth: int
+    module: float
+    headline: dict[str, float | None]
+    flanks: tuple[FlankTrace, ...]
+    positions_um: dict[str, tuple[float, ...]]
+    evaluation: Evaluation
+    bins: int
+    flanks_of: tuple[int, int]  # flanks measured, of all
+    model: str | None
+    model_fingerprint: str | None
 
 
-def report_readings(path: str | Path) -> tuple[dict[str, float | None], dict]:
-    """One ``gearscan inspect`` report's readings of :data:`QUANTITIES` (µm; None: not measured) and its report JSON.
-    ``path``: the report folder or its ``report.json``."""
+def _num(v) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
+def read_report(path: str | Path) -> MasterReading:
+    """One ``gearscan inspect`` report (its folder or ``report.json``); :class:`VerifyError` names what is wrong."""
     path = Path(path)
     file = path / "report.json" if path.is_dir() else path
     try:
         report = json.loads(file.read_text())
-        summary, insp = report["summary_um"], report["inspection"]
     except OSError as exc:
         raise VerifyError(f"report {file}: {exc.strerror or exc} (expected a `gearscan inspect` report folder)") from exc
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise VerifyError(f"report {file}: not a `gearscan inspect` report.json ({exc})") from exc
-    readings = {k: summary.get(k) for k in QUANTITIES if k != "Fr_gear_axis"}
-    readings["Fr_gear_axis"] = insp.get("runout_about_gear_axis_um")
-    return readings, report
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise VerifyError(f"report {file}: not JSON ({exc})") from exc
+    try:
+        summary, insp, model = report["summary_um"], report["inspection"], report.get("model") or {}
+        settings = insp["settings"]
+        l_a, l_b = (float(v) for v in settings["evaluation_roll_mm"])
+        flanks = [f for f in insp["flanks"] if f["measured"]]
+        reading = MasterReading(
+            path=str(path), teeth=int(insp["teeth"]), module=float(insp["module"]),
+            headline={k: _num(summary.get(k)) for k in BUDGETED if k != "Fr_gear_axis"}
+            | {"Fr_gear_axis": _num(insp.get("runout_about_gear_axis_um"))},
+            flanks=tuple(FlankTrace(int(f["tooth"]), str(f["side"]), tuple(float(v) for v in f["roll_mm"]),
+                                    tuple(float(v) for v in f["trace_um"])) for f in flanks),
+            positions_um={s: tuple(math.nan if v is None else float(v) for v in insp["position_um"][s]) for s in SIDES},
+            evaluation=Evaluation(l_a, l_b, float(settings["xi_start"]), float(settings["xi_end"])),
+            bins=int(settings["bins"]), flanks_of=(len(flanks), len(insp["flanks"])),
+            model=model.get("path"), model_fingerprint=model.get("fingerprint"))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise VerifyError(f"report {file}: not a `gearscan inspect` report.json ({exc!r})") from exc
+    if any(s not in SIDES for s in (f.side for f in reading.flanks)):
+        raise VerifyError(f"report {file}: flank sides must be left or right")
+    return reading
+
+
+def inspection_readings(insp) -> dict[str, float | None]:
+    """An :class:`~gearscan.recon.inspect.Inspection`'s headline readings of :data:`BUDGETED` (µm; None: not measured)."""
+    summary = insp.summary()
+    return {k: _num(summary[k]) for k in BUDGETED if k != "Fr_gear_axis"} | {
+        "Fr_gear_axis": _num(insp.runout_about_gear_axis_um)}
 
 
 @dataclass(frozen=True)
 class Statement:
-    """What ``verify`` found: per quantity its budget, the gear type and what the readings were measured with."""
+    """What ``verify`` found: per quantity its bound and U, the headline readings and certified values beside them,
+    the gear type, and how the master was measured."""
 
-    gear: dict
+    gear: dict[str, float]
     certificate_source: str
-    quantities: dict[str, QuantityUncertainty]
-    measured_with: dict
+    quantities: dict[str, QuantityBound]
+    certified: dict[str, float]
+    headline: dict[str, tuple[float | None, ...]]
+    model: str | None
+    model_fingerprint: str | None
+    evaluation: dict[str, float]
     reports: tuple[str, ...]
-    u_w_um: dict[str, float]
 
     def to_json(self) -> dict:
-        return {"kind": STATEMENT_KIND, "method": "substitution (after ISO 15530-3): U = k sqrt(u_cal^2 + u_p^2 + u_w^2) "
-                "+ |bias|, k the 95.45 % Student factor at the Welch-Satterthwaite degrees of freedom",
-                "gear": self.gear, "certificate_source": self.certificate_source, "measured_with": self.measured_with,
-                "reports": list(self.reports), "u_w_um": self.u_w_um,
-                "quantities": {k: _jsonable(asdict(q)) for k, q in self.quantities.items()}}
+        return {"kind": STATEMENT_KIND, "method": "bound (gearscan.recon.substitution): per mounting of the master the "
+                "largest error a headline can take from the traces' and positions' errors; U = mean + k s over the "
+                f"mountings (one-sided normal tolerance bound: {TOLERANCE_COVERAGE:.0%} of mountings, "
+                f"{TOLERANCE_CONFIDENCE:.0%} confidence) + the certificate's U",
+                "gear": self.gear, "certificate_source": self.certificate_source,
+                "measured_with": {"model": self.model, "model_fingerprint": self.model_fingerprint},
+                "evaluation": self.evaluation, "reports": list(self.reports),
+                "quantities": {k: asdict(q) | {"certified": self.certified.get(k), "headline": list(self.headline[k])}
+                               for k, q in self.quantities.items()}}
 
 
-def _jsonable(d: dict) -> dict:
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
-
-
-def verify(certificate: str | Path | Certificate, reports: list[str | Path],
-           u_w_um: dict[str, float] | None = None) -> Statement:
-    """The uncertainty statement from a master's ``certificate`` and ``reports`` of its measurements."""
+def verify(certificate: str | Path | Certificate, reports: list[str | Path]) -> Statement:
+    """The uncertainty statement from a master's ``certificate`` and ``reports`` of its measurements, one per
+    mounting. Refused: fewer than :data:`MIN_READINGS` reports, a report twice, another gear type, reports decoded
+    by different models or evaluated differently, a master not measured on every flank."""
     cert = certificate if isinstance(certificate, Certificate) else load_certificate(certificate)
-    readings, used = [], []
-    for r in reports:
-        values, report = report_readings(r)
-        insp = report["inspection"]
-        if int(insp.get("teeth", -1)) != cert.gear.teeth or not math.isclose(float(insp.get("module", -1)),
-                                                                                cert.gear.module, rel_tol=1e-6):
-            raise VerifyError(f"report {r}: a gear of {insp.get('teeth')} teeth, module {insp.get('module')}; the "
-                              f"certificate's master has {cert.gear.teeth}, module {cert.gear.module:g}")
-        readings.append(values)
-        used.append(report.get("model") or {})
-    fingerprints = {(m.get("fingerprint") or "three-step PS") for m in used}
-    if len(fingerprints) > 1:
-        raise VerifyError(f"the reports were decoded by different models ({', '.join(sorted(fingerprints))}): a "
-                          "statement holds for one way of measuring; verify each apart")
+    if len(reports) < MIN_READINGS:
+        raise VerifyError(f"{len(reports)} report(s) of the master: at least {MIN_READINGS} are needed, each after a "
+                          f"fresh mounting (ISO 15530-3 asks for {RECOMMENDED_READINGS})")
+    seen = [Path(r).resolve() for r in reports]
+    if len(set(seen)) < len(seen):
+        raise VerifyError("a report is given twice: each must be its own measurement of the master")
+    readings = [read_report(r) for r in reports]
+    for r in readings:
+        if r.teeth != cert.gear.teeth or not math.isclose(r.module, cert.gear.module, rel_tol=1e-6):
+            raise VerifyError(f"report {r.path}: a gear of {r.teeth} teeth, module {r.module:g}; the certificate's "
+                              f"master has {cert.gear.teeth}, module {cert.gear.module:g}")
+        if r.flanks_of[0] < r.flanks_of[1]:
+            raise VerifyError(f"report {r.path}: {r.flanks_of[0]} of {r.flanks_of[1]} flanks measured: a master "
+                              "reading must cover the whole gear (measure a whole revolution)")
+    for what, key in (("models", lambda r: r.model_fingerprint or "three-step PS"),
+                      ("evaluation settings", lambda r: (round(r.evaluation.xi_start, 6), round(r.evaluation.xi_end, 6),
+                                                         r.bins))):
+        values = {key(r) for r in readings}
+        if len(values) > 1:
+            raise VerifyError(f"the reports differ in their {what} ({', '.join(map(str, sorted(values, key=str)))}): a "
+                              "statement holds for one way of measuring; verify each apart")
+    alpha = math.radians(cert.gear.pressure_angle_deg)
+    samples = [error_functionals(r.flanks, r.positions_um, r.evaluation,
+                                 lambda side, xi: cert.profile_um[side].offset(xi), cert.positions_um, alpha)
+               for r in readings]
     try:
-        budgets = substitution_uncertainty({k: (q.value, q.U) for k, q in cert.quantities_um.items()}, readings, u_w_um)
+        bounds = {k: bound_uncertainty(k, [s[k] for s in samples],
+                                       cert.quantities_um[k].U if k in cert.quantities_um else 0.0) for k in BUDGETED}
     except SubstitutionError as exc:
         raise VerifyError(str(exc)) from exc
-    model = used[0] if used else {}
-    return Statement(gear={"teeth": cert.gear.teeth, "module": cert.gear.module}, certificate_source=cert.source,
-                     quantities=budgets, measured_with={"model": model.get("path"),
-                                                         "model_fingerprint": model.get("fingerprint")},
-                     reports=tuple(str(r) for r in reports), u_w_um=dict(u_w_um or {}))
+    first = readings[0]
+    return Statement(
+        gear={"teeth": cert.gear.teeth, "module": cert.gear.module}, certificate_source=cert.source,
+        quantities=bounds, certified={k: q.value for k, q in cert.quantities_um.items()},
+        headline={k: tuple(r.headline[k] for r in readings) for k in BUDGETED}, model=first.model,
+        model_fingerprint=first.model_fingerprint,
+        evaluation={"xi_start": first.evaluation.xi_start, "xi_end": first.evaluation.xi_end, "bins": first.bins},
+        reports=tuple(str(r) for r in reports))
 
 
 def statement_markdown(st: Statement) -> str:
     """The statement for people: one row per quantity, and what it holds for."""
     n = len(st.reports)
-    rows = [f"| {k} | {q.certified:.2f} ± {q.U_cal:.2f} | {q.mean:.2f} | {q.bias:+.2f} | {q.u_p:.2f} | "
-            f"{q.dof:.0f} | {q.k:.2f} | **{q.U:.2f}** |" for k, q in st.quantities.items()]
-    few = (f" {n} readings: fewer than the {RECOMMENDED_READINGS} ISO 15530-3 asks for; the Student factor k widens U "
-           "for it, but a few readings can still miss a rare large error.") if n < RECOMMENDED_READINGS else ""
+
+    def cell(v: float | None) -> str:
+        return "–" if v is None else f"{v:.1f}"
+
+    rows = [f"| {k}: {BUDGETED[k]} | {cell(st.certified.get(k))} | {', '.join(cell(v) for v in st.headline[k])} | "
+            f"{', '.join(f'{v:.2f}' for v in q.samples)} | {q.mean:.2f} | {q.s:.2f} | {q.k:.2f} | {q.U_cal:.2f} | "
+            f"**{q.U:.2f}** |" for k, q in st.quantities.items()]
+    few = (f" {n} mountings: fewer than the {RECOMMENDED_READINGS} ISO 15530-3 asks for; the tolerance factor k widens U "
+           "for it.") if n < RECOMMENDED_READINGS else ""
     return "\n".join([
-        f"# Measurement uncertainty by the substitution method ({n} measurements of a master gear)", "",
+        f"# Measurement uncertainty from a master gear ({n} mountings)", "",
         f"Master: {st.gear['teeth']} teeth, module {st.gear['module']:g} mm; certificate: {st.certificate_source}. "
-        f"Measured with: {st.measured_with.get('model') or 'three-step PS'} "
-        f"(fingerprint {st.measured_with.get('model_fingerprint')}).{few}", "",
-        "U = k sqrt(u_cal² + u_p² + u_w²) + |bias| (after ISO 15530-3; the bias added, not corrected), "
-        "k the two-sided 95.45 % Student factor at the Welch-Satterthwaite degrees of freedom (u_p has n - 1). "
-        f"u_w (what a user's gear adds beyond the master): {st.u_w_um or 'none stated'}. All µm.", "",
-        "| quantity | certified ± U (k = 2) | mean reading | bias | u_p (repeatability) | dof | k | U |",
-        "|---|---|---|---|---|---|---|---|", *rows, "",
+        f"Measured with: {st.model or 'three-step PS'} (decode fingerprint {st.model_fingerprint}); profiles evaluated "
+        f"over xi {st.evaluation['xi_start']:g}-{st.evaluation['xi_end']:g} in {st.evaluation['bins']} bins.{few}", "",
+        "Per mounting, the largest error each headline could take from the errors of the traces and positions read "
+        "(the read minus the certified): a range bounds a range, the largest magnitude the largest magnitude. "
+        f"U = mean + k s of those bounds (one-sided normal tolerance bound: {TOLERANCE_COVERAGE:.0%} of mountings at "
+        f"{TOLERANCE_CONFIDENCE:.0%} confidence) + the certificate's U. All µm.", "",
+        "| quantity | certified | headline readings | error bound per mounting | mean | s | k | U cert | **U** |",
+        "|---|---|---|---|---|---|---|---|---|", *rows, "",
         "It holds for gears of this type measured as the master was (the same rig, model, speed and settings). "
-        "`gearscan inspect --uncertainty` states each reading with it.", ""])
+        "`gearscan inspect --uncertainty` states each reading with it. Fr_gear_axis is the runout about the axis fitted "
+        "to the teeth, not ISO 1328-1's Fr (which includes their eccentricity to the gear's datum): it gets no "
+        "conformity decision.", ""])
 
 
 def write_statement(st: Statement, out: str | Path) -> tuple[Path, Path]:
@@ -231,12 +330,13 @@ def write_statement(st: Statement, out: str | Path) -> tuple[Path, Path]:
 
 @dataclass(frozen=True)
 class LoadedStatement:
-    """A statement as ``inspect`` uses it: the gear type, U per quantity and the model it was measured with."""
+    """A statement as ``inspect`` uses it: the gear type, U per quantity, the model and evaluation it holds for."""
 
     teeth: int
     module: float
     U_um: dict[str, float]
     model_fingerprint: str | None
+    evaluation: dict[str, float]
     path: str
 
     def require_gear(self, teeth: int, module: float) -> None:
@@ -253,34 +353,65 @@ def load_statement(path: str | Path) -> LoadedStatement:
         d = json.loads(path.read_text())
     except OSError as exc:
         raise VerifyError(f"--uncertainty {path}: {exc.strerror or exc}") from exc
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise VerifyError(f"--uncertainty {path}: not JSON ({exc})") from exc
     if not isinstance(d, dict) or d.get("kind") != STATEMENT_KIND:
         raise VerifyError(f"--uncertainty {path}: not a statement `gearscan verify` wrote (kind {STATEMENT_KIND!r})")
     try:
-        U = {k: float(q["U"]) for k, q in d["quantities"].items() if k in QUANTITIES}
-        teeth, module = int(d["gear"]["teeth"]), float(d["gear"]["module"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise VerifyError(f"--uncertainty {path}: malformed ({exc})") from exc
-    if not U or not all(math.isfinite(v) and v >= 0 for v in U.values()):
-        raise VerifyError(f"--uncertainty {path}: quantities: expected finite U >= 0 for some of {', '.join(QUANTITIES)}")
-    return LoadedStatement(teeth, module, U, (d.get("measured_with") or {}).get("model_fingerprint"), str(path))
+        U = {k: _num(q["U"]) for k, q in d["quantities"].items() if k in BUDGETED}
+        teeth, module = d["gear"]["teeth"], _num(d["gear"]["module"])
+        fingerprint = (d.get("measured_with") or {}).get("model_fingerprint")
+        evaluation = {k: float(v) for k, v in (d.get("evaluation") or {}).items()}
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise VerifyError(f"--uncertainty {path}: malformed ({exc!r})") from exc
+    if not isinstance(teeth, int) or isinstance(teeth, bool) or teeth < 6 or module is None or module <= 0:
+        raise VerifyError(f"--uncertainty {path}: gear: expected whole teeth >= 6 and a module > 0")
+    if not U or any(v is None or v < 0 for v in U.values()):
+        raise VerifyError(f"--uncertainty {path}: quantities: expected finite U >= 0 for some of {', '.join(BUDGETED)}")
+    return LoadedStatement(teeth, module, U, fingerprint, evaluation, str(path))
+
+
+@dataclass(frozen=True)
+class StatedReading:
+    """One headline reading with the statement's U and, graded, its tolerance and ISO 14253-1 decision."""
+
+    value: float | None
+    U: float
+    tolerance: float | None = None
+    decision: str | None = None
+
+
+@dataclass(frozen=True)
+class AppliedUncertainty:
+    """A statement applied to one inspection: per quantity the reading with its U, and what to warn about."""
+
+    statement: str
+    readings: dict[str, StatedReading]
+    warnings: tuple[str, ...] = ()
+
+    def to_json(self) -> dict:
+        return {"statement": self.statement, "meaning": U_MEANING,
+                "quantities": {k: asdict(r) for k, r in self.readings.items()}, "warnings": list(self.warnings)}
 
 
 def applied_uncertainty(statement: LoadedStatement, readings: dict[str, float | None], teeth: int, module: float,
-                        model_fingerprint: str | None, tolerances: dict[str, float] | None) -> dict:
-    """Each reading with the statement's U and, with ``tolerances`` (an ISO 1328-1 class's), its ISO 14253-1 decision.
-    A gear of another type is refused: the master's U says nothing about it."""
+                        model_fingerprint: str | None, tolerances: dict[str, float] | None,
+                        evaluation: dict[str, float] | None = None) -> AppliedUncertainty:
+    """Each reading with the statement's U and, with ``tolerances`` (an ISO 1328-1 class's), its ISO 14253-1 decision
+    (Fr_gear_axis gets none: not ISO's Fr). A gear of another type is refused; another model or evaluation warned."""
     statement.require_gear(teeth, module)
-    out: dict = {"statement": statement.path, "k": K_COVERAGE, "quantities": {}}
+    warnings = []
     if model_fingerprint != statement.model_fingerprint:
-        out["warning"] = (f"the statement's readings were decoded by model {statement.model_fingerprint}, this one by "
-                          f"{model_fingerprint}: its U is not this measurement's")
+        warnings.append(f"the statement's master was decoded by {statement.model_fingerprint or 'three-step PS'}, this "
+                        f"gear by {model_fingerprint or 'three-step PS'}: its U is not this measurement's")
+    if evaluation and statement.evaluation and any(
+            not math.isclose(float(evaluation.get(k, math.nan)), v, abs_tol=1e-9) for k, v in statement.evaluation.items()):
+        warnings.append(f"the statement's profiles were evaluated with {statement.evaluation}, this gear's with "
+                        f"{ {k: evaluation.get(k) for k in statement.evaluation} }: its U is not this measurement's")
+    out = {}
     for key, U in statement.U_um.items():
         value = readings.get(key)
-        row: dict = {"value": value, "U": U}
-        if tolerances is not None and value is not None and math.isfinite(value):
-            T = tolerances[TOLERANCE_KEY[key]]
-            row |= {"tolerance": T, "decision": conformity(value, U, T)}
-        out["quantities"][key] = row
-    return out
+        tol = (tolerances or {}).get(TOLERANCE_KEY.get(key, ""))
+        decided = tol is not None and value is not None
+        out[key] = StatedReading(value, U, tol if decided else None, conformity(value, U, tol) if decided else None)
+    return AppliedUncertainty(statement.path, out, tuple(warnings))

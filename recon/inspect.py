@@ -282,6 +282,21 @@ def _line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float]:
     return ym - b * xm, b
 
 
+def profile_quantities(roll: np.ndarray, trace: np.ndarray, span: float) -> tuple[float, float, float]:
+    """F_alpha, ff_alpha and fH_alpha of a profile trace (step 3 of the module docstring), in the trace's units:
+    its range, the range about its least-squares line, and that line's rise over ``span`` (the evaluation range)."""
+    roll, trace = np.asarray(roll, np.float64), np.asarray(trace, np.float64)
+    a0, b0 = _line(roll, trace, np.ones_like(roll))
+    resid = trace - (a0 + b0 * roll)
+    return float(trace.max() - trace.min()), float(resid.max() - resid.min()), float(b0 * span)
+
+
+def ball_heights(right: np.ndarray, left: np.ndarray, pressure_angle: float) -> np.ndarray:
+    """Radial height of a ball probe in each tooth space k (tooth k's left, tooth k+1's right flank) from the flanks'
+    positions along +theta on the pitch circle (step 5): a space ``w`` wider sits the ball ``w / (2 tan alpha)`` in."""
+    return -(np.roll(np.asarray(right, np.float64), -1) - np.asarray(left, np.float64)) / (2 * math.tan(pressure_angle))
+
+
 def inspect_gear(
     points: np.ndarray,
     sigma: np.ndarray,
@@ -370,16 +385,15 @@ def inspect_gear(
                 flanks.append(Flank(tooth, name, len(g), False))
                 continue
             lx, ly = mids[seen], trace[seen]
-            a0, b0 = _line(lx, ly, np.ones_like(lx))
-            resid = ly - (a0 + b0 * lx)
+            F_a, ff_a, fH_a = profile_quantities(lx, ly, l_b - l_a)
             near_p = np.abs(lx - l_p) <= 0.15 * (l_tip - l_start)
-            ap, bp = _line(lx[near_p], ly[near_p], np.ones(int(near_p.sum()))) if near_p.sum() >= 3 else (a0, b0)
+            near_p = near_p if near_p.sum() >= 3 else np.ones_like(near_p)  # too few near it: the whole trace's line
+            ap, bp = _line(lx[near_p], ly[near_p], np.ones(int(near_p.sum())))
             pos = side * (ap + bp * l_p) * rp / rb
             positions[name][tooth] = 1e3 * pos
             flanks.append(Flank(
                 tooth, name, len(g), True, position_um=1e3 * pos,
-                F_alpha_um=1e3 * float(ly.max() - ly.min()), ff_alpha_um=1e3 * float(resid.max() - resid.min()),
-                fH_alpha_um=1e3 * b0 * (l_b - l_a), roll_mm=tuple(float(v) for v in lx),
+                F_alpha_um=1e3 * F_a, ff_alpha_um=1e3 * ff_a, fH_alpha_um=1e3 * fH_a, roll_mm=tuple(float(v) for v in lx),
                 trace_um=tuple(float(1e3 * v) for v in ly),
             ))
 
@@ -389,9 +403,8 @@ def inspect_gear(
     fp_total = {n: float(np.nanmax(p) - np.nanmin(p)) if np.isfinite(p).any() else math.nan for n, p in positions.items()}
 
     # ball probe in each tooth space k (tooth k left flank, tooth k+1 right flank), on the pitch circle
-    width = np.roll(positions["right"], -1) - positions["left"]
     gaps = (np.arange(z) + 0.5) * tau + theta0
-    from_axis = -width / (2 * math.tan(gear.pressure_angle))
+    from_axis = ball_heights(positions["right"], positions["left"], gear.pressure_angle)
     from_ecc = 1e3 * ecc * np.cos(gaps - phi)
     curve = from_axis + from_ecc
     rng = lambda v: float(np.nanmax(v) - np.nanmin(v)) if np.isfinite(v).any() else math.nan  # noqa: E731

@@ -20,19 +20,16 @@ def tol(truth: float) -> float:
     return 5.0 + 0.05 * abs(truth)
 
 
-STATEMENT_READINGS = [1.0, 2.0, 3.0]  # a master certified 0 +- 0 read thrice: bias 2, u_p 1, U = 4.53 + 2
+STATEMENT_BOUNDS = [1.0, 2.0, 3.0]  # error bounds of three made-up mountings: U = 2 + 7.656 * 1
 
 
 def _statement(path, teeth: int = 20):
-    """A `gearscan verify` statement for the z = 20, m = 2 gear decoded by three-step PS (the readings made up)."""
-    from gearscan.recon.substitution import QUANTITIES as BUDGETED
-    from gearscan.recon.substitution import substitution_uncertainty
+    """A `gearscan verify` statement for the z = 20, m = 2 gear decoded by three-step PS (its mountings made up)."""
+    from gearscan.recon.substitution import BUDGETED, bound_uncertainty
     from gearscan.verify import Statement, write_statement
 
-    budgets = substitution_uncertainty({k: (0.0, 0.0) for k in BUDGETED},
-                                       [{k: v for k in BUDGETED} for v in STATEMENT_READINGS])
-    st = Statement({"teeth": teeth, "module": 2.0}, "made up", budgets, {"model": None, "model_fingerprint": None},
-                   (), {})
+    st = Statement({"teeth": teeth, "module": 2.0}, "made up", {k: bound_uncertainty(k, STATEMENT_BOUNDS) for k in BUDGETED},
+                   {}, {k: (None,) * 3 for k in BUDGETED}, None, None, {"xi_start": 0.1, "xi_end": 0.95, "bins": 20}, ())
     return write_statement(st, path)[0]
 
 
@@ -198,37 +195,48 @@ def test_report_files_and_grade(inspected):
     assert "+-3.2 um (k = 2) on a 20 mm radius" in md and "The values below do not include it." in md
     assert isinstance(report["profile_bins_left_out"], int)
     assert "chipped teeth: 7" in output
-
-
-def test_readings_carry_the_statements_uncertainty(inspected):
-    """With --uncertainty each reading gets the statement's U and, graded, its ISO 14253-1 decision, in the JSON, the
-    Markdown and on the console; a statement of another gear type is refused before the replay."""
-    from gearscan.cli import app
-    from gearscan.recon.substitution import conformity, quantity_uncertainty
-
-    report, _, out, output = inspected
-    U = quantity_uncertainty("fp", 0.0, 0.0, STATEMENT_READINGS).U
-    stated = report["uncertainty"]
-    assert "warning" not in stated  # the statement's readings were three-step PS's too
-    summary, tol8 = report["summary_um"], report["tolerances_um"]
-    for key, row in stated["quantities"].items():
-        value = report["inspection"]["runout_about_gear_axis_um"] if key == "Fr_gear_axis" else summary[key]
-        assert row["value"] == pytest.approx(value) and row["U"] == pytest.approx(U)
-        T = tol8["Fr" if key == "Fr_gear_axis" else key]
-        assert row["tolerance"] == T and row["decision"] == conformity(value, U, T)
-    md = (out / "report.md").read_text()
-    assert "## Measurement uncertainty" in md and "ISO 14253-1" in md
-    assert f"fp: {summary['fp']:.1f} ± {U:.1f} µm (U, k = 2), tolerance {tol8['fp']:g}:" in output
-    base = out.parent
-    other = _statement(base / "other.json", teeth=30)
-    res = CliRunner().invoke(app, ["inspect", str(base / "rec"), "-o", str(base / "never"), "--classical",
-                                   "--uncertainty", str(other)])
-    assert res.exit_code == 2 and "master of 30 teeth" in res.output and not (base / "never" / "report.json").exists()
     assert report["fused"]["median_bursts_per_point"] >= 3
     # each point's sigma runs along its camera ray; the deviation's is its share along the CAD's normal, and both are said
     fused = report["fused"]
     assert 0 < fused["median_deviation_sigma_um"] < fused["median_sigma_um"]
     assert "along its camera ray" in md and "along the CAD's normal" in md
+
+
+def test_readings_carry_the_statements_uncertainty(inspected):
+    """With --uncertainty each reading gets the statement's U and, graded, its ISO 14253-1 decision (none for the
+    runout about the gear axis, not ISO's Fr), in the JSON, the Markdown and on the console; a statement of another
+    gear type is refused before the replay runs."""
+    from gearscan.cli import app
+    from gearscan.recon.substitution import bound_uncertainty, conformity
+
+    report, _, out, output = inspected
+    U = bound_uncertainty("fp", STATEMENT_BOUNDS).U
+    stated = report["uncertainty"]
+    assert stated["warnings"] == []  # the statement's master was three-step PS's too, evaluated alike
+    summary, tol8 = report["summary_um"], report["tolerances_um"]
+    for key, row in stated["quantities"].items():
+        if key == "Fr_gear_axis":
+            assert row["value"] == pytest.approx(report["inspection"]["runout_about_gear_axis_um"])
+            assert row["decision"] is None and row["tolerance"] is None
+            continue
+        assert row["value"] == pytest.approx(summary[key]) and row["U"] == pytest.approx(U)
+        assert row["tolerance"] == tol8[key] and row["decision"] == conformity(summary[key], U, tol8[key])
+    md = (out / "report.md").read_text()
+    assert "## Measurement uncertainty" in md and "ISO 14253-1" in md
+    assert f"fp: {summary['fp']:.1f} ± {U:.1f} µm (U), tolerance {tol8['fp']:g}:" in output
+    base = out.parent
+    other = _statement(base / "other.json", teeth=30)
+
+    def no_replay(*args, **kwargs):
+        raise AssertionError("replayed a recording the statement does not fit")
+
+    import gearscan.replay
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(gearscan.replay, "replay", no_replay)
+        res = CliRunner().invoke(app, ["inspect", str(base / "rec"), "-o", str(base / "never"), "--classical",
+                                       "--uncertainty", str(other)])
+    assert res.exit_code == 2 and "master of 30 teeth" in res.output, res.output
 
 
 def test_iso1328_tolerances_follow_the_2013_formulas():
