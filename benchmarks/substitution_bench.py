@@ -89,14 +89,14 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
         return twin_certificate(json.loads((WORK / folder.name.replace("report_", "rec_") / "recording.json").read_text()))
 
     certs = [certificate(m) for m in masters]
-    if any(c.quantities_um != certs[0].quantities_um for c in certs):
+    if any(c != certs[0] for c in certs):
         raise SystemExit("the master's certificate differs between mountings: a bug in the twin or the certificate")
     cert = certs[0]
     alpha = math.radians(cert.gear.pressure_angle_deg)
     master_reads = [read_report(m) for m in masters]
     # 1. the rule as first written: ISO 15530-3's form on the headline readings, judged on workpieces 1-3
-    iso = {k: quantity_uncertainty(k, cert.quantities_um[k].value, 0.0, [r.headline[k] for r in master_reads])
-           for k in BUDGETED}
+    certified = cert.headline_um()
+    iso = {k: quantity_uncertainty(k, certified[k], 0.0, [r.headline[k] for r in master_reads]) for k in BUDGETED}
     # 2. the amendment: the bound method (what `gearscan verify` ships), judged on all six workpieces
     statement = verify(cert, masters)
     write_statement(statement, WORK / "uncertainty.json")
@@ -104,14 +104,17 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
     checks = []
     for j, p in enumerate(pieces):
         truth_cert = certificate(p)
-        truth = {k: v.value for k, v in truth_cert.quantities_um.items()}
         r = read_report(p)
+        truth = truth_cert.headline_um(r.evaluation.xi_start, r.evaluation.xi_end, r.bins)
+        if any(r.headline[k] is None for k in BUDGETED) or r.flanks_of[0] < r.flanks_of[1]:
+            raise SystemExit(f"{p}: measured on {r.flanks_of[0]} of {r.flanks_of[1]} flanks, headlines "
+                             f"{r.headline}: the rule's checks need every quantity of the whole gear")
         own = error_functionals(r.flanks, r.positions_um, r.evaluation,
                                 lambda side, xi, c=truth_cert: c.profile_um[side].offset(xi), truth_cert.positions_um,
                                 alpha)
         for key in BUDGETED:
             err = abs(r.headline[key]) - abs(truth[key])  # fH_alpha judged by magnitude, the others are magnitudes
-            checks.append({"workpiece": j + 1, "quantity": key, "truth": truth[key], "reading": r.headline[key],
+            checks.append({"workpiece": j + 1, "bins_left_out": r.bins_left_out, "quantity": key, "truth": truth[key], "reading": r.headline[key],
                            "error": err, "U_bound": statement.quantities[key].U,
                            "within_bound": abs(err) <= statement.quantities[key].U, "own_error_bound": own[key],
                            "U_iso": iso[key].U, "within_iso": abs(r.headline[key] - truth[key]) <= iso[key].U,
@@ -154,6 +157,9 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
           f"{c['U_bound']:.2f} | {'yes' if c['within_bound'] else '**NO**'} | {c['own_error_bound']:.2f} | "
           f"{c['U_iso']:.2f} | {('yes' if c['within_iso'] else '**NO**') + ('' if c['judged_iso'] else ' (not judged)')} |"
           for c in checks], "",
+        "Profile bins left out per workpiece (of 800): " + ", ".join(
+            f"{c['workpiece']}: {c['bins_left_out']}" for c in checks if c["quantity"] == "fp") + "; every flank and "
+        "tooth measured on each (checked). "
         f"Own error bounds above U: {sum(c['own_error_bound'] > c['U_bound'] for c in checks)} of {len(checks)}. "
         f"Largest |error| / U (bound method): {max(abs(c['error']) / c['U_bound'] for c in checks):.2f}.", ""]
     report.with_suffix(".md").write_text("\n".join(md))

@@ -184,7 +184,7 @@ def twin_certificate_cmd(
     except (RecordingError, VerifyError) as exc:
         raise _fail(f"{recording}: {exc}") from exc
     out.write_text(cert.model_dump_json(indent=2))
-    typer.echo("; ".join(f"{k} {q.value:.2f}" for k, q in cert.quantities_um.items()) + f" µm -> {out}")
+    typer.echo("; ".join(f"{k} {v:.2f}" for k, v in cert.headline_um().items()) + f" µm -> {out}")
 
 
 @twin_app.command("dataset")

@@ -33,7 +33,7 @@ from gearscan.recon.inspect import (
 )
 from gearscan.recon.measure import PRODUCT_SUPPORT
 from gearscan.recon.substitution import BUDGETED
-from gearscan.verify import U_MEANING, AppliedUncertainty
+from gearscan.verify import U_MEANING, AppliedUncertainty, reading_text
 
 QUANTITIES = {  # key in Inspection.summary() -> (symbol, description)
     "fp": ("fp", "single pitch deviation (largest |fp|)"),
@@ -277,7 +277,8 @@ def run_inspection(
 
         stated = applied_uncertainty(statement, inspection_readings(insp), insp.teeth, insp.module,
                                      (metrics.decoder or {}).get("model_fingerprint"), tolerances,
-                                     {k: insp.settings[k] for k in ("xi_start", "xi_end", "bins")})
+                                     {k: insp.settings[k] for k in ("xi_start", "xi_end", "bins")}, insp.coverage(),
+                                     insp.profile_bins_left_out)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = {"fused": save_fused(fused, out / "fused.ply")}
@@ -382,8 +383,8 @@ def uncertainty_lines(stated: AppliedUncertainty | None) -> list[str]:
     """The console's lines on the measurement uncertainty (none without a statement)."""
     if stated is None:
         return []
-    lines = [f"{key}: {_fmt(r.value)} ± {r.U:.1f} µm (U)" + (f", tolerance {r.tolerance:g}: {r.decision}" if r.decision else "")
-             for key, r in stated.readings.items()]
+    lines = [reading_text(key, r) + (f", tolerance {r.tolerance:g}: {r.decision}" if r.decision else "")
+             + (f" ({r.why})" if r.why else "") for key, r in stated.readings.items()]
     return [*lines, f"(U: {U_MEANING})", *(f"warning: {w}" for w in stated.warnings)]
 
 
@@ -396,15 +397,16 @@ def uncertainty_markdown(stated: AppliedUncertainty | None) -> list[str]:
                 "adds."]
     graded = any(r.decision for r in stated.readings.values())
     lines = ["", f"## Measurement uncertainty (`{stated.statement}`)", "", f"{U_MEANING}.", "",
-             "| quantity | reading (µm) | U (µm) |" + (" tolerance (µm) | ISO 14253-1 |" if graded else ""),
-             "|---|---|---|" + ("---|---|" if graded else "")]
+             "| quantity | reading ± U |" + (" tolerance (µm) | ISO 14253-1 |" if graded else ""),
+             "|---|---|" + ("---|---|" if graded else "")]
     for key, r in stated.readings.items():
-        lines.append(f"| {key}: {BUDGETED[key]} | {_fmt(r.value)} | {r.U:.1f} |"
-                     + (f" {r.tolerance:g} | {r.decision} |" if r.decision else " – | – |" if graded else ""))
+        decision = f"{r.decision} ({r.why})" if r.why else r.decision
+        lines.append(f"| {key}: {BUDGETED[key]} | {reading_text(key, r)} |"
+                     + (f" {r.tolerance:g} | {decision} |" if r.decision else " – | – |" if graded else ""))
     if graded:
         lines += ["", "Conforms: |reading| + U within the tolerance; does not conform: |reading| - U beyond it; "
-                  "undecided: in between (ISO 14253-1). Fr_gear_axis (about the axis fitted to the teeth) is not ISO's "
-                  "Fr and is not judged."]
+                  "undecided: in between, or a value within the tolerance read on part of the gear (ISO 14253-1). "
+                  "Fr_gear_axis (about the axis fitted to the teeth) is not ISO's Fr and is not judged."]
     lines += [f"\n**Warning:** {w}." for w in stated.warnings]
     return lines
 

@@ -1,11 +1,12 @@
 """``gearscan verify``: what the instrument's ISO 1328-1 readings are worth, from a master gear measured repeatedly.
 
-A master gear's certificate (``gearscan twin certificate`` writes one from a twin recording's truth; a calibration
-lab's is typed into the same JSON) and several ``gearscan inspect`` reports of it, each after a fresh mounting, give
-each quantity's expanded uncertainty U by the bound method of :mod:`gearscan.recon.substitution`. The statement is
-written as JSON (``gearscan inspect --uncertainty`` reads it: each reading with its U and, with ``--grade``, the
-ISO 14253-1 decision) and Markdown. It holds for gears of the master's type (teeth, module) measured as the master
-was (rig, model, evaluation settings): ``inspect`` refuses another type and warns on another model or settings.
+A master gear's certificate (``gearscan twin certificate`` writes one from a twin recording's truth; a lab's can be
+typed into the same JSON where it states per-side profile slope and crowning and per-tooth positions) and several
+``gearscan inspect`` reports of it, each after a fresh mounting, give each quantity's expanded uncertainty U by the
+bound method of :mod:`gearscan.recon.substitution`. The statement is written as JSON (``gearscan inspect
+--uncertainty`` reads it: each reading with its U and, with ``--grade``, the ISO 14253-1 decision) and Markdown. It
+holds for gears of the master's type (teeth, module; checked: another is refused) decoded by the same model and
+evaluated alike (checked: warned), on the same rig at the same speed (not checked: the user's part).
 """
 
 from __future__ import annotations
@@ -21,11 +22,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from gearscan.recon.substitution import (
     BUDGETED,
+    CONFORMS,
     MIN_READINGS,
     RECOMMENDED_READINGS,
     TOLERANCE_CONFIDENCE,
     TOLERANCE_COVERAGE,
     TOLERANCE_KEY,
+    UNDECIDED,
     Evaluation,
     FlankTrace,
     QuantityBound,
@@ -40,18 +43,13 @@ from gearscan.recon.substitution import (
 STATEMENT_KIND = "gearscan uncertainty statement"
 CERTIFICATE_KIND = "gearscan master gear certificate"
 SIDES = ("left", "right")
-U_MEANING = (f"U bounds a reading's error on {TOLERANCE_COVERAGE:.0%} of mountings at {TOLERANCE_CONFIDENCE:.0%} "
-             "confidence (bound method, from a master gear)")
+U_MEANING = (f"U bounds a headline's error over the flanks and teeth read (|fH_alpha| by magnitude) on "
+             f"{TOLERANCE_COVERAGE:.0%} of mountings at {TOLERANCE_CONFIDENCE:.0%} confidence, from a master gear of "
+             "this type (`gearscan verify`)")
 
 
 class VerifyError(ValueError):
     """A certificate, report or statement that cannot be used; the message names the file and what was expected."""
-
-
-class _Certified(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    value: float = Field(allow_inf_nan=False, description="certified headline value, µm")
-    U: float = Field(0.0, ge=0, allow_inf_nan=False, description="its expanded uncertainty (k = 2), µm")
 
 
 class _GearType(BaseModel):
@@ -72,15 +70,18 @@ class _Profile(BaseModel):
 
 
 class Certificate(BaseModel):
-    """A master gear's certificate: its type, each flank side's profile (slope and crowning over the roll fraction
-    from the involute's start to the tip), each flank's position on the pitch circle and the headline values, µm."""
+    """A master gear's certificate: its type, each flank side's profile (slope and crowning over the roll fraction from
+    the involute's start to the tip), each flank's position on the pitch circle, and per headline quantity the
+    certificate's own uncertainty as a bound on that headline (µm; for per-tooth positions known within +-u: fp and
+    Fp 2u, Fr_gear_axis 2u / tan(alpha)). Form beyond slope and crowning is not modelled: a real master's ends up in
+    the bound, as the instrument's error would."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     kind: str = CERTIFICATE_KIND
     gear: _GearType
     profile_um: dict[Literal["left", "right"], _Profile]
     positions_um: dict[Literal["left", "right"], list[float]]
-    quantities_um: dict[str, _Certified]
+    U_um: dict[str, float]
     source: str = Field("", description="who certified it: a lab and its certificate number, or the twin's truth")
 
     @model_validator(mode="after")
@@ -91,10 +92,18 @@ class Certificate(BaseModel):
         for side, pos in self.positions_um.items():
             if len(pos) != self.gear.teeth or not all(math.isfinite(v) for v in pos):
                 raise ValueError(f"positions_um.{side}: expected {self.gear.teeth} finite positions (one per tooth)")
-        unknown = sorted(set(self.quantities_um) - set(BUDGETED))
-        if unknown:
-            raise ValueError(f"quantities_um: unknown {unknown}; expected some of {', '.join(BUDGETED)}")
+        if set(self.U_um) != set(BUDGETED) or not all(math.isfinite(v) and v >= 0 for v in self.U_um.values()):
+            raise ValueError(f"U_um: expected a finite U >= 0 for each of {', '.join(BUDGETED)} (0 only where exact)")
         return self
+
+    def headline_um(self, xi_start: float = 0.1, xi_end: float = 0.95, bins: int = 20) -> dict[str, float]:
+        """The certified headline values, evaluated as the inspection does."""
+        pos = {s: np.asarray(self.positions_um[s], np.float64) for s in SIDES}
+        prof = [profile_truth(self.profile_um[s].offset, xi_start, xi_end, bins) for s in SIDES]
+        return {"fp": max(float(np.abs(p - np.roll(p, 1)).max()) for p in pos.values()),
+                "Fp": max(float(p.max() - p.min()) for p in pos.values()),
+                "Fr_gear_axis": runout_about_gear_axis(pos, math.radians(self.gear.pressure_angle_deg)),
+                **{k: max((p[k] for p in prof), key=abs) for k in ("F_alpha", "ff_alpha", "fH_alpha")}}
 
 
 def load_certificate(path: str | Path) -> Certificate:
@@ -108,18 +117,18 @@ def load_certificate(path: str | Path) -> Certificate:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "(top level)"
         raise VerifyError(f"certificate {path}: {where}: {first['msg']} (expected 'gear' {{teeth, module}}, "
-                          "'profile_um' and 'positions_um' per side, 'quantities_um' {key: {value, U}})") from exc
+                          "'profile_um' {side: {slope, crown}} and 'positions_um' {side: [one per tooth]}, 'U_um' "
+                          f"{{{', '.join(BUDGETED)}}})") from exc
     if cert.kind != CERTIFICATE_KIND:
         raise VerifyError(f"certificate {path}: kind {cert.kind!r}, expected {CERTIFICATE_KIND!r}")
     return cert
 
 
-def twin_certificate(meta: dict, xi_start: float = 0.1, xi_end: float = 0.95, bins: int = 20) -> Certificate:
+def twin_certificate(meta: dict) -> Certificate:
     """The certificate of a twin recording's gear from its truth (``recording.json``'s content): exact, U 0.
 
-    Profiles from the injected slope and crown, positions from the truth's flank positions, headline values as the
-    inspection evaluates them (:func:`~gearscan.recon.substitution.profile_truth`). A master gear has no chip, no wear
-    and its nominal module and pressure angle: a twin gear with any of those gets no certificate.
+    Profiles from the injected slope and crown, positions from the truth's flank positions. A master gear has no chip,
+    no wear and its nominal module and pressure angle: a twin gear with any of those gets no certificate.
     """
     truth = meta.get("truth")
     if not truth:
@@ -135,19 +144,11 @@ def twin_certificate(meta: dict, xi_start: float = 0.1, xi_end: float = 0.95, bi
             if d.get(key) is not None:
                 raise VerifyError(f"the twin gear has an as-built {key} ({d[key]}): a master's is its nominal one")
         profile = _Profile(slope=float(d.get("profile_slope_um", 0.0)), crown=float(d.get("profile_crown_um", 0.0)))
-        positions = {s: [float(v) for v in truth["flank_position_um"][s]] for s in SIDES}
-        single = {s: np.asarray(truth["single_pitch_um"][s], np.float64) for s in SIDES}
-        teeth, alpha = int(gear["teeth"]), float(gear["pressure_angle_deg"])
-        values = {
-            "fp": max(float(np.abs(v).max()) for v in single.values()),
-            "Fp": max(float(truth["total_cumulative_pitch_um"][s]) for s in SIDES),
-            "Fr_gear_axis": runout_about_gear_axis(positions, math.radians(alpha)),
-            **profile_truth(profile.offset, xi_start, xi_end, bins),
-        }
-        return Certificate(gear=_GearType(teeth=teeth, module=float(gear["module"]), pressure_angle_deg=alpha),
-                           profile_um={s: profile for s in SIDES}, positions_um=positions,
-                           quantities_um={k: _Certified(value=v) for k, v in values.items()},
-                           source="the twin's truth (exact: U 0)")
+        return Certificate(gear=_GearType(teeth=int(gear["teeth"]), module=float(gear["module"]),
+                                          pressure_angle_deg=float(gear["pressure_angle_deg"])),
+                           profile_um={s: profile for s in SIDES},
+                           positions_um={s: [float(v) for v in truth["flank_position_um"][s]] for s in SIDES},
+                           U_um=dict.fromkeys(BUDGETED, 0.0), source="the twin's truth (exact: U 0)")
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, VerifyError):
             raise
@@ -168,6 +169,7 @@ class MasterReading:
     evaluation: Evaluation
     bins: int
     flanks_of: tuple[int, int]  # flanks measured, of all
+    bins_left_out: int
     model: str | None
     model_fingerprint: str | None
 
@@ -193,18 +195,24 @@ def read_report(path: str | Path) -> MasterReading:
         settings = insp["settings"]
         l_a, l_b = (float(v) for v in settings["evaluation_roll_mm"])
         flanks = [f for f in insp["flanks"] if f["measured"]]
+        teeth = int(insp["teeth"])
         reading = MasterReading(
-            path=str(path), teeth=int(insp["teeth"]), module=float(insp["module"]),
+            path=str(path), teeth=teeth, module=float(insp["module"]),
             headline={k: _num(summary.get(k)) for k in BUDGETED if k != "Fr_gear_axis"}
             | {"Fr_gear_axis": _num(insp.get("runout_about_gear_axis_um"))},
             flanks=tuple(FlankTrace(int(f["tooth"]), str(f["side"]), tuple(float(v) for v in f["roll_mm"]),
                                     tuple(float(v) for v in f["trace_um"])) for f in flanks),
             positions_um={s: tuple(math.nan if v is None else float(v) for v in insp["position_um"][s]) for s in SIDES},
-            evaluation=Evaluation(l_a, l_b, float(settings["xi_start"]), float(settings["xi_end"])),
-            bins=int(settings["bins"]), flanks_of=(len(flanks), len(insp["flanks"])),
+            evaluation=Evaluation(l_a, l_b, float(settings["xi_start"]), float(settings["xi_end"]), int(settings["bins"])),
+            bins=int(settings["bins"]), flanks_of=(len(flanks), 2 * teeth),
+            bins_left_out=int(report.get("profile_bins_left_out") or insp.get("profile_bins_left_out") or 0),
             model=model.get("path"), model_fingerprint=model.get("fingerprint"))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise VerifyError(f"report {file}: not a `gearscan inspect` report.json ({exc!r})") from exc
+    short = [f"{f.tooth} {f.side}" for f in reading.flanks if len(f.roll_mm) != len(f.trace_um) or len(f.roll_mm) < 3]
+    if short or any(len(v) != reading.teeth for v in reading.positions_um.values()):
+        raise VerifyError(f"report {file}: flank traces ({', '.join(short) or 'fine'}) or positions (one per tooth, "
+                          f"{reading.teeth}) do not match: not a whole `gearscan inspect` report")
     if any(s not in SIDES for s in (f.side for f in reading.flanks)):
         raise VerifyError(f"report {file}: flank sides must be left or right")
     return reading
@@ -252,7 +260,7 @@ def verify(certificate: str | Path | Certificate, reports: list[str | Path]) -> 
     if len(reports) < MIN_READINGS:
         raise VerifyError(f"{len(reports)} report(s) of the master: at least {MIN_READINGS} are needed, each after a "
                           f"fresh mounting (ISO 15530-3 asks for {RECOMMENDED_READINGS})")
-    seen = [Path(r).resolve() for r in reports]
+    seen = [(Path(r) / "report.json" if Path(r).is_dir() else Path(r)).resolve() for r in reports]
     if len(set(seen)) < len(seen):
         raise VerifyError("a report is given twice: each must be its own measurement of the master")
     readings = [read_report(r) for r in reports]
@@ -260,9 +268,11 @@ def verify(certificate: str | Path | Certificate, reports: list[str | Path]) -> 
         if r.teeth != cert.gear.teeth or not math.isclose(r.module, cert.gear.module, rel_tol=1e-6):
             raise VerifyError(f"report {r.path}: a gear of {r.teeth} teeth, module {r.module:g}; the certificate's "
                               f"master has {cert.gear.teeth}, module {cert.gear.module:g}")
-        if r.flanks_of[0] < r.flanks_of[1]:
-            raise VerifyError(f"report {r.path}: {r.flanks_of[0]} of {r.flanks_of[1]} flanks measured: a master "
-                              "reading must cover the whole gear (measure a whole revolution)")
+        unread = sum(not np.isfinite(v).all() for v in map(np.asarray, r.positions_um.values()))
+        if r.flanks_of[0] < r.flanks_of[1] or unread:
+            raise VerifyError(f"report {r.path}: {r.flanks_of[0]} of {r.flanks_of[1]} flanks measured (positions "
+                              f"{'incomplete' if unread else 'complete'}): a master reading must cover the whole gear "
+                              "(measure a whole revolution)")
     for what, key in (("models", lambda r: r.model_fingerprint or "three-step PS"),
                       ("evaluation settings", lambda r: (round(r.evaluation.xi_start, 6), round(r.evaluation.xi_end, 6),
                                                          r.bins))):
@@ -271,18 +281,18 @@ def verify(certificate: str | Path | Certificate, reports: list[str | Path]) -> 
             raise VerifyError(f"the reports differ in their {what} ({', '.join(map(str, sorted(values, key=str)))}): a "
                               "statement holds for one way of measuring; verify each apart")
     alpha = math.radians(cert.gear.pressure_angle_deg)
-    samples = [error_functionals(r.flanks, r.positions_um, r.evaluation,
-                                 lambda side, xi: cert.profile_um[side].offset(xi), cert.positions_um, alpha)
-               for r in readings]
     try:
-        bounds = {k: bound_uncertainty(k, [s[k] for s in samples],
-                                       cert.quantities_um[k].U if k in cert.quantities_um else 0.0) for k in BUDGETED}
-    except SubstitutionError as exc:
+        samples = [error_functionals(r.flanks, r.positions_um, r.evaluation,
+                                     lambda side, xi: cert.profile_um[side].offset(xi), cert.positions_um, alpha)
+                   for r in readings]
+        bounds = {k: bound_uncertainty(k, [s[k] for s in samples], cert.U_um[k]) for k in BUDGETED}
+    except (SubstitutionError, ValueError) as exc:
         raise VerifyError(str(exc)) from exc
     first = readings[0]
     return Statement(
         gear={"teeth": cert.gear.teeth, "module": cert.gear.module}, certificate_source=cert.source,
-        quantities=bounds, certified={k: q.value for k, q in cert.quantities_um.items()},
+        quantities=bounds,
+        certified=cert.headline_um(first.evaluation.xi_start, first.evaluation.xi_end, first.bins),
         headline={k: tuple(r.headline[k] for r in readings) for k in BUDGETED}, model=first.model,
         model_fingerprint=first.model_fingerprint,
         evaluation={"xi_start": first.evaluation.xi_start, "xi_end": first.evaluation.xi_end, "bins": first.bins},
@@ -373,12 +383,14 @@ def load_statement(path: str | Path) -> LoadedStatement:
 
 @dataclass(frozen=True)
 class StatedReading:
-    """One headline reading with the statement's U and, graded, its tolerance and ISO 14253-1 decision."""
+    """One headline reading with the statement's U and, graded, its tolerance and ISO 14253-1 decision (``why``: what
+    kept a decision from "conforms"). For fH_alpha the reading is signed and U bounds its magnitude."""
 
     value: float | None
     U: float
     tolerance: float | None = None
     decision: str | None = None
+    why: str | None = None
 
 
 @dataclass(frozen=True)
@@ -394,11 +406,19 @@ class AppliedUncertainty:
                 "quantities": {k: asdict(r) for k, r in self.readings.items()}, "warnings": list(self.warnings)}
 
 
+COVERAGE_KEY = {"Fr_gear_axis": "Fr"}  # Inspection.coverage() keys where they differ from BUDGETED's
+PROFILE_KEYS = ("F_alpha", "ff_alpha", "fH_alpha")
+
+
 def applied_uncertainty(statement: LoadedStatement, readings: dict[str, float | None], teeth: int, module: float,
                         model_fingerprint: str | None, tolerances: dict[str, float] | None,
-                        evaluation: dict[str, float] | None = None) -> AppliedUncertainty:
+                        evaluation: dict[str, float] | None = None, coverage: dict[str, tuple[int, int]] | None = None,
+                        bins_left_out: int = 0) -> AppliedUncertainty:
     """Each reading with the statement's U and, with ``tolerances`` (an ISO 1328-1 class's), its ISO 14253-1 decision
-    (Fr_gear_axis gets none: not ISO's Fr). A gear of another type is refused; another model or evaluation warned."""
+    (Fr_gear_axis gets none: not ISO's Fr). U bounds the error of a headline over what was read: where ``coverage``
+    (``Inspection.coverage()``) says part of the gear was not, or profile bins were left out, a value within the
+    tolerance by U is "undecided", not "conforms" (the part unseen may deviate more). A gear of another type is
+    refused; another model or evaluation warned about."""
     statement.require_gear(teeth, module)
     warnings = []
     if model_fingerprint != statement.model_fingerprint:
@@ -412,6 +432,23 @@ def applied_uncertainty(statement: LoadedStatement, readings: dict[str, float | 
     for key, U in statement.U_um.items():
         value = readings.get(key)
         tol = (tolerances or {}).get(TOLERANCE_KEY.get(key, ""))
-        decided = tol is not None and value is not None
-        out[key] = StatedReading(value, U, tol if decided else None, conformity(value, U, tol) if decided else None)
+        if tol is None or value is None:
+            out[key] = StatedReading(value, U)
+            continue
+        decision, why = conformity(value, U, tol), None
+        measured, of = (coverage or {}).get(COVERAGE_KEY.get(key, key), (1, 1))
+        if decision == CONFORMS and measured < of:
+            decision, why = UNDECIDED, f"measured on {measured} of {of}: the rest may deviate more"
+        elif decision == CONFORMS and key in PROFILE_KEYS and bins_left_out:
+            decision, why = UNDECIDED, f"{bins_left_out} profile bins left out: those flanks were not read whole"
+        out[key] = StatedReading(value, U, tol, decision, why)
     return AppliedUncertainty(statement.path, out, tuple(warnings))
+
+
+def reading_text(key: str, r: StatedReading) -> str:
+    """``fp 12.3 ± 1.1 µm`` (fH_alpha as its magnitude, which U bounds)."""
+    if r.value is None:
+        return f"{key} not measured (U {r.U:.1f} µm)"
+    if key == "fH_alpha":
+        return f"|fH_alpha| {abs(r.value):.1f} ± {r.U:.1f} µm (reading {r.value:+.1f})"
+    return f"{key} {r.value:.1f} ± {r.U:.1f} µm"

@@ -211,41 +211,61 @@ class FlankTrace:
 @dataclass(frozen=True)
 class Evaluation:
     """Where the inspection evaluated the profiles: roll lengths ``l_a`` to ``l_b`` (mm), which are the roll
-    fractions ``xi_start`` to ``xi_end`` from the involute's start to the tip."""
+    fractions ``xi_start`` to ``xi_end`` from the involute's start to the tip, in ``bins`` bins."""
 
     l_a: float
     l_b: float
     xi_start: float
     xi_end: float
+    bins: int = 20
 
     def xi(self, roll_mm) -> np.ndarray:
         """Roll fraction of roll lengths (mm)."""
         roll = np.asarray(roll_mm, np.float64)
         return self.xi_start + (roll - self.l_a) / (self.l_b - self.l_a) * (self.xi_end - self.xi_start)
 
+    def centres_mm(self) -> np.ndarray:
+        """Every bin's centre (mm): where a whole profile is read."""
+        edges = np.linspace(self.l_a, self.l_b, self.bins + 1)
+        return 0.5 * (edges[:-1] + edges[1:])
+
 
 def error_functionals(flanks: Sequence[FlankTrace], positions_um: Mapping[str, Sequence[float]], evaluation: Evaluation,
                       true_offset_um, true_positions_um: Mapping[str, Sequence[float]],
                       pressure_angle_rad: float) -> dict[str, float]:
-    """Per headline quantity the bound ``Q'(read - true)`` on its error in one measurement (µm).
+    """Per headline quantity the bound ``Q'`` on its error in one measurement (µm): ``|Q(read) - Q(true)|`` is at most
+    this (``|fH_alpha|`` by magnitude), Q(true) over every bin of the flanks and the teeth that were read.
 
     ``true_offset_um(side, xi)``: a flank's true normal offset (µm) at roll fractions ``xi``; ``true_positions_um``:
     each flank's true position on the pitch circle (µm, per side, one per tooth). A constant in either cancels (the
-    inspection's datum is its own). Flanks or teeth not measured (NaN) take no part: a headline over fewer of them
-    is itself partial, and the inspection says so.
+    inspection's datum is its own). Per flank ``Q'`` is the functional of the error trace (read minus true at the
+    bins read) plus what the bins not read change in the true profile's value. Flanks or teeth not read at all take
+    no part: their headline may be larger (the inspection's coverage says so). NaN where nothing was read.
     """
-    out = {"F_alpha": 0.0, "ff_alpha": 0.0, "fH_alpha": 0.0}
+    span, full = evaluation.l_b - evaluation.l_a, evaluation.centres_mm()
+    prof: dict[str, float] = {"F_alpha": math.nan, "ff_alpha": math.nan, "fH_alpha": math.nan}
     for fl in flanks:
-        err = np.asarray(fl.trace_um, np.float64) - np.asarray(true_offset_um(fl.side, evaluation.xi(fl.roll_mm)))
-        F, ff, fH = profile_quantities(np.asarray(fl.roll_mm), err, evaluation.l_b - evaluation.l_a)
-        out = {"F_alpha": max(out["F_alpha"], F), "ff_alpha": max(out["ff_alpha"], ff),
-               "fH_alpha": max(out["fH_alpha"], abs(fH))}
+        roll = np.asarray(fl.roll_mm, np.float64)
+        true = np.asarray(true_offset_um(fl.side, evaluation.xi(roll)), np.float64)
+        err = profile_quantities(roll, np.asarray(fl.trace_um, np.float64) - true, span)
+        # the bins not read: how much the true profile's value over the bins read differs from its whole one's
+        part = profile_quantities(roll, true, span)
+        whole = profile_quantities(full, np.asarray(true_offset_um(fl.side, evaluation.xi(full)), np.float64), span)
+        terms = (err[0] + abs(part[0] - whole[0]), err[1] + abs(part[1] - whole[1]),
+                 abs(err[2]) + abs(abs(part[2]) - abs(whole[2])))
+        prof = {k: float(np.nanmax([prof[k], v])) for k, v in zip(prof, terms, strict=True)}
     d = {s: np.asarray(positions_um[s], np.float64) - np.asarray(true_positions_um[s], np.float64)
          for s in ("left", "right")}
-    single = [np.abs(v - np.roll(v, 1)) for v in d.values()]
-    finite = lambda v: v[np.isfinite(v)]  # noqa: E731
-    rng = lambda v: float(finite(v).max() - finite(v).min()) if finite(v).size else 0.0  # noqa: E731
-    out["fp"] = max((float(finite(v).max()) for v in single if finite(v).size), default=0.0)
-    out["Fp"] = max(rng(v) for v in d.values())
-    out["Fr_gear_axis"] = rng(ball_heights(d["right"], d["left"], pressure_angle_rad))
-    return out
+
+    def top(values) -> float:
+        v = np.concatenate([np.ravel(x) for x in values])
+        v = v[np.isfinite(v)]
+        return float(v.max()) if v.size else math.nan
+
+    def rng(v: np.ndarray) -> float:
+        v = v[np.isfinite(v)]
+        return float(v.max() - v.min()) if v.size else math.nan
+
+    return {**prof, "fp": top(np.abs(v - np.roll(v, 1)) for v in d.values()),
+            "Fp": top([rng(v) for v in d.values()]),
+            "Fr_gear_axis": rng(ball_heights(d["right"], d["left"], pressure_angle_rad))}

@@ -20,7 +20,7 @@ def tol(truth: float) -> float:
     return 5.0 + 0.05 * abs(truth)
 
 
-STATEMENT_BOUNDS = [1.0, 2.0, 3.0]  # error bounds of three made-up mountings: U = 2 + 7.656 * 1
+STATEMENT_BOUNDS = [1.0, 2.0, 3.0]  # error bounds of three made-up mountings (plus the quantity's index): U = 2 + 7.656 + i
 
 
 def _statement(path, teeth: int = 20):
@@ -28,7 +28,8 @@ def _statement(path, teeth: int = 20):
     from gearscan.recon.substitution import BUDGETED, bound_uncertainty
     from gearscan.verify import Statement, write_statement
 
-    st = Statement({"teeth": teeth, "module": 2.0}, "made up", {k: bound_uncertainty(k, STATEMENT_BOUNDS) for k in BUDGETED},
+    st = Statement({"teeth": teeth, "module": 2.0}, "made up",
+                   {k: bound_uncertainty(k, [v + i for v in STATEMENT_BOUNDS]) for i, k in enumerate(BUDGETED)},
                    {}, {k: (None,) * 3 for k in BUDGETED}, None, None, {"xi_start": 0.1, "xi_end": 0.95, "bins": 20}, ())
     return write_statement(st, path)[0]
 
@@ -207,23 +208,34 @@ def test_readings_carry_the_statements_uncertainty(inspected):
     runout about the gear axis, not ISO's Fr), in the JSON, the Markdown and on the console; a statement of another
     gear type is refused before the replay runs."""
     from gearscan.cli import app
-    from gearscan.recon.substitution import bound_uncertainty, conformity
+    from gearscan.recon.substitution import (
+        BUDGETED,
+        CONFORMS,
+        UNDECIDED,
+        bound_uncertainty,
+        conformity,
+    )
 
     report, _, out, output = inspected
-    U = bound_uncertainty("fp", STATEMENT_BOUNDS).U
+    U = {k: bound_uncertainty(k, [v + i for v in STATEMENT_BOUNDS]).U for i, k in enumerate(BUDGETED)}
     stated = report["uncertainty"]
     assert stated["warnings"] == []  # the statement's master was three-step PS's too, evaluated alike
     summary, tol8 = report["summary_um"], report["tolerances_um"]
     for key, row in stated["quantities"].items():
+        assert row["U"] == pytest.approx(U[key])
         if key == "Fr_gear_axis":
             assert row["value"] == pytest.approx(report["inspection"]["runout_about_gear_axis_um"])
             assert row["decision"] is None and row["tolerance"] is None
             continue
-        assert row["value"] == pytest.approx(summary[key]) and row["U"] == pytest.approx(U)
-        assert row["tolerance"] == tol8[key] and row["decision"] == conformity(summary[key], U, tol8[key])
+        assert row["value"] == pytest.approx(summary[key]) and row["tolerance"] == tol8[key]
+        expect = conformity(summary[key], U[key], tol8[key])
+        if expect == CONFORMS and key.endswith("alpha") and report["profile_bins_left_out"]:
+            expect = UNDECIDED  # a profile not read whole cannot be shown to conform
+        assert row["decision"] == expect
     md = (out / "report.md").read_text()
     assert "## Measurement uncertainty" in md and "ISO 14253-1" in md
-    assert f"fp: {summary['fp']:.1f} ± {U:.1f} µm (U), tolerance {tol8['fp']:g}:" in output
+    assert f"fp {summary['fp']:.1f} ± {U['fp']:.1f} µm, tolerance {tol8['fp']:g}:" in output
+    assert f"|fH_alpha| {abs(summary['fH_alpha']):.1f} ± {U['fH_alpha']:.1f} µm" in output
     base = out.parent
     other = _statement(base / "other.json", teeth=30)
 
