@@ -36,12 +36,12 @@ from gearscan.recon.substitution import BUDGETED
 from gearscan.verify import U_MEANING, AppliedUncertainty, reading_text
 
 QUANTITIES = {  # key in Inspection.summary() -> (symbol, description)
-    "fp": ("fp", "single pitch deviation (largest |fp|)"),
+    "fp": ("fp", "single pitch deviation (the largest in magnitude)"),
     "Fp": ("Fp", "total cumulative pitch deviation"),
     "Fr": ("Fr", "runout (ball probe on the pitch circle, about the rotation axis)"),
     "F_alpha": ("Fα", "total profile deviation (worst flank)"),
     "ff_alpha": ("ffα", "profile form deviation (worst flank)"),
-    "fH_alpha": ("fHα", "profile slope deviation (largest |fHα|)"),
+    "fH_alpha": ("fHα", "profile slope deviation (the largest in magnitude)"),
 }
 
 

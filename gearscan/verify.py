@@ -322,8 +322,8 @@ def statement_markdown(st: Statement) -> str:
         f"{TOLERANCE_CONFIDENCE:.0%} confidence) + the certificate's U. All µm.", "",
         "| quantity | certified | headline readings | error bound per mounting | mean | s | k | U cert | **U** |",
         "|---|---|---|---|---|---|---|---|---|", *rows, "",
-        "It holds for gears of this type measured as the master was (the same rig, model, speed and settings). "
-        "`gearscan inspect --uncertainty` states each reading with it. Fr_gear_axis is the runout about the axis fitted "
+        "It holds for gears of this type (checked) decoded by the same model and evaluated alike (checked), on the same "
+        "rig at the same speed (not checked). `gearscan inspect --uncertainty` states each reading with it. Fr_gear_axis is the runout about the axis fitted "
         "to the teeth, not ISO 1328-1's Fr (which includes their eccentricity to the gear's datum): it gets no "
         "conformity decision.", ""])
 

@@ -38,12 +38,12 @@ RECOMMENDED_READINGS = 20
 # the axis fitted to the teeth, which leaves out the first harmonic (the teeth's eccentricity to a bore or the
 # turntable): not ISO's Fr, so it gets a U but no ISO 14253-1 decision)
 BUDGETED = {
-    "fp": "single pitch deviation (largest |fp|)",
+    "fp": "single pitch deviation (the largest in magnitude)",
     "Fp": "total cumulative pitch deviation",
     "Fr_gear_axis": "runout about the gear's own axis (ball probe, tooth spaces alone)",
     "F_alpha": "total profile deviation (worst flank)",
     "ff_alpha": "profile form deviation (worst flank)",
-    "fH_alpha": "profile slope deviation (largest |fH_alpha|, signed)",
+    "fH_alpha": "profile slope deviation (the largest in magnitude, signed)",
 }
 # the ISO 1328-1 tolerance each is judged against (iso1328_tolerances keys); Fr_gear_axis is not ISO's Fr
 TOLERANCE_KEY = {"fp": "fp", "Fp": "Fp", "F_alpha": "F_alpha", "ff_alpha": "ff_alpha", "fH_alpha": "fH_alpha"}
