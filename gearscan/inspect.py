@@ -385,7 +385,7 @@ def uncertainty_lines(stated: AppliedUncertainty | None) -> list[str]:
         return []
     lines = [reading_text(key, r) + (f", tolerance {r.tolerance:g}: {r.decision}" if r.decision else "")
              + (f" ({r.why})" if r.why else "") for key, r in stated.readings.items()]
-    return [*lines, f"(U: {U_MEANING})", *(f"warning: {w}" for w in stated.warnings)]
+    return [*lines, f"({U_MEANING})", *(f"warning: {w}" for w in stated.warnings)]
 
 
 def uncertainty_markdown(stated: AppliedUncertainty | None) -> list[str]:
