@@ -401,7 +401,7 @@ def uncertainty_markdown(stated: AppliedUncertainty | None) -> list[str]:
              "|---|---|" + ("---|---|" if graded else "")]
     for key, r in stated.readings.items():
         decision = f"{r.decision} ({r.why})" if r.why else r.decision
-        lines.append(f"| {key}: {BUDGETED[key]} | {reading_text(key, r)} |"
+        lines.append(f"| {key}: {BUDGETED[key]} | {reading_text(key, r, named=False)} |"
                      + (f" {r.tolerance:g} | {decision} |" if r.decision else " – | – |" if graded else ""))
     if graded:
         lines += ["", "Conforms: |reading| + U within the tolerance; does not conform: |reading| - U beyond it; "

@@ -445,10 +445,12 @@ def applied_uncertainty(statement: LoadedStatement, readings: dict[str, float | 
     return AppliedUncertainty(statement.path, out, tuple(warnings))
 
 
-def reading_text(key: str, r: StatedReading) -> str:
-    """``fp 12.3 ± 1.1 µm`` (fH_alpha as its magnitude, which U bounds)."""
+def reading_text(key: str, r: StatedReading, named: bool = True) -> str:
+    """``fp 12.3 ± 1.1 µm`` (fH_alpha as its magnitude, which U bounds); without the name for a table cell (where a
+    ``|`` would end the cell)."""
+    name = (f"|{key}| " if key == "fH_alpha" else f"{key} ") if named else ""
     if r.value is None:
-        return f"{key} not measured (U {r.U:.1f} µm)"
+        return f"{name}not measured (U {r.U:.1f} µm)"
     if key == "fH_alpha":
-        return f"|fH_alpha| {abs(r.value):.1f} ± {r.U:.1f} µm (reading {r.value:+.1f})"
-    return f"{key} {r.value:.1f} ± {r.U:.1f} µm"
+        return f"{name}{abs(r.value):.1f} ± {r.U:.1f} µm{'' if named else ' in magnitude'} (reading {r.value:+.1f})"
+    return f"{name}{r.value:.1f} ± {r.U:.1f} µm"
