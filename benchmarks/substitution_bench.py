@@ -105,7 +105,7 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
     for j, p in enumerate(pieces):
         truth_cert = certificate(p)
         r = read_report(p)
-        truth = truth_cert.headline_um(r.evaluation.xi_start, r.evaluation.xi_end, r.bins)
+        truth = truth_cert.headline_um(r.evaluation.xi_start, r.evaluation.xi_end, r.evaluation.bins)
         if any(r.headline[k] is None for k in BUDGETED) or r.flanks_of[0] < r.flanks_of[1]:
             raise SystemExit(f"{p}: measured on {r.flanks_of[0]} of {r.flanks_of[1]} flanks, headlines "
                              f"{r.headline}: the rule's checks need every quantity of the whole gear")

@@ -33,7 +33,14 @@ from gearscan.recon.inspect import (
 )
 from gearscan.recon.measure import PRODUCT_SUPPORT
 from gearscan.recon.substitution import BUDGETED
-from gearscan.verify import U_MEANING, AppliedUncertainty, reading_text
+from gearscan.verify import (
+    U_MEANING,
+    AppliedUncertainty,
+    applied_uncertainty,
+    inspection_readings,
+    load_statement,
+    reading_text,
+)
 
 QUANTITIES = {  # key in Inspection.summary() -> (symbol, description)
     "fp": ("fp", "single pitch deviation (the largest in magnitude)"),
@@ -247,8 +254,6 @@ def run_inspection(
         raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine)")
     statement = None
     if uncertainty is not None:  # refused before the replay: a bad file or another gear type costs no minutes
-        from gearscan.verify import load_statement
-
         statement = load_statement(uncertainty)
         statement.require_gear(gear.teeth, gear.module)
     span = revolution_deg(reader)
@@ -273,8 +278,6 @@ def run_inspection(
     truth = truth_comparison(reader.meta, insp)
     stated = None
     if statement is not None:
-        from gearscan.verify import applied_uncertainty, inspection_readings
-
         stated = applied_uncertainty(statement, inspection_readings(insp), insp.teeth, insp.module,
                                      (metrics.decoder or {}).get("model_fingerprint"), tolerances,
                                      {k: insp.settings[k] for k in ("xi_start", "xi_end", "bins")}, insp.coverage(),

@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from gearscan.recon.inspect import pitch_deviations
 from gearscan.recon.substitution import (
     BUDGETED,
     CONFORMS,
@@ -98,11 +99,10 @@ class Certificate(BaseModel):
 
     def headline_um(self, xi_start: float = 0.1, xi_end: float = 0.95, bins: int = 20) -> dict[str, float]:
         """The certified headline values, evaluated as the inspection does."""
-        pos = {s: np.asarray(self.positions_um[s], np.float64) for s in SIDES}
+        pitch = [pitch_deviations(self.positions_um[s]) for s in SIDES]
         prof = [profile_truth(self.profile_um[s].offset, xi_start, xi_end, bins) for s in SIDES]
-        return {"fp": max(float(np.abs(p - np.roll(p, 1)).max()) for p in pos.values()),
-                "Fp": max(float(p.max() - p.min()) for p in pos.values()),
-                "Fr_gear_axis": runout_about_gear_axis(pos, math.radians(self.gear.pressure_angle_deg)),
+        return {"fp": max(v[1] for v in pitch), "Fp": max(v[2] for v in pitch),
+                "Fr_gear_axis": runout_about_gear_axis(self.positions_um, math.radians(self.gear.pressure_angle_deg)),
                 **{k: max((p[k] for p in prof), key=abs) for k in ("F_alpha", "ff_alpha", "fH_alpha")}}
 
 
@@ -149,9 +149,9 @@ def twin_certificate(meta: dict) -> Certificate:
                            profile_um={s: profile for s in SIDES},
                            positions_um={s: [float(v) for v in truth["flank_position_um"][s]] for s in SIDES},
                            U_um=dict.fromkeys(BUDGETED, 0.0), source="the twin's truth (exact: U 0)")
+    except VerifyError:
+        raise
     except (KeyError, TypeError, ValueError) as exc:
-        if isinstance(exc, VerifyError):
-            raise
         raise VerifyError(f"the recording's twin truth is incomplete or malformed ({exc!r})") from exc
 
 
@@ -167,7 +167,6 @@ class MasterReading:
     flanks: tuple[FlankTrace, ...]
     positions_um: dict[str, tuple[float, ...]]
     evaluation: Evaluation
-    bins: int
     flanks_of: tuple[int, int]  # flanks measured, of all
     bins_left_out: int
     model: str | None
@@ -180,16 +179,21 @@ def _num(v) -> float | None:
     return float(v)
 
 
+def _read_json(path: Path, label: str, expected: str = ""):
+    """The JSON at ``path``; :class:`VerifyError` starting with ``label`` names the file and what went wrong."""
+    try:
+        return json.loads(path.read_text())
+    except OSError as exc:
+        raise VerifyError(f"{label} {path}: {exc.strerror or exc}{expected}") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise VerifyError(f"{label} {path}: not JSON ({exc})") from exc
+
+
 def read_report(path: str | Path) -> MasterReading:
     """One ``gearscan inspect`` report (its folder or ``report.json``); :class:`VerifyError` names what is wrong."""
     path = Path(path)
     file = path / "report.json" if path.is_dir() else path
-    try:
-        report = json.loads(file.read_text())
-    except OSError as exc:
-        raise VerifyError(f"report {file}: {exc.strerror or exc} (expected a `gearscan inspect` report folder)") from exc
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise VerifyError(f"report {file}: not JSON ({exc})") from exc
+    report = _read_json(file, "report", " (expected a `gearscan inspect` report folder)")
     try:
         summary, insp, model = report["summary_um"], report["inspection"], report.get("model") or {}
         settings = insp["settings"]
@@ -204,7 +208,7 @@ def read_report(path: str | Path) -> MasterReading:
                                     tuple(float(v) for v in f["trace_um"])) for f in flanks),
             positions_um={s: tuple(math.nan if v is None else float(v) for v in insp["position_um"][s]) for s in SIDES},
             evaluation=Evaluation(l_a, l_b, float(settings["xi_start"]), float(settings["xi_end"]), int(settings["bins"])),
-            bins=int(settings["bins"]), flanks_of=(len(flanks), 2 * teeth),
+            flanks_of=(len(flanks), 2 * teeth),
             bins_left_out=int(report.get("profile_bins_left_out") or insp.get("profile_bins_left_out") or 0),
             model=model.get("path"), model_fingerprint=model.get("fingerprint"))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -275,7 +279,7 @@ def verify(certificate: str | Path | Certificate, reports: list[str | Path]) -> 
                               "(measure a whole revolution)")
     for what, key in (("models", lambda r: r.model_fingerprint or "three-step PS"),
                       ("evaluation settings", lambda r: (round(r.evaluation.xi_start, 6), round(r.evaluation.xi_end, 6),
-                                                         r.bins))):
+                                                         r.evaluation.bins))):
         values = {key(r) for r in readings}
         if len(values) > 1:
             raise VerifyError(f"the reports differ in their {what} ({', '.join(map(str, sorted(values, key=str)))}): a "
@@ -292,10 +296,10 @@ def verify(certificate: str | Path | Certificate, reports: list[str | Path]) -> 
     return Statement(
         gear={"teeth": cert.gear.teeth, "module": cert.gear.module}, certificate_source=cert.source,
         quantities=bounds,
-        certified=cert.headline_um(first.evaluation.xi_start, first.evaluation.xi_end, first.bins),
+        certified=cert.headline_um(first.evaluation.xi_start, first.evaluation.xi_end, first.evaluation.bins),
         headline={k: tuple(r.headline[k] for r in readings) for k in BUDGETED}, model=first.model,
         model_fingerprint=first.model_fingerprint,
-        evaluation={"xi_start": first.evaluation.xi_start, "xi_end": first.evaluation.xi_end, "bins": first.bins},
+        evaluation={"xi_start": first.evaluation.xi_start, "xi_end": first.evaluation.xi_end, "bins": first.evaluation.bins},
         reports=tuple(str(r) for r in reports))
 
 
@@ -359,12 +363,7 @@ class LoadedStatement:
 def load_statement(path: str | Path) -> LoadedStatement:
     """The statement ``gearscan verify`` wrote; :class:`VerifyError` names the file and what is wrong."""
     path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except OSError as exc:
-        raise VerifyError(f"--uncertainty {path}: {exc.strerror or exc}") from exc
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise VerifyError(f"--uncertainty {path}: not JSON ({exc})") from exc
+    d = _read_json(path, "--uncertainty")
     if not isinstance(d, dict) or d.get("kind") != STATEMENT_KIND:
         raise VerifyError(f"--uncertainty {path}: not a statement `gearscan verify` wrote (kind {STATEMENT_KIND!r})")
     try:

@@ -291,6 +291,15 @@ def profile_quantities(roll: np.ndarray, trace: np.ndarray, span: float) -> tupl
     return float(trace.max() - trace.min()), float(resid.max() - resid.min()), float(b0 * span)
 
 
+def pitch_deviations(positions: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """One flank side's single pitch deviations ``p_k - p_(k-1)`` and its headlines fp (their largest magnitude) and
+    Fp (the positions' range), from its flanks' positions along the pitch circle (step 4); NaN: not measured."""
+    p = np.asarray(positions, np.float64)
+    single = p - np.roll(p, 1)
+    fp = float(np.nanmax(np.abs(single))) if np.isfinite(single).any() else math.nan
+    return single, fp, float(np.nanmax(p) - np.nanmin(p)) if np.isfinite(p).any() else math.nan
+
+
 def ball_heights(right: np.ndarray, left: np.ndarray, pressure_angle: float) -> np.ndarray:
     """Radial height of a ball probe in each tooth space k (tooth k's left, tooth k+1's right flank) from the flanks'
     positions along +theta on the pitch circle (step 5): a space ``w`` wider sits the ball ``w / (2 tan alpha)`` in."""
@@ -397,10 +406,11 @@ def inspect_gear(
                 trace_um=tuple(float(1e3 * v) for v in ly),
             ))
 
-    single = {n: (p - np.roll(p, 1)) for n, p in positions.items()}
+    pitch = {n: pitch_deviations(p) for n, p in positions.items()}
+    single = {n: v[0] for n, v in pitch.items()}
     cumulative = {n: p - p[0] for n, p in positions.items()}
-    fp = {n: float(np.nanmax(np.abs(v))) if np.isfinite(v).any() else math.nan for n, v in single.items()}
-    fp_total = {n: float(np.nanmax(p) - np.nanmin(p)) if np.isfinite(p).any() else math.nan for n, p in positions.items()}
+    fp = {n: v[1] for n, v in pitch.items()}
+    fp_total = {n: v[2] for n, v in pitch.items()}
 
     # ball probe in each tooth space k (tooth k left flank, tooth k+1 right flank), on the pitch circle
     gaps = (np.arange(z) + 0.5) * tau + theta0

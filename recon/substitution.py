@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from gearscan.recon.inspect import ball_heights, profile_quantities
+from gearscan.recon.inspect import ball_heights, pitch_deviations, profile_quantities
 
 K_COVERAGE = 2.0  # certificates state U with k = 2; ours are stated at the same confidence (95.45 %)
 CONFIDENCE = float(stats.norm.cdf(K_COVERAGE) - stats.norm.cdf(-K_COVERAGE))
@@ -150,8 +150,7 @@ def profile_truth(offset_um, xi_start: float, xi_end: float, bins: int) -> dict[
 def runout_about_gear_axis(position_um: Mapping[str, Sequence[float]], pressure_angle_rad: float) -> float:
     """Ball-probe runout about the gear's own axis (µm) from each flank's position along +theta on the pitch circle
     (``right``/``left``, one per tooth), as :func:`~gearscan.recon.inspect.inspect_gear` reads the tooth spaces."""
-    right, left = (np.asarray(position_um[s], np.float64) for s in ("right", "left"))
-    radial = -(np.roll(right, -1) - left) / (2 * math.tan(pressure_angle_rad))
+    radial = ball_heights(position_um["right"], position_um["left"], pressure_angle_rad)
     return float(radial.max() - radial.min())
 
 
@@ -243,29 +242,23 @@ def error_functionals(flanks: Sequence[FlankTrace], positions_um: Mapping[str, S
     no part: their headline may be larger (the inspection's coverage says so). NaN where nothing was read.
     """
     span, full = evaluation.l_b - evaluation.l_a, evaluation.centres_mm()
+    whole_of = {side: profile_quantities(full, np.asarray(true_offset_um(side, evaluation.xi(full)), np.float64), span)
+                for side in {fl.side for fl in flanks}}  # the true profile's values over every bin, per side
     prof: dict[str, float] = {"F_alpha": math.nan, "ff_alpha": math.nan, "fH_alpha": math.nan}
     for fl in flanks:
         roll = np.asarray(fl.roll_mm, np.float64)
         true = np.asarray(true_offset_um(fl.side, evaluation.xi(roll)), np.float64)
         err = profile_quantities(roll, np.asarray(fl.trace_um, np.float64) - true, span)
         # the bins not read: how much the true profile's value over the bins read differs from its whole one's
-        part = profile_quantities(roll, true, span)
-        whole = profile_quantities(full, np.asarray(true_offset_um(fl.side, evaluation.xi(full)), np.float64), span)
+        part, whole = profile_quantities(roll, true, span), whole_of[fl.side]
         terms = (err[0] + abs(part[0] - whole[0]), err[1] + abs(part[1] - whole[1]),
                  abs(err[2]) + abs(abs(part[2]) - abs(whole[2])))
         prof = {k: float(np.nanmax([prof[k], v])) for k, v in zip(prof, terms, strict=True)}
     d = {s: np.asarray(positions_um[s], np.float64) - np.asarray(true_positions_um[s], np.float64)
          for s in ("left", "right")}
 
-    def top(values) -> float:
-        v = np.concatenate([np.ravel(x) for x in values])
-        v = v[np.isfinite(v)]
-        return float(v.max()) if v.size else math.nan
-
-    def rng(v: np.ndarray) -> float:
-        v = v[np.isfinite(v)]
-        return float(v.max() - v.min()) if v.size else math.nan
-
-    return {**prof, "fp": top(np.abs(v - np.roll(v, 1)) for v in d.values()),
-            "Fp": top([rng(v) for v in d.values()]),
-            "Fr_gear_axis": rng(ball_heights(d["right"], d["left"], pressure_angle_rad))}
+    pitch = [pitch_deviations(v) for v in d.values()]  # fp and Fp of the errors bound those of the readings
+    radial = ball_heights(d["right"], d["left"], pressure_angle_rad)
+    radial = radial[np.isfinite(radial)]
+    return {**prof, "fp": float(np.nanmax([v[1] for v in pitch])), "Fp": float(np.nanmax([v[2] for v in pitch])),
+            "Fr_gear_axis": float(radial.max() - radial.min()) if radial.size else math.nan}
