@@ -55,6 +55,15 @@ MODULATION_RATIO: float | None = 1.0
 # point, an unfitted point above it is dropped and counted. Chosen on the seed-7 stretch (TrackRefiner's docstring);
 # `inspect` and `replay --fuse` take another with --max-point-sigma-um
 MAX_POINT_SIGMA_MM = 0.03
+# how the fit models the intensity's change as the surface turns through the frames: "drift" (mean and modulation
+# linear in the turn angle; the model until session 58) or "lambert" (both follow the projector's irradiance at the
+# point, cos(incidence) over distance squared from the point's normal, times a linear drift; only ambient light
+# stays constant)
+SHADINGS = ("drift", "lambert")
+SHADING = "drift"
+# "lambert" leaves out the samples lit more obliquely than this (cosine of the projector ray's incidence on the
+# point's estimated normal): there a few degrees of normal error change the predicted irradiance by tens of percent
+MIN_INCIDENCE_COS = 0.25
 
 
 @dataclass
@@ -116,7 +125,9 @@ class TrackRefiner:
                  min_spread: float = 0.05, visible_mm: float = 0.3, max_step_mm: float = 0.3,
                  outlier_sigma: float = 3.0, drift: bool = True, max_sigma_mm: float = MAX_POINT_SIGMA_MM,
                  rest_sigma_scale: float = REST_SIGMA_SCALE, fit_sigma_scale: float = FIT_SIGMA_SCALE,
-                 settle_rad: float | None = SETTLE_RAD, modulation_ratio: float | None = MODULATION_RATIO) -> None:
+                 settle_rad: float | None = SETTLE_RAD, modulation_ratio: float | None = MODULATION_RATIO,
+                 shading: str = SHADING, normal_radius_mm: float = 0.3,
+                 min_incidence_cos: float = MIN_INCIDENCE_COS) -> None:
         if not period_px > 0:
             raise ValueError(f"period_px: expected > 0 projector pixels, got {period_px}")
         if iterations < 1 or min_frames < 4:
@@ -134,8 +145,17 @@ class TrackRefiner:
                              f"corrections), got iterations={iterations}")
         if modulation_ratio is not None and not (math.isfinite(modulation_ratio) and modulation_ratio > 0):
             raise ValueError(f"modulation_ratio: expected a ratio B / A > 0 (or None: no test), got {modulation_ratio}")
+        if shading not in SHADINGS:
+            raise ValueError(f"shading: expected one of {SHADINGS}, got {shading!r}")
+        if not (math.isfinite(normal_radius_mm) and normal_radius_mm > 0):
+            raise ValueError(f"normal_radius_mm: expected a radius > 0 mm, got {normal_radius_mm}")
+        if not 0 <= min_incidence_cos < 1:
+            raise ValueError(f"min_incidence_cos: expected a cosine in [0, 1), got {min_incidence_cos}")
         self.rig = rig
         self.period_px = float(period_px)
+        self.shading = shading
+        self.min_incidence_cos = float(min_incidence_cos)
+        self.normal_radius_mm = float(normal_radius_mm)
         self.iterations = int(iterations)
         self.min_frames = int(min_frames)
         self.min_spread = float(min_spread)
@@ -229,11 +249,15 @@ class TrackRefiner:
         vis[idx] = np.abs(d - p[idx, 2]) <= self.visible_mm  # NaN (no point there) compares False
         return vis
 
-    def _samples(self, pts: np.ndarray, ip: np.ndarray, bounds: np.ndarray, k: int,
-                 rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _samples(self, pts: np.ndarray, ip: np.ndarray, bounds: np.ndarray, k: int, rays: np.ndarray,
+                 normals: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """For visible (point, burst) pairs, frame ``k`` of the burst: intensity, model phase, its
-        derivative along the ray (rad/mm), whether the sample lies inside the image, frame angle."""
+        derivative along the ray (rad/mm), whether the sample lies inside the image, frame angle, and (with
+        ``normals``) the projector's relative irradiance there, cos(incidence) (d_ref / d)^2 (0 where unlit)."""
         cam, proj = self.rig.camera, self.rig.projector
+        c_proj = proj.center_world
+        d_ref = float(np.linalg.norm(c_proj))
+        gain = np.zeros(len(ip))
         intensity = np.zeros(len(ip))
         psi = np.zeros(len(ip))
         dpsi = np.zeros(len(ip))
@@ -264,7 +288,13 @@ class TrackRefiner:
             dpsi[sel] = scale * (u_pd - u_p) / eps
             inside[sel] = ok
             angle[sel] = b.angles[k]
-        return intensity, psi, dpsi, inside, angle
+            if normals is not None:
+                to_proj = c_proj - world
+                dist = np.linalg.norm(to_proj, axis=1)
+                n_world = normals[ip[sel]] @ rot_z(b.angles[k])[:3, :3].T
+                cos = np.einsum("ij,ij->i", n_world, to_proj) / dist
+                gain[sel] = np.where(cos >= self.min_incidence_cos, cos, 0.0) * (d_ref / dist) ** 2
+        return intensity, psi, dpsi, inside, angle, gain
 
     # -- the fit ------------------------------------------------------------------------------
     def refine(self, points: np.ndarray) -> TrackResult:
@@ -274,6 +304,7 @@ class TrackRefiner:
             raise ValueError(f"points: expected (N, 3) gear-frame points, got shape {pts0.shape}")
         if not self.bursts:
             raise ValueError("no bursts added: nothing to refine on")
+        normals = surface_normals(pts0, self.normal_radius_mm) if self.shading == "lambert" else None
         out_pts, out_sigma = pts0.copy(), np.full(len(pts0), np.inf)
         out_rays = np.zeros_like(pts0)
         refined = np.zeros(len(pts0), bool)
@@ -282,7 +313,7 @@ class TrackRefiner:
         unsettled = implausible = 0
         for start in range(0, len(pts0), _CHUNK):
             sl = slice(start, start + _CHUNK)
-            p, s, r, f, mv, ray, u, im = self._refine_chunk(pts0[sl])
+            p, s, r, f, mv, ray, u, im = self._refine_chunk(pts0[sl], None if normals is None else normals[sl])
             out_pts[sl], out_sigma[sl], refined[sl], frames[sl], moved[sl], out_rays[sl] = p, s, r, f, mv, ray
             unsettled += u
             implausible += im
@@ -291,7 +322,7 @@ class TrackRefiner:
                  "median_abs_move_mm": float(np.median(np.abs(moved[refined]))) if refined.any() else 0.0}
         return TrackResult(out_pts, out_sigma, refined, frames.astype(np.int32), moved, out_rays, stats)
 
-    def _refine_chunk(self, pts: np.ndarray):
+    def _refine_chunk(self, pts: np.ndarray, normals: np.ndarray | None):
         n = len(pts)
         vis_rows, vis_cols = [], []
         for bi, b in enumerate(self.bursts):
@@ -312,25 +343,31 @@ class TrackRefiner:
         c_gear = np.stack([cth * c_world[0] + sth * c_world[1], -sth * c_world[0] + cth * c_world[1],
                            np.full(n, c_world[2])], axis=1)
         rays = _unit(pts - c_gear)
+        if normals is not None:  # facing the camera that saw the point: the side the projector lit too
+            normals = normals * -np.sign(np.einsum("ij,ij->i", normals, rays))[:, None]
         x = pts.copy()
         sigma = np.full(n, np.inf)
         ok_fit = np.zeros(n, bool)
         used = np.zeros(n, np.int64)
         keep = None
         for it in range(self.iterations):
-            cols = [self._samples(x, ip, bounds, k, rays) for k in range(3)]
+            cols = [self._samples(x, ip, bounds, k, rays, normals) for k in range(3)]
             idx = np.concatenate([ip] * 3)
             val = np.concatenate([c[0] for c in cols])
             psi = np.concatenate([c[1] for c in cols])
             dpsi = np.concatenate([c[2] for c in cols])
             good = np.concatenate([c[3] for c in cols])
             tau = np.angle(np.exp(1j * (np.concatenate([c[4] for c in cols]) - theta[idx])))
+            gain = None if normals is None else np.concatenate([c[5] for c in cols])
+            if gain is not None:  # lit steeply enough to trust the predicted irradiance
+                good &= gain > 0
             if keep is not None:
                 good &= keep
-            coef, res_sd, nfr, spread, sig_eps = _fit(idx[good], val[good], psi[good], tau[good], n, self.drift)
+            g_good = None if gain is None else gain[good]
+            coef, res_sd, nfr, spread, sig_eps = _fit(idx[good], val[good], psi[good], tau[good], n, self.drift, g_good)
             cc, ss = coef[:, 1], coef[:, 2]
             if it == self.iterations - 2 or self.iterations == 1:  # drop samples far from the fit
-                pred = np.einsum("ij,ij->i", _design(psi, tau, self.drift), coef[idx])
+                pred = np.einsum("ij,ij->i", _design(psi, tau, self.drift, gain), coef[idx])
                 keep = np.abs(val - pred) <= self.outlier_sigma * np.maximum(res_sd[idx], 1e-6)
             eps = np.arctan2(ss, cc)  # phase the frames show minus the point's model phase
             slope = np.bincount(idx[good], dpsi[good], minlength=n) / np.maximum(nfr, 1)
@@ -344,7 +381,11 @@ class TrackRefiner:
                 unsettled = fit & ~(np.abs(eps) <= self.settle_rad)  # NaN counts as unsettled
                 fit &= ~unsettled
             if it == self.iterations - 1 and self.modulation_ratio is not None:  # B > A: a negative intensity
-                implausible = fit & ~(np.hypot(cc, ss) <= self.modulation_ratio * coef[:, 0])
+                mean_a, mod_b = coef[:, 0], np.hypot(cc, ss)
+                if gain is not None:  # at the point's mean irradiance: A = ambient + g b, B = g hypot(C, S)
+                    g_mean = np.bincount(idx[good], g_good, minlength=n) / np.maximum(nfr, 1)
+                    mean_a, mod_b = coef[:, -1] + g_mean * coef[:, 0], g_mean * mod_b
+                implausible = fit & ~(mod_b <= self.modulation_ratio * mean_a)
                 fit &= ~implausible
             with np.errstate(divide="ignore", invalid="ignore"):
                 step = np.where(fit, eps / slope, 0.0)
@@ -357,6 +398,16 @@ class TrackRefiner:
         rays = np.where((count > 0)[:, None], rays, np.nan)  # no burst saw it: no view, no ray
         return (x, sigma, ok_fit, used, moved, rays, int(unsettled.sum()),
                 int(implausible.sum()))
+
+
+def surface_normals(points: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Unit normals ``(N, 3)`` of a fused cloud from its neighbours within ``radius_mm`` (at most 30; the plane through
+    them), unoriented; NaN-free: a point with too few neighbours gets open3d's fallback."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_mm, max_nn=30))
+    return np.asarray(pcd.normals)
 
 
 def off_surface(points: np.ndarray, fitted: np.ndarray, *, radius_mm: float = 0.5, min_neighbours: int = 6,
@@ -388,19 +439,28 @@ def off_surface(points: np.ndarray, fitted: np.ndarray, *, radius_mm: float = 0.
     return out
 
 
-def _design(psi: np.ndarray, tau: np.ndarray, drift: bool) -> np.ndarray:
-    """Columns of ``I = a + C cos(psi) - S sin(psi)`` (``drift``: each also linear in ``tau``)."""
+def _design(psi: np.ndarray, tau: np.ndarray, drift: bool, gain: np.ndarray | None = None) -> np.ndarray:
+    """Columns of ``I = a + C cos(psi) - S sin(psi)`` (``drift``: each also linear in ``tau``). With ``gain`` (the
+    projector's relative irradiance per sample, ``"lambert"`` shading): ``I = g (b + C cos(psi) - S sin(psi)) + a``,
+    ``b``, ``C``, ``S`` linear in ``tau`` with ``drift``, ``a`` (ambient) constant; ``b``, ``C``, ``S`` come first."""
     c, s = np.cos(psi), -np.sin(psi)
+    if gain is not None:
+        cols = [gain, gain * c, gain * s]
+        if drift:
+            cols += [gain * tau, gain * tau * c, gain * tau * s]
+        return np.stack([*cols, np.ones_like(c)], axis=1)
     cols = [np.ones_like(c), c, s]
     if drift:  # shading that changes as the surface turns: a, C, S linear in the turn angle
         cols += [tau, tau * c, tau * s]
     return np.stack(cols, axis=1)
 
 
-def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: int, drift: bool):
-    """Per-point least squares over its samples (:func:`_design`): coefficients ``(n, 3 or 6)``
-    (a, C, S first), the residual standard deviation, the number of samples and the spread of ``psi``."""
-    x = _design(psi, tau, drift)
+def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: int, drift: bool,
+         gain: np.ndarray | None = None):
+    """Per-point least squares over its samples (:func:`_design`): coefficients ``(n, 3 to 7)``
+    (the mean or, with ``gain``, the projector's share of it, then C, S), the residual standard deviation, the number of
+    samples and the spread of ``psi``."""
+    x = _design(psi, tau, drift, gain)
     p = x.shape[1]
     ata = np.empty((n, p, p))
     atb = np.empty((n, p))
@@ -408,12 +468,12 @@ def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: 
         atb[:, i] = np.bincount(idx, x[:, i] * val, minlength=n)
         for j in range(i, p):
             ata[:, i, j] = ata[:, j, i] = np.bincount(idx, x[:, i] * x[:, j], minlength=n)
-    count = ata[:, 0, 0]
+    count = np.bincount(idx, minlength=n).astype(np.float64)
     # how well the phases cover the circle: 1 for an even spread, 0 at one phase (or at two
-    # opposite ones, which leave sin and cos apart unresolved)
-    spread = 2.0 * np.linalg.eigvalsh(ata[:, :3, :3] / np.maximum(count, 1)[:, None, None])[:, 0]
+    # opposite ones, which leave sin and cos apart unresolved); with gain, weighted by it
+    spread = 2.0 * np.linalg.eigvalsh(ata[:, :3, :3] / np.maximum(ata[:, 0, 0], 1e-12)[:, None, None])[:, 0]
     solvable = (count >= 2 * p) & (spread > 1e-3)
-    if drift:
+    if drift or gain is not None:
         solvable &= np.linalg.eigvalsh(ata)[:, 0] > 1e-12 * np.maximum(count, 1)
     sol = np.zeros((n, p))
     cov_cs = np.full((n, 2, 2), np.inf)  # (C, S) block of the inverse normal matrix

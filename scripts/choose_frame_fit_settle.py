@@ -35,7 +35,7 @@ INCUMBENT, COVERAGE_SLACK, RMS_SLACK, MARGIN = None, 0.005, 0.05, 0.03
 
 
 def label(c: float | None) -> str:
-    return "off" if c is None else f"{c:g}"
+    return "off" if c is None else c if isinstance(c, str) else f"{c:g}"
 
 
 class _KeepingRefiner(TrackRefiner):
@@ -85,11 +85,11 @@ def geomean(xs) -> float:
 
 
 def choose(cells: list[dict], incumbent: float | None = INCUMBENT, models=None, field: str = "settle_rad",
-           candidates=CANDIDATES) -> dict:
-    """The rule: admissible candidates (on every cell coverage at least off's minus COVERAGE_SLACK and RMS at most
-    RMS_SLACK above off's), geometric-mean scores, the pick (a change from ``incumbent`` needs a MARGIN lower score).
-    Only ``models``' cells (default: this run's MODELS) are pooled; every candidate must have every cell. ``field``:
-    the cells' key of the candidate value (None: no test, the floors' reference)."""
+           candidates=CANDIDATES, reference=None, metric: str = "rms_um") -> dict:
+    """The rule: admissible candidates (on every cell coverage at least ``reference``'s minus COVERAGE_SLACK and RMS at
+    most RMS_SLACK above its), geometric-mean scores of ``metric``, the pick (a change from ``incumbent`` needs a MARGIN
+    lower score). Only ``models``' cells (default: this run's MODELS) are pooled; every candidate must have every cell.
+    ``field``: the cells' key of the candidate value; ``reference`` (default None: no test) sets the floors."""
     models = set(MODELS if models is None else models)
     cells = [c for c in cells if c["model"] in models]
     keys = sorted({(c["model"], c["seed"], c["order"]) for c in cells})
@@ -101,16 +101,16 @@ def choose(cells: list[dict], incumbent: float | None = INCUMBENT, models=None, 
     def cell(c, key):
         return next(x for x in cells if x[field] == c and (x["model"], x["seed"], x["order"]) == key)
 
-    score = {c: geomean(cell(c, k)["rms_um"] for k in keys) for c in candidates}
-    admissible = {c: all(cell(c, k)["coverage"] >= cell(None, k)["coverage"] - COVERAGE_SLACK
-                         and cell(c, k)["rms_um"] <= (1 + RMS_SLACK) * cell(None, k)["rms_um"] for k in keys)
+    score = {c: geomean(cell(c, k)[metric] for k in keys) for c in candidates}
+    admissible = {c: all(cell(c, k)["coverage"] >= cell(reference, k)["coverage"] - COVERAGE_SLACK
+                         and cell(c, k)["rms_um"] <= (1 + RMS_SLACK) * cell(reference, k)["rms_um"] for k in keys)
                   for c in candidates}
     best = min((c for c in candidates if admissible[c]), key=lambda c: score[c])
     chosen = best if score[best] <= (1 - MARGIN) * score[incumbent] else incumbent
     fresh = {s["seed"] for s in FRESH_STRETCHES}
     report = {  # read out, not chosen on
-        "fresh_score_um": {label(c): geomean(cell(c, k)["rms_um"] for k in keys if k[1] in fresh) for c in candidates},
-        "per_model_order_score_um": {f"{m} / {o}": {label(c): geomean(cell(c, k)["rms_um"] for k in keys
+        "fresh_score_um": {label(c): geomean(cell(c, k)[metric] for k in keys if k[1] in fresh) for c in candidates},
+        "per_model_order_score_um": {f"{m} / {o}": {label(c): geomean(cell(c, k)[metric] for k in keys
                                                                      if (k[0], k[2]) == (m, o)) for c in candidates}
                                      for m in sorted({k[0] for k in keys}) for o in ("alternating", "fixed")},
     }
