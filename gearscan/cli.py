@@ -333,6 +333,7 @@ def replay_cmd(
     network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: per burst none for the shipped v9 and the default-rig option (v9's, inherited), 2 px for v6; with --fuse and its frame fit none for v9 and the option (since session 48), 0 px for v6; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
     max_sigma_rad: Annotated[float | None, typer.Option(min=0.01, help="report no point whose total phase sigma exceeds this, rad (the fringe orders are found on the pixels within it, recon.measure.UNWRAP_MAX_SIGMA; default: the product's val choice for the path, recon.measure.MAX_SIGMA_RAD per burst, FRAME_FIT_MAX_SIGMA_RAD with --fuse and its frame fit, then for every burst of the run, its per-burst metrics and exports too)")] = None,
     max_point_sigma_um: Annotated[float | None, typer.Option(min=0.1, help="with --fuse and its frame fit: report no point of the fitted cloud whose sigma exceeds this, µm: a fit must meet it to replace its fused point, an unfitted point above it is dropped and counted (default 30, recon.track.MAX_POINT_SIGMA_MM; needs the frame fit)")] = None,
+    frame_fit_shading: Annotated[str | None, typer.Option(help="with --fuse and its frame fit: how the fit models the light a point gets as the gear turns: lambert (irradiance from the point's normal, for matt surfaces; the twin renders it) or drift (mean and modulation linear in the turn angle, no surface model); default recon.track.SHADING")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
 
@@ -348,6 +349,8 @@ def replay_cmd(
         raise typer.BadParameter(f"expected auto, normal or mirrored, got {orientation!r}", param_hint="--orientation")
     point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine and fuse is not None,
                                      needs="give --fuse FILE and leave the frame fit on (no --no-refine)")
+    _shading(frame_fit_shading, fitted=refine and fuse is not None,
+             needs="give --fuse FILE and leave the frame fit on (no --no-refine)")
     decoder = _decoder(classical, mc, model, workers=workers, orientation=orientation, **span)
     web = None
     if serve:
@@ -389,7 +392,7 @@ def replay_cmd(
                         network_support_px=network_support_option(network_support_px,
                                                                   frame_fit=refine and fuser is not None,
                                                                   model=decoder.network_support),
-                        max_sigma=max_sigma_rad, point_sigma_mm=point_sigma_mm)
+                        max_sigma=max_sigma_rad, point_sigma_mm=point_sigma_mm, shading=frame_fit_shading)
         if fuse is not None:
             from gearscan.inspect import dropped_note
             from gearscan.recon.fuse import save_fused
@@ -708,6 +711,18 @@ def evaluate_cmd(
     typer.echo(f"report: {out / 'report.md'}")
 
 
+def _shading(shading: str | None, *, fitted: bool, needs: str) -> None:
+    """``--frame-fit-shading`` refused before anything runs: a name the fit does not know, or no fit to model."""
+    from gearscan.recon.track import SHADINGS
+
+    if shading is None:
+        return
+    if shading not in SHADINGS:
+        raise typer.BadParameter(f"expected one of {', '.join(SHADINGS)}, got {shading!r}", param_hint="--frame-fit-shading")
+    if not fitted:
+        raise typer.BadParameter(f"the shading model is the frame fit's: {needs}", param_hint="--frame-fit-shading")
+
+
 def _point_sigma_mm(um: float | None, *, fitted: bool, needs: str) -> float | None:
     """``--max-point-sigma-um`` as the frame fit's bound in mm, refused where no fit runs (``needs``: what the command
     asks for one) or the value is not finite."""
@@ -760,6 +775,7 @@ def inspect_cmd(
     refine: Annotated[bool, typer.Option(help="fit each fused point to every raw frame that saw it (keeps the recording's frames in memory)")] = True,
     network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: with the frame fit none for the shipped v9 (since session 48) and the default-rig option (v9's, inherited), 0 px for v6; with --no-refine none for v9 and the option, 2 px for v6; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
     max_point_sigma_um: Annotated[float | None, typer.Option(min=0.1, help="report no point of the fitted cloud whose sigma exceeds this, µm: a fit must meet it to replace its fused point, an unfitted point above it is dropped and counted (default 30, recon.track.MAX_POINT_SIGMA_MM; needs the frame fit; not with --no-refine)")] = None,
+    frame_fit_shading: Annotated[str | None, typer.Option(help="how the frame fit models the light a point gets as the gear turns: lambert (irradiance from the point's normal, for matt surfaces; the twin renders it) or drift (mean and modulation linear in the turn angle, no surface model); default recon.track.SHADING; not with --no-refine")] = None,
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON to measure with (the file `gearscan calibrate` wrote; replaces the recording's own)")] = None,
     uncertainty: Annotated[Path | None, typer.Option(help="measurement uncertainty statement of this gear type (`gearscan verify` wrote it from a master gear): each reading gets its U and, with --grade, an ISO 14253-1 decision")] = None,
 ) -> None:
@@ -772,6 +788,7 @@ def inspect_cmd(
     if unwrap not in ("cad", "envelope"):
         raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")
     point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine, needs="leave the frame fit on (no --no-refine)")
+    _shading(frame_fit_shading, fitted=refine, needs="leave the frame fit on (no --no-refine)")
     _require_recording(recording)
     _writable(out, "--out", folder=True)
     _writable(save, "--save")
@@ -781,7 +798,8 @@ def inspect_cmd(
                                 unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"),
                                 network_support_px=network_support_option(network_support_px, frame_fit=refine,
                                                                           model=decoder.network_support),
-                                point_sigma_mm=point_sigma_mm, rig=rig, uncertainty=uncertainty)
+                                point_sigma_mm=point_sigma_mm, rig=rig, uncertainty=uncertainty,
+                                shading=frame_fit_shading)
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
     from gearscan.inspect import chip_verdict, quantity_line, uncertainty_lines

@@ -222,6 +222,7 @@ def run_inspection(
     point_sigma_mm: float | None = None,
     rig: str | Path | Rig | None = None,
     uncertainty: str | Path | None = None,
+    shading: str | None = None,
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
@@ -234,7 +235,8 @@ def run_inspection(
     rad (None: the product's for the path, as :func:`~gearscan.replay.replay` resolves it); ``point_sigma_mm``: the
     fitted cloud's bound on every point's sigma, mm (None: the fit's own; needs ``refine``); ``rig``: the calibration
     to measure with (a file or a Rig; None: the recording's own); ``uncertainty``: a ``gearscan verify`` statement
-    for this gear type, stated with each reading (:func:`gearscan.verify.applied_uncertainty`). ``inspect_options`` go to
+    for this gear type, stated with each reading (:func:`gearscan.verify.applied_uncertainty`); ``shading``: the frame
+    fit's shading model (None: the product's, ``recon.track.SHADING``; needs ``refine``). ``inspect_options`` go to
     :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import recording_rig, replay
@@ -252,6 +254,8 @@ def run_inspection(
                              f"{truth_teeth}: the gear spec does not match the gear that was recorded")
     if point_sigma_mm is not None and not refine:
         raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine)")
+    if shading is not None and not refine:
+        raise ValueError("shading: the shading model is the frame fit's; it needs the fit (refine)")
     statement = None
     if uncertainty is not None:  # refused before the replay: a bad file or another gear type costs no minutes
         statement = load_statement(uncertainty)
@@ -262,6 +266,7 @@ def run_inspection(
     fuser = CloudFuser(voxel_mm, min_bursts)
     metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine,
                      network_support_px=network_support_px, max_sigma=max_sigma, point_sigma_mm=point_sigma_mm,
+                     shading=shading,
                      rig=None if rig is None else used)
     if metrics.fused is None or not len(metrics.fused):
         raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
@@ -434,6 +439,7 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
            "the deviation's")
         + ")"
         + (f"; {100 * report.fused.refined.mean():.0f} % of the points fitted to the raw frames that saw them"
+           + (f" ({report.refine['shading']} shading)" if (report.refine or {}).get("shading") else "")
            + (f", every point's σ within {1e3 * report.refine['sigma_bound_mm']:g} µm (the fit's bound)."
               if (report.refine or {}).get("sigma_bound_mm") else ".")
            if report.fused.refined is not None else ".") + dropped_note(report.refine),

@@ -254,6 +254,7 @@ def replay(
     max_sigma: float | None = None,
     refiner_factory: Callable[..., object] | None = None,
     point_sigma_mm: float | None = None,
+    shading: str | None = None,
 ) -> ReplayMetrics:
     """Run ``recording`` through the pipeline. ``speed=None`` means as fast as possible.
 
@@ -279,6 +280,8 @@ def replay(
     ``refiner_factory(rig, period_px, rest_sigma_scale=c)``: that fit with other settings than the product's (the rule scripts'
     candidates), e.g. ``functools.partial(TrackRefiner, settle_rad=0.1)``. ``point_sigma_mm``: the fitted cloud's bound
     on every point's sigma, mm (None: the fit's own, :data:`~gearscan.recon.track.MAX_POINT_SIGMA_MM`); needs the fit.
+    ``shading``: how the fit models the light a point gets as the gear turns (``"lambert"`` or ``"drift"``,
+    :data:`~gearscan.recon.track.SHADINGS`; None: the product's, :data:`~gearscan.recon.track.SHADING`); needs the fit.
 
     ``rig``: the calibration (file or :class:`Rig`) for a recording made without one; it
     replaces the recording's own when both exist. ``export``: every burst's cloud is also
@@ -288,6 +291,7 @@ def replay(
     from gearscan.acquisition.camera import GrabTimeout
     from gearscan.mocks.replay_camera import ReplayCamera
 
+    fit_options: dict = {}
     if point_sigma_mm is not None:  # refused before anything is replayed
         if not (refine and fuse is not None):
             raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine with fuse)")
@@ -295,9 +299,21 @@ def replay(
             raise ValueError("point_sigma_mm: give the bound to the refiner_factory's refiner instead")
         if not (math.isfinite(point_sigma_mm) and point_sigma_mm > 0):
             raise ValueError(f"point_sigma_mm: expected a finite sigma > 0 mm, got {point_sigma_mm}")
+        fit_options["max_sigma_mm"] = point_sigma_mm
+    if shading is not None:
+        from gearscan.recon.track import SHADINGS
+
+        if not (refine and fuse is not None):
+            raise ValueError("shading: the shading model is the frame fit's; it needs the fit (refine with fuse)")
+        if refiner_factory is not None:
+            raise ValueError("shading: give the shading model to the refiner_factory's refiner instead")
+        if shading not in SHADINGS:
+            raise ValueError(f"shading: expected one of {', '.join(SHADINGS)}, got {shading!r}")
+        fit_options["shading"] = shading
+    if fit_options:
         from gearscan.recon.track import TrackRefiner
 
-        refiner_factory = partial(TrackRefiner, max_sigma_mm=point_sigma_mm)
+        refiner_factory = partial(TrackRefiner, **fit_options)
     reader = RecordingReader(recording)
     reader.encoder_samples()  # replay uses the frames' angles; this counts encoder.jsonl damage
     if len(reader) < 3:

@@ -12,6 +12,13 @@ so one linear least-squares fit per point gives the phase offset ``eps`` between
 show and what ``X`` predicts. ``eps = 0`` exactly where ``X`` is on the real surface, so ``X`` is
 moved along its camera ray by ``eps`` over the phase's depth sensitivity, and the fit repeated.
 
+How the light on ``X`` changes as the gear turns is the fit's ``shading`` model. ``"drift"``: the mean intensity
+and the modulation linear in the turn angle, no surface model. ``"lambert"``: both follow the projector's irradiance
+``g = cos(incidence) / d^2`` at ``X`` in each frame, from ``X``'s normal (its fused neighbours' plane), times a
+linear drift, plus constant ambient light: what a matt surface (and the twin) does. Over the 40-60 frames that see a
+point ``g`` is not linear in the turn angle, and what a linear drift leaves of it biases the fitted phase by a few
+millirad the same way for every point sampled alike (``benchmarks/frame_fit_shading_rule.md``).
+
 What it needs is only geometry and the encoder: the fused cloud (any decoder's) as the start,
 within a fraction of a fringe of the surface. It uses no CAD, so a gear that is not its CAD
 keeps its deviation. A frame that did not see the point (occluded, shadowed, another surface at
@@ -317,7 +324,8 @@ class TrackRefiner:
             out_pts[sl], out_sigma[sl], refined[sl], frames[sl], moved[sl], out_rays[sl] = p, s, r, f, mv, ray
             unsettled += u
             implausible += im
-        stats = {"points": len(pts0), "refined": int(refined.sum()), "unsettled": unsettled, "implausible": implausible,
+        stats = {"shading": self.shading, "points": len(pts0), "refined": int(refined.sum()), "unsettled": unsettled,
+                 "implausible": implausible,
                  "median_frames": float(np.median(frames[refined])) if refined.any() else 0.0,
                  "median_abs_move_mm": float(np.median(np.abs(moved[refined]))) if refined.any() else 0.0}
         return TrackResult(out_pts, out_sigma, refined, frames.astype(np.int32), moved, out_rays, stats)
