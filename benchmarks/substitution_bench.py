@@ -7,8 +7,10 @@ A master gear with a certificate (the twin's truth) is measured ``--masters`` ti
 checked against its truth: within U, or not. That check can fail; the statement is only worth what it passes.
 
     python benchmarks/substitution_bench.py [--masters 5] [--workpieces 3] [--report benchmarks/substitution_report]
+        [--reports out/substitution]
 
-Renders and inspections are cached under ``out/substitution/`` (delete to redo). Default rig, 512x512, z = 20,
+Renders are cached under ``out/substitution/``, inspections under ``--reports`` (default the same; delete to redo;
+another folder re-inspects the same renders, e.g. after a change to the measurement). Default rig, 512x512, z = 20,
 m = 2 mm, 0.6 deg/frame (200 bursts, one revolution), patterns in alternating order, the shipped network.
 """
 
@@ -50,15 +52,16 @@ def mounting(i: int) -> dict:
     return {"eccentricity_um": 20.0, "eccentricity_deg": (72.0 * i) % 360.0}
 
 
-def measure(name: str, defects: dict, seed: int, start_deg: float) -> Path:
-    """Render (cached) one revolution of a gear with ``defects`` and inspect it (cached); the report folder."""
+def measure(name: str, defects: dict, seed: int, start_deg: float, reports: Path = WORK) -> Path:
+    """Render (cached) one revolution of a gear with ``defects`` and inspect it (cached, under ``reports``); the report
+    folder."""
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import run_inspection
     from gearscan.recon.measure import network_support_option
     from gearscan.twin.defects import GearDefects
     from gearscan.twin.recordings import render_recording
 
-    rec, out = WORK / f"rec_{name}", WORK / f"report_{name}"
+    rec, out = WORK / f"rec_{name}", reports / f"report_{name}"
     if not (rec / "recording.json").exists():
         t = time.perf_counter()
         render_recording(rec, defects=GearDefects(**defects), motion="uniform:0.6", bursts=200, alternate_order=True,
@@ -75,7 +78,7 @@ def measure(name: str, defects: dict, seed: int, start_deg: float) -> Path:
 
 def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str, head: str) -> None:
     """Both methods of ``benchmarks/substitution_rule.md`` on the masters, every workpiece reading checked against its
-    truth; writes ``report``.md/.json and the shipped method's statement ``out/substitution/uncertainty.json``."""
+    truth; writes ``report``.md/.json and the shipped method's statement ``uncertainty.json`` beside the inspections."""
     from gearscan.recon.inspect import iso1328_tolerances
     from gearscan.recon.substitution import (
         BUDGETED,
@@ -99,7 +102,9 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
     iso = {k: quantity_uncertainty(k, certified[k], 0.0, [r.headline[k] for r in master_reads]) for k in BUDGETED}
     # 2. the amendment: the bound method (what `gearscan verify` ships), judged on all six workpieces
     statement = verify(cert, masters)
-    write_statement(statement, WORK / "uncertainty.json")
+    write_statement(statement, masters[0].parent / "uncertainty.json")
+    shadings = sorted({str(json.loads((f / "report.json").read_text())["fused"].get("frame_fit_shading"))
+                       for f in [*masters, *pieces]})
     tolerances = {g: iso1328_tolerances(2.0, 40.0, g) for g in (5, 6, 7, 8)}
     checks = []
     for j, p in enumerate(pieces):
@@ -130,7 +135,8 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
         f"host: {started}. Rule and its amendment (both written before the analysis): `benchmarks/substitution_rule.md`.",
         "",
         "Gear type: z = 20, m = 2 mm, default rig 512 x 512, 0.6 deg/frame, 200 bursts, patterns alternating, the "
-        "shipped network, `gearscan inspect` defaults (frame fit on). Master: slope +8, crown +4 um, tooth 5 +15 um, "
+        f"shipped network, `gearscan inspect` defaults (frame fit on; its shading model: {', '.join(shadings)}; 'None': "
+        "an inspection from before the report named it, the drift model). Master: slope +8, crown +4 um, tooth 5 +15 um, "
         f"measured {len(masters)} times, each remounted (eccentricity 20 um turned 72 deg, start angle +17 deg, new "
         "noise seed). Certificate: the twin's truth (U 0). Workpieces: other slopes, crowns, pitch errors and "
         "mountings, measured once each (the rule lists them; 4-6 rendered after the amendment).", "",
@@ -164,7 +170,8 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
         f"Largest |error| / U (bound method): {max(abs(c['error']) / c['U_bound'] for c in checks):.2f}.", ""]
     report.with_suffix(".md").write_text("\n".join(md))
     report.with_suffix(".json").write_text(json.dumps({
-        "commit": head, "host": started, "python": platform.python_version(), "masters": [str(m) for m in masters],
+        "commit": head, "host": started, "python": platform.python_version(), "frame_fit_shading": shadings,
+        "masters": [str(m) for m in masters],
         "workpieces": [str(p) for p in pieces], "statement": statement.to_json(),
         "iso_form": {k: {"U": q.U, "bias": q.bias, "u_p": q.u_p, "k": q.k, "readings": list(q.readings)}
                      for k, q in iso.items()},
@@ -180,10 +187,12 @@ def main() -> None:
     ap.add_argument("--workpieces", type=int, default=len(WORKPIECES))  # 1-3 judge the rule, 4-6 its amendment
     ap.add_argument("--measure-only", action="store_true", help="render and inspect; no analysis")
     ap.add_argument("--report", type=Path, default=HERE / "substitution_report")
+    ap.add_argument("--reports", type=Path, default=WORK, help="where the inspections are cached (renders: out/substitution)")
     args = ap.parse_args()
     started, head = host(), commit()
-    masters = [measure(f"master_{i}", MASTER | mounting(i), seed=100 + i, start_deg=17.0 * i) for i in range(args.masters)]
-    pieces = [measure(f"workpiece_{j}", WORKPIECES[j], seed=200 + j, start_deg=11.0 * j)
+    masters = [measure(f"master_{i}", MASTER | mounting(i), seed=100 + i, start_deg=17.0 * i, reports=args.reports)
+               for i in range(args.masters)]
+    pieces = [measure(f"workpiece_{j}", WORKPIECES[j], seed=200 + j, start_deg=11.0 * j, reports=args.reports)
               for j in range(args.workpieces)]
     if args.measure_only:
         return

@@ -354,6 +354,7 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                                      if (report.refine or {}).get("sigma_bound_mm") else None),
                   "unsettled_fits": (report.refine or {}).get("unsettled"),
                   "implausible_fits": (report.refine or {}).get("implausible"),
+                  "frame_fit_shading": (report.refine or {}).get("shading"),
                   # whose depth-sigma scales an unfitted point's sigma carries: model, product or unmeasured
                   "depth_sigma_source": report.depth_sigma_source,
                   # the scale an unfitted point's sigma carried (the decoding model's own, else the product's) and whose
