@@ -186,9 +186,15 @@ def main() -> None:
     ap.add_argument("--masters", type=int, default=5)
     ap.add_argument("--workpieces", type=int, default=len(WORKPIECES))  # 1-3 judge the rule, 4-6 its amendment
     ap.add_argument("--measure-only", action="store_true", help="render and inspect; no analysis")
-    ap.add_argument("--report", type=Path, default=HERE / "substitution_report")
+    ap.add_argument("--report", type=Path, default=None, help="report path without suffix (default "
+                    "benchmarks/substitution_report; required with another --reports, so a re-inspection never "
+                    "overwrites the committed report)")
     ap.add_argument("--reports", type=Path, default=WORK, help="where the inspections are cached (renders: out/substitution)")
     args = ap.parse_args()
+    if args.report is None:
+        if args.reports != WORK:
+            ap.error("--reports elsewhere needs its own --report (the default is the committed report)")
+        args.report = HERE / "substitution_report"
     started, head = host(), commit()
     masters = [measure(f"master_{i}", MASTER | mounting(i), seed=100 + i, start_deg=17.0 * i, reports=args.reports)
                for i in range(args.masters)]

@@ -63,7 +63,7 @@ MODULATION_RATIO: float | None = 1.0
 # `inspect` and `replay --fuse` take another with --max-point-sigma-um
 MAX_POINT_SIGMA_MM = 0.03
 # how the fit models the intensity's change as the surface turns through the frames: "drift" (mean and modulation
-# linear in the turn angle; the model until session 58) or "lambert" (both follow the projector's irradiance at the
+# linear in the turn angle; the incumbent, the only model until session 58) or "lambert" (both follow the projector's irradiance at the
 # point, cos(incidence) over distance squared from the point's normal, times a linear drift; only ambient light
 # stays constant)
 SHADINGS = ("drift", "lambert")
@@ -119,6 +119,11 @@ class TrackRefiner:
     :data:`MODULATION_RATIO`): intensities ``A + B cos(psi)`` never go below zero, so a fit with B well
     above A has explained its samples with an impossible fringe (few frames, phases bunched: the
     fit's sine and cosine terms and their drift trade off); it is counted ``implausible`` and not taken.
+    With ``"lambert"`` shading both are taken at the point's mean irradiance over its samples: ``A = a + g b``,
+    ``B = g hypot(C, S)``. ``shading``: the intensity model (:data:`SHADINGS`, module docstring; :data:`SHADING`);
+    ``normal_radius_mm``: the neighbourhood of a point's normal for ``"lambert"`` (a point with fewer than 5 fused
+    points that close gets none and is not fitted); ``min_incidence_cos``: ``"lambert"`` leaves out the samples lit
+    more obliquely (:data:`MIN_INCIDENCE_COS`).
 
     Defaults: ``max_sigma_mm = 0.03`` and ``min_spread = 0.05`` were chosen (with the sigma unscaled) on an independent
     40-burst twin stretch (seed 7, start 11 deg, default rig, 0.6 deg/frame; 40k points against
@@ -377,6 +382,8 @@ class TrackRefiner:
             if it == self.iterations - 2 or self.iterations == 1:  # drop samples far from the fit
                 pred = np.einsum("ij,ij->i", _design(psi, tau, self.drift, gain), coef[idx])
                 keep = np.abs(val - pred) <= self.outlier_sigma * np.maximum(res_sd[idx], 1e-6)
+                if gain is not None:  # unlit now, judged if the point's move lights it: not refused unseen
+                    keep |= gain == 0
             eps = np.arctan2(ss, cc)  # phase the frames show minus the point's model phase
             slope = np.bincount(idx[good], dpsi[good], minlength=n) / np.maximum(nfr, 1)
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -408,14 +415,20 @@ class TrackRefiner:
                 int(implausible.sum()))
 
 
-def surface_normals(points: np.ndarray, radius_mm: float) -> np.ndarray:
+def surface_normals(points: np.ndarray, radius_mm: float, min_neighbours: int = 5) -> np.ndarray:
     """Unit normals ``(N, 3)`` of a fused cloud from its neighbours within ``radius_mm`` (at most 30; the plane through
-    them), unoriented; NaN-free: a point with too few neighbours gets open3d's fallback."""
+    them), unoriented; NaN where fewer than ``min_neighbours`` points lie that close (no plane to trust: open3d would
+    put a default normal there, and a wrong irradiance is worse than no lambert fit)."""
     import open3d as o3d
+    from scipy.spatial import cKDTree
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    pts = np.asarray(points, np.float64)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_mm, max_nn=30))
-    return np.asarray(pcd.normals)
+    normals = np.asarray(pcd.normals).copy()
+    near = cKDTree(pts).query_ball_point(pts, radius_mm, return_length=True)  # the point itself included
+    normals[near < min_neighbours] = np.nan
+    return normals
 
 
 def off_surface(points: np.ndarray, fitted: np.ndarray, *, radius_mm: float = 0.5, min_neighbours: int = 6,
@@ -478,7 +491,7 @@ def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: 
             ata[:, i, j] = ata[:, j, i] = np.bincount(idx, x[:, i] * x[:, j], minlength=n)
     count = np.bincount(idx, minlength=n).astype(np.float64)
     # how well the phases cover the circle: 1 for an even spread, 0 at one phase (or at two
-    # opposite ones, which leave sin and cos apart unresolved); with gain, weighted by it
+    # opposite ones, which leave sin and cos apart unresolved); with gain, weighted by its square
     spread = 2.0 * np.linalg.eigvalsh(ata[:, :3, :3] / np.maximum(ata[:, 0, 0], 1e-12)[:, None, None])[:, 0]
     solvable = (count >= 2 * p) & (spread > 1e-3)
     if drift or gain is not None:

@@ -529,6 +529,9 @@ def test_lambert_fit_moves_the_fused_points_onto_the_true_surface(off_cad_turn):
     z = np.abs(after) / res.sigma[r]
     assert 0.3 < np.median(z) < 2.0
     np.testing.assert_array_equal(res.points[~r], fused.points[~r])
+    drift = refiner.refine(fused.points)  # the same cloud and frames, the drift model: lambert is no worse
+    both = r & drift.refined
+    assert _rms_um(_signed(truth, res.points[both])) <= 1.05 * _rms_um(_signed(truth, drift.points[both]))
 
 
 def test_shading_settings_are_checked():
@@ -570,7 +573,7 @@ def test_replay_and_cli_take_the_frame_fits_shading(off_cad_turn, tmp_path):
         res = CliRunner().invoke(app, ["replay", str(reader.path), "--classical", "--no-truth", *args,
                                        "--save", str(tmp_path / "r.rrd")])
         assert res.exit_code == 2 and "--frame-fit-shading" in said(res) and hint in said(res), res.output
-    assert not out.exists()
+        assert not out.exists() and not (tmp_path / "r.rrd").exists()  # refused before anything ran
     res = CliRunner().invoke(app, ["inspect", str(reader.path), "--classical", "--no-refine", "--frame-fit-shading",
                                    "drift", "-o", str(tmp_path / "report")])
     assert res.exit_code == 2 and "leave the frame fit on (no --no-refine)" in said(res), res.output
@@ -580,3 +583,42 @@ def test_replay_and_cli_take_the_frame_fits_shading(off_cad_turn, tmp_path):
                             "refiner_factory": TrackRefiner}, "refiner_factory")):
         with pytest.raises(ValueError, match=match):
             replay(reader.path, decoder=Decoder(classical=True), truth=False, **kwargs)
+
+
+def test_lambert_gain_is_the_irradiance_the_twin_renders():
+    """The fit's per-sample irradiance (``_samples`` with normals) is the twin's own: cos(incidence) of the projector
+    ray on the true normal, over distance squared, at the burst's turn angle (gear frame to world by the encoder);
+    a normal facing away, or a NaN one (no plane), gets none."""
+    from gearscan.core.gear import GearSpec
+    from gearscan.core.rig import rot_z
+    from gearscan.recon.track import _BurstView
+    from gearscan.twin.render import TwinRenderer
+
+    rig, gear = default_rig(96, 96), GearSpec()
+    renderer = TwinRenderer(rig, gear)
+    angle = 0.4
+    surf = renderer.surface(angle)
+    pick = surf.lit & (surf.cos_incidence > 0.3)
+    cam_pts = surf.points_cam[pick]
+    gear_from_cam = np.linalg.inv(rig.camera.T_from_world @ rot_z(angle))
+    pts = cam_pts @ gear_from_cam[:3, :3].T + gear_from_cam[:3, 3]
+    mesh = o3d.t.geometry.TriangleMesh.from_legacy(gear.mesh())
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(mesh)
+    normals = scene.compute_closest_points(o3d.core.Tensor(pts.astype(np.float32)))["primitive_normals"].numpy()
+    normals = normals.astype(np.float64)
+    ref = TrackRefiner(rig, 40.0, shading="lambert", min_incidence_cos=0.0)
+    h, w = rig.camera.height, rig.camera.width
+    ref.bursts = [_BurstView(np.zeros((3, h, w), np.uint8), np.full(3, angle), np.full((h, w), np.nan, np.float32),
+                             np.zeros(3))]
+    n = len(pts)
+    bounds = np.array([0, n])
+    rays = np.tile([1.0, 0.0, 0.0], (n, 1))
+    gain = ref._samples(pts, np.arange(n), bounds, 0, rays, normals)[5]
+    world = pts @ rot_z(angle)[:3, :3].T
+    dist = np.linalg.norm(rig.projector.center_world - world, axis=1)
+    d_ref = float(np.linalg.norm(rig.projector.center_world))
+    assert n > 200
+    np.testing.assert_allclose(gain * (dist / d_ref) ** 2, surf.cos_incidence[pick], atol=2e-3)
+    assert not ref._samples(pts, np.arange(n), bounds, 0, rays, -normals)[5].any()
+    assert not ref._samples(pts, np.arange(n), bounds, 0, rays, np.full_like(normals, np.nan))[5].any()
