@@ -120,7 +120,10 @@ class TrackRefiner:
     above A has explained its samples with an impossible fringe (few frames, phases bunched: the
     fit's sine and cosine terms and their drift trade off); it is counted ``implausible`` and not taken.
     With ``"lambert"`` shading both are taken at the point's mean irradiance over its samples: ``A = a + g b``,
-    ``B = g hypot(C, S)``. ``shading``: the intensity model (:data:`SHADINGS`, module docstring; :data:`SHADING`);
+    ``B = g hypot(C, S)``. ``shading``: the intensity model (:data:`SHADINGS`, module docstring; :data:`SHADING`;
+    with ``"lambert"`` a point its fit cannot take, too few steeply lit samples for its seven terms or no normal, is
+    fitted with the drift model: ``stats["drift_fallback"]`` counts them, and ``unsettled`` and ``implausible`` then
+    count the drift fits' refusals);
     ``normal_radius_mm``: the neighbourhood of a point's normal for ``"lambert"`` (a point with fewer than 5 fused
     points that close gets none and is not fitted); ``min_incidence_cos``: ``"lambert"`` leaves out the samples lit
     more obliquely (:data:`MIN_INCIDENCE_COS`).
@@ -322,15 +325,21 @@ class TrackRefiner:
         refined = np.zeros(len(pts0), bool)
         frames = np.zeros(len(pts0), np.int64)
         moved = np.zeros(len(pts0))
-        unsettled = implausible = 0
+        unsettled = implausible = fallback = 0
         for start in range(0, len(pts0), _CHUNK):
             sl = slice(start, start + _CHUNK)
             p, s, r, f, mv, ray, u, im = self._refine_chunk(pts0[sl], None if normals is None else normals[sl])
+            if normals is not None and not r.all():  # what lambert cannot take, the drift model may: its counts then
+                miss = np.flatnonzero(~r)
+                p2, s2, r2, f2, mv2, ray2, u, im = self._refine_chunk(pts0[sl][miss], None)
+                take = miss[r2]
+                p[take], s[take], r[take], f[take], mv[take], ray[take] = p2[r2], s2[r2], True, f2[r2], mv2[r2], ray2[r2]
+                fallback += len(take)
             out_pts[sl], out_sigma[sl], refined[sl], frames[sl], moved[sl], out_rays[sl] = p, s, r, f, mv, ray
             unsettled += u
             implausible += im
         stats = {"shading": self.shading, "points": len(pts0), "refined": int(refined.sum()), "unsettled": unsettled,
-                 "implausible": implausible,
+                 "implausible": implausible, "drift_fallback": fallback,
                  "median_frames": float(np.median(frames[refined])) if refined.any() else 0.0,
                  "median_abs_move_mm": float(np.median(np.abs(moved[refined]))) if refined.any() else 0.0}
         return TrackResult(out_pts, out_sigma, refined, frames.astype(np.int32), moved, out_rays, stats)
