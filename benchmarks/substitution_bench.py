@@ -52,7 +52,7 @@ def mounting(i: int) -> dict:
     return {"eccentricity_um": 20.0, "eccentricity_deg": (72.0 * i) % 360.0}
 
 
-def measure(name: str, defects: dict, seed: int, start_deg: float, reports: Path = WORK) -> Path:
+def measure(name: str, defects: dict, seed: int, start_deg: float, reports: Path = WORK, shading: str | None = None) -> Path:
     """Render (cached) one revolution of a gear with ``defects`` and inspect it (cached, under ``reports``); the report
     folder."""
     from gearscan.inference.decoder import Decoder
@@ -71,7 +71,7 @@ def measure(name: str, defects: dict, seed: int, start_deg: float, reports: Path
         t = time.perf_counter()
         decoder = Decoder(None)  # the shipped network, as `gearscan inspect REC` decodes
         run_inspection(rec, out, decoder=decoder, network_support_px=network_support_option(
-            None, frame_fit=True, model=decoder.network_support))
+            None, frame_fit=True, model=decoder.network_support), shading=shading)
         print(f"inspected {rec} in {time.perf_counter() - t:.0f} s", flush=True)
     return out
 
@@ -190,15 +190,20 @@ def main() -> None:
                     "benchmarks/substitution_report; required with another --reports, so a re-inspection never "
                     "overwrites the committed report)")
     ap.add_argument("--reports", type=Path, default=WORK, help="where the inspections are cached (renders: out/substitution)")
+    ap.add_argument("--shading", default=None, help="the frame fit's shading model (default: the product's)")
     args = ap.parse_args()
+    if args.shading is not None and args.reports == WORK:
+        ap.error("--shading needs its own --reports folder (the cached inspections there used the product's model)")
     if args.report is None:
         if args.reports != WORK:
             ap.error("--reports elsewhere needs its own --report (the default is the committed report)")
         args.report = HERE / "substitution_report"
     started, head = host(), commit()
-    masters = [measure(f"master_{i}", MASTER | mounting(i), seed=100 + i, start_deg=17.0 * i, reports=args.reports)
+    masters = [measure(f"master_{i}", MASTER | mounting(i), seed=100 + i, start_deg=17.0 * i, reports=args.reports,
+                       shading=args.shading)
                for i in range(args.masters)]
-    pieces = [measure(f"workpiece_{j}", WORKPIECES[j], seed=200 + j, start_deg=11.0 * j, reports=args.reports)
+    pieces = [measure(f"workpiece_{j}", WORKPIECES[j], seed=200 + j, start_deg=11.0 * j, reports=args.reports,
+                      shading=args.shading)
               for j in range(args.workpieces)]
     if args.measure_only:
         return
