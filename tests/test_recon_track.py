@@ -376,7 +376,8 @@ def test_settle_test_refuses_the_fits_still_moving_at_the_last_iteration(off_cad
     reader, refiner, fused, _, _, truth = off_cad_turn
     runs = {}
     for settle in (None, 0.3, 1e-3):  # the modulation test off: one test at a time
-        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], settle_rad=settle, modulation_ratio=None)
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], settle_rad=settle, modulation_ratio=None,
+                           shading="drift")  # one model: the lambert one hands what it refuses to the drift fit
         ref.bursts = refiner.bursts
         runs[settle] = ref.refine(fused.points)
     free = runs[None]
@@ -398,18 +399,22 @@ def test_settle_test_refuses_the_fits_still_moving_at_the_last_iteration(off_cad
         TrackRefiner(reader.rig, 40.0, settle_rad=0.1, iterations=1)
 
 
-def test_settle_counts_add_up_over_chunks(off_cad_turn, monkeypatch):
+@pytest.mark.parametrize("shading", ["drift", "lambert"])
+def test_settle_counts_add_up_over_chunks(off_cad_turn, monkeypatch, shading):
+    """Chunked or whole, the same fits and counts (lambert's normals come from the whole cloud)."""
     import gearscan.recon.track as track
 
     reader, refiner, fused, _, _, _ = off_cad_turn
-    ref = TrackRefiner(reader.rig, reader.patterns.periods[0], settle_rad=0.1)
+    ref = TrackRefiner(reader.rig, reader.patterns.periods[0], settle_rad=0.1, shading=shading)
     ref.bursts = refiner.bursts
     whole = ref.refine(fused.points)
     monkeypatch.setattr(track, "_CHUNK", len(fused) // 3 + 1)
     chunked = ref.refine(fused.points)
     assert whole.stats["unsettled"] > 0
     assert chunked.stats["unsettled"] == whole.stats["unsettled"]
+    assert chunked.stats["drift_fallback"] == whole.stats["drift_fallback"]
     np.testing.assert_array_equal(chunked.refined, whole.refined)
+    np.testing.assert_allclose(chunked.points, whole.points, atol=1e-9)
 
 
 def test_replay_fits_with_the_refiner_its_factory_builds(off_cad_turn):
@@ -421,7 +426,7 @@ def test_replay_fits_with_the_refiner_its_factory_builds(off_cad_turn):
     reader, _, _, _, _, _ = off_cad_turn
     runs = {settle: replay(reader.path, decoder=Decoder(classical=True), fuse=CloudFuser(0.1, 3), truth=False,
                            refine=True, refiner_factory=partial(TrackRefiner, settle_rad=settle,
-                                                                modulation_ratio=None)).refine
+                                                                modulation_ratio=None, shading="drift")).refine
             for settle in (None, 1e-3)}
     assert runs[None]["unsettled"] == 0 and runs[1e-3]["unsettled"] > 0
     assert runs[1e-3]["refined"] + runs[1e-3]["unsettled"] == runs[None]["refined"]
@@ -434,7 +439,7 @@ def test_modulation_test_refuses_fits_with_an_impossible_fringe(off_cad_turn):
     reader, refiner, fused, _, _, _ = off_cad_turn
     runs = {}
     for ratio in (None, 0.5):
-        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], modulation_ratio=ratio)
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], modulation_ratio=ratio, shading="drift")
         ref.bursts = refiner.bursts
         runs[ratio] = ref.refine(fused.points)
     free, tight = runs[None], runs[0.5]
@@ -622,3 +627,19 @@ def test_lambert_gain_is_the_irradiance_the_twin_renders():
     np.testing.assert_allclose(gain * (dist / d_ref) ** 2, surf.cos_incidence[pick], atol=2e-3)
     assert not ref._samples(pts, np.arange(n), bounds, 0, rays, -normals)[5].any()
     assert not ref._samples(pts, np.arange(n), bounds, 0, rays, np.full_like(normals, np.nan))[5].any()
+
+
+def test_lambert_hands_the_points_it_cannot_take_to_the_drift_fit(off_cad_turn):
+    """A point the lambert fit leaves (too few steeply lit samples, no normal) is fitted exactly as the drift model
+    alone fits it, so lambert fits every point drift does, and ``drift_fallback`` counts the handed-over ones."""
+    reader, refiner, fused, _, _, _ = off_cad_turn
+    runs = {}
+    for shading in ("drift", "lambert"):
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], shading=shading)
+        ref.bursts = refiner.bursts
+        runs[shading] = ref.refine(fused.points)
+    drift, lam = runs["drift"], runs["lambert"]
+    assert not (drift.refined & ~lam.refined).any()
+    assert drift.stats["drift_fallback"] == 0
+    handed = lam.refined & drift.refined & (lam.points == drift.points).all(1) & (lam.sigma == drift.sigma)
+    assert 0 < lam.stats["drift_fallback"] == handed.sum() < lam.stats["refined"]
