@@ -63,11 +63,12 @@ MODULATION_RATIO: float | None = 1.0
 # `inspect` and `replay --fuse` take another with --max-point-sigma-um
 MAX_POINT_SIGMA_MM = 0.03
 # how the fit models the intensity's change as the surface turns through the frames: "drift" (mean and modulation
-# linear in the turn angle; the incumbent, the only model until session 58) or "lambert" (both follow the projector's irradiance at the
-# point, cos(incidence) over distance squared from the point's normal, times a linear drift; only ambient light
-# stays constant)
+# linear in the turn angle; the only model until session 58) or "lambert" (mean and modulation follow the projector's
+# irradiance at the point, cos(incidence) over distance squared from the point's normal, times a linear drift; ambient
+# light constant; the points it cannot take go to the drift fit). "lambert" is the product's since session 58, chosen
+# on val: benchmarks/frame_fit_shading_rule.md, scripts/choose_frame_fit_shading.py -> frame_fit_shading_val.json
 SHADINGS = ("drift", "lambert")
-SHADING = "drift"
+SHADING = "lambert"
 # "lambert" leaves out the samples lit more obliquely than this (cosine of the projector ray's incidence on the
 # point's estimated normal): there a few degrees of normal error change the predicted irradiance by tens of percent
 MIN_INCIDENCE_COS = 0.25
