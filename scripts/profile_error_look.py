@@ -4,7 +4,7 @@ Reads the substitution benchmark's master reports (``out/substitution/``, made b
 the certificate by ``gearscan twin certificate out/substitution/rec_master_0 -o out/substitution/cert_master.json``)
 and prints the error's mean shape per side, its scatter per bin about that shape and its range per flank.
 
-    python scripts/profile_error_look.py [--masters 5]
+    python scripts/profile_error_look.py [--masters 5] [--reports out/substitution]
 """
 
 from __future__ import annotations
@@ -21,11 +21,12 @@ WORK = "out/substitution"
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--masters", type=int, default=5)
+    ap.add_argument("--reports", default=WORK, help="the inspections' folder (benchmarks/substitution_bench.py --reports)")
     args = ap.parse_args()
     cert = load_certificate(f"{WORK}/cert_master.json")
     rows: dict[str, list[np.ndarray]] = {"left": [], "right": []}
     for i in range(args.masters):
-        r = read_report(f"{WORK}/report_master_{i}")
+        r = read_report(f"{args.reports}/report_master_{i}")
         full = r.evaluation.centres_mm()
         for f in r.flanks:
             roll = np.asarray(f.roll_mm)
