@@ -6,7 +6,7 @@ ISO 15530-3's substitution method). Two ways to turn the readings into an uncert
 - :func:`quantity_uncertainty`, ISO 15530-3's form on the headline readings: ``U = k sqrt(u_cal^2 + u_p^2 + u_w^2) +
   |bias|``. It assumes the instrument's error on a headline does not depend on the gear. It does: the headlines are
   worst flanks and ranges, and which flank is worst follows the gear's own deviations while the reconstruction's
-  errors differ by flank side. Kept to show that (``benchmarks/substitution_drift_report.md``, ``substitution_report.md``), not shipped.
+  errors differ by flank side. Kept to show that (``benchmarks/substitution_report.md``), not shipped.
 - :func:`bound_uncertainty`, shipped: every headline ``Q`` is a range, a largest magnitude or a slope of per-flank
   traces and per-tooth positions, so ``|Q(read) - Q(true)| <= Q'(read - true)`` (:func:`error_functionals`): the
   same functional of the instrument's own error, which does not depend on the gear's micrometre deviations. The
