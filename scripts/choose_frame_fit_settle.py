@@ -129,9 +129,12 @@ def start_run(out: Path, rule: str, settings: dict, **fresh) -> dict:
 
 
 def run_rule(out: Path, recordings: Path, bursts: int, rule: str, field: str, candidates, base: dict | None,
-             settings: dict, count_key: str) -> dict:
+             settings: dict, count_key: str, scorer=None, incumbent=INCUMBENT, reference=None,
+             metric: str = "rms_um") -> dict:
     """A frame-fit rule's val run over the 16 cells: resumed from ``out`` (refused if its ``settings`` changed), each
-    cell replayed once and every candidate value of ``field`` refitted (:func:`score_cell`), then :func:`choose`."""
+    cell replayed once and every candidate value of ``field`` refitted (:func:`score_cell`, or ``scorer(rec,
+    decoder)``), then :func:`choose` (``incumbent``, ``reference``, ``metric``); ``count_key``: the row's field printed
+    beside the RMS and coverage."""
     from gearscan.inference.decoder import Decoder
 
     done = start_run(out, rule, settings)
@@ -144,12 +147,13 @@ def run_rule(out: Path, recordings: Path, bursts: int, rule: str, field: str, ca
                 if any((c["model"], c["seed"], c["order"]) == (model, s["seed"], order) for c in cells):
                     continue
                 rec = render_stretch(recordings, s, alternate, bursts)
-                for row in score_cell(rec, decoder, field, candidates, base):
+                rows = scorer(rec, decoder) if scorer is not None else score_cell(rec, decoder, field, candidates, base)
+                for row in rows:
                     cells.append({"model": model, "seed": s["seed"], "order": order, **row})
                     print({k: cells[-1][k] for k in ("model", "seed", "order", field, "rms_um", "coverage", count_key)},
                           flush=True)
                 out.write_text(json.dumps(done, indent=1))
-    done["choice"] = choose(cells, None, field=field, candidates=candidates)
+    done["choice"] = choose(cells, incumbent, field=field, candidates=candidates, reference=reference, metric=metric)
     out.write_text(json.dumps(done, indent=1))
     return done
 

@@ -23,9 +23,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "scripts"))
-from choose_frame_fit_settle import FRESH_STRETCHES, _KeepingRefiner, choose, start_run  # noqa: E402
-from choose_fused_support import MODELS, VAL_STRETCHES, rest_scales  # noqa: E402
-from frame_fit_heldout import render_stretch, score_fused, truth_scene  # noqa: E402
+from choose_frame_fit_settle import _KeepingRefiner, run_rule  # noqa: E402
+from choose_fused_support import rest_scales  # noqa: E402
+from frame_fit_heldout import score_fused, truth_scene  # noqa: E402
 
 FIELD = "shading"
 # "drift": the incumbent; "lambert": the irradiance model with samples lit at cos(incidence) >= 0.25 (the dev look's
@@ -102,7 +102,6 @@ def main() -> None:
     ap.add_argument("--bursts", type=int, default=60)
     args = ap.parse_args()
 
-    from gearscan.inference.decoder import Decoder
     from gearscan.recon.measure import FRAME_FIT_MAX_SIGMA_RAD, FRAME_FIT_NETWORK_SUPPORT_PX
     from gearscan.recon.track import (
         MIN_INCIDENCE_COS,
@@ -114,24 +113,9 @@ def main() -> None:
     settings = {"max_sigma_rad": FRAME_FIT_MAX_SIGMA_RAD, "rest_sigma_scale": REST_SIGMA_SCALE,
                 "rest_sigma_scale_by_model": rest_scales(), "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX,
                 "settle_rad": SETTLE_RAD, "modulation_ratio": MODULATION_RATIO, "min_incidence_cos": MIN_INCIDENCE_COS}
-    done = start_run(args.out, "benchmarks/frame_fit_shading_rule.md", settings)
-    cells = done["cells"]
-    for model, weights in MODELS.items():
-        decoder = Decoder(weights)
-        for s in VAL_STRETCHES + FRESH_STRETCHES:
-            for alternate in (True, False):
-                order = "alternating" if alternate else "fixed"
-                if any((c["model"], c["seed"], c["order"]) == (model, s["seed"], order) for c in cells):
-                    continue
-                rec = render_stretch(args.recordings, s, alternate, args.bursts)
-                for row in score_cell(rec, decoder):
-                    cells.append({"model": model, "seed": s["seed"], "order": order, **row})
-                    print({k: cells[-1][k] for k in ("model", "seed", "order", FIELD, "rms_um", "coverage",
-                                                     "flank_bin_sd_um", "flank_range_median_um")}, flush=True)
-                args.out.write_text(json.dumps(done, indent=1))
-    done["choice"] = choose(cells, INCUMBENT, field=FIELD, candidates=CANDIDATES, reference=INCUMBENT,
-                            metric="flank_bin_sd_um")
-    args.out.write_text(json.dumps(done, indent=1))
+    done = run_rule(args.out, args.recordings, args.bursts, "benchmarks/frame_fit_shading_rule.md", FIELD, CANDIDATES,
+                    None, settings, "flank_bin_sd_um", scorer=score_cell, incumbent=INCUMBENT, reference=INCUMBENT,
+                    metric="flank_bin_sd_um")
     print(json.dumps(done["choice"], indent=1))
 
 
