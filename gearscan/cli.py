@@ -333,7 +333,7 @@ def replay_cmd(
     network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: per burst none for the shipped v9 and the default-rig option (v9's, inherited), 2 px for v6; with --fuse and its frame fit none for v9 and the option (since session 48), 0 px for v6; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
     max_sigma_rad: Annotated[float | None, typer.Option(min=0.01, help="report no point whose total phase sigma exceeds this, rad (the fringe orders are found on the pixels within it, recon.measure.UNWRAP_MAX_SIGMA; default: the product's val choice for the path, recon.measure.MAX_SIGMA_RAD per burst, FRAME_FIT_MAX_SIGMA_RAD with --fuse and its frame fit, then for every burst of the run, its per-burst metrics and exports too)")] = None,
     max_point_sigma_um: Annotated[float | None, typer.Option(min=0.1, help="with --fuse and its frame fit: report no point of the fitted cloud whose sigma exceeds this, µm: a fit must meet it to replace its fused point, an unfitted point above it is dropped and counted (default 30, recon.track.MAX_POINT_SIGMA_MM; needs the frame fit)")] = None,
-    frame_fit_shading: Annotated[str | None, typer.Option(help="with --fuse and its frame fit: how the fit models the light a point gets as the gear turns: lambert (irradiance from the point's normal, for matt surfaces; the twin renders it) or drift (mean and modulation linear in the turn angle, no surface model); default recon.track.SHADING")] = None,
+    frame_fit_shading: Annotated[str | None, typer.Option(help="with --fuse and its frame fit: how the fit models the light a point gets as the gear turns: lambert (irradiance from the point's normal, for matt surfaces; the twin renders it) drift (mean and modulation linear in the turn angle, no surface model) or quadratic (the same, quadratic in the turn angle); default recon.track.SHADING")] = None,
 ) -> None:
     """Replay a recording through the live pipeline; print accuracy when it holds truth.
 
@@ -775,9 +775,11 @@ def inspect_cmd(
     refine: Annotated[bool, typer.Option(help="fit each fused point to every raw frame that saw it (keeps the recording's frames in memory)")] = True,
     network_support_px: Annotated[int | None, typer.Option(min=-1, max=16, help="a network's pixel needs fringes in its own frames within this many px (-1: no such test; default: the model's own, its JSON's network_support: with the frame fit none for the shipped v9 (since session 48) and the default-rig option (v9's, inherited), 0 px for v6; with --no-refine none for v9 and the option, 2 px for v6; a fine-tune inherits its init's; a model naming none gets v9's)")] = None,
     max_point_sigma_um: Annotated[float | None, typer.Option(min=0.1, help="report no point of the fitted cloud whose sigma exceeds this, µm: a fit must meet it to replace its fused point, an unfitted point above it is dropped and counted (default 30, recon.track.MAX_POINT_SIGMA_MM; needs the frame fit; not with --no-refine)")] = None,
-    frame_fit_shading: Annotated[str | None, typer.Option(help="how the frame fit models the light a point gets as the gear turns: lambert (irradiance from the point's normal, for matt surfaces; the twin renders it) or drift (mean and modulation linear in the turn angle, no surface model); default recon.track.SHADING; not with --no-refine")] = None,
+    frame_fit_shading: Annotated[str | None, typer.Option(help="how the frame fit models the light a point gets as the gear turns: lambert (irradiance from the point's normal, for matt surfaces; the twin renders it) drift (mean and modulation linear in the turn angle, no surface model) or quadratic (the same, quadratic in the turn angle); default recon.track.SHADING; not with --no-refine")] = None,
     rig: Annotated[Path | None, typer.Option(help="rig calibration JSON to measure with (the file `gearscan calibrate` wrote; replaces the recording's own)")] = None,
     uncertainty: Annotated[Path | None, typer.Option(help="measurement uncertainty statement of this gear type (`gearscan verify` wrote it from a master gear): each reading gets its U and, with --grade, an ISO 14253-1 decision")] = None,
+    datum: Annotated[str, typer.Option(help="the axis pitch and runout are read about: tip (the tip lands' circle; no pitch deviation moves it) or teeth (placed by the flanks' radial part: for a gear whose tip circle is not concentric with its teeth; about 3x noisier)")] = "tip",
+    from_report: Annotated[Path | None, typer.Option(help="inspect again the fused cloud of an earlier report folder of this recording, without replaying it (another --datum, --grade or --uncertainty in seconds); the replay's settings are that report's, so none of them may be given")] = None,
 ) -> None:
     """Inspect a gear (ISO 1328-1): fuse a revolution, then pitch fp/Fp, runout Fr, profile Fα/ffα/fHα, chipped teeth."""
     from gearscan.core.recording import RecordingError
@@ -789,6 +791,23 @@ def inspect_cmd(
         raise _fail(f"--unwrap: expected 'cad' or 'envelope', got {unwrap!r}")
     point_sigma_mm = _point_sigma_mm(max_point_sigma_um, fitted=refine, needs="leave the frame fit on (no --no-refine)")
     _shading(frame_fit_shading, fitted=refine, needs="leave the frame fit on (no --no-refine)")
+    from gearscan.recon.inspect import DATUMS
+
+    if datum not in DATUMS:
+        raise typer.BadParameter(f"expected one of {', '.join(DATUMS)}, got {datum!r}", param_hint="--datum")
+    if from_report is not None:
+        replay_settings = {"--classical": classical, "--model": model is not None, "--save": save is not None,
+                           "--frame-fit-shading": frame_fit_shading is not None, "--rig": rig is not None,
+                           "--max-point-sigma-um": max_point_sigma_um is not None,
+                           "--network-support-px": network_support_px is not None, "--voxel-mm": voxel_mm != 0.1,
+                           "--min-bursts": min_bursts != 3, "--unwrap": unwrap != "cad", "--no-refine": not refine}
+        given = [name for name, on in replay_settings.items() if on]
+        if given:
+            raise _fail(f"--from-report {from_report}: its fused cloud was measured with that report's replay settings; "
+                        f"{', '.join(given)} would change the replay, which does not run: inspect the recording afresh")
+        if out.resolve() == from_report.resolve():
+            raise _fail(f"--from-report {from_report}: write the new report elsewhere (--out), so that the cloud it "
+                        "reads stays beside the report that measured it")
     _require_recording(recording)
     _writable(out, "--out", folder=True)
     _writable(save, "--save")
@@ -799,7 +818,7 @@ def inspect_cmd(
                                 network_support_px=network_support_option(network_support_px, frame_fit=refine,
                                                                           model=decoder.network_support),
                                 point_sigma_mm=point_sigma_mm, rig=rig, uncertainty=uncertainty,
-                                shading=frame_fit_shading)
+                                shading=frame_fit_shading, datum=datum, from_report=from_report)
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
     from gearscan.inspect import chip_verdict, quantity_line, uncertainty_lines

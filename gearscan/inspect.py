@@ -23,8 +23,10 @@ import numpy as np
 from gearscan.core.recording import RecordingError, RecordingReader
 from gearscan.core.rig import CalibrationStatement, Rig
 from gearscan.recon.depth_sigma import REST_STALE_NOTE, UNMEASURED_NOTES, turning_three_step_note
-from gearscan.recon.fuse import CloudFuser, FusedCloud, save_fused
+from gearscan.recon.fuse import CloudFuser, FusedCloud, load_fused, save_fused
 from gearscan.recon.inspect import (
+    DATUM,
+    DATUMS,
     Inspection,
     inspect_gear,
     iso1328_class,
@@ -75,6 +77,7 @@ class InspectionReport:
     calibration: CalibrationStatement | None = None  # that rig's calibration's stated uncertainty, where it states one
     # each reading with the U of a `gearscan verify` statement and its ISO 14253-1 decision
     uncertainty: AppliedUncertainty | None = None
+    fused_from: str | None = None  # the earlier report whose fused cloud was inspected again (None: replayed here)
 
 
 def partial(insp: Inspection, key: str) -> str:
@@ -223,6 +226,7 @@ def run_inspection(
     rig: str | Path | Rig | None = None,
     uncertainty: str | Path | None = None,
     shading: str | None = None,
+    from_report: str | Path | None = None,
     **inspect_options,
 ) -> InspectionReport:
     """Replay ``recording`` with fusion, inspect the fused gear and write the report into ``out``.
@@ -236,8 +240,10 @@ def run_inspection(
     fitted cloud's bound on every point's sigma, mm (None: the fit's own; needs ``refine``); ``rig``: the calibration
     to measure with (a file or a Rig; None: the recording's own); ``uncertainty``: a ``gearscan verify`` statement
     for this gear type, stated with each reading (:func:`gearscan.verify.applied_uncertainty`); ``shading``: the frame
-    fit's shading model (None: the product's, ``recon.track.SHADING``; needs ``refine``). ``inspect_options`` go to
-    :func:`~gearscan.recon.inspect.inspect_gear`.
+    fit's shading model (None: the product's, ``recon.track.SHADING``; needs ``refine``); ``from_report``: an earlier
+    report folder of the same recording whose fused cloud is inspected again instead of replaying (other evaluation
+    settings, datum, grade or uncertainty statement in seconds, not minutes; the replay's own settings are that
+    report's). ``inspect_options`` go to :func:`~gearscan.recon.inspect.inspect_gear`.
     """
     from gearscan.replay import recording_rig, replay
 
@@ -254,6 +260,8 @@ def run_inspection(
                              f"{truth_teeth}: the gear spec does not match the gear that was recorded")
     if point_sigma_mm is not None and not refine:
         raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine)")
+    if inspect_options.get("datum", DATUM) not in DATUMS:  # refused before the replay
+        raise ValueError(f"datum: expected one of {', '.join(DATUMS)}, got {inspect_options['datum']!r}")
     if shading is not None and not refine:
         raise ValueError("shading: the shading model is the frame fit's; it needs the fit (refine)")
     statement = None
@@ -261,16 +269,23 @@ def run_inspection(
         statement = load_statement(uncertainty)
         statement.require_gear(gear.teeth, gear.module)
     span = revolution_deg(reader)
-    used = recording_rig(reader, rig)  # once: the replay measures with it and the report states its calibration
-    say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
-    fuser = CloudFuser(voxel_mm, min_bursts)
-    metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine,
-                     network_support_px=network_support_px, max_sigma=max_sigma, point_sigma_mm=point_sigma_mm,
-                     shading=shading,
-                     rig=None if rig is None else used)
-    if metrics.fused is None or not len(metrics.fused):
-        raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
-    fused = metrics.fused
+    if from_report is not None:
+        earlier = earlier_measurement(from_report, reader)
+        fused, metrics, rig, calibration = earlier.fused, earlier, earlier.rig, earlier.calibration
+        say(f"inspecting again the fused cloud of {from_report} ({len(fused):,} points; no replay)")
+    else:
+        used = recording_rig(reader, rig)  # once: the replay measures with it and the report states its calibration
+        say(f"replaying {len(reader)} frames ({span:.0f} deg of the turntable) with fusion")
+        fuser = CloudFuser(voxel_mm, min_bursts)
+        metrics = replay(recording, decoder=decoder, fuse=fuser, truth=False, unwrap=unwrap, save=save, refine=refine,
+                         network_support_px=network_support_px, max_sigma=max_sigma, point_sigma_mm=point_sigma_mm,
+                         shading=shading,
+                         rig=None if rig is None else used)
+        if metrics.fused is None or not len(metrics.fused):
+            raise RecordingError(f"{reader.path}: no points were measured (or none seen by {min_bursts} bursts): nothing to inspect")
+        fused = metrics.fused
+        rig = None if rig is None else str(rig if not isinstance(rig, Rig) else f"Rig {rig.name!r}")
+        calibration = used.calibration
     fitted = f", {int(fused.refined.sum()):,} fitted to the raw frames" if fused.refined is not None else ""
     say(f"fused {len(fused):,} points from {fused.bursts_added} bursts{fitted}; inspecting")
     insp = inspect_gear(fused.points, fused.sigma, gear, voxel_mm=voxel_mm, **inspect_options)
@@ -286,7 +301,7 @@ def run_inspection(
         stated = applied_uncertainty(statement, inspection_readings(insp), insp.teeth, insp.module,
                                      (metrics.decoder or {}).get("model_fingerprint"), tolerances,
                                      {k: insp.settings[k] for k in ("xi_start", "xi_end", "bins")}, insp.coverage(),
-                                     insp.profile_bins_left_out)
+                                     insp.profile_bins_left_out, insp.settings.get("datum"))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = {"fused": save_fused(fused, out / "fused.ply")}
@@ -296,13 +311,67 @@ def run_inspection(
                               (metrics.decoder or {}).get("turning_three_step", 0),
                               (metrics.recon or {}).get("rest_sigma_scale"), (metrics.recon or {}).get("rest_sigma_source"),
                               (metrics.decoder or {}).get("model"), (metrics.decoder or {}).get("model_fingerprint"),
-                              None if rig is None else str(rig if not isinstance(rig, Rig) else f"Rig {rig.name!r}"),
-                              used.calibration, stated)
+                              rig, calibration, stated, None if from_report is None else str(from_report))
     files["json"] = out / "report.json"
     files["json"].write_text(json.dumps(report_json(report, reader.path), indent=2))
     files["markdown"] = out / "report.md"
     files["markdown"].write_text(report_markdown(report, reader.path))
     return report
+
+
+# how the report names each datum (recon.inspect.DATUMS); a report from before session 59 has none: the flank fit
+DATUM_TEXT = {"tip": "the tip lands' circle", "teeth": "placed by the flanks' radial part, each tooth turned freely"}
+
+
+@dataclass(frozen=True)
+class EarlierMeasurement:
+    """What an earlier report of a recording holds of its replay: the fused cloud and the replay's facts the report
+    states (the ``metrics`` of :func:`~gearscan.replay.replay` that :func:`run_inspection` reads)."""
+
+    fused: FusedCloud
+    decoder: dict
+    recon: dict
+    refine: dict | None
+    rig: str | None
+    calibration: CalibrationStatement | None
+
+
+def earlier_measurement(folder: str | Path, reader: RecordingReader) -> EarlierMeasurement:
+    """The fused cloud and replay facts of the report in ``folder`` (``report.json`` and its ``fused.ply``), which
+    must be of ``reader``'s recording; refused, naming the file, where it is not a whole report of it."""
+    folder = Path(folder)
+    file = folder / "report.json"
+    try:
+        old = json.loads(file.read_text())
+        fused_meta, model = old["fused"], old.get("model") or {}
+        recording_name = Path(old["recording"]).name
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise RecordingError(f"--from-report {file}: not a `gearscan inspect` report ({exc!r})") from exc
+    if recording_name != reader.path.name:
+        raise RecordingError(f"--from-report {folder}: a report of the recording {recording_name!r}, not of "
+                             f"{reader.path.name!r}")
+    try:
+        fused = load_fused(folder / "fused.ply", fused_meta["voxel_mm"], fused_meta["bursts"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise RecordingError(f"--from-report {folder}: its fused cloud cannot be read ({exc})") from exc
+    if len(fused) != fused_meta.get("points"):
+        raise RecordingError(f"--from-report {folder}: fused.ply holds {len(fused):,} points, its report "
+                             f"{fused_meta.get('points')}: not the cloud that report measured")
+    refine = None
+    if fused.refined is not None:
+        bound = fused_meta.get("sigma_bound_um")
+        refine = {"off_surface": fused_meta.get("dropped_off_surface"), "uncertain": fused_meta.get("dropped_uncertain"),
+                  "sigma_bound_mm": None if bound is None else 1e-3 * bound, "unsettled": fused_meta.get("unsettled_fits"),
+                  "implausible": fused_meta.get("implausible_fits"), "shading": fused_meta.get("frame_fit_shading")}
+    calibration = old.get("rig_calibration")
+    return EarlierMeasurement(
+        fused=fused, decoder={"model": model.get("path"), "model_fingerprint": model.get("fingerprint"),
+                              "turning_three_step": fused_meta.get("turning_three_step_bursts") or 0},
+        recon={"depth_sigma_source": fused_meta.get("depth_sigma_source"),
+               "rest_sigma_scale": fused_meta.get("rest_sigma_scale"),
+               "rest_sigma_source": fused_meta.get("rest_sigma_source")},
+        refine=refine, rig=old.get("rig"),
+        calibration=None if calibration is None else CalibrationStatement.from_json(calibration, str(file)))
 
 
 def profile_bins_note(insp: Inspection) -> str:
@@ -341,6 +410,8 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
         "rig_calibration": None if report.calibration is None else report.calibration.to_json(),
         "profile_bins_left_out": insp.profile_bins_left_out,
         "revolution_deg": report.revolution_deg,
+        # the earlier report whose fused cloud this inspection read again, without a replay (null: replayed for it)
+        "fused_from": report.fused_from,
         "fused": {"points": len(report.fused), "bursts": report.fused.bursts_added, "voxel_mm": report.fused.voxel_mm,
                   "median_sigma_um": 1e3 * float(np.median(report.fused.sigma)),
                   # the deviation's own: the sigma's share along the CAD's normal (None: no deviation computed)
@@ -415,7 +486,7 @@ def uncertainty_markdown(stated: AppliedUncertainty | None) -> list[str]:
     if graded:
         lines += ["", "Conforms: |reading| + U within the tolerance; does not conform: |reading| - U beyond it; "
                   "undecided: in between, or a value within the tolerance read on part of the gear (ISO 14253-1). "
-                  "Fr_gear_axis (about the axis fitted to the teeth) is not ISO's Fr and is not judged."]
+                  "Fr_gear_axis (about the inspection's datum axis) is not ISO's Fr and is not judged."]
     lines += [f"\n**Warning:** {w}." for w in stated.warnings]
     return lines
 
@@ -429,7 +500,9 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
         "",
         ("Decoded by three-step PS." if report.model is None else
          f"Decoded by the network `{report.model}` (decode fingerprint {report.model_fingerprint})."),
-        calibration_sentence(report.rig, report.calibration),
+        calibration_sentence(report.rig, report.calibration)
+        + ("" if report.fused_from is None else f" The fused cloud is `{report.fused_from}`'s, inspected again "
+           "without a replay."),
         "",
         f"Gear: z = {insp.teeth}, m = {insp.module:g} mm, pitch diameter {insp.pitch_diameter_mm:.2f} mm. "
         f"Fused model: {len(report.fused):,} points from {report.fused.bursts_added} bursts over "
@@ -445,7 +518,8 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
               if (report.refine or {}).get("sigma_bound_mm") else ".")
            if report.fused.refined is not None else ".") + dropped_note(report.refine),
         "",
-        f"Gear axis fitted from the flanks: {insp.eccentricity_um:.1f} µm from the turntable axis towards "
+        f"Datum axis ({DATUM_TEXT.get(insp.settings.get('datum'), 'fitted to the flanks, one turn for all teeth')}): "
+        f"{insp.eccentricity_um:.1f} µm from the turntable axis towards "
         f"{insp.eccentricity_deg:.1f}°; transverse section z = {insp.section_mm[0]:.1f} to {insp.section_mm[1]:.1f} mm.",
     ]
     for note in (unmeasured_sigma_note(report), turning_note(report)):

@@ -44,6 +44,8 @@ from gearscan.recon.substitution import (
 STATEMENT_KIND = "gearscan uncertainty statement"
 CERTIFICATE_KIND = "gearscan master gear certificate"
 SIDES = ("left", "right")
+# what a report from before session 59 (no "datum" in its settings) was read about: the flanks, one turn for all teeth
+LEGACY_DATUM = "flanks (one turn for all teeth; before session 59)"
 U_MEANING = (f"U bounds a headline's error over the flanks and teeth read (|fH_alpha| by magnitude) on "
              f"{TOLERANCE_COVERAGE:.0%} of mountings at {TOLERANCE_CONFIDENCE:.0%} confidence, from a master gear of "
              "this type (`gearscan verify`)")
@@ -171,6 +173,7 @@ class MasterReading:
     bins_left_out: int
     model: str | None
     model_fingerprint: str | None
+    datum: str = LEGACY_DATUM  # the axis pitch and runout were read about (recon.inspect.DATUMS)
 
 
 def _num(v) -> float | None:
@@ -210,7 +213,8 @@ def read_report(path: str | Path) -> MasterReading:
             evaluation=Evaluation(l_a, l_b, float(settings["xi_start"]), float(settings["xi_end"]), int(settings["bins"])),
             flanks_of=(len(flanks), 2 * teeth),
             bins_left_out=int(report.get("profile_bins_left_out") or insp.get("profile_bins_left_out") or 0),
-            model=model.get("path"), model_fingerprint=model.get("fingerprint"))
+            model=model.get("path"), model_fingerprint=model.get("fingerprint"),
+            datum=str(settings.get("datum") or LEGACY_DATUM))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise VerifyError(f"report {file}: not a `gearscan inspect` report.json ({exc!r})") from exc
     short = [f"{f.tooth} {f.side}" for f in reading.flanks if len(f.roll_mm) != len(f.trace_um) or len(f.roll_mm) < 3]
@@ -243,6 +247,7 @@ class Statement:
     model_fingerprint: str | None
     evaluation: dict[str, float]
     reports: tuple[str, ...]
+    datum: str = LEGACY_DATUM
 
     def to_json(self) -> dict:
         return {"kind": STATEMENT_KIND, "method": "bound (gearscan.recon.substitution): per mounting of the master the "
@@ -251,7 +256,7 @@ class Statement:
                 f"{TOLERANCE_CONFIDENCE:.0%} confidence) + the certificate's U",
                 "gear": self.gear, "certificate_source": self.certificate_source,
                 "measured_with": {"model": self.model, "model_fingerprint": self.model_fingerprint},
-                "evaluation": self.evaluation, "reports": list(self.reports),
+                "evaluation": self.evaluation, "datum": self.datum, "reports": list(self.reports),
                 "quantities": {k: asdict(q) | {"certified": self.certified.get(k), "headline": list(self.headline[k])}
                                for k, q in self.quantities.items()}}
 
@@ -277,7 +282,7 @@ def verify(certificate: str | Path | Certificate, reports: list[str | Path]) -> 
             raise VerifyError(f"report {r.path}: {r.flanks_of[0]} of {r.flanks_of[1]} flanks measured (positions "
                               f"{'incomplete' if unread else 'complete'}): a master reading must cover the whole gear "
                               "(measure a whole revolution)")
-    for what, key in (("models", lambda r: r.model_fingerprint or "three-step PS"),
+    for what, key in (("models", lambda r: r.model_fingerprint or "three-step PS"), ("datums", lambda r: r.datum),
                       ("evaluation settings", lambda r: (round(r.evaluation.xi_start, 6), round(r.evaluation.xi_end, 6),
                                                          r.evaluation.bins))):
         values = {key(r) for r in readings}
@@ -300,7 +305,7 @@ def verify(certificate: str | Path | Certificate, reports: list[str | Path]) -> 
         headline={k: tuple(r.headline[k] for r in readings) for k in BUDGETED}, model=first.model,
         model_fingerprint=first.model_fingerprint,
         evaluation={"xi_start": first.evaluation.xi_start, "xi_end": first.evaluation.xi_end, "bins": first.evaluation.bins},
-        reports=tuple(str(r) for r in reports))
+        reports=tuple(str(r) for r in reports), datum=first.datum)
 
 
 def statement_markdown(st: Statement) -> str:
@@ -327,9 +332,10 @@ def statement_markdown(st: Statement) -> str:
         "| quantity | certified | headline readings | error bound per mounting | mean | s | k | U cert | **U** |",
         "|---|---|---|---|---|---|---|---|---|", *rows, "",
         "It holds for gears of this type (checked) decoded by the same model and evaluated alike (checked), on the same "
-        "rig at the same speed (not checked). `gearscan inspect --uncertainty` states each reading with it. Fr_gear_axis is the runout about the axis fitted "
-        "to the teeth, not ISO 1328-1's Fr (which includes their eccentricity to the gear's datum): it gets no "
-        "conformity decision.", ""])
+        "rig at the same speed (not checked), about the same datum axis (checked: the master's is "
+        f"{st.datum!r}). `gearscan inspect --uncertainty` states each reading with it. Fr_gear_axis is the runout about "
+        "that datum axis, not ISO 1328-1's Fr (which includes the teeth's eccentricity to the gear's datum surfaces): it "
+        "gets no conformity decision.", ""])
 
 
 def write_statement(st: Statement, out: str | Path) -> tuple[Path, Path]:
@@ -352,6 +358,7 @@ class LoadedStatement:
     model_fingerprint: str | None
     evaluation: dict[str, float]
     path: str
+    datum: str = LEGACY_DATUM
 
     def require_gear(self, teeth: int, module: float) -> None:
         """Refuse a gear of another type than the master's: its U says nothing about it."""
@@ -371,13 +378,14 @@ def load_statement(path: str | Path) -> LoadedStatement:
         teeth, module = d["gear"]["teeth"], _num(d["gear"]["module"])
         fingerprint = (d.get("measured_with") or {}).get("model_fingerprint")
         evaluation = {k: float(v) for k, v in (d.get("evaluation") or {}).items()}
+        datum = str(d.get("datum") or LEGACY_DATUM)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise VerifyError(f"--uncertainty {path}: malformed ({exc!r})") from exc
     if not isinstance(teeth, int) or isinstance(teeth, bool) or teeth < 6 or module is None or module <= 0:
         raise VerifyError(f"--uncertainty {path}: gear: expected whole teeth >= 6 and a module > 0")
     if not U or any(v is None or v < 0 for v in U.values()):
         raise VerifyError(f"--uncertainty {path}: quantities: expected finite U >= 0 for some of {', '.join(BUDGETED)}")
-    return LoadedStatement(teeth, module, U, fingerprint, evaluation, str(path))
+    return LoadedStatement(teeth, module, U, fingerprint, evaluation, str(path), datum)
 
 
 @dataclass(frozen=True)
@@ -412,7 +420,7 @@ PROFILE_KEYS = ("F_alpha", "ff_alpha", "fH_alpha")
 def applied_uncertainty(statement: LoadedStatement, readings: dict[str, float | None], teeth: int, module: float,
                         model_fingerprint: str | None, tolerances: dict[str, float] | None,
                         evaluation: dict[str, float] | None = None, coverage: dict[str, tuple[int, int]] | None = None,
-                        bins_left_out: int = 0) -> AppliedUncertainty:
+                        bins_left_out: int = 0, datum: str | None = None) -> AppliedUncertainty:
     """Each reading with the statement's U and, with ``tolerances`` (an ISO 1328-1 class's), its ISO 14253-1 decision
     (Fr_gear_axis gets none: not ISO's Fr). U bounds the error of a headline over what was read: where ``coverage``
     (``Inspection.coverage()``) says part of the gear was not, or profile bins were left out, a value within the
@@ -427,6 +435,9 @@ def applied_uncertainty(statement: LoadedStatement, readings: dict[str, float | 
             not math.isclose(float(evaluation.get(k, math.nan)), v, abs_tol=1e-9) for k, v in statement.evaluation.items()):
         warnings.append(f"the statement's profiles were evaluated with {statement.evaluation}, this gear's with "
                         f"{ {k: evaluation.get(k) for k in statement.evaluation} }: its U is not this measurement's")
+    if datum is not None and datum != statement.datum:
+        warnings.append(f"the statement's master was read about the datum {statement.datum!r}, this gear about "
+                        f"{datum!r}: its U is not this measurement's")
     out = {}
     for key, U in statement.U_um.items():
         value = readings.get(key)

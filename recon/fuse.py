@@ -188,7 +188,7 @@ def fuse(clouds, voxel_mm: float = 0.1, min_bursts: int = 1) -> FusedCloud:
 
 
 def save_fused(fused: FusedCloud, path: str | Path) -> Path:
-    """Write the fused cloud as PLY/PCD (open3d) or CSV with ``sigma``, ``bursts`` and, if set,
+    """Write the fused cloud as PLY/PCD (open3d) or CSV with ``sigma``, ``bursts``, ``samples`` and, if set,
     ``deviation`` with its standard error ``deviation_sigma`` (along the CAD's normal), ``refined`` (1: fitted on the
     raw frames) and ``ray_x``, ``ray_y``, ``ray_z`` (the unit direction from the camera that ``sigma`` runs along)."""
     from gearscan.recon.cloud import EXPORT_SUFFIXES, save_cloud
@@ -198,7 +198,7 @@ def save_fused(fused: FusedCloud, path: str | Path) -> Path:
         raise ValueError(f"fused cloud path: expected a suffix in {EXPORT_SUFFIXES}, got {path.suffix!r} ({path})")
     if not len(fused):
         raise ValueError("the fused cloud is empty: nothing to write")
-    extra = {"bursts": fused.bursts}
+    extra = {"bursts": fused.bursts, "samples": fused.samples}
     if fused.deviation_sigma is not None:
         extra["deviation_sigma"] = fused.deviation_sigma
     if fused.refined is not None:
@@ -206,3 +206,35 @@ def save_fused(fused: FusedCloud, path: str | Path) -> Path:
     if fused.ray is not None:
         extra.update({f"ray_{axis}": fused.ray[:, i] for i, axis in enumerate("xyz")})
     return save_cloud(fused.to_cloud(), path, extra=extra)
+
+
+def load_fused(path: str | Path, voxel_mm: float, bursts_added: int) -> FusedCloud:
+    """A fused cloud :func:`save_fused` wrote as PLY or PCD, back (``voxel_mm`` and ``bursts_added`` are not in the
+    file: the inspection report beside it states them). A file from before ``samples`` was written gets each point's
+    burst count as its sample count. Refused, naming the file: a missing file, another format, no ``sigma`` or
+    ``bursts`` per point."""
+    import open3d as o3d
+
+    path = Path(path)
+    if path.suffix.lower() not in (".ply", ".pcd"):
+        raise ValueError(f"fused cloud {path}: expected a .ply or .pcd that `gearscan inspect` or `replay --fuse` wrote")
+    if not path.is_file():
+        raise FileNotFoundError(f"fused cloud not found: {path}")
+    pcd = o3d.t.io.read_point_cloud(str(path))
+    attrs = pcd.point
+
+    def column(name: str, dtype=np.float64) -> np.ndarray | None:
+        return attrs[name].numpy().reshape(-1).astype(dtype) if name in attrs else None
+
+    if "positions" not in attrs or column("sigma") is None or column("bursts") is None:
+        raise ValueError(f"fused cloud {path}: no points with 'sigma' and 'bursts' each: not a fused cloud gearscan wrote")
+    bursts = column("bursts", np.int32)
+    samples = column("samples", np.int32)
+    ray = (np.stack([column(f"ray_{a}") for a in "xyz"], axis=1)
+           if all(f"ray_{a}" in attrs for a in "xyz") else None)
+    refined = column("refined")
+    return FusedCloud(points=attrs["positions"].numpy().astype(np.float64), sigma=column("sigma"), bursts=bursts,
+                      samples=bursts.copy() if samples is None else samples, voxel_mm=float(voxel_mm),
+                      bursts_added=int(bursts_added), deviation=column("deviation"),
+                      refined=None if refined is None else refined > 0.5, ray=ray,
+                      deviation_sigma=column("deviation_sigma"))

@@ -7,16 +7,23 @@ frame and the gear's nominal spec (``teeth``, ``module``, ``pitch_radius``, ``ba
 
 Steps and definitions (all in the transverse section band around mid-face):
 
-1. **Gear axis** (:func:`fit_centre`): a least-squares circle through the tip lands, the
-   points within ``0.1 m`` of the tip circle, refitted with those within 3 MADs. Not assumed
-   to be the turntable axis: its offset is the mounting eccentricity ``e`` (direction ``phi``).
-   Tip lands do not move with pitch errors, so the centre is not pulled by them.
-2. **Flank deviations**: about that centre every flank point of tooth ``k``, side ``s``
+1. **Datum axis** (``datum``, :data:`DATUM`): ``"tip"``, a least-squares circle through the tip lands
+   (:func:`fit_centre`: the points within ``0.1 m`` of the tip circle, refitted with those within 3 MADs). Tip lands
+   do not move with pitch deviations, so the axis is not pulled by them; on the twin's gears it lies within 0.1-0.6 um
+   of the true axis. It assumes the tip circle concentric with the teeth (a turned blank's tip runout would read as
+   pitch and runout). ``"teeth"``: from the flanks, each tooth turned freely (its pitch deviation), so that only their
+   radial part (tooth spaces opening and closing around the gear) places the axis: about 3x noisier on the twin
+   (sin 20 deg of the flank information carries it). The first harmonic of the pitch deviations and a shift of the
+   axis move the teeth alike along the pitch circle; from the flanks alone they cannot be told apart, so no fit of the
+   axis that lets both do it is a datum. Not assumed to be the turntable axis: its offset is the mounting eccentricity
+   ``e`` (direction ``phi``).
+2. **Flank deviations**: about that axis every flank point of tooth ``k``, side ``s``
    (-1 right / -theta, +1 left / +theta, ISO 21771 seen from +z) has the normal deviation
    ``f = s r_b (theta - theta0 - k tau - s h(r))`` (mm, + = material added; ``h`` the nominal
    half tooth angle; an involute moved by ``f`` along its normal is turned by ``f / r_b``), a
    function of the roll length ``L = sqrt(r^2 - r_b^2)``. ``theta0`` (where tooth 0 sits) is
-   the median of all flanks' turns, so a tooth-thickness error cancels between the sides.
+   the mean of the teeth's own turns (each fitted to both its flanks, so a tooth-thickness error cancels between the
+   sides; :func:`_fit_axis`).
 3. **Profile** per flank over the evaluation range ``L_alpha`` (from ``xi_start`` of the
    roll length from the involute start to ``xi_end``, default 0.1 to 0.95; ISO's start of
    active profile depends on the mating gear, which a measurement does not know): the trace
@@ -77,6 +84,12 @@ CHIP_NOISE_MARGIN = 2.0
 # out 2-8 (the same F_alpha). Chosen by argument on that one revolution (a lone point is no profile; 3 um is a
 # seventh of the class-8 F_alpha tolerance, 22 um, of the benchmark gear), not tuned; the report counts what was left out
 MIN_BIN_POINTS = 3
+# the datum axis pitch, runout and the flank deviations are read about (step 1 of the module docstring): "tip", the tip
+# lands' circle; "teeth", the axis the flanks' radial part places. Until session 59 the axis was fitted to the flanks
+# with one turn for all teeth, and a single tooth's pitch deviation moved it by as much as the robust window happened
+# to keep of that tooth (benchmarks/datum_and_quadratic_rule.md)
+DATUMS = ("tip", "teeth")
+DATUM = "tip"
 BIN_SE_MAX_MM = 0.003
 
 
@@ -273,6 +286,43 @@ def _flank_deviation(pts: np.ndarray, q: np.ndarray, gear, k: np.ndarray | None 
     return k, s, s * rb * (d - s * h), np.sqrt(np.maximum(r**2 - rb**2, 0.0))
 
 
+def _fit_axis(sec: np.ndarray, w: np.ndarray, q: np.ndarray, gear, l_a: float, l_b: float, fit_centre_too: bool) -> np.ndarray:
+    """The datum ``q`` (axis x, y in mm, tooth 0's turn in rad) from the flank points ``sec`` (weights ``w``), starting
+    from ``q``: step 2 of the module docstring. Each tooth's own turn is fitted (its pitch deviation); their mean, weighted
+    by the points, is tooth 0's. With ``fit_centre_too`` the axis is fitted as well, by Gauss-Newton, from what the teeth's
+    own turns cannot take: the radial part of the flank deviations (tooth spaces opening and closing around the gear).
+    Points beyond 3 MADs of their own tooth's fit are left out of each step."""
+    m, rb = gear.module, gear.base_radius
+    steps = (np.array([1e-3, 0, 0]), np.array([0, 1e-3, 0])) if fit_centre_too else ()
+    for _ in range(8):
+        k, s, f, roll = _flank_deviation(sec, q, gear)
+        on = (roll >= l_a) & (roll <= l_b) & (np.abs(f) < 0.25 * m)
+        k, s, res, ww = k[on], s[on], f[on], w[on]
+        v = -s * rb  # d f / d (a tooth's own turn): both flanks move the same way along the pitch circle
+        ok = np.ones(len(res), bool)
+        for _pass in range(2):  # each tooth's turn on the points kept, then the window on what it leaves
+            den = np.bincount(k[ok], ww[ok] * v[ok] ** 2, minlength=gear.teeth)
+            turn = np.bincount(k[ok], ww[ok] * v[ok] * res[ok], minlength=gear.teeth) / np.where(den > 0, den, np.inf)
+            left = res - v * turn[k]
+            centre_left = np.median(left[ok])
+            mad = 1.4826 * np.median(np.abs(left[ok] - centre_left))
+            ok = np.abs(left - centre_left) < max(3 * mad, 1e-3)
+        step = np.zeros(2)
+        if steps:  # the axis from what each tooth's own turn cannot take: projected out of residual and Jacobian
+            jac = np.stack([(_flank_deviation(sec[on], q + dq, gear, k, s)[2] - res) / dq.max() for dq in steps], axis=1)
+            proj = np.stack([np.bincount(k[ok], ww[ok] * v[ok] * jac[ok, i], minlength=gear.teeth)
+                             / np.where(den > 0, den, np.inf) for i in range(2)], axis=1)
+            sw = np.sqrt(ww[ok])
+            step, *_ = np.linalg.lstsq((jac - v[:, None] * proj[k])[ok] * sw[:, None], -left[ok] * sw, rcond=None)
+        seen = den > 0
+        mean_turn = float(np.average(turn[seen], weights=den[seen])) if seen.any() else 0.0
+        # f = s rb (angle - q[2] - ...): the teeth's mean turn moves tooth 0's the other way
+        q = q + np.array([step[0], step[1], -mean_turn])
+        if np.abs(step).max() < 1e-5 and abs(mean_turn) < 1e-7:
+            break
+    return q
+
+
 def _line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float]:
     """Weighted least-squares line ``y = a + b x``."""
     sw = w.sum()
@@ -321,13 +371,15 @@ def inspect_gear(
     chip_mm: float = 0.05,
     chip_area_mm2: float = 1.0,
     voxel_mm: float = 0.1,
+    datum: str = DATUM,
 ) -> Inspection:
     """Inspect a fused gear-frame cloud (``points (N, 3)`` mm, ``sigma (N,)`` mm) of ``gear``.
 
     ``section_fraction`` of the face width around mid-face is the transverse band for pitch,
     profile and axis; ``cad_mesh`` (open3d, gear frame, default ``gear.mesh()``) scores the
     tip zones for chips over the whole face; ``voxel_mm`` is the fused cloud's voxel (one
-    point per ``voxel_mm**2`` of surface, for areas). See the module docstring.
+    point per ``voxel_mm**2`` of surface, for areas); ``datum``: the axis pitch and runout are read about
+    (:data:`DATUMS`, :data:`DATUM`). See the module docstring.
     """
     points = np.asarray(points, dtype=np.float64)
     sigma = np.asarray(sigma, dtype=np.float64)
@@ -337,6 +389,8 @@ def inspect_gear(
         raise ValueError(f"section_fraction: expected in (0, 1], got {section_fraction}")
     if not 0 <= xi_start < xi_end <= 1:
         raise ValueError(f"xi_start/xi_end: expected 0 <= start < end <= 1, got {xi_start}, {xi_end}")
+    if datum not in DATUMS:
+        raise ValueError(f"datum: expected one of {', '.join(DATUMS)}, got {datum!r}")
     z, tau, m = gear.teeth, gear.pitch_angle, gear.module
     ra, rb, rp = gear.tip_radius, gear.base_radius, gear.pitch_radius
     r_start = max(rb, gear.root_radius)
@@ -352,19 +406,7 @@ def inspect_gear(
     l_start, l_tip = math.sqrt(max(r_start**2 - rb**2, 0.0)), math.sqrt(ra**2 - rb**2)
     l_a, l_b = l_start + xi_start * (l_tip - l_start), l_start + xi_end * (l_tip - l_start)
     q = np.array([centre[0], centre[1], 0.0])
-    for _ in range(8):  # Gauss-Newton on the flanks' normal deviations: centre and tooth 0's turn
-        k, s, f, roll = _flank_deviation(sec, q, gear)
-        on = (roll >= l_a) & (roll <= l_b) & (np.abs(f) < 0.25 * m)
-        res = f[on]
-        mad = 1.4826 * np.median(np.abs(res - np.median(res)))
-        ok = np.abs(res - np.median(res)) < max(3 * mad, 1e-3)
-        steps = (np.array([1e-3, 0, 0]), np.array([0, 1e-3, 0]), np.array([0, 0, 1e-5]))
-        jac = np.stack([(_flank_deviation(sec[on], q + dq, gear, k[on], s[on])[2] - res) / dq.max() for dq in steps], axis=1)
-        sw = np.sqrt(w[on][ok])
-        step, *_ = np.linalg.lstsq(jac[ok] * sw[:, None], -res[ok] * sw, rcond=None)
-        q = q + step
-        if np.abs(step[:2]).max() < 1e-5 and abs(step[2]) < 1e-7:
-            break
+    q = _fit_axis(sec, w, q, gear, l_a, l_b, fit_centre_too=datum == "teeth")
     centre, theta0 = q[:2], float(q[2])
     ecc = float(np.hypot(*centre))
     phi = float(np.arctan2(centre[1], centre[0]))
@@ -439,7 +481,7 @@ def inspect_gear(
         settings={"section_fraction": section_fraction, "xi_start": xi_start, "xi_end": xi_end, "bins": bins,
                   "chip_mm": chip_mm, "chip_area_mm2": chip_area_mm2, "voxel_mm": voxel_mm,
                   "evaluation_roll_mm": (l_a, l_b), "min_bin_points": MIN_BIN_POINTS,
-                  "bin_se_max_um": 1e3 * BIN_SE_MAX_MM},
+                  "bin_se_max_um": 1e3 * BIN_SE_MAX_MM, "datum": datum},
         profile_bins_left_out=sum(left_out.values()),
     )
 

@@ -35,8 +35,9 @@ MIN_READINGS = 3  # a standard deviation from fewer says nothing; ISO 15530-3 as
 RECOMMENDED_READINGS = 20
 
 # quantity key -> what it is (the inspection report's summary key, except Fr_gear_axis: the ball-probe runout about
-# the axis fitted to the teeth, which leaves out the first harmonic (the teeth's eccentricity to a bore or the
-# turntable): not ISO's Fr, so it gets a U but no ISO 14253-1 decision)
+# the inspection's datum axis (recon.inspect.DATUMS), which leaves out the gear's eccentricity on the turntable and,
+# with the "teeth" datum, the teeth's eccentricity to their bore: not ISO's Fr, so it gets a U but no ISO 14253-1
+# decision)
 BUDGETED = {
     "fp": "single pitch deviation (the largest in magnitude)",
     "Fp": "total cumulative pitch deviation",

@@ -17,7 +17,9 @@ and the modulation linear in the turn angle, no surface model. ``"lambert"``: bo
 ``g = cos(incidence) / d^2`` at ``X`` in each frame, from ``X``'s normal (its fused neighbours' plane), times a
 linear drift, plus constant ambient light: what a matt surface (and the twin) does. Over the 40-60 frames that see a
 point ``g`` is not linear in the turn angle, and what a linear drift leaves of it biases the fitted phase by a few
-millirad the same way for every point sampled alike (``benchmarks/frame_fit_shading_rule.md``).
+millirad the same way for every point sampled alike (``benchmarks/frame_fit_shading_rule.md``). ``"quadratic"``: the
+mean and the modulation quadratic in the turn angle, no surface model: it follows that curvature whatever the
+surface's reflectance, at the price of three more terms.
 
 What it needs is only geometry and the encoder: the fused cloud (any decoder's) as the start,
 within a fraction of a fringe of the surface. It uses no CAD, so a gear that is not its CAD
@@ -68,8 +70,9 @@ MAX_POINT_SIGMA_MM = 0.03
 # light constant; the points it cannot take go to the drift fit). Val chose "lambert" (benchmarks/frame_fit_shading_rule.md,
 # scripts/choose_frame_fit_shading.py -> frame_fit_shading_val.json), but with it the substitution benchmark's statement
 # failed on a held-out gear (Fp, benchmarks/substitution_lambert_report.md) and the profile headlines did not improve:
-# drift stays the product's, lambert an option (--frame-fit-shading lambert)
-SHADINGS = ("drift", "lambert")
+# drift stays the product's, lambert an option (--frame-fit-shading lambert). "quadratic" (session 59): mean and
+# modulation quadratic in the turn angle, no surface model: follows a curved shading without a normal or a reflectance
+SHADINGS = ("drift", "lambert", "quadratic")
 SHADING = "drift"
 # "lambert" leaves out the samples lit more obliquely than this (cosine of the projector ray's incidence on the
 # point's estimated normal): there a few degrees of normal error change the predicted irradiance by tens of percent
@@ -181,6 +184,8 @@ class TrackRefiner:
         self.max_step_mm = float(max_step_mm)
         self.outlier_sigma = float(outlier_sigma)
         self.drift = bool(drift)
+        # the polynomial degree in the turn angle of the shading terms (0: none; 2: "quadratic")
+        self.degree = 0 if not self.drift else 2 if shading == "quadratic" else 1
         self.max_sigma_mm = float(max_sigma_mm)
         self.rest_sigma_scale = float(rest_sigma_scale)
         self.fit_sigma_scale = float(fit_sigma_scale)
@@ -389,10 +394,10 @@ class TrackRefiner:
             if keep is not None:
                 good &= keep
             g_good = None if gain is None else gain[good]
-            coef, res_sd, nfr, spread, sig_eps = _fit(idx[good], val[good], psi[good], tau[good], n, self.drift, g_good)
+            coef, res_sd, nfr, spread, sig_eps = _fit(idx[good], val[good], psi[good], tau[good], n, self.degree, g_good)
             cc, ss = coef[:, 1], coef[:, 2]
             if it == self.iterations - 2 or self.iterations == 1:  # drop samples far from the fit
-                pred = np.einsum("ij,ij->i", _design(psi, tau, self.drift, gain), coef[idx])
+                pred = np.einsum("ij,ij->i", _design(psi, tau, self.degree, gain), coef[idx])
                 keep = np.abs(val - pred) <= self.outlier_sigma * np.maximum(res_sd[idx], 1e-6)
                 if gain is not None:  # unlit now, judged if the point's move lights it: not refused unseen
                     keep |= gain == 0
@@ -472,28 +477,28 @@ def off_surface(points: np.ndarray, fitted: np.ndarray, *, radius_mm: float = 0.
     return out
 
 
-def _design(psi: np.ndarray, tau: np.ndarray, drift: bool, gain: np.ndarray | None = None) -> np.ndarray:
-    """Columns of ``I = a + C cos(psi) - S sin(psi)`` (``drift``: each also linear in ``tau``). With ``gain`` (the
-    projector's relative irradiance per sample, ``"lambert"`` shading): ``I = g (b + C cos(psi) - S sin(psi)) + a``,
-    ``b``, ``C``, ``S`` linear in ``tau`` with ``drift``, ``a`` (ambient) constant; ``b``, ``C``, ``S`` come first."""
+def _design(psi: np.ndarray, tau: np.ndarray, degree: int, gain: np.ndarray | None = None) -> np.ndarray:
+    """Columns of ``I = a + C cos(psi) - S sin(psi)``, each also a polynomial of ``degree`` (0, 1 or 2) in ``tau``. With
+    ``gain`` (the projector's relative irradiance per sample, ``"lambert"`` shading): ``I = g (b + C cos(psi) - S
+    sin(psi)) + a``, ``b``, ``C``, ``S`` polynomials of ``degree`` in ``tau``, ``a`` (ambient) constant. ``a`` (or
+    ``b``), ``C``, ``S`` at ``tau = 0`` come first."""
     c, s = np.cos(psi), -np.sin(psi)
+    base = [np.ones_like(c), c, s] if gain is None else [gain, gain * c, gain * s]
+    cols = list(base)
+    for power in range(1, degree + 1):  # shading that changes as the surface turns
+        t = tau**power
+        cols += [t * b for b in base]
     if gain is not None:
-        cols = [gain, gain * c, gain * s]
-        if drift:
-            cols += [gain * tau, gain * tau * c, gain * tau * s]
-        return np.stack([*cols, np.ones_like(c)], axis=1)
-    cols = [np.ones_like(c), c, s]
-    if drift:  # shading that changes as the surface turns: a, C, S linear in the turn angle
-        cols += [tau, tau * c, tau * s]
+        cols.append(np.ones_like(c))
     return np.stack(cols, axis=1)
 
 
-def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: int, drift: bool,
+def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: int, degree: int,
          gain: np.ndarray | None = None):
-    """Per-point least squares over its samples (:func:`_design`): coefficients ``(n, 3 to 7)``
-    (the mean or, with ``gain``, the projector's share of it, then C, S), the residual standard deviation, the number of
+    """Per-point least squares over its samples (:func:`_design`): coefficients ``(n, 3 to 10)``
+    (the mean or, with ``gain``, the projector's share of it, then C, S, then their terms in ``tau``), the residual standard deviation, the number of
     samples and the spread of ``psi``."""
-    x = _design(psi, tau, drift, gain)
+    x = _design(psi, tau, degree, gain)
     p = x.shape[1]
     ata = np.empty((n, p, p))
     atb = np.empty((n, p))
@@ -506,7 +511,7 @@ def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: 
     # opposite ones, which leave sin and cos apart unresolved); with gain, weighted by its square
     spread = 2.0 * np.linalg.eigvalsh(ata[:, :3, :3] / np.maximum(ata[:, 0, 0], 1e-12)[:, None, None])[:, 0]
     solvable = (count >= 2 * p) & (spread > 1e-3)
-    if drift or gain is not None:
+    if degree or gain is not None:
         solvable &= np.linalg.eigvalsh(ata)[:, 0] > 1e-12 * np.maximum(count, 1)
     sol = np.zeros((n, p))
     cov_cs = np.full((n, 2, 2), np.inf)  # (C, S) block of the inverse normal matrix

@@ -511,12 +511,36 @@ def test_lambert_shading_fits_the_phase_exactly_where_a_linear_drift_is_biased()
         for eps in np.linspace(0.0, 2 * np.pi, 8, endpoint=False):
             val = 6.0 + g * (100.0 + 95.0 * np.cos(psi + eps))
             for name, gain in (("drift", None), ("lambert", g)):
-                sol, res_sd, count, spread, _ = _fit(np.zeros(len(psi), int), val, psi, tau, 1, True, gain)
+                sol, res_sd, count, spread, _ = _fit(np.zeros(len(psi), int), val, psi, tau, 1, 1, gain)
                 assert count[0] == len(psi) and spread[0] > 0.5
                 err = abs(np.angle(np.exp(1j * (np.arctan2(sol[0, 2], sol[0, 1]) - eps))))
                 worst[name] = max(worst[name], err)
     assert worst["lambert"] < 1e-8
     assert worst["drift"] > 3e-3
+
+
+def test_quadratic_shading_follows_a_curved_shading_without_a_surface_model():
+    """The same samples, no normal known: a shading quadratic in the turn angle is fitted exactly by the
+    ``"quadratic"`` design, and the twin's cos(incidence) fall-off leaves it a bias several times below the linear
+    drift's (the cosine's curvature is what the line cannot follow)."""
+    from gearscan.recon.track import _fit
+
+    bursts = 16
+    worst = {1: 0.0, 2: 0.0}
+    for speed in (2.0, 9.0, 20.0):  # rad of fringe phase per rad of turn
+        tau = np.repeat(np.linspace(-0.7, 0.7, bursts), 3) + np.tile([0.0, 0.0105, 0.021], bursts)
+        psi = speed * tau + np.tile([0.0, 2 * np.pi / 3, 4 * np.pi / 3], bursts)
+        for eps in np.linspace(0.0, 2 * np.pi, 8, endpoint=False):
+            parabola = 1.0 - 0.5 * (1.6 * tau + 0.4) ** 2
+            sol, *_ = _fit(np.zeros(len(psi), int), 6.0 + parabola * (100.0 + 95.0 * np.cos(psi + eps)), psi, tau, 1, 2)
+            assert abs(np.angle(np.exp(1j * (np.arctan2(sol[0, 2], sol[0, 1]) - eps)))) < 1e-8
+            val = 6.0 + np.clip(np.cos(1.6 * tau + 0.4), 0.0, None) * (100.0 + 95.0 * np.cos(psi + eps))
+            for degree in worst:
+                sol, *_ = _fit(np.zeros(len(psi), int), val, psi, tau, 1, degree)
+                err = abs(np.angle(np.exp(1j * (np.arctan2(sol[0, 2], sol[0, 1]) - eps))))
+                worst[degree] = max(worst[degree], err)
+    assert worst[1] > 3e-3
+    assert worst[2] < worst[1] / 4
 
 
 def test_lambert_fit_moves_the_fused_points_onto_the_true_surface(off_cad_turn):

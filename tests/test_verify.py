@@ -234,7 +234,7 @@ def test_a_perfect_cloud_reads_the_certificate():
     assert max(bounds.values()) < 0.3, bounds
 
 
-def _report(folder, truth_meta, module=2.0, fingerprint="abc", slope_err=1.0, pos_err=0.5, seed=0):
+def _report(folder, truth_meta, module=2.0, fingerprint="abc", slope_err=1.0, pos_err=0.5, seed=0, datum=None):
     """A `gearscan inspect` report.json of a master whose flanks read the truth plus a slope error and noise."""
     from gearscan.verify import twin_certificate
 
@@ -252,7 +252,8 @@ def _report(folder, truth_meta, module=2.0, fingerprint="abc", slope_err=1.0, po
         "model": {"path": "m.safetensors", "fingerprint": fingerprint},
         "inspection": {"teeth": teeth, "module": module, "runout_about_gear_axis_um": 41.0, "flanks": flanks,
                        "position_um": pos, "settings": {"evaluation_roll_mm": [EVAL.l_a, EVAL.l_b], "xi_start": 0.1,
-                                                        "xi_end": 0.95, "bins": 20}}}))
+                                                        "xi_end": 0.95, "bins": 20}
+                                                       | ({} if datum is None else {"datum": datum})}}))
     return folder
 
 
@@ -394,3 +395,36 @@ def test_twin_certificate_cli(tmp_path):
     render_recording(plain, rig=default_rig(64, 64), bursts=1)
     res = CliRunner().invoke(app, ["twin", "certificate", str(plain), "-o", str(tmp_path / "d.json")])
     assert res.exit_code == 2 and "no twin truth" in res.output
+
+
+def test_a_statement_holds_for_one_datum(tmp_path):
+    """Pitch and runout are read about the inspection's datum axis: reports about different datums make no statement,
+    the statement names its datum (a report from before the datum was recorded: the flank fit it was read about),
+    and a gear read about another datum gets the statement's U with a warning."""
+    from gearscan.cli import app
+    from gearscan.verify import (
+        LEGACY_DATUM,
+        applied_uncertainty,
+        load_statement,
+        twin_certificate,
+        verify,
+    )
+
+    meta = _truth(**MASTER)
+    cert = twin_certificate(meta)
+    tip = [_report(tmp_path / f"t{i}", meta, seed=i, datum="tip") for i in range(3)]
+    assert verify(cert, tip).datum == "tip"
+    assert verify(cert, [_report(tmp_path / f"old{i}", meta, seed=i) for i in range(3)]).datum == LEGACY_DATUM
+    cert_file = tmp_path / "cert.json"
+    cert_file.write_text(cert.model_dump_json())
+    mixed = [*tip[:2], _report(tmp_path / "teeth", meta, datum="teeth")]
+    res = CliRunner().invoke(app, ["verify", str(cert_file), *map(str, mixed), "-o", str(tmp_path / "u.json")])
+    assert res.exit_code == 2 and "differ in their datums" in res.output
+    out = tmp_path / "st.json"
+    res = CliRunner().invoke(app, ["verify", str(cert_file), *map(str, tip), "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    loaded = load_statement(out)
+    assert loaded.datum == "tip" and "the master's is 'tip'" in out.with_suffix(".md").read_text()
+    same = applied_uncertainty(loaded, {}, 20, 2.0, "abc", None, datum="tip")
+    other = applied_uncertainty(loaded, {}, 20, 2.0, "abc", None, datum="teeth")
+    assert same.warnings == () and len(other.warnings) == 1 and "datum 'tip'" in other.warnings[0]
