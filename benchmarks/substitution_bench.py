@@ -7,7 +7,7 @@ A master gear with a certificate (the twin's truth) is measured ``--masters`` ti
 checked against its truth: within U, or not. That check can fail; the statement is only worth what it passes.
 
     python benchmarks/substitution_bench.py [--masters 5] [--workpieces 3] [--report benchmarks/substitution_report]
-        [--reports out/substitution]
+        [--reports out/substitution] [--shading quadratic] [--again-from out/substitution]
 
 Renders are cached under ``out/substitution/``, inspections under ``--reports`` (default the same; delete to redo;
 another folder re-inspects the same renders, e.g. after a change to the measurement). Default rig, 512x512, z = 20,
@@ -52,9 +52,10 @@ def mounting(i: int) -> dict:
     return {"eccentricity_um": 20.0, "eccentricity_deg": (72.0 * i) % 360.0}
 
 
-def measure(name: str, defects: dict, seed: int, start_deg: float, reports: Path = WORK, shading: str | None = None) -> Path:
+def measure(name: str, defects: dict, seed: int, start_deg: float, reports: Path = WORK, shading: str | None = None,
+            again_from: Path | None = None) -> Path:
     """Render (cached) one revolution of a gear with ``defects`` and inspect it (cached, under ``reports``); the report
-    folder."""
+    folder. With ``again_from`` the inspection reads that folder's report of the gear again, without a replay."""
     from gearscan.inference.decoder import Decoder
     from gearscan.inspect import run_inspection
     from gearscan.recon.measure import network_support_option
@@ -67,6 +68,9 @@ def measure(name: str, defects: dict, seed: int, start_deg: float, reports: Path
         render_recording(rec, defects=GearDefects(**defects), motion="uniform:0.6", bursts=200, alternate_order=True,
                          seed=seed, start_deg=start_deg, overwrite=True)
         print(f"rendered {rec} in {time.perf_counter() - t:.0f} s", flush=True)
+    if not (out / "report.json").exists() and again_from is not None:
+        run_inspection(rec, out, from_report=again_from / f"report_{name}")
+        print(f"inspected {again_from / f'report_{name}'} again in {out}", flush=True)
     if not (out / "report.json").exists():
         t = time.perf_counter()
         decoder = Decoder(None)  # the shipped network, as `gearscan inspect REC` decodes
@@ -105,6 +109,9 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
     write_statement(statement, masters[0].parent / "uncertainty.json")
     shadings = sorted({str(json.loads((f / "report.json").read_text())["fused"].get("frame_fit_shading"))
                        for f in [*masters, *pieces]})
+    datums = sorted({str(json.loads((f / "report.json").read_text())["inspection"]["settings"].get("datum"))
+                     for f in [*masters, *pieces]})
+    again = sorted({str(json.loads((f / "report.json").read_text()).get("fused_from")) for f in [*masters, *pieces]})
     tolerances = {g: iso1328_tolerances(2.0, 40.0, g) for g in (5, 6, 7, 8)}
     checks = []
     for j, p in enumerate(pieces):
@@ -136,7 +143,9 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
         "",
         "Gear type: z = 20, m = 2 mm, default rig 512 x 512, 0.6 deg/frame, 200 bursts, patterns alternating, the "
         f"shipped network, `gearscan inspect` defaults (frame fit on; its shading model: {', '.join(shadings)}; 'None': "
-        "an inspection from before the report named it, the drift model). Master: slope +8, crown +4 um, tooth 5 +15 um, "
+        "an inspection from before the report named it, the drift model; datum: "
+        f"{', '.join(datums)}, 'None': the flank fit of before session 59; clouds inspected again from: "
+        f"{', '.join(again)}). Master: slope +8, crown +4 um, tooth 5 +15 um, "
         f"measured {len(masters)} times, each remounted (eccentricity 20 um turned 72 deg, start angle +17 deg, new "
         "noise seed). Certificate: the twin's truth (U 0). Workpieces: other slopes, crowns, pitch errors and "
         "mountings, measured once each (the rule lists them; 4-6 rendered after the amendment).", "",
@@ -171,6 +180,7 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
     report.with_suffix(".md").write_text("\n".join(md))
     report.with_suffix(".json").write_text(json.dumps({
         "commit": head, "host": started, "python": platform.python_version(), "frame_fit_shading": shadings,
+        "datum": datums, "fused_from": again,
         "masters": [str(m) for m in masters],
         "workpieces": [str(p) for p in pieces], "statement": statement.to_json(),
         "iso_form": {k: {"U": q.U, "bias": q.bias, "u_p": q.u_p, "k": q.k, "readings": list(q.readings)}
@@ -191,19 +201,23 @@ def main() -> None:
                     "overwrites the committed report)")
     ap.add_argument("--reports", type=Path, default=WORK, help="where the inspections are cached (renders: out/substitution)")
     ap.add_argument("--shading", default=None, help="the frame fit's shading model (default: the product's)")
+    ap.add_argument("--again-from", type=Path, default=None, help="inspect again, without a replay, the fused clouds of "
+                    "this folder's inspections (e.g. after a change to the inspection alone); needs its own --reports")
     args = ap.parse_args()
     if args.shading is not None and args.reports == WORK:
         ap.error("--shading needs its own --reports folder (the cached inspections there used the product's model)")
+    if args.again_from is not None and (args.reports == WORK or args.shading is not None):
+        ap.error("--again-from needs its own --reports folder and no --shading (the clouds' frame fit has run)")
     if args.report is None:
         if args.reports != WORK:
             ap.error("--reports elsewhere needs its own --report (the default is the committed report)")
         args.report = HERE / "substitution_report"
     started, head = host(), commit()
     masters = [measure(f"master_{i}", MASTER | mounting(i), seed=100 + i, start_deg=17.0 * i, reports=args.reports,
-                       shading=args.shading)
+                       shading=args.shading, again_from=args.again_from)
                for i in range(args.masters)]
     pieces = [measure(f"workpiece_{j}", WORKPIECES[j], seed=200 + j, start_deg=11.0 * j, reports=args.reports,
-                      shading=args.shading)
+                      shading=args.shading, again_from=args.again_from)
               for j in range(args.workpieces)]
     if args.measure_only:
         return

@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from gearscan.core.types import Cloud
-from gearscan.recon.fuse import CloudFuser, fuse, save_fused
+from gearscan.recon.fuse import CloudFuser, fuse, load_fused, save_fused
 
 
 def _cloud(points, sigma, burst=0, frame="world") -> Cloud:
@@ -111,7 +111,8 @@ def test_save_fused_names_a_bad_suffix(tmp_path):
 
 
 def test_fused_cloud_exports_as_ply_and_csv_with_the_same_numbers(tmp_path):
-    """PLY (open3d) and CSV hold the same x, y, z (mm), sigma, deviation and burst count."""
+    """PLY (open3d) and CSV hold the same x, y, z (mm), sigma, deviation, burst and sample counts; the PLY reads back
+    as the fused cloud."""
     import open3d as o3d
 
     from gearscan.recon.cloud import load_cloud
@@ -121,7 +122,7 @@ def test_fused_cloud_exports_as_ply_and_csv_with_the_same_numbers(tmp_path):
     f = fuse([_cloud(pts, np.full(50, 0.01), 0), _cloud(pts + 0.001, np.full(50, 0.02), 1)], voxel_mm=0.1)
     f = f.with_deviation(rng.normal(0, 0.05, len(f)))
     ply, csv = save_fused(f, tmp_path / "f.ply"), save_fused(f, tmp_path / "f.csv")
-    assert csv.read_text().splitlines()[0] == "x_mm,y_mm,z_mm,sigma_mm,deviation_mm,bursts"
+    assert csv.read_text().splitlines()[0] == "x_mm,y_mm,z_mm,sigma_mm,deviation_mm,bursts,samples"
     a, b = load_cloud(ply), load_cloud(csv)
     np.testing.assert_allclose(b.points, f.points, atol=1e-6)
     np.testing.assert_allclose(a.points, f.points, atol=1e-5)  # float32 in the PLY
@@ -131,3 +132,11 @@ def test_fused_cloud_exports_as_ply_and_csv_with_the_same_numbers(tmp_path):
     np.testing.assert_allclose(a.deviation, f.deviation, atol=1e-6)
     counts = np.loadtxt(csv, delimiter=",", skiprows=1)[:, 5]
     assert counts.tolist() == o3d.t.io.read_point_cloud(str(ply)).point["bursts"].numpy().ravel().tolist() == [2] * len(f)
+    back = load_fused(ply, 0.1, f.bursts_added)  # what `inspect --from-report` reads: the same cloud, float32 aside
+    np.testing.assert_allclose(back.points, f.points, atol=1e-5)
+    np.testing.assert_allclose(back.sigma, f.sigma, rtol=1e-6)
+    np.testing.assert_allclose(back.deviation, f.deviation, atol=1e-6)
+    assert back.bursts.tolist() == f.bursts.tolist() and back.samples.tolist() == f.samples.tolist()
+    assert back.refined is None and back.ray is None and len(back) == len(f)
+    with pytest.raises(ValueError, match="expected a .ply or .pcd"):
+        load_fused(csv, 0.1, 2)
