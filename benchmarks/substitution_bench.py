@@ -138,7 +138,8 @@ def analyse(masters: list[Path], pieces: list[Path], report: Path, started: str,
     verdict = "holds" if not misses else "does NOT hold"
     md = [
         "# Measurement uncertainty from a master gear: stated on the master, tested on other gears", "",
-        f"`python benchmarks/substitution_bench.py --masters {len(masters)} --workpieces {len(pieces)}` - commit {head}, "
+        f"`python benchmarks/substitution_bench.py {' '.join(sys.argv[1:])}` ({len(masters)} masters, {len(pieces)} "
+        f"workpieces) - commit {head}, "
         f"host: {started}. Rule and its amendment (both written before the analysis): `benchmarks/substitution_rule.md`.",
         "",
         "Gear type: z = 20, m = 2 mm, default rig 512 x 512, 0.6 deg/frame, 200 bursts, patterns alternating, the "
