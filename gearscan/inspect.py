@@ -260,6 +260,10 @@ def run_inspection(
                              f"{truth_teeth}: the gear spec does not match the gear that was recorded")
     if point_sigma_mm is not None and not refine:
         raise ValueError("point_sigma_mm: the bound on the fitted cloud's points needs the frame fit (refine)")
+    replay_only = {"save": save, "max_sigma": max_sigma, "point_sigma_mm": point_sigma_mm, "rig": rig, "shading": shading}
+    if from_report is not None and any(v is not None for v in replay_only.values()):
+        raise ValueError(f"from_report: the fused cloud was measured with that report's replay; "
+                         f"{', '.join(k for k, v in replay_only.items() if v is not None)} would change a replay that does not run")
     if inspect_options.get("datum", DATUM) not in DATUMS:  # refused before the replay
         raise ValueError(f"datum: expected one of {', '.join(DATUMS)}, got {inspect_options['datum']!r}")
     if shading is not None and not refine:

@@ -9,7 +9,7 @@ Steps and definitions (all in the transverse section band around mid-face):
 
 1. **Datum axis** (``datum``, :data:`DATUM`): ``"tip"``, a least-squares circle through the tip lands
    (:func:`fit_centre`: the points within ``0.1 m`` of the tip circle, refitted with those within 3 MADs). Tip lands
-   do not move with pitch deviations, so the axis is not pulled by them; on the twin's gears it lies within 0.1-0.6 um
+   do not move with pitch deviations, so the axis is not pulled by them; on the twin's gears it lay within 0.04-0.6 um
    of the true axis. It assumes the tip circle concentric with the teeth (a turned blank's tip runout would read as
    pitch and runout). ``"teeth"``: from the flanks, each tooth turned freely (its pitch deviation), so that only their
    radial part (tooth spaces opening and closing around the gear) places the axis: about 3x noisier on the twin
@@ -84,13 +84,13 @@ CHIP_NOISE_MARGIN = 2.0
 # out 2-8 (the same F_alpha). Chosen by argument on that one revolution (a lone point is no profile; 3 um is a
 # seventh of the class-8 F_alpha tolerance, 22 um, of the benchmark gear), not tuned; the report counts what was left out
 MIN_BIN_POINTS = 3
+BIN_SE_MAX_MM = 0.003
 # the datum axis pitch, runout and the flank deviations are read about (step 1 of the module docstring): "tip", the tip
 # lands' circle; "teeth", the axis the flanks' radial part places. Until session 59 the axis was fitted to the flanks
 # with one turn for all teeth, and a single tooth's pitch deviation moved it by as much as the robust window happened
 # to keep of that tooth (benchmarks/datum_and_quadratic_rule.md)
 DATUMS = ("tip", "teeth")
 DATUM = "tip"
-BIN_SE_MAX_MM = 0.003
 
 
 # --- ISO 1328-1:2013 tolerances ------------------------------------------------------------

@@ -798,3 +798,7 @@ def test_a_report_inspected_again_without_a_replay(inspected, tmp_path):
     refused(["--from-report", str(other), "-o", str(tmp_path / "z")], "a report of the recording 'another_rec'")
     (other / "report.json").write_text(json.dumps(report))  # its report, but no fused cloud beside it
     refused(["--from-report", str(other), "-o", str(tmp_path / "w")], "its fused cloud cannot be read")
+    from gearscan.inspect import run_inspection
+
+    with pytest.raises(ValueError, match="shading would change a replay that does not run"):
+        run_inspection(rec, tmp_path / "v", from_report=out, shading="drift")
