@@ -811,14 +811,17 @@ def inspect_cmd(
     _require_recording(recording)
     _writable(out, "--out", folder=True)
     _writable(save, "--save")
-    decoder = _decoder(classical, 0, model)
+    common = {"grade": grade, "progress": lambda s: typer.echo(f"- {s}"), "uncertainty": uncertainty, "datum": datum}
     try:
-        report = run_inspection(recording, out, decoder=decoder, grade=grade, voxel_mm=voxel_mm, min_bursts=min_bursts,
-                                unwrap=unwrap, save=save, refine=refine, progress=lambda s: typer.echo(f"- {s}"),
-                                network_support_px=network_support_option(network_support_px, frame_fit=refine,
-                                                                          model=decoder.network_support),
-                                point_sigma_mm=point_sigma_mm, rig=rig, uncertainty=uncertainty,
-                                shading=frame_fit_shading, datum=datum, from_report=from_report)
+        if from_report is not None:  # no replay: no decoder to load
+            report = run_inspection(recording, out, from_report=from_report, **common)
+        else:
+            decoder = _decoder(classical, 0, model)
+            report = run_inspection(recording, out, decoder=decoder, voxel_mm=voxel_mm, min_bursts=min_bursts,
+                                    unwrap=unwrap, save=save, refine=refine,
+                                    network_support_px=network_support_option(network_support_px, frame_fit=refine,
+                                                                              model=decoder.network_support),
+                                    point_sigma_mm=point_sigma_mm, rig=rig, shading=frame_fit_shading, **common)
     except (RecordingError, PipelineError, ValueError) as exc:
         raise _fail(str(exc)) from exc
     from gearscan.inspect import chip_verdict, quantity_line, uncertainty_lines
