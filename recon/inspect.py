@@ -12,7 +12,7 @@ Steps and definitions (all in the transverse section band around mid-face):
    do not move with pitch deviations, so the axis is not pulled by them; on the twin's gears it lay within 0.04-0.6 um
    of the true axis. It assumes the tip circle concentric with the teeth (a turned blank's tip runout would read as
    pitch and runout). ``"teeth"``: from the flanks, each tooth turned freely (its pitch deviation), so that only their
-   radial part (tooth spaces opening and closing around the gear) places the axis: about 3x noisier on the twin
+   radial part (tooth spaces opening and closing around the gear) places the axis: 2.5-5x noisier on the twin
    (sin 20 deg of the flank information carries it). The first harmonic of the pitch deviations and a shift of the
    axis move the teeth alike along the pitch circle; from the flanks alone they cannot be told apart, so no fit of the
    axis that lets both do it is a datum. Not assumed to be the turntable axis: its offset is the mounting eccentricity
