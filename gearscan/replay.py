@@ -280,7 +280,7 @@ def replay(
     ``refiner_factory(rig, period_px, rest_sigma_scale=c)``: that fit with other settings than the product's (the rule scripts'
     candidates), e.g. ``functools.partial(TrackRefiner, settle_rad=0.1)``. ``point_sigma_mm``: the fitted cloud's bound
     on every point's sigma, mm (None: the fit's own, :data:`~gearscan.recon.track.MAX_POINT_SIGMA_MM`); needs the fit.
-    ``shading``: how the fit models the light a point gets as the gear turns (``"drift"``, ``"lambert"`` or ``"quadratic"``,
+    ``shading``: how the fit models the light a point gets as the gear turns (``"drift"``, ``"lambert"``, ``"quadratic"`` or ``"mixed"``,
     :data:`~gearscan.recon.track.SHADINGS`; None: the product's, :data:`~gearscan.recon.track.SHADING`); needs the fit.
 
     ``rig``: the calibration (file or :class:`Rig`) for a recording made without one; it

@@ -19,7 +19,9 @@ linear drift, plus constant ambient light: what a matt surface (and the twin) do
 point ``g`` is not linear in the turn angle, and what a linear drift leaves of it biases the fitted phase by a few
 millirad the same way for every point sampled alike (``benchmarks/frame_fit_shading_rule.md``). ``"quadratic"``: the
 mean and the modulation quadratic in the turn angle, no surface model: it follows that curvature whatever the
-surface's reflectance, at the price of three more terms.
+surface's reflectance, at the price of three more terms. ``"mixed"``: each point's own choice of the two, made on
+its samples when it has nearly converged: quadratic where the three more terms cost its phase little precision
+(samples that span much of the turn), drift where they would cost much (few samples, lit over a short arc).
 
 What it needs is only geometry and the encoder: the fused cloud (any decoder's) as the start,
 within a fraction of a fringe of the surface. It uses no CAD, so a gear that is not its CAD
@@ -71,9 +73,14 @@ MAX_POINT_SIGMA_MM = 0.03
 # scripts/choose_frame_fit_shading.py -> frame_fit_shading_val.json), but with it the substitution benchmark's statement
 # failed on a held-out gear (Fp, benchmarks/substitution_lambert_report.md) and the profile headlines did not improve:
 # drift stays the product's, lambert an option (--frame-fit-shading lambert). "quadratic" (session 59): mean and
-# modulation quadratic in the turn angle, no surface model: follows a curved shading without a normal or a reflectance
-SHADINGS = ("drift", "lambert", "quadratic")
+# modulation quadratic in the turn angle, no surface model: follows a curved shading without a normal or a reflectance.
+# "mixed" (session 60): per point "quadratic" where its samples carry the three more terms, "drift" where they do not
+SHADINGS = ("drift", "lambert", "quadratic", "mixed")
 SHADING = "drift"
+# "mixed" keeps a point's quadratic fit where its phase's standard error is at most this many times the drift fit's on
+# the same samples (benchmarks/mixed_shading_rule.md): the quadratic terms remove the curvature's bias, shared by the
+# points sampled alike, at the price of variance, which is large only where the samples span little of the turn
+MIXED_SIGMA_RATIO = 1.25
 # "lambert" leaves out the samples lit more obliquely than this (cosine of the projector ray's incidence on the
 # point's estimated normal): there a few degrees of normal error change the predicted irradiance by tens of percent
 MIN_INCIDENCE_COS = 0.25
@@ -132,7 +139,12 @@ class TrackRefiner:
     count the drift fits' refusals);
     ``normal_radius_mm``: the neighbourhood of a point's normal for ``"lambert"`` (a point with fewer than 5 fused
     points that close gets none and is not fitted); ``min_incidence_cos``: ``"lambert"`` leaves out the samples lit
-    more obliquely (:data:`MIN_INCIDENCE_COS`).
+    more obliquely (:data:`MIN_INCIDENCE_COS`). ``mixed_sigma_ratio``: with ``"mixed"`` shading, a point is fitted
+    quadratic where that fit's phase standard error is at most this many times the drift fit's on the same samples, at
+    the iteration that drops outliers (``iterations - 2``; drift before it); a point the mixed fit does not take is
+    fitted with the drift model from the start, as with ``"lambert"`` (``stats["drift_fallback"]``; ``unsettled`` and
+    ``implausible`` then count the drift fits' refusals);
+    ``stats["quadratic_points"]`` counts the fitted points it took quadratic (:data:`MIXED_SIGMA_RATIO`).
 
     Defaults: ``max_sigma_mm = 0.03`` and ``min_spread = 0.05`` were chosen (with the sigma unscaled) on an independent
     40-burst twin stretch (seed 7, start 11 deg, default rig, 0.6 deg/frame; 40k points against
@@ -148,7 +160,7 @@ class TrackRefiner:
                  rest_sigma_scale: float = REST_SIGMA_SCALE, fit_sigma_scale: float = FIT_SIGMA_SCALE,
                  settle_rad: float | None = SETTLE_RAD, modulation_ratio: float | None = MODULATION_RATIO,
                  shading: str = SHADING, normal_radius_mm: float = 0.3,
-                 min_incidence_cos: float = MIN_INCIDENCE_COS) -> None:
+                 min_incidence_cos: float = MIN_INCIDENCE_COS, mixed_sigma_ratio: float = MIXED_SIGMA_RATIO) -> None:
         if not period_px > 0:
             raise ValueError(f"period_px: expected > 0 projector pixels, got {period_px}")
         if iterations < 1 or min_frames < 4:
@@ -172,6 +184,10 @@ class TrackRefiner:
             raise ValueError(f"normal_radius_mm: expected a radius > 0 mm, got {normal_radius_mm}")
         if not 0 <= min_incidence_cos < 1:
             raise ValueError(f"min_incidence_cos: expected a cosine in [0, 1), got {min_incidence_cos}")
+        if not (math.isfinite(mixed_sigma_ratio) and mixed_sigma_ratio > 0):
+            raise ValueError(f"mixed_sigma_ratio: expected a finite ratio > 0, got {mixed_sigma_ratio}")
+        if shading == "mixed" and not drift:
+            raise ValueError("shading 'mixed' chooses between two shading drifts: it needs drift=True")
         self.rig = rig
         self.period_px = float(period_px)
         self.shading = shading
@@ -185,7 +201,8 @@ class TrackRefiner:
         self.outlier_sigma = float(outlier_sigma)
         self.drift = bool(drift)
         # the polynomial degree in the turn angle of the shading terms (0: none; 2: "quadratic")
-        self.degree = 0 if not self.drift else 2 if shading == "quadratic" else 1
+        self.degree = 0 if not self.drift else 2 if shading in ("quadratic", "mixed") else 1
+        self.mixed_sigma_ratio = float(mixed_sigma_ratio)
         self.max_sigma_mm = float(max_sigma_mm)
         self.rest_sigma_scale = float(rest_sigma_scale)
         self.fit_sigma_scale = float(fit_sigma_scale)
@@ -333,13 +350,16 @@ class TrackRefiner:
         refined = np.zeros(len(pts0), bool)
         frames = np.zeros(len(pts0), np.int64)
         moved = np.zeros(len(pts0))
-        unsettled = implausible = fallback = 0
+        unsettled = implausible = fallback = quadratic = 0
         for start in range(0, len(pts0), _CHUNK):
             sl = slice(start, start + _CHUNK)
-            p, s, r, f, mv, ray, u, im = self._refine_chunk(pts0[sl], None if normals is None else normals[sl])
-            if normals is not None and not r.all():  # what lambert cannot take, the drift model may: its counts then
+            p, s, r, f, mv, ray, u, im, q = self._refine_chunk(pts0[sl], None if normals is None else normals[sl],
+                                                               self.degree, self.shading == "mixed")
+            quadratic += q
+            if (normals is not None or self.shading == "mixed") and not r.all():
+                # what lambert or the mixed fit cannot take, the drift model may: its counts then
                 miss = np.flatnonzero(~r)
-                p2, s2, r2, f2, mv2, ray2, u, im = self._refine_chunk(pts0[sl][miss], None)
+                p2, s2, r2, f2, mv2, ray2, u, im, _ = self._refine_chunk(pts0[sl][miss], None, min(self.degree, 1), False)
                 take = miss[r2]
                 p[take], s[take], r[take], f[take], mv[take], ray[take] = p2[r2], s2[r2], True, f2[r2], mv2[r2], ray2[r2]
                 fallback += len(take)
@@ -347,12 +367,12 @@ class TrackRefiner:
             unsettled += u
             implausible += im
         stats = {"shading": self.shading, "points": len(pts0), "refined": int(refined.sum()), "unsettled": unsettled,
-                 "implausible": implausible, "drift_fallback": fallback,
+                 "implausible": implausible, "drift_fallback": fallback, "quadratic_points": quadratic,
                  "median_frames": float(np.median(frames[refined])) if refined.any() else 0.0,
                  "median_abs_move_mm": float(np.median(np.abs(moved[refined]))) if refined.any() else 0.0}
         return TrackResult(out_pts, out_sigma, refined, frames.astype(np.int32), moved, out_rays, stats)
 
-    def _refine_chunk(self, pts: np.ndarray, normals: np.ndarray | None):
+    def _refine_chunk(self, pts: np.ndarray, normals: np.ndarray | None, degree: int, mixed: bool):
         n = len(pts)
         vis_rows, vis_cols = [], []
         for bi, b in enumerate(self.bursts):
@@ -380,6 +400,10 @@ class TrackRefiner:
         ok_fit = np.zeros(n, bool)
         used = np.zeros(n, np.int64)
         keep = None
+        # "mixed": the drift fit until the iteration that drops outliers, where both fits on the same samples choose
+        # each point's degree for the rest (a near-converged point's samples; the choice then fixed)
+        quad = np.zeros(n, bool) if mixed else None
+        decide = max(self.iterations - 2, 0)
         for it in range(self.iterations):
             cols = [self._samples(x, ip, bounds, k, rays, normals) for k in range(3)]
             idx = np.concatenate([ip] * 3)
@@ -394,10 +418,17 @@ class TrackRefiner:
             if keep is not None:
                 good &= keep
             g_good = None if gain is None else gain[good]
-            coef, res_sd, nfr, spread, sig_eps = _fit(idx[good], val[good], psi[good], tau[good], n, self.degree, g_good)
+            if quad is None:
+                coef, res_sd, nfr, spread, sig_eps = _fit(idx[good], val[good], psi[good], tau[good], n, degree, g_good)
+            else:
+                if it == decide:
+                    both = [_fit(idx[good], val[good], psi[good], tau[good], n, d) for d in (1, 2)]
+                    with np.errstate(invalid="ignore"):
+                        quad = np.isfinite(both[1][4]) & (both[1][4] <= self.mixed_sigma_ratio * both[0][4])
+                coef, res_sd, nfr, spread, sig_eps = _fit_degrees(idx[good], val[good], psi[good], tau[good], n, quad)
             cc, ss = coef[:, 1], coef[:, 2]
             if it == self.iterations - 2 or self.iterations == 1:  # drop samples far from the fit
-                pred = np.einsum("ij,ij->i", _design(psi, tau, self.degree, gain), coef[idx])
+                pred = np.einsum("ij,ij->i", _design(psi, tau, degree, gain), coef[idx])
                 keep = np.abs(val - pred) <= self.outlier_sigma * np.maximum(res_sd[idx], 1e-6)
                 if gain is not None:  # unlit now, judged if the point's move lights it: not refused unseen
                     keep |= gain == 0
@@ -429,7 +460,7 @@ class TrackRefiner:
         moved = np.einsum("ij,ij->i", x - pts, rays)
         rays = np.where((count > 0)[:, None], rays, np.nan)  # no burst saw it: no view, no ray
         return (x, sigma, ok_fit, used, moved, rays, int(unsettled.sum()),
-                int(implausible.sum()))
+                int(implausible.sum()), 0 if quad is None else int((quad & ok_fit).sum()))
 
 
 def surface_normals(points: np.ndarray, radius_mm: float, min_neighbours: int = 5) -> np.ndarray:
@@ -529,6 +560,21 @@ def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: 
         q = (s * s * cov_cs[:, 0, 0] - 2 * c * s * cov_cs[:, 0, 1] + c * c * cov_cs[:, 1, 1]) / (b2 * b2)
     sigma_eps = np.where(solvable, res_sd * np.sqrt(np.maximum(q, 0.0)), np.inf)
     return sol, res_sd, count.astype(np.int64), np.where(solvable, spread, 0.0), sigma_eps
+
+
+def _fit_degrees(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: int, quad: np.ndarray):
+    """:func:`_fit` of degree 2 for the points ``quad``, of degree 1 for the others, in one result (the coefficients in
+    degree 2's columns, zero where degree 1 has none: its columns are degree 2's first six)."""
+    coef, res_sd = np.zeros((n, 9)), np.zeros(n)
+    count, spread, sig_eps = np.zeros(n, np.int64), np.zeros(n), np.full(n, np.inf)
+    for degree, mine in ((1, ~quad), (2, quad)):
+        if not mine.any():
+            continue
+        m = mine[idx]
+        sol, sd, cnt, spr, sig = _fit(idx[m], val[m], psi[m], tau[m], n, degree)
+        coef[mine, : sol.shape[1]] = sol[mine]
+        res_sd[mine], count[mine], spread[mine], sig_eps[mine] = sd[mine], cnt[mine], spr[mine], sig[mine]
+    return coef, res_sd, count, spread, sig_eps
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

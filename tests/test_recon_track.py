@@ -543,6 +543,56 @@ def test_quadratic_shading_follows_a_curved_shading_without_a_surface_model():
     assert worst[2] < worst[1] / 4
 
 
+def test_mixed_fit_is_each_points_own_degree():
+    """``_fit_degrees``: the points chosen quadratic get exactly the degree-2 fit of their samples, the others the
+    degree-1 fit (coefficients in degree 2's columns, zero beyond degree 1's six), whatever the other points' samples."""
+    from gearscan.recon.track import _fit, _fit_degrees
+
+    rng = np.random.default_rng(5)
+    n, per = 6, 60
+    idx = np.repeat(np.arange(n), per)
+    tau = rng.uniform(-0.6, 0.6, idx.size)
+    psi = rng.uniform(0, 2 * np.pi, idx.size)
+    val = 80 + 30 * tau**2 + (60 - 20 * tau) * np.cos(psi + idx) + rng.normal(0, 1.0, idx.size)
+    quad = np.array([True, False, True, False, False, True])
+    coef, res_sd, count, spread, sig = _fit_degrees(idx, val, psi, tau, n, quad)
+    for degree, mine in ((1, ~quad), (2, quad)):
+        ref = _fit(idx, val, psi, tau, n, degree)
+        width = ref[0].shape[1]
+        np.testing.assert_allclose(coef[mine, :width], ref[0][mine], rtol=1e-9, atol=1e-9)
+        assert not coef[mine, width:].any()
+        for got, want in zip((res_sd, count, spread, sig), ref[1:], strict=True):
+            np.testing.assert_allclose(got[mine], want[mine], rtol=1e-9)
+    assert (sig[quad] > 0).all() and np.isfinite(sig).all()
+
+
+def test_mixed_shading_takes_the_quadratic_fit_where_its_samples_carry_it(off_cad_turn):
+    """``shading="mixed"`` on the same frames and fused cloud: each point is fitted with the quadratic shading where its
+    phase's standard error stays within ``mixed_sigma_ratio`` of the drift fit's, the drift shading elsewhere. The
+    points land on the true surface as drift's do, and a ratio no fit can meet leaves every point to drift."""
+    reader, refiner, fused, _, _, truth = off_cad_turn
+
+    def fit(**kwargs):
+        ref = TrackRefiner(reader.rig, reader.patterns.periods[0], **kwargs)
+        ref.bursts = refiner.bursts
+        return ref.refine(fused.points)
+
+    drift, mixed = refiner.refine(fused.points), fit(shading="mixed")
+    r = mixed.refined
+    assert r.mean() > 0.6, f"only {r.mean():.0%} of the points fitted"
+    share = mixed.stats["quadratic_points"] / mixed.stats["refined"]
+    assert 0.05 < share < 0.995, f"{share:.1%} of the fitted points quadratic: the choice chose nothing"
+    both = r & drift.refined
+    assert _rms_um(_signed(truth, mixed.points[both])) <= 1.05 * _rms_um(_signed(truth, drift.points[both]))
+    z = np.abs(_signed(truth, mixed.points[r])) / mixed.sigma[r]
+    assert 0.3 < np.median(z) < 2.0
+    never = fit(shading="mixed", mixed_sigma_ratio=1e-6)  # the quadratic fit's sigma is never a millionth of drift's
+    assert never.stats["quadratic_points"] == 0
+    np.testing.assert_allclose(never.points, drift.points, atol=1e-9)
+    np.testing.assert_array_equal(never.refined, drift.refined)
+    assert drift.stats["quadratic_points"] == 0
+
+
 def test_lambert_fit_moves_the_fused_points_onto_the_true_surface(off_cad_turn):
     """``shading="lambert"`` on the same frames and fused cloud: the points land on the true surface as the drift
     model's do, and its modulation test (taken at the point's mean irradiance) refuses next to none of them."""
@@ -574,6 +624,11 @@ def test_shading_settings_are_checked():
     for cos in (-0.1, 1.0, float("nan")):
         with pytest.raises(ValueError, match="min_incidence_cos"):
             TrackRefiner(rig, 40.0, min_incidence_cos=cos)
+    for ratio in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="mixed_sigma_ratio"):
+            TrackRefiner(rig, 40.0, shading="mixed", mixed_sigma_ratio=ratio)
+    with pytest.raises(ValueError, match="needs drift=True"):
+        TrackRefiner(rig, 40.0, shading="mixed", drift=False)
 
 
 def test_replay_and_cli_take_the_frame_fits_shading(off_cad_turn, tmp_path):
