@@ -149,6 +149,13 @@ def turning_note(report: InspectionReport) -> str | None:
             f"{turning_three_step_note(report.turning_three_step)}")
 
 
+def shading_share(refine: dict) -> str:
+    """With "mixed" shading, how many of the fits it took quadratic, in words (empty for the other models)."""
+    if refine.get("shading") != "mixed" or refine.get("quadratic_points") is None or not refine.get("refined"):
+        return ""
+    return f": {100 * refine['quadratic_points'] / refine['refined']:.0f} % of the fits quadratic"
+
+
 def dropped_note(refine: dict | None) -> str:
     """What the frame fit left out of the fused model, in words (empty if it dropped nothing)."""
     if not refine:
@@ -366,7 +373,9 @@ def earlier_measurement(folder: str | Path, reader: RecordingReader) -> EarlierM
         bound = fused_meta.get("sigma_bound_um")
         refine = {"off_surface": fused_meta.get("dropped_off_surface"), "uncertain": fused_meta.get("dropped_uncertain"),
                   "sigma_bound_mm": None if bound is None else 1e-3 * bound, "unsettled": fused_meta.get("unsettled_fits"),
-                  "implausible": fused_meta.get("implausible_fits"), "shading": fused_meta.get("frame_fit_shading")}
+                  "implausible": fused_meta.get("implausible_fits"), "shading": fused_meta.get("frame_fit_shading"),
+                  "quadratic_points": fused_meta.get("quadratic_fits"), "drift_fallback": fused_meta.get("drift_fallback_fits"),
+                  "refined": fused_meta.get("refined_points")}
     calibration = old.get("rig_calibration")
     return EarlierMeasurement(
         fused=fused, decoder={"model": model.get("path"), "model_fingerprint": model.get("fingerprint"),
@@ -430,6 +439,9 @@ def report_json(report: InspectionReport, recording: Path) -> dict:
                   "unsettled_fits": (report.refine or {}).get("unsettled"),
                   "implausible_fits": (report.refine or {}).get("implausible"),
                   "frame_fit_shading": (report.refine or {}).get("shading"),
+                  # "mixed": the fits it took quadratic; "lambert" and "mixed": the points fitted with drift instead
+                  "quadratic_fits": (report.refine or {}).get("quadratic_points"),
+                  "drift_fallback_fits": (report.refine or {}).get("drift_fallback"),
                   # whose depth-sigma scales an unfitted point's sigma carries: model, product or unmeasured
                   "depth_sigma_source": report.depth_sigma_source,
                   # the scale an unfitted point's sigma carried (the decoding model's own, else the product's) and whose
@@ -517,7 +529,8 @@ def report_markdown(report: InspectionReport, recording: Path) -> str:
            "the deviation's")
         + ")"
         + (f"; {100 * report.fused.refined.mean():.0f} % of the points fitted to the raw frames that saw them"
-           + (f" ({report.refine['shading']} shading)" if (report.refine or {}).get("shading") else "")
+           + (f" ({report.refine['shading']} shading{shading_share(report.refine)})"
+              if (report.refine or {}).get("shading") else "")
            + (f", every point's σ within {1e3 * report.refine['sigma_bound_mm']:g} µm (the fit's bound)."
               if (report.refine or {}).get("sigma_bound_mm") else ".")
            if report.fused.refined is not None else ".") + dropped_note(report.refine),

@@ -802,3 +802,13 @@ def test_a_report_inspected_again_without_a_replay(inspected, tmp_path):
 
     with pytest.raises(ValueError, match="shading would change a replay that does not run"):
         run_inspection(rec, tmp_path / "v", from_report=out, shading="drift")
+
+
+def test_a_mixed_fit_states_its_quadratic_share():
+    """The report says how many fits "mixed" shading took quadratic; the other models have no share to state."""
+    from gearscan.inspect import shading_share
+
+    assert shading_share({"shading": "mixed", "quadratic_points": 81, "refined": 100}) == ": 81 % of the fits quadratic"
+    for refine in ({"shading": "drift", "quadratic_points": 0, "refined": 100}, {"shading": "mixed", "refined": 100},
+                   {"shading": "mixed", "quadratic_points": 0, "refined": 0}):
+        assert shading_share(refine) == ""

@@ -642,11 +642,12 @@ def test_replay_and_cli_take_the_frame_fits_shading(off_cad_turn, tmp_path):
 
     reader, _, _, _, stats, _ = off_cad_turn
     assert stats["shading"] == SHADING
-    for shading in ("drift", "lambert"):
+    for shading in ("drift", "lambert", "mixed"):
         m = replay(reader.path, decoder=Decoder(classical=True), truth=False, fuse=CloudFuser(0.1, 3), refine=True,
                    shading=shading, point_sigma_mm=0.02)
         assert m.refine["shading"] == shading and m.refine["sigma_bound_mm"] == 0.02
         assert m.fused.sigma.max() <= 0.02 and m.fused.refined.mean() > 0.5
+        assert (m.refine["quadratic_points"] > 0) == (shading == "mixed")
 
     def said(res) -> str:
         return " ".join(res.output.replace("│", " ").split())
