@@ -200,8 +200,6 @@ class TrackRefiner:
         self.max_step_mm = float(max_step_mm)
         self.outlier_sigma = float(outlier_sigma)
         self.drift = bool(drift)
-        # the polynomial degree in the turn angle of the shading terms (0: none; 2: "quadratic")
-        self.degree = 0 if not self.drift else 2 if shading in ("quadratic", "mixed") else 1
         self.mixed_sigma_ratio = float(mixed_sigma_ratio)
         self.max_sigma_mm = float(max_sigma_mm)
         self.rest_sigma_scale = float(rest_sigma_scale)
@@ -209,6 +207,12 @@ class TrackRefiner:
         self.settle_rad = None if settle_rad is None else float(settle_rad)
         self.modulation_ratio = None if modulation_ratio is None else float(modulation_ratio)
         self.bursts: list[_BurstView] = []
+
+    @property
+    def degree(self) -> int:
+        """The polynomial degree in the turn angle of the shading terms (0: none; 2: "quadratic", and "mixed"'s largest),
+        from ``shading`` and ``drift`` as they are now (a rule script may set ``shading`` after construction)."""
+        return 0 if not self.drift else 2 if self.shading in ("quadratic", "mixed") else 1
 
     def __len__(self) -> int:
         return len(self.bursts)

@@ -108,11 +108,13 @@ def main() -> None:
         MODULATION_RATIO,
         REST_SIGMA_SCALE,
         SETTLE_RAD,
+        TrackRefiner,
     )
 
     settings = {"max_sigma_rad": FRAME_FIT_MAX_SIGMA_RAD, "rest_sigma_scale": REST_SIGMA_SCALE,
                 "rest_sigma_scale_by_model": rest_scales(), "product_support_px": FRAME_FIT_NETWORK_SUPPORT_PX,
-                "settle_rad": SETTLE_RAD, "modulation_ratio": MODULATION_RATIO, "min_incidence_cos": MIN_INCIDENCE_COS}
+                "settle_rad": SETTLE_RAD, "modulation_ratio": MODULATION_RATIO, "min_incidence_cos": MIN_INCIDENCE_COS,
+                "normal_radius_mm": TrackRefiner.__init__.__kwdefaults__["normal_radius_mm"]}
     done = run_rule(args.out, args.recordings, args.bursts, "benchmarks/frame_fit_shading_rule.md", FIELD, CANDIDATES,
                     None, settings, "flank_bin_sd_um", scorer=score_cell, incumbent=INCUMBENT, reference=INCUMBENT,
                     metric="flank_bin_sd_um")

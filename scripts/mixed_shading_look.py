@@ -40,10 +40,10 @@ def fits(rec: Path, work: Path, name: str) -> tuple[dict, Path]:
 
     def both_then_product(self, fused):
         res = {}
-        for degree in (1, 2):
-            self.degree = degree
+        for degree, shading in ((1, "drift"), (2, "quadratic")):
+            self.shading = shading
             res[degree] = self.refine(fused.points)
-        self.degree = 1
+        self.shading = "drift"
         dump.write_bytes(pickle.dumps({"fused": fused, "fits": res, "max_sigma_mm": self.max_sigma_mm,
                                        "rest_sigma_scale": self.rest_sigma_scale}))
         return product(self, fused)
