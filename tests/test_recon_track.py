@@ -577,7 +577,7 @@ def test_mixed_shading_takes_the_quadratic_fit_where_its_samples_carry_it(off_ca
         ref.bursts = refiner.bursts
         return ref.refine(fused.points)
 
-    drift, mixed = refiner.refine(fused.points), fit(shading="mixed")
+    drift, mixed = fit(shading="drift"), fit(shading="mixed")
     r = mixed.refined
     assert r.mean() > 0.6, f"only {r.mean():.0%} of the points fitted"
     share = mixed.stats["quadratic_points"] / mixed.stats["refined"]
@@ -608,7 +608,10 @@ def test_lambert_fit_moves_the_fused_points_onto_the_true_surface(off_cad_turn):
     z = np.abs(after) / res.sigma[r]
     assert 0.3 < np.median(z) < 2.0
     np.testing.assert_array_equal(res.points[~r], fused.points[~r])
-    drift = refiner.refine(fused.points)  # the same cloud and frames, the drift model: lambert is no worse
+    # the same cloud and frames, the drift model: lambert is no worse
+    drift_fit = TrackRefiner(reader.rig, reader.patterns.periods[0], shading="drift")
+    drift_fit.bursts = refiner.bursts
+    drift = drift_fit.refine(fused.points)
     both = r & drift.refined
     assert _rms_um(_signed(truth, res.points[both])) <= 1.05 * _rms_um(_signed(truth, drift.points[both]))
 
