@@ -72,8 +72,9 @@ MAX_POINT_SIGMA_MM = 0.03
 # light constant; the points it cannot take go to the drift fit). Val chose "lambert" (benchmarks/frame_fit_shading_rule.md,
 # scripts/choose_frame_fit_shading.py -> frame_fit_shading_val.json), but with it the substitution benchmark's statement
 # failed on a held-out gear (Fp, benchmarks/substitution_lambert_report.md) and the profile headlines did not improve:
-# drift stayed the product's (until session 60's "mixed"), lambert an option (--frame-fit-shading lambert). "quadratic" (session 59): mean and
-# modulation quadratic in the turn angle, no surface model: follows a curved shading without a normal or a reflectance.
+# drift stayed the product's (until session 60's "mixed"), lambert an option (--frame-fit-shading lambert).
+# "quadratic" (session 59): mean and modulation quadratic in the turn angle, no surface model: follows a curved
+# shading without a normal or a reflectance.
 # "mixed" (session 60): per point "quadratic" where its samples carry the three more terms, "drift" where they do not;
 # the product's since session 60 (benchmarks/mixed_shading_rule.md: on the substitution benchmark U of pitch 52-65 %
 # lower, of F_alpha 26 % and ff_alpha 11 % lower, fH_alpha 4 % higher, the statement held on 36 of 36 held-out readings)
