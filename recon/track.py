@@ -428,11 +428,13 @@ class TrackRefiner:
             if quad is None:
                 coef, res_sd, nfr, spread, sig_eps = _fit(idx[good], val[good], psi[good], tau[good], n, degree, g_good)
             else:
-                if it == decide:
-                    both = [_fit(idx[good], val[good], psi[good], tau[good], n, d) for d in (1, 2)]
+                if it == decide:  # both fits of every point, each point then keeps its own
+                    both = {d: _fit(idx[good], val[good], psi[good], tau[good], n, d) for d in (1, 2)}
                     with np.errstate(invalid="ignore"):
-                        quad = np.isfinite(both[1][4]) & (both[1][4] <= self.mixed_sigma_ratio * both[0][4])
-                coef, res_sd, nfr, spread, sig_eps = _fit_degrees(idx[good], val[good], psi[good], tau[good], n, quad)
+                        quad = np.isfinite(both[2][4]) & (both[2][4] <= self.mixed_sigma_ratio * both[1][4])
+                    coef, res_sd, nfr, spread, sig_eps = _merge_degrees(both, quad)
+                else:
+                    coef, res_sd, nfr, spread, sig_eps = _fit_degrees(idx[good], val[good], psi[good], tau[good], n, quad)
             cc, ss = coef[:, 1], coef[:, 2]
             if it == self.iterations - 2 or self.iterations == 1:  # drop samples far from the fit
                 pred = np.einsum("ij,ij->i", _design(psi, tau, degree, gain), coef[idx])
@@ -572,13 +574,24 @@ def _fit(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: 
 def _fit_degrees(idx: np.ndarray, val: np.ndarray, psi: np.ndarray, tau: np.ndarray, n: int, quad: np.ndarray):
     """:func:`_fit` of degree 2 for the points ``quad``, of degree 1 for the others, in one result (the coefficients in
     degree 2's columns, zero where degree 1 has none: its columns are degree 2's first six)."""
+    fits = {}
+    for degree, mine in ((1, ~quad), (2, quad)):
+        if mine.any():  # a point's fit reads only its own samples: each degree on its points' samples alone
+            m = mine[idx]
+            fits[degree] = _fit(idx[m], val[m], psi[m], tau[m], n, degree)
+    return _merge_degrees(fits, quad)
+
+
+def _merge_degrees(fits: dict, quad: np.ndarray):
+    """One :func:`_fit` result from ``fits`` (degree -> its result): degree 2's for the points ``quad``, degree 1's for
+    the others (a degree no point takes may be missing)."""
+    n = len(quad)
     coef, res_sd = np.zeros((n, 9)), np.zeros(n)
     count, spread, sig_eps = np.zeros(n, np.int64), np.zeros(n), np.full(n, np.inf)
     for degree, mine in ((1, ~quad), (2, quad)):
         if not mine.any():
             continue
-        m = mine[idx]
-        sol, sd, cnt, spr, sig = _fit(idx[m], val[m], psi[m], tau[m], n, degree)
+        sol, sd, cnt, spr, sig = fits[degree]
         coef[mine, : sol.shape[1]] = sol[mine]
         res_sd[mine], count[mine], spread[mine], sig_eps[mine] = sd[mine], cnt[mine], spr[mine], sig[mine]
     return coef, res_sd, count, spread, sig_eps
