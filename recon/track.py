@@ -242,9 +242,10 @@ class TrackRefiner:
         """What :meth:`add` keeps for ``frames`` frames: the raw images and one depth map per burst."""
         return frames * height * width * itemsize + (frames // 3) * height * width * 4
 
-    def refine_fused(self, fused: FusedCloud) -> tuple[FusedCloud, dict]:
+    def refine_fused(self, fused: FusedCloud, fit: TrackResult | None = None) -> tuple[FusedCloud, dict]:
         """``fused`` with its refined points moved and their sigma from the fit; every point of the
-        result has a sigma of at most ``max_sigma_mm``.
+        result has a sigma of at most ``max_sigma_mm``. ``fit``: a :meth:`refine` result of ``fused.points`` already
+        made (or assembled from several, as a rule script's candidates are), used instead of fitting again.
 
         The points the fit could not take keep their fused position with ``rest_sigma_scale * sigma *
         sqrt(bursts)``. No credit for averaging: the few bursts that saw such a point saw it from nearly
@@ -262,17 +263,19 @@ class TrackRefiner:
         (``stats["implausible"]``) are among the points the fit could not take, so those counts overlap the
         two drop counts.
         """
-        out, off, stats = self.fit_fused(fused)
+        out, off, stats = self.fit_fused(fused, fit)
         uncertain = ~out.refined & ~off & (out.sigma > self.max_sigma_mm)
         stats = {**stats, "off_surface": int(off.sum()), "uncertain": int(uncertain.sum()),
                  "sigma_bound_mm": self.max_sigma_mm}
         drop = off | uncertain
         return (out.select(~drop) if drop.any() else out), stats
 
-    def fit_fused(self, fused: FusedCloud) -> tuple[FusedCloud, np.ndarray, dict]:
+    def fit_fused(self, fused: FusedCloud, fit: TrackResult | None = None) -> tuple[FusedCloud, np.ndarray, dict]:
         """:meth:`refine_fused` before it drops anything: every fused point, fitted or with its scaled burst
         sigma, the (N,) off-surface mask, and the fit's stats (what the val calibration of the scale reads)."""
-        res = self.refine(fused.points)
+        res = self.refine(fused.points) if fit is None else fit
+        if len(res.points) != len(fused):
+            raise ValueError(f"fit: {len(res.points)} points for a fused cloud of {len(fused)}")
         r = res.refined
         points = np.where(r[:, None], res.points, fused.points)
         sigma = np.where(r, res.sigma, self.rest_sigma_scale * fused.sigma * np.sqrt(np.maximum(fused.bursts, 1)))

@@ -17,7 +17,6 @@ import json
 import pickle
 import shutil
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -58,24 +57,20 @@ def fits(rec: Path, work: Path, name: str) -> tuple[dict, Path]:
     return pickle.loads(dump.read_bytes()), base
 
 
-def combined(d: dict, ratio: float):
-    """The fused cloud with each point from the quadratic fit where its sigma <= ratio x drift's, else drift's, then
-    dropped as ``TrackRefiner.refine_fused`` drops; and the counts."""
-    from gearscan.recon.track import off_surface
+def combined(d: dict, ratio: float, rig, period_px: float):
+    """The fused cloud with each point from the quadratic fit where its sigma <= ratio x drift's, else drift's, through
+    the product's ``TrackRefiner.refine_fused`` (its sigma for the rest, its drops); and the counts."""
+    from gearscan.recon.track import TrackRefiner, TrackResult
 
-    fused, r1, r2 = d["fused"], d["fits"][1], d["fits"][2]
+    r1, r2 = d["fits"][1], d["fits"][2]
     with np.errstate(invalid="ignore"):
         quad = r2.refined & (~r1.refined | (r2.sigma <= ratio * r1.sigma))
-    drift = r1.refined & ~quad
-    rest = d["rest_sigma_scale"] * fused.sigma * np.sqrt(np.maximum(fused.bursts, 1))
-    pts = np.where(quad[:, None], r2.points, np.where(drift[:, None], r1.points, fused.points))
-    sigma = np.where(quad, r2.sigma, np.where(drift, r1.sigma, rest))
-    fitted = quad | drift
-    cloud = replace(fused, points=pts, sigma=sigma, refined=fitted, deviation=None, deviation_sigma=None,
-                    ray=np.where(quad[:, None], r2.rays, r1.rays))
-    off = off_surface(pts, fitted)
-    drop = off | (~fitted & ~off & (sigma > d["max_sigma_mm"]))
-    return cloud.select(~drop), {"quadratic": int(quad.sum()), "drift": int(drift.sum())}
+    pick = lambda a, b: np.where(quad.reshape(-1, *[1] * (a.ndim - 1)), b, a)  # noqa: E731
+    fit = TrackResult(pick(r1.points, r2.points), pick(r1.sigma, r2.sigma), r1.refined | quad,
+                      pick(r1.frames, r2.frames), pick(r1.moved_mm, r2.moved_mm), pick(r1.rays, r2.rays), {})
+    refiner = TrackRefiner(rig, period_px, rest_sigma_scale=d["rest_sigma_scale"], max_sigma_mm=d["max_sigma_mm"])
+    cloud, _ = refiner.refine_fused(d["fused"], fit)
+    return cloud, {"quadratic": int(quad.sum()), "drift": int((r1.refined & ~quad).sum())}
 
 
 def bounds(report: Path, rec: Path) -> dict:
@@ -105,10 +100,13 @@ def main() -> None:
     if not (rec / "recording.json").exists():
         raise SystemExit(f"{rec}: no recording (render it: python benchmarks/substitution_bench.py --measure-only)")
     args.work.mkdir(parents=True, exist_ok=True)
+    from gearscan.core.recording import RecordingReader
+
     d, base = fits(rec, args.work, args.name)
+    reader = RecordingReader(rec)
     print(f"{args.name} drift (product): { {k: round(v, 2) for k, v in bounds(base, rec).items()} }")
     for ratio in (float(x) for x in args.ratios.split(",")):
-        cloud, counts = combined(d, ratio)
+        cloud, counts = combined(d, ratio, reader.rig, reader.patterns.periods[0])
         src, out = args.work / f"src_{args.name}_R{ratio:g}", args.work / f"comb_{args.name}_R{ratio:g}"
         for folder in (src, out):
             shutil.rmtree(folder, ignore_errors=True)
